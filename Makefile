@@ -1,0 +1,35 @@
+# Entry points; every target sets up .venv first (idempotent, fast when already done).
+VENV := .venv/bin
+export DVC_NO_ANALYTICS := 1
+
+.PHONY: setup pipeline data test lint format bench clean
+
+setup:
+	bash scripts/setup.sh
+
+## The main job: the DVC pipeline on the embedded defaults (no server needed).
+pipeline: setup
+	$(VENV)/dvc repro
+
+## Only the data stage.
+data: setup
+	$(VENV)/dvc repro generate
+
+## Lint and the whole test suite (what CI runs).
+test: setup
+	$(VENV)/ruff check src tests benchmarks scripts train.py
+	$(VENV)/python -m pytest -q
+
+lint: setup
+	$(VENV)/ruff check src tests benchmarks scripts train.py
+	$(VENV)/ruff format --check src tests benchmarks scripts train.py
+
+format: setup
+	$(VENV)/ruff format src tests benchmarks scripts train.py
+	$(VENV)/ruff check --fix src tests benchmarks scripts train.py
+
+bench: setup
+	$(VENV)/python benchmarks/bench_generate.py
+
+clean:
+	rm -rf outputs multirun .pytest_cache .ruff_cache

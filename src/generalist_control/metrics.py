@@ -1,0 +1,107 @@
+"""Step-response and tracking metrics from sampled responses, vectorised over runs.
+
+Definitions (the reference's final value ``r_f`` is the target; responses start at rest):
+
+- rise time: time from first reaching 10 % of ``r_f`` to first reaching 90 % (as
+  python-control's ``step_info``);
+- overshoot: ``100 * (max(sign(r_f) y) - |r_f|) / |r_f|``, 0 if never exceeded;
+- settling time: first sample after which ``|y / r_f - 1| < 2 %`` for good;
+- steady-state error: ``|r_f - y[-1]|``; relative: divided by ``|r_f|``;
+- ISE ``= int e^2 dt`` and ITAE ``= int t |e| dt`` with ``e = r - y``, trapezoidal rule;
+- u_max ``= max |u|``.
+
+A metric that is undefined (never reached 90 %, never settled) is NaN.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["METRIC_NAMES", "step_metrics", "tracking_metrics"]
+
+METRIC_NAMES = (
+    "rise_time",
+    "overshoot",
+    "settling_time",
+    "steady_state_error",
+    "ISE",
+    "ITAE",
+    "u_max",
+)
+
+
+def _first_true(mask: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index and time of the first True along the last axis (NaN time where none)."""
+    any_ = mask.any(axis=-1)
+    idx = np.argmax(mask, axis=-1)
+    return idx, np.where(any_, t[idx], np.nan)
+
+
+def tracking_metrics(t: np.ndarray, y: np.ndarray, r: np.ndarray) -> dict[str, np.ndarray]:
+    """ISE, ITAE and RMSE of ``e = r - y``; ``y``, ``r`` of shape (..., len(t))."""
+    e = np.asarray(r, dtype=float) - np.asarray(y, dtype=float)
+    return {
+        "ISE": np.trapezoid(e**2, t, axis=-1),
+        "ITAE": np.trapezoid(t * np.abs(e), t, axis=-1),
+        "RMSE": np.sqrt(np.mean(e**2, axis=-1)),
+    }
+
+
+def step_metrics(
+    t: np.ndarray,
+    y: np.ndarray,
+    u: np.ndarray,
+    r: np.ndarray,
+    settling_threshold: float = 0.02,
+    rise_limits: tuple[float, float] = (0.1, 0.9),
+) -> dict[str, np.ndarray]:
+    """Metrics of step responses.
+
+    Parameters
+    ----------
+    t : ndarray, shape (N,)
+        Sample times.
+    y : ndarray, shape (..., N)
+        Output responses.
+    u : ndarray, shape (..., M)
+        Control signals (any length).
+    r : ndarray, shape (..., N) or (...,)
+        Reference signal, or only its final value for a step applied at t = 0.
+
+    Returns
+    -------
+    dict of str to ndarray
+        The entries of :data:`METRIC_NAMES` plus ``relative_steady_state_error``, each of
+        shape ``y.shape[:-1]``.
+    """
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    r = np.asarray(r, dtype=float)
+    r_sig = (
+        np.broadcast_to(r[..., None], y.shape) if r.ndim < y.ndim else np.broadcast_to(r, y.shape)
+    )
+    rf = r_sig[..., -1]
+    sgn = np.sign(rf)[..., None]
+    lo, hi = rise_limits
+    _, t_lo = _first_true(sgn * (y - lo * rf[..., None]) >= 0, t)
+    i_hi, t_hi = _first_true(sgn * (y - hi * rf[..., None]) >= 0, t)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        peak = (sgn * y).max(axis=-1)
+        overshoot = np.maximum(0.0, 100.0 * (peak - np.abs(rf)) / np.abs(rf))
+        outside = np.abs(y / rf[..., None] - 1.0) >= settling_threshold
+    n = y.shape[-1]
+    last_out = np.where(outside.any(axis=-1), n - 1 - np.argmax(outside[..., ::-1], axis=-1), -1)
+    settled = last_out + 1
+    settling_time = np.where(settled < n, t[np.minimum(settled, n - 1)], np.nan)
+    ess = np.abs(rf - y[..., -1])
+    out = {
+        "rise_time": t_hi - t_lo,
+        "overshoot": np.where(np.isnan(t_hi), np.nan, overshoot),
+        "settling_time": settling_time,
+        "steady_state_error": ess,
+        "relative_steady_state_error": ess / np.abs(rf),
+        "u_max": np.abs(np.asarray(u, dtype=float)).max(axis=-1),
+    }
+    tm = tracking_metrics(t, y, r_sig)
+    out["ISE"], out["ITAE"] = tm["ISE"], tm["ITAE"]
+    return out

@@ -1,0 +1,183 @@
+"""The data stage: grid, counts, manifest, determinism, atomic writes and input errors."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from generalist_control import demos as demos_mod
+from generalist_control.catalog import UnknownPlantError, plants_from_config
+from generalist_control.demos import MissingDataError, load_demos
+from generalist_control.generate import DataConfigError, amplitude_grid, run
+from generalist_control.plants import PlantConfigError
+from helpers import compose_cfg
+
+PAPER_WINDOWS = 314_630
+
+
+@pytest.fixture(scope="module")
+def full(tmp_path_factory):
+    """The default data stage (all 25 plants), written once for this module."""
+    out = tmp_path_factory.mktemp("gen") / "demos"
+    manifest = run(compose_cfg(f"paths.data_dir={out}"))
+    return out, manifest
+
+
+def test_default_grid_is_non_uniform_and_bounded():
+    grid = amplitude_grid(compose_cfg().data.amplitudes)
+    assert grid.min() == -20 and grid.max() == 20 and 0 not in grid
+    np.testing.assert_allclose(grid, -grid[::-1])
+    gaps = set(np.round(np.diff(grid[grid > 0]), 6))
+    assert {0.2, 1.0, 5.0} <= gaps
+
+
+def test_default_counts_match_the_paper(full):
+    out, manifest = full
+    assert abs(manifest["n_demonstrations"] - PAPER_WINDOWS) / PAPER_WINDOWS < 0.01
+    assert len(manifest["plants"]) == 25
+    assert {m["order"] for m in manifest["plants"].values()} == {2, 3, 4}
+    assert sorted(m["tag"] for m in manifest["plants"].values()) == list(range(25))
+    assert (
+        sum(m["n_demonstrations"] for m in manifest["plants"].values())
+        == manifest["n_demonstrations"]
+    )
+    assert manifest["history"] == 8 and manifest["horizon"] == 3 and manifest["dt"] == 0.05
+    on_disk = json.loads((out / "manifest.json").read_text())
+    assert on_disk["content_hash"] == manifest["content_hash"]
+    assert on_disk["config"]["data"]["amplitudes"]["limit"] == 20.0
+
+
+def test_loaded_windows_match_manifest_and_expert(full):
+    out, manifest = full
+    demos, _ = load_demos(out)
+    w = demos.windows(manifest["history"], manifest["horizon"])
+    assert len(w) == manifest["n_demonstrations"]
+    for name, m in manifest["plants"].items():
+        assert (
+            np.sum(np.isin(w.traj, np.flatnonzero(demos.plant == name))) == m["n_demonstrations"]
+        )
+        assert np.all(demos.order[demos.plant == name] == m["order"])
+    assert np.all(w.state[w.mask == 0] == 0)
+    # every LQI demonstration settles to its step by the end of the horizon
+    rel = np.abs(demos.y[:, -1] - demos.r[:, -1]) / np.abs(demos.r[:, -1])
+    assert rel.max() < 0.02, demos.plant[rel.argmax()]
+
+
+def test_same_config_same_hash_byte_for_byte(full, tmp_path):
+    out, manifest = full
+    again = run(compose_cfg(f"paths.data_dir={tmp_path / 'demos'}"))
+    assert again["content_hash"] == manifest["content_hash"]
+    for name in ("trajectories.parquet", "manifest.json"):
+        assert (tmp_path / "demos" / name).read_bytes() == (out / name).read_bytes()
+
+
+def test_changed_grid_changes_hash(tmp_path):
+    base = ["systems=paper", "data.duration=2.0"]
+    a = run(compose_cfg(*base, f"paths.data_dir={tmp_path / 'a'}"))
+    b = run(
+        compose_cfg(
+            *base, "data.amplitudes.segments.0.step=0.4", f"paths.data_dir={tmp_path / 'b'}"
+        )
+    )
+    assert a["content_hash"] != b["content_hash"]
+    assert b["n_trajectories"] < a["n_trajectories"]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "error", "match"),
+    [
+        (["systems.include=[cstr,nope]"], UnknownPlantError, "unknown plant 'nope'; known"),
+        (["systems.plants.cstr.lqi.R=-1"], PlantConfigError, "plant 'cstr'.*lqi.R"),
+        (["systems.plants.cstr.lqi.Q=[1,1]"], PlantConfigError, "plant 'cstr'.*lqi.Q.*shape"),
+        (["systems.plants.cstr.C=[[0,1]]"], PlantConfigError, "transmission zero at s = 0"),
+        (["data.amplitudes.segments.2.stop=25"], DataConfigError, r"segments\[2\].stop = 25"),
+        (["data.amplitudes.segments.0.step=0"], DataConfigError, r"segments\[0\].step"),
+        (["systems.plants.cstr.dt=0.1"], DataConfigError, "share a sample time"),
+    ],
+)
+def test_bad_input_fails_before_writing(tmp_path, overrides, error, match):
+    out = tmp_path / "demos"
+    with pytest.raises(error, match=match):
+        run(compose_cfg("systems=paper", f"paths.data_dir={out}", *overrides))
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_interrupted_write_keeps_previous_dataset(tmp_path, monkeypatch):
+    out = tmp_path / "demos"
+    cfg = compose_cfg("systems=paper", "data.duration=1.0", f"paths.data_dir={out}")
+    first = run(cfg)
+
+    def boom(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(demos_mod.pq, "write_table", boom)
+    with pytest.raises(KeyboardInterrupt):
+        run(compose_cfg("systems=paper", "data.duration=2.0", f"paths.data_dir={out}"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demos"]
+    assert json.loads((out / "manifest.json").read_text())["content_hash"] == first["content_hash"]
+
+
+def test_missing_data_error_gives_the_command(tmp_path):
+    with pytest.raises(MissingDataError, match="python -m generalist_control.generate"):
+        load_demos(tmp_path / "nowhere")
+
+
+def test_sets_compose_the_documented_plants():
+    names = lambda s: [p.name for p in plants_from_config(compose_cfg(f"systems={s}").systems)]  # noqa: E731
+    assert sorted(names("paper")) == sorted(
+        [
+            "unstable",
+            "cstr",
+            "hydraulic_actuator",
+            "auv_yaw",
+            "boeing747",
+            "two_mass_spring",
+            "crazyflie_altitude",
+        ]
+    )
+    assert sorted(names("ablation")) == sorted(
+        ["double_integrator", "crazyflie_altitude", "cstr", "mass_spring_damper", "hvac_two_zone"]
+    )
+
+
+def test_cli_entry_point_quiet_when_not_a_tty(tmp_path):
+    out = tmp_path / "demos"
+    env = {**os.environ, "HYDRA_FULL_ERROR": "1"}
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "generalist_control.generate",
+            "systems=paper",
+            f"paths.data_dir={out}",
+            f"hydra.run.dir={tmp_path / 'hydra'}",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "generate:" not in proc.stderr and "it/s" not in proc.stderr  # no progress bar
+    assert json.loads((out / "manifest.json").read_text())["n_trajectories"] == 7 * 64
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "generalist_control.generate",
+            "systems=nope",
+            f"paths.data_dir={out}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert bad.returncode != 0 and "Could not find 'systems/nope'" in bad.stderr
+    assert "paper" in bad.stderr  # Hydra lists the available sets
+    assert Path(out).exists()  # the previous dataset is untouched

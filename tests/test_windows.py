@@ -1,0 +1,66 @@
+"""The window builder: counts, shapes, padding, masks and alignment with the raw signals."""
+
+import numpy as np
+import pytest
+
+from generalist_control.windows import build_windows, history_windows, pad_states
+
+H, K = 8, 3
+
+
+def toy(B=3, N=20, orders=(2, 3, 4)):
+    rng = np.random.default_rng(1)
+    x = np.zeros((B, N, 4))
+    for b, n in enumerate(orders):
+        x[b, :, :n] = rng.normal(size=(N, n))
+    return x, rng.normal(size=(B, N)), rng.normal(size=(B, N)), np.array(orders)
+
+
+def test_counts_and_shapes():
+    x, r, u, order = toy()
+    w = build_windows(x, r, u, np.array([5, 6, 7]), order, H, K)
+    assert len(w) == 3 * (20 - K + 1)
+    assert w.state.shape == (54, H, 4) and w.mask.shape == (54, H, 4)
+    assert w.ref.shape == (54, H) and w.target.shape == (54, K)
+    assert w.state.dtype == np.float32 and w.tag.dtype == np.int64
+    assert w.tag.tolist() == [5] * 18 + [6] * 18 + [7] * 18
+    assert w.traj.tolist() == [0] * 18 + [1] * 18 + [2] * 18
+
+
+def test_alignment_with_raw_signals():
+    x, r, u, order = toy()
+    w = build_windows(x, r, u, np.zeros(3, int), order, H, K)
+    per = 20 - K + 1
+    for b in range(3):
+        for k in (0, 3, 7, 10, per - 1):
+            i = b * per + k
+            idx = np.clip(np.arange(k - H + 1, k + 1), 0, None)  # edge-padded history
+            np.testing.assert_allclose(w.state[i], x[b, idx].astype(np.float32))
+            np.testing.assert_allclose(w.ref[i], r[b, idx].astype(np.float32))
+            np.testing.assert_allclose(w.target[i], u[b, k : k + K].astype(np.float32))
+
+
+def test_mask_and_zero_padding():
+    x, r, u, order = toy()
+    for b, n in enumerate(order):
+        x[b, :, n:] = 99.0  # junk in the padded entries must not leak through
+    w = build_windows(x, r, u, np.zeros(3, int), order, H, K)
+    per = 20 - K + 1
+    for b, n in enumerate(order):
+        sl = slice(b * per, (b + 1) * per)
+        assert np.all(w.mask[sl, :, :n] == 1) and np.all(w.mask[sl, :, n:] == 0)
+        assert np.all(w.state[sl, :, n:] == 0)
+
+
+def test_history_windows_last_equals_build_windows():
+    x, r, u, order = toy()
+    s, m, rr = history_windows(x, r, order, H)
+    w = build_windows(x, r, u, np.zeros(3, int), order, H, K)
+    np.testing.assert_array_equal(s[0, 5], w.state[5])
+    np.testing.assert_array_equal(rr[2, 17], w.ref[2 * 18 + 17])
+
+
+def test_pad_states_rejects_too_many_states():
+    assert pad_states(np.ones((2, 3))).shape == (2, 4)
+    with pytest.raises(ValueError, match="at most 4"):
+        pad_states(np.ones((2, 5)))
