@@ -157,3 +157,27 @@ def test_anti_windup_equals_lqi_without_limits_and_helps_with_them():
     os_plain = step_metrics(plain.t, plain.y, plain.u, 1.0)["overshoot"][0]
     os_aw = step_metrics(aw.t, aw.y, aw.u, 1.0)["overshoot"][0]
     assert os_aw < 0.5 * os_plain
+
+
+def test_simulate_many_equals_separate_runs():
+    from generalist_control.lqi import AntiWindupLQIController
+    from generalist_control.simulate import PerPlantController, Perturbation, Run, simulate_many
+
+    plants = [load_plant(n) for n in ("cstr", "hydraulic_actuator", "two_mass_spring")]
+    pert = Perturbation(u_limit=0.4, noise_std=0.01, seed=5)
+    runs = [
+        Run(plants[0], np.full((2, 120), 2.0)),
+        Run(plants[1], np.full((1, 120), -1.0), x0=np.array([[0.1, 0.0, 0.0]])),
+        Run(plants[2], np.full((3, 120), 0.5), perturbation=pert),
+    ]
+    many = simulate_many(runs, PerPlantController(lambda p: AntiWindupLQIController(p, pert)))
+    for run, tr in zip(runs, many, strict=True):
+        one = simulate(
+            run.plant, AntiWindupLQIController(run.plant, pert), run.r, run.x0, run.perturbation
+        )
+        np.testing.assert_array_equal(tr.x, one.x)
+        np.testing.assert_array_equal(tr.u, one.u)
+    with pytest.raises(ValueError, match="equal length"):
+        simulate_many(
+            [runs[0], Run(plants[1], np.ones((1, 50)))], PerPlantController(LQIController)
+        )

@@ -8,16 +8,29 @@ reference ``r[k]`` and returns ``u[k]``, held constant until ``k + 1``.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from scipy.linalg import expm
 
+from generalist_control.windows import pad_states
+
 if TYPE_CHECKING:
     from generalist_control.plants import Plant
 
-__all__ = ["Controller", "Perturbation", "Trajectory", "discretise", "simulate"]
+__all__ = [
+    "BatchController",
+    "Controller",
+    "PerPlantController",
+    "Perturbation",
+    "Run",
+    "Trajectory",
+    "discretise",
+    "simulate",
+    "simulate_many",
+]
 
 #: A state whose magnitude exceeds this is treated as diverged.
 DIVERGENCE_BOUND = 1e6
@@ -105,6 +118,82 @@ def discretise(A: np.ndarray, B: np.ndarray, dt: float) -> tuple[np.ndarray, np.
     return E[:n, :n], E[:n, n:]
 
 
+class _Group:
+    """The state of a batch of runs on one plant while the loop advances."""
+
+    def __init__(
+        self,
+        plant: Plant,
+        r: np.ndarray,
+        x0: np.ndarray | None,
+        perturbation: Perturbation | None,
+    ) -> None:
+        r = np.atleast_2d(np.asarray(r, dtype=float))
+        self.plant, self.r, self.pert = plant, r, perturbation
+        self.batch, self.steps = r.shape
+        n = plant.order
+        self.x = np.zeros((self.batch, self.steps + 1, n))
+        if x0 is not None:
+            x0 = np.asarray(x0, dtype=float)
+            if x0.shape != (self.batch, n):
+                raise ValueError(
+                    f"x0 has shape {x0.shape}; plant '{plant.name}' needs ({self.batch}, {n})"
+                )
+            self.x[:, 0] = x0
+        self.u = np.zeros((self.batch, self.steps))
+        self.u_prev = np.zeros(self.batch)
+        self.diverged = np.zeros(self.batch, dtype=bool)
+        self.rng = np.random.default_rng(perturbation.seed) if perturbation is not None else None
+        if plant.is_linear:
+            self.Ad, self.Bd = discretise(plant.A, plant.B, plant.dt)
+
+    def _advance(self, xk: np.ndarray, uk: np.ndarray) -> np.ndarray:
+        p = self.plant
+        if p.is_linear:
+            return xk @ self.Ad.T + uk[:, None] * self.Bd[:, 0]
+        h = p.dt / p.substeps
+        for _ in range(p.substeps):
+            k1 = p.deriv(xk, uk)
+            k2 = p.deriv(xk + 0.5 * h * k1, uk)
+            k3 = p.deriv(xk + 0.5 * h * k2, uk)
+            k4 = p.deriv(xk + h * k3, uk)
+            xk = xk + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+        return xk
+
+    def measure(self, k: int) -> np.ndarray:
+        """The state the controller sees at sample ``k`` (with noise, if any)."""
+        xm, pert = self.x[:, k], self.pert
+        if (
+            pert is not None
+            and pert.noise_std is not None
+            and k * self.plant.dt >= pert.noise_start
+        ):
+            std = np.broadcast_to(pert.noise_std, (self.plant.order,))
+            xm = xm + self.rng.normal(size=xm.shape) * std
+        return xm
+
+    def apply(self, k: int, u_cmd: np.ndarray) -> None:
+        """Pass the command through the actuator and advance one sample."""
+        uk = np.asarray(u_cmd, dtype=float).reshape(self.batch)
+        pert = self.pert
+        if pert is not None:
+            uk = pert.actuate(uk, self.u_prev, self.plant.dt)
+            self.u_prev = uk
+        self.u[:, k] = uk
+        if pert is not None and pert.disturbance and k * self.plant.dt >= pert.disturbance_start:
+            uk = uk + pert.disturbance
+        nxt = self._advance(self.x[:, k], uk)
+        bad = ~np.all(np.isfinite(nxt) & (np.abs(nxt) < DIVERGENCE_BOUND), axis=1)
+        self.diverged |= bad
+        self.x[:, k + 1] = np.where(self.diverged[:, None], self.x[:, k], nxt)
+
+    def result(self) -> Trajectory:
+        n = self.plant.order
+        y = self.plant.output(self.x.reshape(-1, n)).reshape(self.batch, self.steps + 1)
+        t = np.arange(self.steps + 1) * self.plant.dt
+        return Trajectory(t=t, x=self.x, u=self.u, r=self.r, y=y, diverged=self.diverged)
+
+
 def simulate(
     plant: Plant,
     controller: Controller,
@@ -129,56 +218,81 @@ def simulate(
     -------
     Trajectory
     """
-    r = np.atleast_2d(np.asarray(r, dtype=float))
-    batch, steps = r.shape
-    n = plant.order
-    x = np.zeros((batch, steps + 1, n))
-    if x0 is not None:
-        x0 = np.asarray(x0, dtype=float)
-        if x0.shape != (batch, n):
-            raise ValueError(f"x0 has shape {x0.shape}; plant '{plant.name}' needs ({batch}, {n})")
-        x[:, 0] = x0
-    u = np.zeros((batch, steps))
-    diverged = np.zeros(batch, dtype=bool)
-    controller.reset(batch)
-    pert = perturbation
-    rng = np.random.default_rng(pert.seed) if pert is not None else None
-    u_prev = np.zeros(batch)
-    if plant.is_linear:
-        Ad, Bd = discretise(plant.A, plant.B, plant.dt)
-        advance = lambda xk, uk: xk @ Ad.T + uk[:, None] * Bd[:, 0]  # noqa: E731
-    else:
-        h = plant.dt / plant.substeps
-
-        def advance(xk: np.ndarray, uk: np.ndarray) -> np.ndarray:
-            for _ in range(plant.substeps):
-                k1 = plant.deriv(xk, uk)
-                k2 = plant.deriv(xk + 0.5 * h * k1, uk)
-                k3 = plant.deriv(xk + 0.5 * h * k2, uk)
-                k4 = plant.deriv(xk + h * k3, uk)
-                xk = xk + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-            return xk
-
+    g = _Group(plant, r, x0, perturbation)
+    controller.reset(g.batch)
     with np.errstate(all="ignore"):
-        for k in range(steps):
-            xm = x[:, k]
-            if (
-                pert is not None
-                and pert.noise_std is not None
-                and k * plant.dt >= pert.noise_start
-            ):
-                xm = xm + rng.normal(size=xm.shape) * np.broadcast_to(pert.noise_std, (n,))
-            uk = np.asarray(controller.step(xm, r[:, k]), dtype=float).reshape(batch)
-            if pert is not None:
-                uk = pert.actuate(uk, u_prev, plant.dt)
-                u_prev = uk
-            u[:, k] = uk
-            if pert is not None and pert.disturbance and k * plant.dt >= pert.disturbance_start:
-                uk = uk + pert.disturbance
-            nxt = advance(x[:, k], uk)
-            bad = ~np.all(np.isfinite(nxt) & (np.abs(nxt) < DIVERGENCE_BOUND), axis=1)
-            diverged |= bad
-            x[:, k + 1] = np.where(diverged[:, None], x[:, k], nxt)
-    y = plant.output(x.reshape(-1, n)).reshape(batch, steps + 1)
-    t = np.arange(steps + 1) * plant.dt
-    return Trajectory(t=t, x=x, u=u, r=r, y=y, diverged=diverged)
+        for k in range(g.steps):
+            g.apply(k, controller.step(g.measure(k), g.r[:, k]))
+    return g.result()
+
+
+@dataclass(frozen=True)
+class Run:
+    """A batch of runs on one plant for :func:`simulate_many`."""
+
+    plant: Plant
+    r: np.ndarray
+    x0: np.ndarray | None = None
+    perturbation: Perturbation | None = None
+
+
+class BatchController(Protocol):
+    """A controller of many plants at once (the learned policy, or LQI experts stacked)."""
+
+    def reset(self, plants: Sequence[Plant], counts: Sequence[int]) -> None:
+        """Prepare for ``counts[i]`` runs of ``plants[i]``, stacked in that order."""
+
+    def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Controls ``(B,)`` for zero-padded states ``(B, MAX_ORDER)`` and references."""
+
+
+def simulate_many(runs: Sequence[Run], controller: BatchController) -> list[Trajectory]:
+    """Simulate runs on several plants in lockstep, one controller call per sample.
+
+    All runs must share the sample time and the number of samples. Rows are stacked in the
+    order of ``runs``; states reach the controller zero-padded to ``MAX_ORDER``.
+    """
+    groups = [_Group(run.plant, run.r, run.x0, run.perturbation) for run in runs]
+    if len({g.steps for g in groups}) != 1 or len({g.plant.dt for g in groups}) != 1:
+        raise ValueError("simulate_many needs runs of equal length and sample time")
+    controller.reset([g.plant for g in groups], [g.batch for g in groups])
+    splits = np.cumsum([g.batch for g in groups])[:-1]
+    with np.errstate(all="ignore"):
+        for k in range(groups[0].steps):
+            x = np.concatenate([pad_states(g.measure(k)) for g in groups])
+            r = np.concatenate([g.r[:, k] for g in groups])
+            u = np.asarray(controller.step(x, r), dtype=float)
+            for g, uk in zip(groups, np.split(u, splits), strict=True):
+                g.apply(k, uk)
+    return [g.result() for g in groups]
+
+
+class PerPlantController:
+    """A :class:`BatchController` made of one single-plant controller per group of rows.
+
+    Parameters
+    ----------
+    make : callable
+        ``make(plant) -> Controller``, e.g. ``LQIController`` or
+        ``lambda p: AntiWindupLQIController(p, limits)``.
+    """
+
+    def __init__(self, make: Callable[[Plant], Controller]) -> None:
+        self.make = make
+        self._parts: list[tuple[Controller, int, slice]] = []
+
+    def reset(self, plants: Sequence[Plant], counts: Sequence[int]) -> None:
+        """Build and reset one controller per plant."""
+        self._parts, start = [], 0
+        for plant, count in zip(plants, counts, strict=True):
+            ctrl = self.make(plant)
+            ctrl.reset(count)
+            self._parts.append((ctrl, plant.order, slice(start, start + count)))
+            start += count
+
+    def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Route each group's rows (unpadded) to its controller."""
+        u = np.empty(x.shape[0])
+        for ctrl, n, rows in self._parts:
+            u[rows] = ctrl.step(x[rows, :n], r[rows])
+        return u
