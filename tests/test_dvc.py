@@ -67,11 +67,11 @@ def test_repro_skip_rerun_push_pull(repo, tmp_path):
     # push to a local directory remote, lose cache and outputs, pull them back
     remote = tmp_path / "remote"
     sh([*DVC, "remote", "add", "-f", "-d", "tmpstore", str(remote)], work, env)
-    sh([*DVC, "push"], work, env)
+    sh([*DVC, "push", "generate"], work, env)
     assert any(remote.rglob("*"))
     shutil.rmtree(work / "data/demos")
     shutil.rmtree(work / ".dvc/cache")
-    sh([*DVC, "pull"], work, env)
+    sh([*DVC, "pull", "generate"], work, env)
     pulled = json.loads((work / "data/demos/manifest.json").read_text())
     assert pulled["content_hash"] == changed["content_hash"]
     assert "didn't change, skipping" in sh([*DVC, "repro", "generate"], work, env)
