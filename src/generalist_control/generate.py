@@ -21,6 +21,7 @@ from generalist_control import __version__
 from generalist_control.catalog import plants_from_config
 from generalist_control.demos import FORMAT_VERSION, DemoSet, content_hash, write_demos
 from generalist_control.lqi import LQIController, design_lqi
+from generalist_control.paths import HYDRA_CONFIG_PATH
 from generalist_control.plants import MAX_ORDER, Plant
 from generalist_control.simulate import simulate
 from generalist_control.windows import pad_states, windows_per_trajectory
@@ -204,7 +205,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return manifest
 
 
-@hydra.main(version_base="1.3", config_path="../../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="config")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point of the ``generate`` stage."""
     run(cfg)

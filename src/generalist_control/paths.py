@@ -9,13 +9,21 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["CONF_DIR", "GENERATE_COMMAND", "conf_dir"]
+__all__ = ["CONF_DIR", "GENERATE_COMMAND", "HYDRA_CONFIG_PATH", "TRAIN_COMMAND", "conf_dir"]
 
 #: ``conf/`` beside ``src/`` in the source tree.
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 #: The command that creates the demonstration dataset (quoted in missing-data errors).
 GENERATE_COMMAND = "python -m generalist_control.generate  (or: dvc repro generate)"
+
+#: The command that trains the default policy (quoted in missing-model errors).
+TRAIN_COMMAND = "python train.py  (or: dvc repro train)"
+
+#: ``config_path`` of every ``@hydra.main``. Absolute on purpose: a relative one resolves
+#: against the *package* (pkg://) when ``main`` is imported rather than run as ``__main__``,
+#: i.e. from the root shims and the console scripts.
+HYDRA_CONFIG_PATH = os.environ.get("GC_CONF_DIR", str(CONF_DIR))
 
 
 def conf_dir() -> Path:

@@ -1,0 +1,83 @@
+r"""Two cascaded tanks with Torricelli outflow (nonlinear).
+
+A pump fills the upper tank; it drains through an orifice into the lower tank, which drains
+through its own orifice to a reservoir. Bernoulli/Torricelli gives the orifice flow
+``q = a sqrt(2 g h)``, so
+
+.. math::
+    A_1 \dot h_1 = q_{in} - a_1 \sqrt{2 g h_1}, \qquad
+    A_2 \dot h_2 = a_1 \sqrt{2 g h_1} - a_2 \sqrt{2 g h_2},
+
+the standard cascaded-tank model (e.g. K. H. Johansson, "The quadruple-tank process",
+IEEE Trans. Control Syst. Technol. 8(3), 2000, one side of it; K. J. Astrom and
+R. M. Murray, *Feedback Systems*, 2008). Units: levels in cm, areas in cm^2, flows in
+cm^3/s, ``g = 981`` cm/s^2. Levels are clipped at zero inside the square root (an empty
+tank has no outflow); the plant file picks an operating point far from that.
+
+The linearisation at the level ``h_i`` has the time constant
+``T_i = (A_i / a_i) sqrt(2 h_i / g)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["equilibrium", "f"]
+
+
+def _outflow(a: float, h: np.ndarray, g: float) -> np.ndarray:
+    return a * np.sqrt(2.0 * g * np.maximum(h, 0.0))
+
+
+def f(
+    x: np.ndarray,
+    u: np.ndarray,
+    *,
+    A1: float,
+    A2: float,
+    a1: float,
+    a2: float,
+    g: float = 981.0,
+) -> np.ndarray:
+    """Level derivatives of the two cascaded tanks, batched.
+
+    Parameters
+    ----------
+    x : ndarray, shape (batch, 2)
+        Upper and lower tank levels ``[h1, h2]`` in cm.
+    u : ndarray, shape (batch,)
+        Pump inflow to the upper tank in cm^3/s.
+    A1, A2 : float
+        Tank cross-sections in cm^2.
+    a1, a2 : float
+        Outlet orifice areas in cm^2.
+    g : float
+        Gravitational acceleration in cm/s^2.
+
+    Returns
+    -------
+    ndarray, shape (batch, 2)
+        ``[dh1/dt, dh2/dt]`` in cm/s.
+
+    Examples
+    --------
+    >>> x, q = equilibrium(40.0, A1=15.0, A2=15.0, a1=1.5, a2=1.5)
+    >>> bool(np.allclose(f(x[None], np.array([q]), A1=15.0, A2=15.0, a1=1.5, a2=1.5), 0))
+    True
+    """
+    x = np.asarray(x, dtype=float)
+    q1 = _outflow(a1, x[:, 0], g)
+    q2 = _outflow(a2, x[:, 1], g)
+    return np.stack([(np.asarray(u, dtype=float) - q1) / A1, (q1 - q2) / A2], axis=1)
+
+
+def equilibrium(
+    h2: float, *, A1: float, A2: float, a1: float, a2: float, g: float = 981.0
+) -> tuple[np.ndarray, float]:
+    """Operating point ``(x_op, q_op)`` with lower-tank level ``h2`` (cm).
+
+    In equilibrium both orifice flows equal the pump flow, so ``h1 = h2 (a2 / a1)^2``.
+    """
+    del A1, A2  # the areas do not affect the steady state
+    h1 = h2 * (a2 / a1) ** 2
+    return np.array([h1, h2]), float(a2 * np.sqrt(2.0 * g * h2))

@@ -1,0 +1,279 @@
+"""Closed-loop evaluation of a trained policy against LQI (``python -m ...evaluate``).
+
+Every scenario of ``conf/evaluation`` runs three controllers on each plant it applies to:
+the learned Generalist Controller (GC), the LQI expert, and LQI with anti-windup
+(LQI-AW, conditional integration against the scenario's actuator limits). All plants of a
+scenario are simulated in lockstep so the policy is called once per sample for all of them.
+A run that diverges is reported as diverged (metric ``diverged`` = 1, other metrics NaN),
+never as a huge number in an average.
+
+Outputs under ``paths.reports_dir`` (default ``reports/eval``): ``metrics.csv`` in long form
+(system, scenario, controller, run, metric, value), ``summary.json`` (the quality-bar
+figures, DVC metrics), ``table2.md`` (the paper's Table 2 layout with the paper's values
+beside ours), ``table_all.md`` (the same for every plant), ``responses.csv`` (DVC plots)
+and PNG plots; all are logged to the MLflow run of the evaluated model.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig, OmegaConf
+
+from generalist_control import mlflow_utils
+from generalist_control.catalog import plants_from_config
+from generalist_control.crazyflie import fly
+from generalist_control.lqi import AntiWindupLQIController, LQIController
+from generalist_control.metrics import step_metrics, tracking_metrics
+from generalist_control.paths import HYDRA_CONFIG_PATH
+from generalist_control.plants import Plant
+from generalist_control.runtime import PolicyController, PolicyRuntime
+from generalist_control.scenarios import perturbation, references
+from generalist_control.simulate import (
+    BatchController,
+    PerPlantController,
+    Perturbation,
+    Run,
+    Trajectory,
+    simulate_many,
+)
+
+__all__ = ["CONTROLLERS", "evaluate", "output_mse", "run", "summarise"]
+
+log = logging.getLogger(__name__)
+
+CONTROLLERS = ("GC", "LQI", "LQI-AW")
+STEP_KINDS = ("step", "random_steps")
+
+
+class SinglePlantPolicy:
+    """The runtime as a single-plant controller (for the Crazyflie loop)."""
+
+    def __init__(self, runtime: PolicyRuntime, plant: str) -> None:
+        self.runtime, self.plant = runtime, plant
+
+    def reset(self, batch_size: int) -> None:
+        """One runtime row per run."""
+        self.runtime.reset([self.plant] * batch_size)
+
+    def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Controls for unpadded states."""
+        padded = np.zeros((x.shape[0], 4))
+        padded[:, : x.shape[1]] = x
+        return self.runtime.step(padded, r)
+
+
+def _controller(name: str, runtime: PolicyRuntime, pert: Perturbation | None) -> BatchController:
+    if name == "GC":
+        return PolicyController(runtime)
+    if name == "LQI":
+        return PerPlantController(LQIController)
+    limits = pert or Perturbation()
+    return PerPlantController(lambda p: AntiWindupLQIController(p, limits))
+
+
+def _rows(
+    system: str, scenario: str, controller: str, kind: str, tr: Trajectory
+) -> list[tuple[str, str, str, int, str, float]]:
+    if kind in STEP_KINDS:
+        m = step_metrics(tr.t[:-1], tr.y[:, :-1], tr.u, tr.r)
+    else:
+        m = tracking_metrics(tr.t[:-1], tr.y[:, :-1], tr.r)
+    out = []
+    for i in range(tr.r.shape[0]):
+        bad = bool(tr.diverged[i])
+        out.append((system, scenario, controller, i, "diverged", float(bad)))
+        for key, values in m.items():
+            out.append((system, scenario, controller, i, key, np.nan if bad else float(values[i])))
+    return out
+
+
+def evaluate(
+    runtime: PolicyRuntime,
+    plants: Sequence[Plant],
+    scenarios: Mapping[str, Mapping[str, Any]],
+    crazyflie: Mapping[str, Any] | None = None,
+) -> tuple[pd.DataFrame, dict[str, dict[str, dict[str, Trajectory]]]]:
+    """Run every scenario for every controller; return long-form metrics and trajectories.
+
+    Returns
+    -------
+    metrics : DataFrame
+        Columns ``system, scenario, controller, run, metric, value``.
+    trajectories : dict
+        ``trajectories[scenario][controller][system]``.
+    """
+    missing = [p.name for p in plants if p.name not in runtime.tags]
+    if missing:
+        raise KeyError(
+            f"the policy was not trained on {', '.join(missing)}; it knows "
+            f"{', '.join(runtime.systems)}. Evaluate a set it was trained on (systems=...)"
+        )
+    rows: list[tuple] = []
+    trajs: dict[str, dict[str, dict[str, Trajectory]]] = {}
+    for name, spec in scenarios.items():
+        only = spec.get("plants")
+        chosen = [p for p in plants if only is None or p.name in only]
+        if not chosen:
+            continue
+        pert = perturbation(name, spec)
+        runs = []
+        for p in chosen:
+            r, x0 = references(name, spec, p)
+            runs.append(Run(p, r, x0, pert))
+        trajs[name] = {}
+        for ctrl in CONTROLLERS:
+            results = simulate_many(runs, _controller(ctrl, runtime, pert))
+            trajs[name][ctrl] = {p.name: tr for p, tr in zip(chosen, results, strict=True)}
+            for p, tr in zip(chosen, results, strict=True):
+                rows += _rows(p.name, name, ctrl, spec["kind"], tr)
+    if crazyflie and any(p.name == "crazyflie_altitude" for p in plants):
+        plant = next(p for p in plants if p.name == "crazyflie_altitude")
+        steps = int(round(float(crazyflie.get("duration", 15.0)) * 100))
+        r = np.full((int(crazyflie.get("runs", 4)), steps), float(crazyflie.get("amplitude", 1.0)))
+        ctrls = {
+            "GC": SinglePlantPolicy(runtime, plant.name),
+            "LQI": LQIController(plant),
+            "LQI-AW": LQIController(plant),  # no known limits to wind up against here
+        }
+        trajs["crazyflie_sim2real"] = {}
+        for ctrl, c in ctrls.items():
+            tr = fly(c, r, control_dt=plant.dt, seed=int(crazyflie.get("seed", 0)))
+            trajs["crazyflie_sim2real"][ctrl] = {plant.name: tr}
+            rows += _rows(plant.name, "crazyflie_sim2real", ctrl, "step", tr)
+    df = pd.DataFrame(rows, columns=["system", "scenario", "controller", "run", "metric", "value"])
+    return df, trajs
+
+
+def output_mse(
+    runtime: PolicyRuntime, plants: Sequence[Plant], duration: float = 15.0
+) -> dict[str, float]:
+    """The ablation study's closed-loop score: per plant, the output MSE of GC against LQI.
+
+    Both controllers track a unit step (scaled by the plant's ``amplitude_scale``) from
+    rest for ``duration`` seconds; the score is the mean of ``(y_GC - y_LQI)**2`` over the
+    samples. A diverged GC run scores ``inf``.
+    """
+    spec = {"kind": "step", "amplitude": 1.0, "duration": float(duration)}
+    runs = [Run(p, *references("step", spec, p), None) for p in plants]
+    gc = simulate_many(runs, PolicyController(runtime))
+    lqi = simulate_many(runs, PerPlantController(LQIController))
+    return {
+        p.name: float("inf") if a.diverged.any() else float(np.mean((a.y - b.y) ** 2))
+        for p, a, b in zip(plants, gc, lqi, strict=True)
+    }
+
+
+def summarise(df: pd.DataFrame) -> dict[str, Any]:
+    """Quality-bar figures: divergences, worst ISE/ITAE ratios GC/LQI, worst relative e_ss."""
+    mean = df.groupby(["scenario", "controller", "system", "metric"])["value"].mean()
+    out: dict[str, Any] = {"diverged": {}, "ratios": {}}
+    for ctrl in CONTROLLERS:
+        d = df[(df.controller == ctrl) & (df.metric == "diverged")]
+        out["diverged"][ctrl] = {
+            s: int(v) for s, v in d.groupby("scenario")["value"].sum().items() if v > 0
+        }
+    for scen in ("step", "random_steps"):
+        if scen not in mean.index.get_level_values(0):
+            continue
+        gc, lqi = mean[scen]["GC"], mean[scen]["LQI"]
+        ratio = {
+            k: (gc.xs(k, level="metric") / lqi.xs(k, level="metric")).dropna()
+            for k in ("ISE", "ITAE")
+        }
+        ess = gc.xs("relative_steady_state_error", level="metric")
+        out["ratios"][scen] = {
+            "worst_ISE_ratio": float(ratio["ISE"].max()),
+            "worst_ISE_system": str(ratio["ISE"].idxmax()),
+            "worst_ITAE_ratio": float(ratio["ITAE"].max()),
+            "worst_ITAE_system": str(ratio["ITAE"].idxmax()),
+            "worst_relative_ess_GC": float(ess.max()),
+            "worst_relative_ess_system": str(ess.idxmax()),
+            "n_systems": int(len(ratio["ISE"])),
+        }
+    step = out["ratios"].get("step", {})
+    out["quality_bar"] = {
+        "stable_everywhere": not any(out["diverged"]["GC"].get(s) for s in STEP_KINDS),
+        "ess_within_1pct": all(
+            out["ratios"].get(s, {}).get("worst_relative_ess_GC", np.inf) <= 0.01
+            for s in STEP_KINDS
+        ),
+        "ISE_ratio_le_1.15": step.get("worst_ISE_ratio", np.inf) <= 1.15,
+        "ITAE_ratio_le_2.0": step.get("worst_ITAE_ratio", np.inf) <= 2.0,
+    }
+    return out
+
+
+def _publish(staging: Path, out_dir: Path) -> None:
+    old = out_dir.with_name(f".{out_dir.name}.old-{os.getpid()}")
+    if out_dir.exists():
+        os.replace(out_dir, old)
+    os.replace(staging, out_dir)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def write_reports(
+    df: pd.DataFrame,
+    trajs: Mapping[str, Mapping[str, Mapping[str, Trajectory]]],
+    out_dir: str | Path,
+    plots: bool = True,
+) -> dict[str, Any]:
+    """Write the CSV, tables, summary and plots atomically to ``out_dir``; return the summary."""
+    from generalist_control import eval_report
+
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
+    try:
+        df.to_csv(staging / "metrics.csv", index=False)
+        summary = summarise(df)
+        (staging / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        (staging / "table2.md").write_text(eval_report.table2_markdown(df))
+        (staging / "table_all.md").write_text(eval_report.table_all_markdown(df))
+        eval_report.responses_csv(trajs).to_csv(staging / "responses.csv", index=False)
+        if plots:
+            eval_report.plot_all(trajs, staging / "plots")
+        os.chmod(staging, 0o755)
+        _publish(staging, out_dir)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return summary
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Load the policy, evaluate it on ``cfg.systems`` and write (and log) the reports."""
+    source = cfg.get("policy") or str(Path(cfg.paths.models_dir) / "policy.ckpt")
+    mlflow_utils.set_tracking(cfg.logger)  # for runs:/ and models:/ policy URIs
+    runtime = PolicyRuntime.load(source, backend=cfg.evaluation.get("backend", "torch"))
+    plants = plants_from_config(cfg.systems)
+    scen = OmegaConf.to_container(cfg.evaluation.scenarios, resolve=True)
+    cf = OmegaConf.to_container(cfg.evaluation.get("crazyflie") or {}, resolve=True)
+    df, trajs = evaluate(runtime, plants, scen, cf)
+    out_dir = Path(cfg.paths.reports_dir)
+    summary = write_reports(df, trajs, out_dir, plots=bool(cfg.evaluation.get("plots", True)))
+    from generalist_control.eval_report import log_to_mlflow
+
+    log_to_mlflow(cfg, runtime.meta, summary, out_dir)
+    log.info("evaluation written to %s: %s", out_dir, json.dumps(summary["quality_bar"]))
+    return summary
+
+
+@hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="config")
+def main(cfg: DictConfig) -> None:
+    """Hydra entry point of the ``evaluate`` stage."""
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()

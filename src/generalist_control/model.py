@@ -1,0 +1,222 @@
+"""The Generalist Controller network (paper, Section 4).
+
+One forward pass maps a window of normalised inputs to ``horizon`` normalised controls:
+
+1. *Feature encoding*, per time step of the ``history``-step window: two state encoders on
+   the masked, zero-padded state ``X * M``, a reference encoder and a system-tag encoder,
+   each a two-layer ReLU MLP with output size ``hidden // 2``; their outputs are
+   concatenated into ``d_f = 2 * hidden`` features per step.
+2. *Temporal processing*: an LSTM over all ``history`` feature vectors and a second LSTM
+   over the sequence subsampled with stride ``stride`` (ending at the newest sample), both
+   of size ``d_h = hidden``; their final hidden states are concatenated into
+   ``z`` (``2 * hidden``), then multi-head attention with a residual, ``z + W_O a(z)``.
+3. *Mixture of experts*: ``experts`` three-layer MLPs (ReLU, LayerNorm after each hidden
+   layer) each give ``horizon`` controls; a softmax gate on ``z_att`` weighs them.
+
+Normalisation is not part of this module: :class:`generalist_control.policy.Policy`
+wraps it with the :class:`~generalist_control.normalise.Normaliser` fitted on the training
+split, and that wrapper is what training, evaluation and deployment call.
+
+Choices where the paper is silent or inconsistent are documented in ``docs/training.md``:
+the per-head size is ``d_k = ceil(2 d_h / N_h)`` (so ``N_h = 3`` works at any ``d_h``, with
+``W_O`` mapping ``N_h d_k`` back to ``2 d_h``), and the tag enters as a one-hot vector,
+implemented as an embedding lookup (the same function as ``W_1 onehot + b_1``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from generalist_control.plants import MAX_ORDER
+
+__all__ = [
+    "MODEL_DEFAULTS",
+    "ExpertMLP",
+    "GeneralistController",
+    "SummaryAttention",
+    "controller_config",
+    "count_parameters",
+]
+
+
+#: Network config keys and defaults: ``hidden`` (d), ``heads`` (N_h), ``stride`` (tau),
+#: ``history`` (T_h), ``horizon`` (K), ``experts`` (M), ``n_tags``, ``state_dim`` (n_max).
+MODEL_DEFAULTS: dict[str, int] = {
+    "hidden": 32,
+    "heads": 3,
+    "stride": 2,
+    "history": 8,
+    "horizon": 3,
+    "experts": 3,
+    "n_tags": 25,
+    "state_dim": MAX_ORDER,
+}
+
+
+def controller_config(**kwargs: Any) -> dict[str, int]:
+    """Complete and check a network config; a plain ``dict`` (checkpoints store it as is).
+
+    Raises
+    ------
+    ValueError
+        If a key is unknown, a value is not a positive integer, or ``hidden`` is odd.
+    """
+    unknown = set(kwargs) - set(MODEL_DEFAULTS)
+    if unknown:
+        raise ValueError(
+            f"unknown model config keys {sorted(unknown)}; known: {sorted(MODEL_DEFAULTS)}"
+        )
+    cfg = {k: int(kwargs.get(k, v)) for k, v in MODEL_DEFAULTS.items()}
+    for key, value in cfg.items():
+        if value < 1:
+            raise ValueError(f"model.{key} must be a positive integer, got {value}")
+    if cfg["hidden"] % 2:
+        raise ValueError(f"model.hidden must be even (encoders give hidden // 2), got {cfg}")
+    return cfg
+
+
+def _mlp(n_in: int, n_hidden: int, n_out: int) -> nn.Sequential:
+    """Two-layer encoder ``W_2 relu(W_1 x + b_1) + b_2`` (paper, Eq. f_1..f_4)."""
+    return nn.Sequential(nn.Linear(n_in, n_hidden), nn.ReLU(), nn.Linear(n_hidden, n_out))
+
+
+class SummaryAttention(nn.Module):
+    """Multi-head scaled dot-product attention with a residual: ``z + W_O [a_1 .. a_H]``.
+
+    Parameters
+    ----------
+    dim : int
+        Token size (``2 d_h`` in the paper).
+    heads : int
+        ``N_h``. Each head has ``d_k = ceil(dim / heads)``; the concatenated heads
+        (``heads * d_k``, which may exceed ``dim``) are projected back to ``dim`` by ``W_O``.
+
+    Notes
+    -----
+    As in the paper the tokens are the temporal summary ``z`` alone (one token per window),
+    so the softmax over a single key is identically one and the block computes
+    ``z + W_O V z``; the query and key projections are kept for fidelity with the paper
+    (and its parameter count), but receive zero gradient (up to rounding).
+    """
+
+    def __init__(self, dim: int, heads: int) -> None:
+        super().__init__()
+        self.heads = heads
+        self.d_k = math.ceil(dim / heads)
+        inner = heads * self.d_k
+        self.qkv = nn.Linear(dim, 3 * inner)
+        self.out = nn.Linear(inner, dim)
+
+    def forward(self, tokens: Tensor) -> Tensor:
+        """Attend over ``tokens`` (B, T, dim); return the same shape."""
+        B, T, _ = tokens.shape
+        qkv = self.qkv(tokens).view(B, T, 3, self.heads, self.d_k).permute(2, 0, 3, 1, 4)
+        a = F.scaled_dot_product_attention(qkv[0], qkv[1], qkv[2])  # (B, heads, T, d_k)
+        return tokens + self.out(a.transpose(1, 2).reshape(B, T, self.heads * self.d_k))
+
+
+class ExpertMLP(nn.Sequential):
+    """One expert: three linear layers, ReLU then LayerNorm after each hidden layer."""
+
+    def __init__(self, n_in: int, n_hidden: int, n_out: int) -> None:
+        super().__init__(
+            nn.Linear(n_in, n_hidden),
+            nn.ReLU(),
+            nn.LayerNorm(n_hidden),
+            nn.Linear(n_hidden, n_hidden),
+            nn.ReLU(),
+            nn.LayerNorm(n_hidden),
+            nn.Linear(n_hidden, n_out),
+        )
+
+
+class GeneralistController(nn.Module):
+    """The network of the paper on *normalised* inputs (see the module docstring).
+
+    Parameters
+    ----------
+    hidden, heads, stride, history, horizon, experts, n_tags, state_dim : int
+        See :data:`MODEL_DEFAULTS`.
+
+    Examples
+    --------
+    >>> net = GeneralistController(hidden=32, experts=3)
+    >>> B = 5
+    >>> u, gates = net(torch.zeros(B, 8, 4), torch.ones(B, 8, 4), torch.zeros(B, 8),
+    ...                torch.zeros(B, dtype=torch.long))
+    >>> tuple(u.shape), tuple(gates.shape)
+    ((5, 3), (5, 3))
+    """
+
+    def __init__(self, **config: Any) -> None:
+        super().__init__()
+        self.config = controller_config(**config)
+        c = self.config
+        d, e = c["hidden"], c["hidden"] // 2
+        self.state_encoder_1 = _mlp(c["state_dim"], d, e)
+        self.state_encoder_2 = _mlp(c["state_dim"], d, e)
+        self.ref_encoder = _mlp(1, d, e)
+        # one-hot tag -> W_1 onehot + b_1 is a row lookup: an embedding of size d
+        self.tag_embedding = nn.Embedding(c["n_tags"], d)
+        self.tag_encoder = nn.Sequential(nn.ReLU(), nn.Linear(d, e))
+        self.lstm_fast = nn.LSTM(4 * e, d, batch_first=True)
+        self.lstm_slow = nn.LSTM(4 * e, d, batch_first=True)
+        self.attention = SummaryAttention(2 * d, c["heads"])
+        self.experts = nn.ModuleList(
+            ExpertMLP(2 * d, d, c["horizon"]) for _ in range(c["experts"])
+        )
+        self.gate = nn.Linear(2 * d, c["experts"])
+        # the slow LSTM sees samples ..., t - 2 tau, t - tau, t (always the newest one)
+        self.slow_start = (c["history"] - 1) % c["stride"]
+
+    def features(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor) -> Tensor:
+        """Per-step features ``f_k`` (B, history, 2 * hidden) of the encoders."""
+        x = state * mask  # the paper's X ⊙ M: padded entries never reach the network
+        f_tag = self.tag_encoder(self.tag_embedding(tag))  # the same at every step
+        return torch.cat(
+            [
+                self.state_encoder_1(x),
+                self.state_encoder_2(x),
+                self.ref_encoder(ref.unsqueeze(-1)),
+                f_tag.unsqueeze(1).expand(-1, x.shape[1], -1),
+            ],
+            dim=-1,
+        )
+
+    def forward(
+        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """Controls and gate weights for a batch of normalised windows.
+
+        Parameters
+        ----------
+        state, mask : Tensor, shape (B, history, state_dim)
+        ref : Tensor, shape (B, history)
+        tag : Tensor of int, shape (B,)
+
+        Returns
+        -------
+        u : Tensor, shape (B, horizon)
+            Normalised control sequence ``sum_i alpha_i u^(i)``.
+        gates : Tensor, shape (B, experts)
+            Softmax gate weights ``alpha`` (rows sum to one).
+        """
+        f = self.features(state, mask, ref, tag)
+        _, (h_fast, _) = self.lstm_fast(f)
+        _, (h_slow, _) = self.lstm_slow(f[:, self.slow_start :: self.config["stride"]])
+        z = torch.cat([h_fast[-1], h_slow[-1]], dim=-1)
+        z_att = self.attention(z.unsqueeze(1)).squeeze(1)
+        gates = torch.softmax(self.gate(z_att), dim=-1)
+        u_experts = torch.stack([expert(z_att) for expert in self.experts], dim=1)
+        u = torch.einsum("bm,bmk->bk", gates, u_experts)
+        return u, gates
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of trainable parameters of ``module``."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)

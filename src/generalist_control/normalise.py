@@ -1,0 +1,120 @@
+"""Per-tag input and control scaling, fitted on the training split and stored with the model.
+
+The plants' signals differ by orders of magnitude (a Crazyflie's thrust deviation is about
+0.01 N, a CSTR's input about 2), so one global scale would leave the loss dominated by a
+few plants. The system tag is known at deployment, so each signal is divided by its
+root-mean-square over the training windows *of that tag*: each state entry, the reference
+and the control. Only scales are used, no offsets: the data are deviations about an
+operating point, and zero stays zero.
+
+The scales are buffers of a :class:`Normaliser` module, so they travel in the model's
+``state_dict`` (and every checkpoint); training, evaluation and deployment all call
+:meth:`Normaliser.normalise_inputs` and :meth:`Normaliser.denormalise_controls` of the
+same object (see :class:`generalist_control.policy.Policy`). Tags never seen in training
+fall back to the scales over all training windows and are flagged in :attr:`seen`.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["Normaliser"]
+
+#: Scales below this (a signal that is always zero, or a padded state entry) become one.
+_TINY = 1e-12
+
+
+def _rms(sum_sq: Tensor, count: Tensor) -> Tensor:
+    rms = torch.sqrt(sum_sq / count.clamp(min=1))
+    return torch.where((count > 0) & (rms > _TINY), rms, torch.ones_like(rms))
+
+
+class Normaliser(nn.Module):
+    """Per-tag RMS scales of state entries, reference and controls.
+
+    Parameters
+    ----------
+    n_tags : int
+        Number of system tags (tags are ``0 .. n_tags - 1``).
+    state_dim : int
+        Padded state size ``n_max``.
+
+    Attributes
+    ----------
+    state_scale : Tensor, shape (n_tags, state_dim)
+    ref_scale, control_scale : Tensor, shape (n_tags,)
+    seen : Tensor of bool, shape (n_tags,)
+        Tags present in the data the scales were fitted on.
+    """
+
+    state_scale: Tensor
+    ref_scale: Tensor
+    control_scale: Tensor
+    seen: Tensor
+
+    def __init__(self, n_tags: int, state_dim: int) -> None:
+        super().__init__()
+        self.register_buffer("state_scale", torch.ones(n_tags, state_dim))
+        self.register_buffer("ref_scale", torch.ones(n_tags))
+        self.register_buffer("control_scale", torch.ones(n_tags))
+        self.register_buffer("seen", torch.zeros(n_tags, dtype=torch.bool))
+
+    @torch.no_grad()
+    def fit(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor, target: Tensor) -> None:
+        """Set the scales from training windows (see :class:`~generalist_control.windows.Windows`).
+
+        Parameters
+        ----------
+        state, mask : Tensor, shape (W, history, state_dim)
+        ref : Tensor, shape (W, history)
+        tag : Tensor of int, shape (W,)
+        target : Tensor, shape (W, horizon)
+
+        Raises
+        ------
+        ValueError
+            If a tag lies outside ``0 .. n_tags - 1`` or there are no windows.
+        """
+        n_tags = self.seen.numel()
+        if tag.numel() == 0:
+            raise ValueError("cannot fit the normaliser on zero windows")
+        if int(tag.min()) < 0 or int(tag.max()) >= n_tags:
+            raise ValueError(
+                f"system tags must lie in 0..{n_tags - 1} (model.n_tags = {n_tags}); "
+                f"got {int(tag.min())}..{int(tag.max())}"
+            )
+        d = torch.float64
+        onehot = nn.functional.one_hot(tag, n_tags).to(d)  # (W, n_tags)
+        m = mask.to(d)
+        sx = onehot.T @ ((state.to(d) * m) ** 2).sum(1)  # (n_tags, state_dim)
+        cx = onehot.T @ m.sum(1)
+        sr = onehot.T @ (ref.to(d) ** 2).sum(1)
+        su = onehot.T @ (target.to(d) ** 2).sum(1)
+        n = onehot.sum(0)
+        cr, cu = n * ref.shape[1], n * target.shape[1]
+        seen = n > 0
+        # unseen tags: the scales over all training windows
+        sx[~seen], cx[~seen] = sx.sum(0), cx.sum(0)
+        sr[~seen], cr[~seen] = sr.sum(), cr.sum()
+        su[~seen], cu[~seen] = su.sum(), cu.sum()
+        self.state_scale.copy_(_rms(sx, cx))
+        self.ref_scale.copy_(_rms(sr, cr))
+        self.control_scale.copy_(_rms(su, cu))
+        self.seen.copy_(seen)
+
+    def normalise_inputs(
+        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Scaled ``(state * mask, mask, ref, tag)``; padded entries come out exactly zero."""
+        state = state / self.state_scale[tag].unsqueeze(1) * mask
+        ref = ref / self.ref_scale[tag].unsqueeze(1)
+        return state, mask, ref, tag
+
+    def normalise_controls(self, u: Tensor, tag: Tensor) -> Tensor:
+        """Controls (B, horizon) in plant units -> network units."""
+        return u / self.control_scale[tag].unsqueeze(1)
+
+    def denormalise_controls(self, u: Tensor, tag: Tensor) -> Tensor:
+        """Network outputs (B, horizon) -> controls in plant units."""
+        return u * self.control_scale[tag].unsqueeze(1)

@@ -1,0 +1,165 @@
+"""The deployable policy: normaliser + network, and its checkpoint file.
+
+:class:`Policy` is the single preprocessing path of the project: training computes its
+loss on :meth:`Policy.normalised`, and evaluation and deployment call :meth:`Policy.forward`
+(raw plant units in and out) or :meth:`Policy.predict_windows` on
+:class:`~generalist_control.windows.Windows` built by the one window builder.
+
+A policy file (``models/policy.ckpt``) holds plain types and tensors only, so it loads with
+``torch.load(path, weights_only=True)``::
+
+    {"format_version": 1, "model": {...network config...}, "state_dict": {...},
+     "meta": {"tags": {plant: tag}, "orders": {plant: n}, "dt": ..., "history": ...,
+              "horizon": ..., "content_hash": "sha256:...", "metrics": {...}, ...}}
+
+:func:`load_policy` reads such a file or a Lightning checkpoint written by training.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from generalist_control.model import GeneralistController, controller_config
+from generalist_control.normalise import Normaliser
+from generalist_control.windows import Windows
+
+__all__ = [
+    "POLICY_FORMAT_VERSION",
+    "FlatPolicy",
+    "Policy",
+    "flat_columns",
+    "load_policy",
+    "save_policy",
+]
+
+POLICY_FORMAT_VERSION = 1
+
+
+class Policy(nn.Module):
+    """Normaliser and network: raw windows in, controls in plant units out.
+
+    Parameters
+    ----------
+    model : dict
+        Network config (see :data:`generalist_control.model.MODEL_DEFAULTS`).
+    """
+
+    def __init__(self, model: dict[str, Any]) -> None:
+        super().__init__()
+        self.config = controller_config(**model)
+        self.normaliser = Normaliser(self.config["n_tags"], self.config["state_dim"])
+        self.net = GeneralistController(**self.config)
+
+    def normalised(
+        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """Network output in normalised units (what the training loss sees) and gate weights."""
+        return self.net(*self.normaliser.normalise_inputs(state, mask, ref, tag))
+
+    def forward(
+        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """Controls ``u[k .. k + horizon - 1]`` in plant units (B, horizon) and gates (B, M).
+
+        Inputs are raw windows as built by :func:`generalist_control.windows.build_windows`.
+        """
+        u, gates = self.normalised(state, mask, ref, tag)
+        return self.normaliser.denormalise_controls(u, tag), gates
+
+    @torch.no_grad()
+    def predict_windows(
+        self, windows: Windows, batch_size: int = 8192
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Controls (W, horizon) and gate weights (W, M) for ``windows``, as float32 arrays."""
+        self.eval()
+        device = next(self.parameters()).device
+        us, gs = [], []
+        for i in range(0, len(windows), batch_size):
+            sl = slice(i, i + batch_size)
+            args = [
+                torch.as_tensor(np.asarray(a[sl]), device=device)
+                for a in (windows.state, windows.mask, windows.ref, windows.tag)
+            ]
+            u, g = self(*args)
+            us.append(u.cpu().numpy())
+            gs.append(g.cpu().numpy())
+        horizon, experts = self.config["horizon"], self.config["experts"]
+        if not us:
+            return np.zeros((0, horizon), np.float32), np.zeros((0, experts), np.float32)
+        return np.concatenate(us), np.concatenate(gs)
+
+
+def flat_columns(history: int, state_dim: int) -> list[str]:
+    """Column names of :class:`FlatPolicy`'s input (``k = 0`` is the oldest sample)."""
+    cols = [f"state_{k}_{i}" for k in range(history) for i in range(state_dim)]
+    cols += [f"mask_{k}_{i}" for k in range(history) for i in range(state_dim)]
+    cols += [f"ref_{k}" for k in range(history)]
+    return [*cols, "tag"]
+
+
+class FlatPolicy(nn.Module):
+    """One-tensor view of a :class:`Policy` for MLflow's PyTorch flavour.
+
+    Input: float32 (B, 2 * history * state_dim + history + 1), columns
+    :func:`flat_columns` (state, mask, reference, tag). Output: controls (B, horizon).
+    """
+
+    def __init__(self, policy: Policy) -> None:
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Controls in plant units for flat rows ``x``."""
+        c = self.policy.config
+        T, n = c["history"], c["state_dim"]
+        state = x[:, : T * n].reshape(-1, T, n)
+        mask = x[:, T * n : 2 * T * n].reshape(-1, T, n)
+        ref = x[:, 2 * T * n : 2 * T * n + T]
+        tag = x[:, -1].round().long()
+        return self.policy(state, mask, ref, tag)[0]
+
+
+def save_policy(path: str | Path, policy: Policy, meta: dict[str, Any]) -> Path:
+    """Write ``policy`` and plain-typed ``meta`` to ``path`` (see the module docstring)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().cpu() for k, v in policy.state_dict().items()}
+    blob = {
+        "format_version": POLICY_FORMAT_VERSION,
+        "model": dict(policy.config),
+        "state_dict": state,
+        "meta": meta,
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(blob, tmp)
+    tmp.replace(path)
+    return path
+
+
+def load_policy(
+    path: str | Path, map_location: str | torch.device = "cpu"
+) -> tuple[Policy, dict[str, Any]]:
+    """Load a policy file or a training (Lightning) checkpoint; return it with its meta.
+
+    The policy is in eval mode. Loading uses ``weights_only=True``: no code is unpickled.
+    """
+    blob = torch.load(path, map_location=map_location, weights_only=True)
+    if "pytorch-lightning_version" in blob:  # a checkpoint of LitController
+        hp = blob["hyper_parameters"]
+        model, meta = hp["model"], dict(hp.get("meta", {}))
+        state = {k[len("policy.") :]: v for k, v in blob["state_dict"].items()}
+    else:
+        version = blob.get("format_version")
+        if version != POLICY_FORMAT_VERSION:
+            raise ValueError(
+                f"{path}: policy format {version}, this code reads {POLICY_FORMAT_VERSION}"
+            )
+        model, meta, state = blob["model"], blob["meta"], blob["state_dict"]
+    policy = Policy(model)
+    policy.load_state_dict(state)
+    return policy.eval(), meta

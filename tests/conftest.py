@@ -1,0 +1,50 @@
+"""Shared fixtures: a tiny demonstration dataset of two plants of different order."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from generalist_control.catalog import load_plant
+from generalist_control.demos import DemoSet, write_demos
+from generalist_control.generate import build_manifest, generate_demos
+
+# One thread: the tiny batches gain nothing from two, and on a shared 2-core machine a second
+# OpenMP thread that waits for a busy core can stall every step by orders of magnitude.
+torch.set_num_threads(1)
+
+#: Two plants of order 2 and 3, eight step amplitudes each, 2 s (40 samples) per trajectory.
+TINY_PLANTS = ("cstr", "hydraulic_actuator")
+TINY_DATA = {
+    "history": 8,
+    "horizon": 3,
+    "duration": 2.0,
+    "amplitudes": {
+        "limit": 20.0,
+        "symmetric": True,
+        "segments": [{"start": 1.0, "stop": 4.0, "step": 1.0}],
+    },
+}
+
+
+@pytest.fixture(scope="session")
+def tiny_demos() -> DemoSet:
+    plants = [load_plant(name) for name in TINY_PLANTS]
+    return generate_demos(plants, TINY_DATA, progress=False)
+
+
+@pytest.fixture(scope="session")
+def tiny_data_dir(tmp_path_factory: pytest.TempPathFactory, tiny_demos: DemoSet) -> Path:
+    """``data/demos`` of the tiny set, written by the data stage's own writer."""
+    plants = [load_plant(name) for name in TINY_PLANTS]
+    config = {"systems": {"name": "tiny", "include": list(TINY_PLANTS)}, "data": TINY_DATA}
+    manifest = build_manifest(plants, tiny_demos, TINY_DATA, config)
+    return write_demos(tmp_path_factory.mktemp("data") / "demos", tiny_demos, manifest)
+
+
+@pytest.fixture(scope="session")
+def mlflow_uri(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """One SQLite MLflow store for the session (creating its tables takes a few seconds)."""
+    return f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"

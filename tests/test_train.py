@@ -1,0 +1,140 @@
+"""The train stage end to end on tiny data: MLflow run, resume, missing data, determinism."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import mlflow
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from generalist_control.demos import MissingDataError
+from generalist_control.paths import conf_dir
+from generalist_control.policy import load_policy
+from generalist_control.train import train
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _overrides(data_dir: Path, out: Path, uri: str, *extra: str) -> list[str]:
+    """Shrink the real config: tiny data, CPU, one epoch, outputs under ``out``.
+
+    Each test logs to its own MLflow experiment (named after ``out``) in the store ``uri``.
+    """
+    return [
+        f"paths.data_dir={data_dir}",
+        f"paths.models_dir={out / 'models'}",
+        f"run_dir={out / 'run'}",
+        f"logger.tracking_uri={uri}",
+        f"logger.experiment_name={out.name}",
+        f"logger.artifact_location={out / 'mlruns'}",
+        "trainer.accelerator=cpu",
+        "trainer.max_epochs=1",
+        "trainer.enable_progress_bar=false",
+        "trainer.enable_model_summary=false",
+        *extra,
+    ]
+
+
+def _cfg(overrides: list[str]):
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        return compose("config", overrides=overrides)
+
+
+@pytest.mark.slow
+def test_exact_command_logs_an_mlflow_run(tiny_data_dir, tmp_path, mlflow_uri):
+    """`python train.py model.hidden=64 experts=5` (plus tiny-data overrides), one epoch."""
+    overrides = _overrides(
+        tiny_data_dir, tmp_path, mlflow_uri, f"hydra.run.dir={tmp_path / 'hydra'}"
+    )
+    cmd = [sys.executable, "train.py", "model.hidden=64", "experts=5", *overrides]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+    mlflow.set_tracking_uri(mlflow_uri)
+    (run,) = mlflow.search_runs(experiment_names=[tmp_path.name], output_format="list")
+    assert run.info.status == "FINISHED"
+    params = run.data.params
+    assert params["model.hidden"] == "64"
+    assert params["experts"] == "5"
+    assert int(params["n_parameters"]) > 0
+    manifest = json.loads((tiny_data_dir / "manifest.json").read_text())
+    assert run.data.tags["data.content_hash"] == manifest["content_hash"]
+    metrics = run.data.metrics
+    assert {"train/loss", "val/loss", "val/mse/cstr", "val/mse/hydraulic_actuator"} <= set(metrics)
+    artifacts = {a.path for a in mlflow.MlflowClient().list_artifacts(run.info.run_id)}
+    assert {"checkpoints", "config", "data", "policy"} <= artifacts
+    (model,) = mlflow.search_logged_models(
+        experiment_ids=[run.info.experiment_id], output_format="list"
+    )
+    assert model.source_run_id == run.info.run_id
+    assert mlflow.models.get_model_info(model.model_uri).signature is not None
+
+    policy, meta = load_policy(tmp_path / "models" / "policy.ckpt")
+    assert policy.config["hidden"] == 64 and policy.config["experts"] == 5
+    assert meta["content_hash"] == manifest["content_hash"]
+    assert meta["mlflow_run_id"] == run.info.run_id
+    saved = json.loads((tmp_path / "models" / "metrics.json").read_text())
+    assert saved["val/loss"] == pytest.approx(metrics["best/val/loss"])
+
+
+@pytest.mark.slow
+def test_resume_continues_from_the_checkpoint(tiny_data_dir, tmp_path, mlflow_uri):
+    common = ["logger.log_model=false", "loader.batch_size=128"]
+    first, objs1 = train(_cfg(_overrides(tiny_data_dir, tmp_path / "a", mlflow_uri, *common)))
+    trainer1 = objs1["trainer"]
+    last = tmp_path / "a" / "run" / "checkpoints" / "last.ckpt"
+    assert last.is_file() and trainer1.current_epoch == 1
+    blob = torch.load(last, weights_only=True)  # Lightning checkpoints load without pickle too
+    assert blob["epoch"] == 0
+
+    overrides = _overrides(
+        tiny_data_dir,
+        tmp_path / "b",
+        mlflow_uri,
+        *common,
+        f"ckpt_path={last}",
+        "trainer.max_epochs=2",
+    )
+    second, objs2 = train(_cfg(overrides))
+    trainer2 = objs2["trainer"]
+    assert trainer2.current_epoch == 2
+    assert trainer2.global_step == 2 * trainer1.global_step
+    # the resumed training logs into the same MLflow run, one more epoch
+    assert objs2["run_id"] == objs1["run_id"]
+    history = mlflow.MlflowClient().get_metric_history(objs2["run_id"], "val/loss")
+    assert sorted(m.step for m in history) == [0, 1]
+
+
+def test_missing_data_error_gives_the_command(tmp_path):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    cfg = _cfg(_overrides(tmp_path / "nowhere", tmp_path, uri))
+    with pytest.raises(MissingDataError, match=r"python -m generalist_control\.generate"):
+        train(cfg)
+    assert not (tmp_path / "mlflow.db").exists()  # failed before anything was logged
+
+
+@pytest.mark.slow
+def test_training_is_deterministic(tiny_data_dir, tmp_path, mlflow_uri):
+    extra = ("logger.log_model=false", "loader.batch_size=128")
+    m1, _ = train(_cfg(_overrides(tiny_data_dir, tmp_path / "a", mlflow_uri, *extra)))
+    m2, _ = train(_cfg(_overrides(tiny_data_dir, tmp_path / "b", mlflow_uri, *extra)))
+    assert m2["val/loss"] == pytest.approx(m1["val/loss"], rel=1e-6)
+    assert m2["train/loss"] == pytest.approx(m1["train/loss"], rel=1e-6)
+
+
+def test_experiment_paper_is_the_baseline():
+    cfg = _cfg(["experiment=paper"])
+    assert cfg.model.hidden == 32 and cfg.experts == 3 and cfg.model.heads == 3
+    assert cfg.model.optimizer.lr == pytest.approx(1e-3)
+    assert cfg.model.optimizer.weight_decay == pytest.approx(1e-5)
+    assert cfg.trainer.gradient_clip_val == 1.0
+    assert cfg.data.history == 8 and cfg.data.horizon == 3
+    assert cfg.systems.name == "all"
