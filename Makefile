@@ -17,16 +17,16 @@ data: setup
 
 ## Lint and the whole test suite (what CI runs).
 test: setup
-	$(VENV)/ruff check src tests benchmarks scripts train.py
+	$(VENV)/ruff check src tests benchmarks scripts train.py tune.py
 	$(VENV)/python -m pytest -q
 
 lint: setup
-	$(VENV)/ruff check src tests benchmarks scripts train.py
-	$(VENV)/ruff format --check src tests benchmarks scripts train.py
+	$(VENV)/ruff check src tests benchmarks scripts train.py tune.py
+	$(VENV)/ruff format --check src tests benchmarks scripts train.py tune.py
 
 format: setup
-	$(VENV)/ruff format src tests benchmarks scripts train.py
-	$(VENV)/ruff check --fix src tests benchmarks scripts train.py
+	$(VENV)/ruff format src tests benchmarks scripts train.py tune.py
+	$(VENV)/ruff check --fix src tests benchmarks scripts train.py tune.py
 
 bench: setup
 	$(VENV)/python benchmarks/bench_generate.py

@@ -13,4 +13,7 @@ if ! python -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '
   python -m pip install -q torch==2.13.0
 fi
 python -m pip install -q -e '.[dev]'
+# PostgreSQL's server programs, for the multi-worker Optuna tests (tests/pg.py starts a
+# throw-away cluster); a no-op when installed. Without them those tests fail and say why.
+bash scripts/postgres.sh || echo "warning: PostgreSQL is missing; the PostgreSQL tests will fail" >&2
 echo "setup done: $(python -c 'import torch; print("torch", torch.__version__)')"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -48,3 +49,22 @@ def tiny_data_dir(tmp_path_factory: pytest.TempPathFactory, tiny_demos: DemoSet)
 def mlflow_uri(tmp_path_factory: pytest.TempPathFactory) -> str:
     """One SQLite MLflow store for the session (creating its tables takes a few seconds)."""
     return f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"
+
+
+@pytest.fixture(scope="session")
+def postgres_url() -> Iterator[str]:
+    """A throw-away PostgreSQL server (tests/pg.py): the URL of its database ``optuna``.
+
+    Fails, rather than skips, when PostgreSQL is not installed: ``bash scripts/postgres.sh``.
+    """
+    from pg import PostgresUnavailable, postgres_server
+
+    server = postgres_server()
+    try:
+        url = server.__enter__()
+    except PostgresUnavailable as e:
+        pytest.fail(str(e), pytrace=False)
+    try:
+        yield url
+    finally:
+        server.__exit__(None, None, None)

@@ -11,3 +11,41 @@ def compose_cfg(*overrides: str):
     """The project's primary config with ``overrides`` applied."""
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
         return compose("config", overrides=list(overrides))
+
+
+#: Closed-loop scoring on the tiny dataset's plants, with short runs.
+TINY_CLOSED_LOOP = ("closed_loop.systems=[cstr,hydraulic_actuator]", "closed_loop.duration=3.0")
+
+
+def tiny_train_overrides(data_dir, out, uri: str, *extra: str) -> list[str]:
+    """A short CPU training on the tiny data with every output under ``out``.
+
+    One epoch, MLflow in ``uri`` with an experiment named after ``out`` (artifacts under
+    ``out``), models and checkpoints in ``out/models`` and ``out/run``.
+    """
+    return [
+        f"paths.data_dir={data_dir}",
+        f"paths.models_dir={out / 'models'}",
+        f"run_dir={out / 'run'}",
+        f"logger.tracking_uri={uri}",
+        f"logger.experiment_name={out.name}",
+        f"logger.artifact_location={out / 'mlruns'}",
+        "trainer.accelerator=cpu",
+        "trainer.max_epochs=1",
+        "trainer.enable_progress_bar=false",
+        "trainer.enable_model_summary=false",
+        *extra,
+    ]
+
+
+def quick_overrides(data_dir, out, uri: str, *extra: str) -> list[str]:
+    """:func:`tiny_train_overrides` with the debug config and short closed-loop scoring.
+
+    Models and checkpoints are left to the caller (sweeps and trials place their own).
+    """
+    keep = [
+        o
+        for o in tiny_train_overrides(data_dir, out, uri)
+        if not o.startswith(("paths.models_dir", "run_dir"))
+    ]
+    return ["debug=fast", *keep, *TINY_CLOSED_LOOP, *extra]

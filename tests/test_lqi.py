@@ -87,11 +87,23 @@ def test_discretise_matches_python_control_zoh():
     np.testing.assert_allclose(Bd, ref.B, rtol=1e-10)
 
 
-def test_zero_at_origin_is_unfit():
-    # velocity output of a mass-spring-damper: transfer s / (s^2 + s + 1), zero at s = 0
-    p = plant_from_config("velocity", linear_cfg([[0, 1], [-1, -1]], [[0], [1]], [[0, 1]]))
+@pytest.mark.parametrize("unit", [1.0, 1e-6, 1e6])
+def test_zero_at_origin_is_unfit_in_any_units(unit):
+    # velocity output of a mass-spring-damper: transfer s / (s^2 + s + 1), zero at s = 0;
+    # `unit` rescales input and output (e.g. N -> MN, m -> um): still a zero at s = 0
+    p = plant_from_config("velocity", linear_cfg([[0, 1], [-1, -1]], [[0], [unit]], [[0, unit]]))
     with pytest.raises(PlantConfigError, match="transmission zero at s = 0"):
         design_lqi(p)
+
+
+@pytest.mark.parametrize("unit", [1e-6, 1e6])
+def test_fitness_does_not_depend_on_units(unit):
+    # position output 1 / (s^2 + s + 1) in tiny or huge units: no zero at s = 0
+    # the same loop in other units of u and y: weights rescaled alike, same closed loop
+    A, B, C = [[0, 1], [-1, -1]], [[0], [unit]], [[unit, 0]]
+    p = plant_from_config("position", linear_cfg(A, B, C, Q=[1, 1, 1 / unit**2], R=unit**2))
+    ref = design_lqi(plant_from_config("position", linear_cfg(A, [[0], [1]], [[1, 0]])))
+    np.testing.assert_allclose(np.sort_complex(design_lqi(p).poles), np.sort_complex(ref.poles))
 
 
 def test_unstabilisable_is_unfit():

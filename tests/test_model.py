@@ -181,3 +181,29 @@ def test_batch_sampler_reshuffles_per_epoch_and_covers_all():
     assert not torch.equal(first, second)
     s.set_epoch(0)
     assert torch.equal(torch.cat(list(s)), first)
+
+
+def test_linear_head_adds_a_per_tag_linear_map_of_the_window(windows):
+    """Zero at start (the paper's network); then exactly W[tag] @ [state*mask, ref]."""
+    torch.manual_seed(0)
+    base = GeneralistController(**controller_config(hidden=8))
+    torch.manual_seed(0)
+    head = GeneralistController(**controller_config(hidden=8, linear_head=1))
+    args = [
+        torch.as_tensor(np.asarray(a))
+        for a in (windows.state, windows.mask, windows.ref, windows.tag)
+    ]
+    u0, _ = base(*args)
+    u1, _ = head(*args)
+    torch.testing.assert_close(u1, u0)
+    with torch.no_grad():
+        head.linear.weight.normal_()
+    u2, _ = head(*args)
+    state, mask, ref, tag = args
+    window = torch.cat([(state * mask).flatten(1), ref], dim=1)
+    w = head.linear.weight[tag].view(len(tag), 3, -1)
+    torch.testing.assert_close(
+        u2 - u0, torch.einsum("bkf,bf->bk", w, window), rtol=1e-4, atol=1e-4
+    )
+    with pytest.raises(ValueError, match="linear_head must be 0 or 1"):
+        controller_config(linear_head=2)

@@ -251,3 +251,23 @@ def test_cstr_has_rhp_zero(plants):
     _, zeros = _poles_zeros(plants["cstr"])
     # y / u = (3.199 - 1.135 s) / (s^2 + 4.719 s + 5.47): zero at s = 3.199 / 1.135
     np.testing.assert_allclose(zeros.real.max(), 3.199 / 1.135, rtol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("u_op", "ok"), [(469.81379290097, True), (469.8138, True), (475.0, False)]
+)
+def test_equilibrium_check_is_relative(u_op, ok):
+    """two_tank's u_op to 7 digits is an equilibrium; 1% off is not (a clear error)."""
+    from omegaconf import OmegaConf
+
+    from generalist_control.plants import PlantConfigError, plant_from_config
+
+    cfg = OmegaConf.to_container(
+        OmegaConf.load(generalist_control.paths.CONF_DIR / "plants/two_tank.yaml")
+    )
+    cfg["dynamics"]["u_op"] = u_op
+    if ok:
+        assert plant_from_config("two_tank", cfg).name == "two_tank"
+    else:
+        with pytest.raises(PlantConfigError, match="is not an equilibrium"):
+            plant_from_config("two_tank", cfg)

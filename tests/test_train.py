@@ -17,28 +17,14 @@ from generalist_control.demos import MissingDataError
 from generalist_control.paths import conf_dir
 from generalist_control.policy import load_policy
 from generalist_control.train import train
+from helpers import tiny_train_overrides
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _overrides(data_dir: Path, out: Path, uri: str, *extra: str) -> list[str]:
-    """Shrink the real config: tiny data, CPU, one epoch, outputs under ``out``.
-
-    Each test logs to its own MLflow experiment (named after ``out``) in the store ``uri``.
-    """
-    return [
-        f"paths.data_dir={data_dir}",
-        f"paths.models_dir={out / 'models'}",
-        f"run_dir={out / 'run'}",
-        f"logger.tracking_uri={uri}",
-        f"logger.experiment_name={out.name}",
-        f"logger.artifact_location={out / 'mlruns'}",
-        "trainer.accelerator=cpu",
-        "trainer.max_epochs=1",
-        "trainer.enable_progress_bar=false",
-        "trainer.enable_model_summary=false",
-        *extra,
-    ]
+    """Shrink the real config: tiny data, CPU, one epoch, outputs under ``out``."""
+    return tiny_train_overrides(data_dir, out, uri, *extra)
 
 
 def _cfg(overrides: list[str]):

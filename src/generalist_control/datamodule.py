@@ -75,6 +75,12 @@ class WindowTensors(Dataset):
     def __len__(self) -> int:
         return self.tensors["tag"].shape[0]
 
+    def append(self, windows: Windows) -> None:
+        """Add windows (e.g. DAgger's); a dataloader built afterwards sees them."""
+        for k in FIELDS:
+            extra = torch.from_numpy(np.ascontiguousarray(getattr(windows, k)))
+            self.tensors[k] = torch.cat([self.tensors[k], extra.to(self.tensors[k].dtype)])
+
     def __getitem__(self, idx: Tensor) -> dict[str, Tensor]:
         return {k: v[idx] for k, v in self.tensors.items()}
 

@@ -17,7 +17,14 @@ import pandas as pd  # noqa: E402
 from generalist_control.paper import TABLE2, TABLE2_COLUMNS, TABLE2_METRICS  # noqa: E402
 from generalist_control.simulate import Trajectory  # noqa: E402
 
-__all__ = ["log_to_mlflow", "plot_all", "responses_csv", "table2_markdown", "table_all_markdown"]
+__all__ = [
+    "log_to_mlflow",
+    "plot_all",
+    "recipes_markdown",
+    "responses_csv",
+    "table2_markdown",
+    "table_all_markdown",
+]
 
 _STYLE = {"GC": ("tab:blue", "-"), "LQI": ("tab:orange", "--"), "LQI-AW": ("tab:green", ":")}
 
@@ -105,6 +112,52 @@ def table_all_markdown(df: pd.DataFrame) -> str:
         cells.append(_fmt(rel.get(s, np.nan)))
         cells.append(str(int(d.get(s, 0))))
         lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def recipes_markdown(results: Mapping[str, pd.DataFrame]) -> str:
+    """Per plant, the quality-bar figures of several evaluations side by side.
+
+    Parameters
+    ----------
+    results : mapping
+        Label (e.g. ``"paper"``, ``"ours"``) -> long-form metrics of an evaluation
+        (``metrics.csv``).
+    """
+    labels = list(results)
+    head = ["system"]
+    for what in ("ISE ratio", "ITAE ratio", "e_ss (rel.)", "random: worst rel. e_ss", "diverged"):
+        head += [f"{what} {label}" for label in labels]
+    per: dict[str, dict[str, pd.Series]] = {}
+    for label, df in results.items():
+        gc = df[df.controller == "GC"]
+        means = _step_means(df)
+        step_rel = gc[(gc.scenario == "step") & (gc.metric == "relative_steady_state_error")]
+        rnd_rel = gc[
+            (gc.scenario == "random_steps") & (gc.metric == "relative_steady_state_error")
+        ]
+        div = gc[(gc.metric == "diverged") & gc.scenario.isin(["step", "random_steps"])]
+        per[label] = {
+            "ISE": means.get("GC", pd.Series(dtype=float)).xs("ISE", level="metric")
+            / means["LQI"].xs("ISE", level="metric"),
+            "ITAE": means.get("GC", pd.Series(dtype=float)).xs("ITAE", level="metric")
+            / means["LQI"].xs("ITAE", level="metric"),
+            "ess": step_rel.groupby("system")["value"].mean(),
+            "rnd": rnd_rel.groupby("system")["value"].max(),
+            "div": div.groupby("system")["value"].sum(),
+        }
+    systems = sorted(set().union(*(set(df.system) for df in results.values())))
+    lines = [
+        "| " + " | ".join(head) + " |",
+        "| " + " | ".join(["---"] + ["---:"] * (len(head) - 1)) + " |",
+    ]
+    for s in systems:
+        cells = [s]
+        for key in ("ISE", "ITAE", "ess", "rnd", "div"):
+            for label in labels:
+                v = per[label][key].get(s, np.nan)
+                cells.append(str(int(v)) if key == "div" else _fmt(v))
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -26,8 +26,10 @@ from pathlib import Path
 from typing import Any
 
 import hydra
+import lightning as L
 import numpy as np
 import pandas as pd
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control import mlflow_utils
@@ -48,7 +50,15 @@ from generalist_control.simulate import (
     simulate_many,
 )
 
-__all__ = ["CONTROLLERS", "evaluate", "output_mse", "run", "summarise"]
+__all__ = [
+    "CONTROLLERS",
+    "ClosedLoopValidation",
+    "closed_loop_score",
+    "evaluate",
+    "output_mse",
+    "run",
+    "summarise",
+]
 
 log = logging.getLogger(__name__)
 
@@ -174,6 +184,72 @@ def output_mse(
     }
 
 
+def _worst(values: pd.Series, key: str, system_key: str | None = None) -> dict[str, Any]:
+    """Largest value and its system; with nothing finite (all diverged): inf and None."""
+    system_key = system_key or f"worst_{key.split('_')[0]}_system"
+    if values.empty:
+        return {f"worst_{key}": float("inf"), system_key: None}
+    return {f"worst_{key}": float(values.max()), system_key: str(values.idxmax())}
+
+
+def closed_loop_score(
+    runtime: PolicyRuntime,
+    plants: Sequence[Plant],
+    amplitudes: Sequence[float] = (1.0, -3.0),
+    duration: float = 10.0,
+) -> dict[str, float]:
+    """Per plant, GC-vs-LQI output error on steps, relative to the LQI response, capped at 1.
+
+    ``mean((y_GC - y_LQI)**2) / mean(y_LQI**2)`` over steps of each amplitude (times the
+    plant's ``amplitude_scale``) from rest; 1 for a diverged run (and at most 1 anyway), so
+    the mean over plants is a bounded closed-loop validation score.
+    """
+    steps = int(round(duration / plants[0].dt))
+    amps = np.asarray(amplitudes, dtype=float)
+    runs = [Run(p, np.repeat(amps[:, None] * p.amplitude_scale, steps, axis=1)) for p in plants]
+    gc = simulate_many(runs, PolicyController(runtime))
+    lqi = simulate_many(runs, PerPlantController(LQIController))
+    out = {}
+    for p, a, b in zip(plants, gc, lqi, strict=True):
+        if a.diverged.any():
+            out[p.name] = 1.0
+            continue
+        err = np.mean((a.y - b.y) ** 2, axis=1) / np.maximum(np.mean(b.y**2, axis=1), 1e-300)
+        out[p.name] = float(min(1.0, err.mean()))
+    return out
+
+
+class ClosedLoopValidation(L.Callback):
+    """Log ``val/closed_loop`` after each validation: the mean :func:`closed_loop_score`.
+
+    Open-loop validation MSE says little about the closed loop (a small error in the
+    feedback of an unstable plant diverges), so with DAgger the best checkpoint is chosen
+    on this score (``monitor: val/closed_loop``). Per plant: ``val/closed_loop/<plant>``.
+    """
+
+    def __init__(
+        self,
+        plants: Sequence[Plant],
+        amplitudes: Sequence[float] = (1.0, -3.0),
+        duration: float = 10.0,
+    ) -> None:
+        self.plants, self.amplitudes, self.duration = list(plants), amplitudes, duration
+
+    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """Score the current policy in closed loop and log it."""
+        if trainer.sanity_checking or not self.plants:
+            return
+        policy = pl_module.policy
+        was_training = policy.training
+        runtime = PolicyRuntime(policy, trainer.datamodule.meta())
+        with torch.inference_mode():
+            scores = closed_loop_score(runtime, self.plants, self.amplitudes, self.duration)
+        policy.train(was_training)
+        pl_module.log("val/closed_loop", float(np.mean(list(scores.values()))), logger=False)
+        for name, v in scores.items():
+            pl_module.log(f"val/closed_loop/{name}", v, logger=False)
+
+
 def summarise(df: pd.DataFrame) -> dict[str, Any]:
     """Quality-bar figures: divergences, worst ISE/ITAE ratios GC/LQI, worst relative e_ss."""
     mean = df.groupby(["scenario", "controller", "system", "metric"])["value"].mean()
@@ -191,14 +267,11 @@ def summarise(df: pd.DataFrame) -> dict[str, Any]:
             k: (gc.xs(k, level="metric") / lqi.xs(k, level="metric")).dropna()
             for k in ("ISE", "ITAE")
         }
-        ess = gc.xs("relative_steady_state_error", level="metric")
+        ess = gc.xs("relative_steady_state_error", level="metric").dropna()
         out["ratios"][scen] = {
-            "worst_ISE_ratio": float(ratio["ISE"].max()),
-            "worst_ISE_system": str(ratio["ISE"].idxmax()),
-            "worst_ITAE_ratio": float(ratio["ITAE"].max()),
-            "worst_ITAE_system": str(ratio["ITAE"].idxmax()),
-            "worst_relative_ess_GC": float(ess.max()),
-            "worst_relative_ess_system": str(ess.idxmax()),
+            **_worst(ratio["ISE"], "ISE_ratio"),
+            **_worst(ratio["ITAE"], "ITAE_ratio"),
+            **_worst(ess, "relative_ess_GC", "worst_relative_ess_system"),
             "n_systems": int(len(ratio["ISE"])),
         }
     step = out["ratios"].get("step", {})
@@ -212,6 +285,15 @@ def summarise(df: pd.DataFrame) -> dict[str, Any]:
         "ITAE_ratio_le_2.0": step.get("worst_ITAE_ratio", np.inf) <= 2.0,
     }
     return out
+
+
+def _json_safe(obj: Any) -> Any:
+    """Strict JSON (for ``dvc metrics``): non-finite floats become null."""
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
 
 
 def _publish(staging: Path, out_dir: Path) -> None:
@@ -237,7 +319,7 @@ def write_reports(
     try:
         df.to_csv(staging / "metrics.csv", index=False)
         summary = summarise(df)
-        (staging / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        (staging / "summary.json").write_text(json.dumps(_json_safe(summary), indent=2) + "\n")
         (staging / "table2.md").write_text(eval_report.table2_markdown(df))
         (staging / "table_all.md").write_text(eval_report.table_all_markdown(df))
         eval_report.responses_csv(trajs).to_csv(staging / "responses.csv", index=False)

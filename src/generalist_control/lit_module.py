@@ -64,10 +64,13 @@ class LitController(L.LightningModule):
         return self.policy(state, mask, ref, tag)
 
     def _errors(self, batch: dict[str, Tensor]) -> Tensor:
-        """Squared errors (B, horizon) in normalised units."""
-        u, _ = self.policy.normalised(batch["state"], batch["mask"], batch["ref"], batch["tag"])
+        """Squared errors (B, horizon) in normalised units, relative to the window scale.
+
+        Without ``window_scale`` the scale is one: the paper's MSE in normalised units.
+        """
+        u, _, s = self.policy.scaled(batch["state"], batch["mask"], batch["ref"], batch["tag"])
         target = self.policy.normaliser.normalise_controls(batch["target"], batch["tag"])
-        return (u - target) ** 2
+        return (u - target / s) ** 2
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         """MSE on the control sequence of one batch."""

@@ -16,6 +16,7 @@ The controller runs at the plant's sample time with a forward-Euler integrator,
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import control
@@ -32,6 +33,10 @@ __all__ = [
     "design_lqi",
     "sampled_closed_loop",
 ]
+
+
+#: Designs per plant object (plants are immutable; the design is deterministic).
+_DESIGNS: weakref.WeakKeyDictionary[Plant, LQIGains] = weakref.WeakKeyDictionary()
 
 
 @dataclass(frozen=True)
@@ -57,18 +62,32 @@ def augment(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np
     return Aa, Ba
 
 
+def _equilibrate(M: np.ndarray, iterations: int = 30) -> np.ndarray:
+    """``D_r M D_c`` with rows and columns scaled to unit max-norm (Ruiz's iteration)."""
+    M = np.array(M, dtype=complex if np.iscomplexobj(M) else float)
+    for _ in range(iterations):
+        r = np.sqrt(np.abs(M).max(axis=1))
+        c = np.sqrt(np.abs(M).max(axis=0))
+        M = M / np.where(r > 0, r, 1.0)[:, None] / np.where(c > 0, c, 1.0)[None, :]
+    return M
+
+
 def _check_fit(plant: Plant, Aa: np.ndarray, Ba: np.ndarray) -> None:
     n = plant.order
     system = np.block([[plant.A, plant.B], [plant.C, np.zeros((1, 1))]])
-    if abs(np.linalg.det(system)) < 1e-9 * max(1.0, np.linalg.norm(system)) ** (n + 1):
+    # A zero at s = 0 makes the Rosenbrock matrix singular. Units rescale its rows and
+    # columns, so equilibrate them first: the rank test is then unit-independent.
+    sv = np.linalg.svd(_equilibrate(system), compute_uv=False)
+    if sv[-1] < 1e-10 * sv[0]:
         raise PlantConfigError(
             f"plant '{plant.name}' is unfit for LQI: it has a transmission zero at s = 0, so "
             "integral action cannot make the output track a constant reference"
         )
     for lam in np.linalg.eigvals(Aa):
         if lam.real >= -1e-9:
-            pbh = np.hstack([lam * np.eye(n + 1) - Aa, Ba])
-            if np.linalg.matrix_rank(pbh, tol=1e-8) < n + 1:
+            pbh = _equilibrate(np.hstack([lam * np.eye(n + 1) - Aa, Ba]))
+            sv = np.linalg.svd(pbh, compute_uv=False)
+            if sv[-1] < 1e-9 * sv[0]:
                 raise PlantConfigError(
                     f"plant '{plant.name}' is unfit for LQI: the augmented pair (A_a, B_a) is "
                     f"not stabilisable (uncontrollable mode at s = {lam:.4g})"
@@ -99,6 +118,9 @@ def design_lqi(plant: Plant) -> LQIGains:
     >>> bool(np.all(gains.poles.real < 0))
     True
     """
+    cached = _DESIGNS.get(plant)
+    if cached is not None:
+        return cached
     Aa, Ba = augment(plant.A, plant.B, plant.C)
     _check_fit(plant, Aa, Ba)
     K, P, poles = control.lqr(Aa, Ba, plant.Q, plant.R)
@@ -112,6 +134,7 @@ def design_lqi(plant: Plant) -> LQIGains:
             f"plant '{plant.name}': the LQI loop sampled at dt = {plant.dt} s is unstable "
             f"(spectral radius {rho:.4f}); lower the gains (raise lqi.R) or reduce dt"
         )
+    _DESIGNS[plant] = gains
     return gains
 
 

@@ -14,6 +14,7 @@ logged by :mod:`generalist_control.train`.
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
@@ -27,11 +28,15 @@ import yaml
 from mlflow.exceptions import MlflowException
 
 __all__ = [
+    "PARENT_RUN_ENV",
+    "SWEEP_ENV",
     "MLflowEpochLogger",
     "dvc_data_version",
+    "experiment_id",
     "flatten_params",
     "log_params_once",
     "mlflow_run",
+    "parent_run_tags",
     "run_id_from_checkpoint",
     "tracking_uri",
 ]
@@ -40,6 +45,11 @@ __all__ = [
 #: the logged manifest) and Hydra's own settings.
 EXCLUDED = ("systems.plants", "hydra")
 _MAX_VALUE = 6000  # MLflow's limit on a param value
+
+#: Environment variables through which a sweep (:mod:`generalist_control.sweep`) or a study
+#: (:mod:`generalist_control.tune`) hands its parent run to the training runs it starts.
+PARENT_RUN_ENV = "GC_PARENT_RUN_ID"
+SWEEP_ENV = "GC_SWEEP_NAME"
 
 
 def tracking_uri(logger: Mapping[str, Any]) -> str:
@@ -116,17 +126,13 @@ def mlflow_run(
         (used when creating the experiment in a local store), ``run_name``.
     resume_run_id : str, optional
         Run to continue (a resumed training keeps logging into its run).
+
+    Notes
+    -----
+    Inside a sweep or an Optuna study, a new run is nested under the parent run given by
+    the environment (:func:`parent_run_tags`).
     """
-    uri = set_tracking(logger)
-    name = str(logger.get("experiment_name") or "generalist-control")
-    experiment = mlflow.get_experiment_by_name(name)
-    if experiment is None:
-        location = logger.get("artifact_location")
-        if location and _is_local(uri) and "://" not in str(location):
-            location = Path(location).resolve().as_uri()
-        experiment_id = mlflow.create_experiment(name, artifact_location=location or None)
-    else:
-        experiment_id = experiment.experiment_id
+    exp_id = experiment_id(logger)
     run_id = None
     if resume_run_id:
         try:
@@ -135,10 +141,45 @@ def mlflow_run(
             run_id = None  # the checkpoint comes from another store: start a new run
     with mlflow.start_run(
         run_id=run_id,
-        experiment_id=None if run_id else experiment_id,
+        experiment_id=None if run_id else exp_id,
         run_name=None if run_id else logger.get("run_name"),
+        tags=None if run_id else parent_run_tags() or None,
     ) as run:
         yield run
+
+
+def experiment_id(logger: Mapping[str, Any]) -> str:
+    """Point MLflow at ``logger``'s store; the id of its experiment, created if missing."""
+    uri = set_tracking(logger)
+    name = str(logger.get("experiment_name") or "generalist-control")
+    experiment = mlflow.get_experiment_by_name(name)
+    if experiment is not None:
+        return experiment.experiment_id
+    location = logger.get("artifact_location")
+    if location and _is_local(uri) and "://" not in str(location):
+        location = Path(location).resolve().as_uri()
+    try:
+        return mlflow.create_experiment(name, artifact_location=location or None)
+    except MlflowException:
+        experiment = mlflow.get_experiment_by_name(name)  # another worker created it first
+        if experiment is None:
+            raise
+        return experiment.experiment_id
+
+
+def parent_run_tags() -> dict[str, str]:
+    """Tags that file a new run under the parent run named by ``GC_PARENT_RUN_ID``, if set.
+
+    ``mlflow.parentRunId`` nests the run under its sweep (or study) in the MLflow UI;
+    ``sweep`` carries the sweep's name (``GC_SWEEP_NAME``).
+    """
+    parent = os.environ.get(PARENT_RUN_ENV)
+    if not parent:
+        return {}
+    tags = {"mlflow.parentRunId": parent}
+    if os.environ.get(SWEEP_ENV):
+        tags["sweep"] = os.environ[SWEEP_ENV]
+    return tags
 
 
 def log_params_once(params: Mapping[str, str]) -> dict[str, tuple[str, str]]:

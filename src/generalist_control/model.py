@@ -45,7 +45,10 @@ __all__ = [
 
 
 #: Network config keys and defaults: ``hidden`` (d), ``heads`` (N_h), ``stride`` (tau),
-#: ``history`` (T_h), ``horizon`` (K), ``experts`` (M), ``n_tags``, ``state_dim`` (n_max).
+#: ``history`` (T_h), ``horizon`` (K), ``experts`` (M), ``n_tags``, ``state_dim`` (n_max),
+#: ``window_scale`` (0 or 1: per-window amplitude scaling in
+#: :class:`~generalist_control.policy.Policy`; 0 is the paper's recipe), ``linear_head``
+#: (0 or 1: add a per-tag linear map of the window to the output; 0 is the paper's).
 MODEL_DEFAULTS: dict[str, int] = {
     "hidden": 32,
     "heads": 3,
@@ -55,7 +58,12 @@ MODEL_DEFAULTS: dict[str, int] = {
     "experts": 3,
     "n_tags": 25,
     "state_dim": MAX_ORDER,
+    "window_scale": 0,
+    "linear_head": 0,
 }
+
+#: Keys that are switches (0 or 1) rather than sizes.
+_SWITCHES = ("window_scale", "linear_head")
 
 
 def controller_config(**kwargs: Any) -> dict[str, int]:
@@ -73,7 +81,10 @@ def controller_config(**kwargs: Any) -> dict[str, int]:
         )
     cfg = {k: int(kwargs.get(k, v)) for k, v in MODEL_DEFAULTS.items()}
     for key, value in cfg.items():
-        if value < 1:
+        if key in _SWITCHES:
+            if value not in (0, 1):
+                raise ValueError(f"model.{key} must be 0 or 1 (false/true), got {value}")
+        elif value < 1:
             raise ValueError(f"model.{key} must be a positive integer, got {value}")
     if cfg["hidden"] % 2:
         raise ValueError(f"model.hidden must be even (encoders give hidden // 2), got {cfg}")
@@ -171,6 +182,16 @@ class GeneralistController(nn.Module):
             ExpertMLP(2 * d, d, c["horizon"]) for _ in range(c["experts"])
         )
         self.gate = nn.Linear(2 * d, c["experts"])
+        # Ours (model.linear_head): a per-tag linear map of the whole window, added to the
+        # experts' output. For a linear plant the LQI law is exactly linear in two
+        # consecutive states and the reference (its integrator is recoverable from
+        # x_k - Ad x_(k-1)), so the head can carry the feedback precisely and the
+        # experts the rest. Zero at initialisation: training starts from the paper's net.
+        self.linear: nn.Embedding | None = None
+        if c["linear_head"]:
+            n_in = c["history"] * (c["state_dim"] + 1)
+            self.linear = nn.Embedding(c["n_tags"], c["horizon"] * n_in)
+            nn.init.zeros_(self.linear.weight)
         # the slow LSTM sees samples ..., t - 2 tau, t - tau, t (always the newest one)
         self.slow_start = (c["history"] - 1) % c["stride"]
 
@@ -214,6 +235,10 @@ class GeneralistController(nn.Module):
         gates = torch.softmax(self.gate(z_att), dim=-1)
         u_experts = torch.stack([expert(z_att) for expert in self.experts], dim=1)
         u = torch.einsum("bm,bmk->bk", gates, u_experts)
+        if self.linear is not None:
+            window = torch.cat([(state * mask).flatten(1), ref], dim=1)
+            weights = self.linear(tag).view(-1, self.config["horizon"], window.shape[1])
+            u = u + torch.einsum("bkf,bf->bk", weights, window)
         return u, gates
 
 

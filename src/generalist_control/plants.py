@@ -261,12 +261,14 @@ def plant_from_config(name: str, cfg: Mapping[str, Any]) -> Plant:
         if dyn.get("h") is not None:
             h = _import(str(dyn["h"]), name, "dynamics.h")
         f0 = f(x_op[None, :], np.array([u_op]), **params)[0]
-        if not np.allclose(f0, 0.0, atol=1e-8 * max(1.0, np.abs(x_op).max())):
+        A, B, C_lin = linearise(f, h, x_op, u_op, params)
+        # relative to the size of the terms that cancel at the equilibrium (unit-free)
+        scale = np.abs(A) @ np.abs(x_op) + np.abs(B[:, 0]) * abs(u_op)
+        if np.any(np.abs(f0) > 1e-6 * scale + 1e-12):
             raise PlantConfigError(
                 f"plant '{name}': 'dynamics.x_op', 'dynamics.u_op' is not an equilibrium "
                 f"(f = {np.array2string(f0, precision=3)})"
             )
-        A, B, C_lin = linearise(f, h, x_op, u_op, params)
         C = C_lin if h is not None else _matrix(cfg, "C", name, (1, n))
         y_op = float(h(x_op[None, :], **params)[0]) if h is not None else float(C[0] @ x_op)
 

@@ -39,6 +39,9 @@ __all__ = [
 
 POLICY_FORMAT_VERSION = 1
 
+#: Smallest window scale (normalised units): a window at rest maps to inputs near zero.
+WINDOW_SCALE_FLOOR = 1e-3
+
 
 class Policy(nn.Module):
     """Normaliser and network: raw windows in, controls in plant units out.
@@ -55,11 +58,34 @@ class Policy(nn.Module):
         self.normaliser = Normaliser(self.config["n_tags"], self.config["state_dim"])
         self.net = GeneralistController(**self.config)
 
+    def scaled(
+        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Network output in window-scaled units, gate weights and the window scales (B, 1).
+
+        With ``window_scale`` on, each window's normalised state and reference are divided
+        by their largest magnitude ``s`` (at least :data:`WINDOW_SCALE_FLOOR`) and the
+        network's output is multiplied by it. The LQI law is linear, so its step responses
+        from rest are exactly proportional to the step: scaled windows of every amplitude
+        coincide, the network learns one shape per plant, and its error is relative to the
+        signal, as precise for a unit step as for a step of 20. With it off, ``s = 1``.
+        """
+        state, mask, ref, tag = self.normaliser.normalise_inputs(state, mask, ref, tag)
+        if self.config["window_scale"]:
+            peak = torch.maximum(state.abs().amax(dim=(1, 2)), ref.abs().amax(dim=1))
+            s = peak.clamp(min=WINDOW_SCALE_FLOOR).unsqueeze(1)
+            u, gates = self.net(state / s.unsqueeze(2), mask, ref / s, tag)
+        else:
+            s = torch.ones_like(ref[:, :1])
+            u, gates = self.net(state, mask, ref, tag)
+        return u, gates, s
+
     def normalised(
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
     ) -> tuple[Tensor, Tensor]:
-        """Network output in normalised units (what the training loss sees) and gate weights."""
-        return self.net(*self.normaliser.normalise_inputs(state, mask, ref, tag))
+        """Network output in normalised units and gate weights."""
+        u, gates, s = self.scaled(state, mask, ref, tag)
+        return u * s, gates
 
     def forward(
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
@@ -163,3 +189,12 @@ def load_policy(
     policy = Policy(model)
     policy.load_state_dict(state)
     return policy.eval(), meta
+
+
+def __getattr__(name: str) -> Any:
+    """``generalist_control.policy.PolicyRuntime``: the runtime lives in its own module."""
+    if name in ("PolicyRuntime", "PolicyController"):
+        from generalist_control import runtime
+
+        return getattr(runtime, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -2,7 +2,7 @@
 
 :class:`PolicyRuntime` wraps a trained :class:`~generalist_control.policy.Policy`. It keeps
 its own ``history``-sample buffer of states and references, builds the network's input with
-the project's one window builder (:func:`~generalist_control.windows.history_windows`),
+the project's one window builder (:class:`~generalist_control.windows.HistoryBuffer`),
 and applies the first of the ``horizon`` predicted controls each sample::
 
     rt = PolicyRuntime.load("models/policy.ckpt")        # or an MLflow URI
@@ -31,7 +31,7 @@ import torch
 from generalist_control.paths import TRAIN_COMMAND
 from generalist_control.plants import MAX_ORDER
 from generalist_control.policy import Policy, load_policy
-from generalist_control.windows import history_windows
+from generalist_control.windows import HistoryBuffer
 
 __all__ = ["PolicyController", "PolicyRuntime", "export_onnx", "export_torchscript", "resolve"]
 
@@ -51,9 +51,7 @@ def resolve(source: str | Path) -> Path:
     if "://" not in text and not text.startswith(("runs:/", "models:/")):
         path = Path(text)
         if not path.is_file():
-            raise FileNotFoundError(
-                f"no policy at '{path}'. Train one with: {TRAIN_COMMAND}"
-            )
+            raise FileNotFoundError(f"no policy at '{path}'. Train one with: {TRAIN_COMMAND}")
         return path
     import mlflow
     from mlflow.tracking import MlflowClient
@@ -76,7 +74,7 @@ def resolve(source: str | Path) -> Path:
 
 
 def _torch_backend(policy: Policy) -> Backend:
-    @torch.no_grad()
+    @torch.inference_mode()
     def run(state, mask, ref, tag):
         u, _ = policy(*(torch.from_numpy(a) for a in (state, mask, ref, tag)))
         return u.numpy()
@@ -129,7 +127,7 @@ def _backend(policy: Policy, backend: str) -> Backend:
     if backend == "torchscript":
         module = torch.jit.load(str(export_torchscript(policy, tmp / "policy.ts")))
 
-        @torch.no_grad()
+        @torch.inference_mode()
         def run(state, mask, ref, tag):
             return module(*(torch.from_numpy(a) for a in (state, mask, ref, tag)))[0].numpy()
 
@@ -195,9 +193,8 @@ class PolicyRuntime:
         self._systems = names
         self._tag = np.array([self.tags[s] for s in names], dtype=np.int64)
         self._order = np.array([self.orders[s] for s in names], dtype=np.int64)
-        self._x = np.zeros((len(names), self.history, MAX_ORDER), np.float32)
-        self._r = np.zeros((len(names), self.history), np.float32)
-        self._fresh = True
+        self._buffer = HistoryBuffer(self._order, self.history)
+        self._padded = np.zeros((len(names), MAX_ORDER), np.float32)
 
     def _check(self, x: Any, r: Any) -> tuple[np.ndarray, np.ndarray]:
         if not self._systems:
@@ -219,30 +216,27 @@ class PolicyRuntime:
                 )
             if r.shape != (B,):
                 raise ValueError(f"reference batch has shape {r.shape}; expected ({B},)")
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(r))):
+        if not (np.isfinite(x).all() and np.isfinite(r).all()):
             raise ValueError("state or reference contains NaN or inf")
-        padded = np.zeros((x.shape[0], MAX_ORDER))
-        padded[:, : x.shape[1]] = x
-        return padded, r
+        self._padded[:, : x.shape[1]] = x
+        return self._padded, r
+
+    def window(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The newest window ``(state, mask, ref, tag)`` the policy saw (after a step)."""
+        b = self._buffer
+        return b.state, b.mask, b.ref, self._tag
+
+    def run_window(
+        self, state: np.ndarray, mask: np.ndarray, ref: np.ndarray, tag: np.ndarray
+    ) -> np.ndarray:
+        """The backend's controls (B, horizon) for raw windows (no history bookkeeping)."""
+        return self._run(state, mask, ref, tag)
 
     def step(self, x: Any, r: Any) -> float | np.ndarray:
         """Control for the current sample (the first of the predicted sequence)."""
         x, r = self._check(x, r)
-        if self._fresh:
-            self._x[:] = x[:, None, :]
-            self._r[:] = r[:, None]
-            self._fresh = False
-        else:
-            self._x = np.roll(self._x, -1, axis=1)
-            self._r = np.roll(self._r, -1, axis=1)
-            self._x[:, -1], self._r[:, -1] = x, r
-        state, mask, ref = history_windows(self._x, self._r, self._order, self.history)
-        self.plan = self._run(
-            np.ascontiguousarray(state[:, -1]),
-            np.ascontiguousarray(mask[:, -1]),
-            np.ascontiguousarray(ref[:, -1]),
-            self._tag,
-        )
+        state, mask, ref = self._buffer.push(x, r)
+        self.plan = self._run(state, mask, ref, self._tag)
         u = self.plan[:, 0].astype(np.float64)
         return float(u[0]) if self._single else u
 

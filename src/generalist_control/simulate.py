@@ -8,6 +8,7 @@ reference ``r[k]`` and returns ``u[k]``, held constant until ``k + 1``.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
@@ -28,6 +29,7 @@ __all__ = [
     "Run",
     "Trajectory",
     "discretise",
+    "plant_stepper",
     "simulate",
     "simulate_many",
 ]
@@ -110,10 +112,20 @@ class Trajectory:
 
 
 def discretise(A: np.ndarray, B: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Exact zero-order-hold discretisation via the block matrix exponential."""
-    n, m = B.shape
+    """Exact zero-order-hold discretisation via the block matrix exponential (cached)."""
+    A, B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
+    Ad, Bd = _discretise(A.tobytes(), B.tobytes(), B.shape, float(dt))
+    return Ad.copy(), Bd.copy()
+
+
+@functools.lru_cache(maxsize=512)
+def _discretise(
+    a: bytes, b: bytes, shape: tuple[int, int], dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    n, m = shape
     M = np.zeros((n + m, n + m))
-    M[:n, :n], M[:n, n:] = A, B
+    M[:n, :n] = np.frombuffer(a).reshape(n, n)
+    M[:n, n:] = np.frombuffer(b).reshape(n, m)
     E = expm(M * dt)
     return E[:n, :n], E[:n, n:]
 
@@ -192,6 +204,15 @@ class _Group:
         y = self.plant.output(self.x.reshape(-1, n)).reshape(self.batch, self.steps + 1)
         t = np.arange(self.steps + 1) * self.plant.dt
         return Trajectory(t=t, x=self.x, u=self.u, r=self.r, y=y, diverged=self.diverged)
+
+
+def plant_stepper(plant: Plant) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """``advance(x, u) -> x_next``: one sample of ``plant`` for batches (B, n) and (B,).
+
+    The simulator's own update: exact zero-order hold for linear plants, RK4 with the
+    plant's sub-steps for nonlinear ones (no perturbation).
+    """
+    return _Group(plant, np.zeros((1, 1)), None, None)._advance
 
 
 def simulate(

@@ -26,6 +26,7 @@ import mlflow
 import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from mlflow.models import infer_signature
 from omegaconf import DictConfig, OmegaConf
 
@@ -36,7 +37,7 @@ from generalist_control.model import MODEL_DEFAULTS, controller_config, count_pa
 from generalist_control.paths import HYDRA_CONFIG_PATH
 from generalist_control.policy import FlatPolicy, Policy, flat_columns, load_policy, save_policy
 
-__all__ = ["main", "train"]
+__all__ = ["job_models_dir", "main", "train"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +51,21 @@ def _run_dir(cfg: DictConfig) -> Path:
     if HydraConfig.initialized():
         return Path(HydraConfig.get().runtime.output_dir)
     return Path("outputs/train") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+
+
+def job_models_dir(cfg: DictConfig) -> Path:
+    """Where this run writes ``policy.ckpt``: ``paths.models_dir``, except in a multirun.
+
+    Each job of a Hydra multirun (a sweep) writes to ``<its output dir>/models`` so that
+    the jobs overwrite neither each other's model nor the DVC output ``models/``; a
+    ``paths.models_dir=...`` on the command line still wins.
+    """
+    if HydraConfig.initialized():
+        hc = HydraConfig.get()
+        given = any(o.startswith("paths.models_dir=") for o in hc.overrides.task)
+        if hc.mode == RunMode.MULTIRUN and not given:
+            return Path(hc.runtime.output_dir) / "models"
+    return Path(cfg.paths.models_dir)
 
 
 def _write_json(path: Path, data: dict[str, Any]) -> None:
@@ -85,6 +101,34 @@ def _closed_loop_scores(cfg: DictConfig, policy: Policy, meta: dict[str, Any]) -
     scores["closed_loop/mse_mean"] = float(np.mean(finite)) if finite else float("inf")
     scores["closed_loop/diverged"] = float(sum(not np.isfinite(v) for v in mse.values()))
     return scores
+
+
+def _dagger(cfg: DictConfig, meta: dict[str, Any]) -> L.Callback | None:
+    """The DAgger callback for ``cfg.dagger`` (None when it is off or absent)."""
+    spec = cfg.get("dagger")
+    if not spec or not spec.get("enabled", False):
+        return None
+    from generalist_control.catalog import plants_from_config
+    from generalist_control.dagger import DAggerCallback
+
+    plants = [p for p in plants_from_config(cfg.systems) if p.name in meta["tags"]]
+    kwargs = {k: v for k, v in OmegaConf.to_container(spec, resolve=True).items()}
+    kwargs.pop("enabled")
+    kwargs.setdefault("limit", float(cfg.data.amplitudes.limit))
+    kwargs.setdefault("seed", int(cfg.seed or 0))
+    return DAggerCallback(plants, **kwargs)
+
+
+def _closed_loop_validation(cfg: DictConfig, meta: dict[str, Any]) -> L.Callback | None:
+    """``val/closed_loop`` on every training plant (``closed_loop_val``; None when off)."""
+    spec = cfg.get("closed_loop_val")
+    if not spec or not spec.get("enabled", True):
+        return None
+    from generalist_control.catalog import plants_from_config
+    from generalist_control.evaluate import ClosedLoopValidation
+
+    plants = [p for p in plants_from_config(cfg.systems) if p.name in meta["tags"]]
+    return ClosedLoopValidation(plants, list(spec.amplitudes), float(spec.duration))
 
 
 def _callbacks(cfg: DictConfig, run_dir: Path) -> list[L.Callback]:
@@ -196,8 +240,8 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         L.seed_everything(int(cfg.seed), workers=True)
     dm = DemoDataModule(
         cfg.paths.data_dir,
-        cfg.model.history,
-        cfg.model.horizon,
+        cfg.data.history,
+        cfg.data.horizon,
         seed=int(cfg.seed or 0),
         **cfg.loader,
     )
@@ -206,11 +250,16 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     ckpt_path = cfg.get("ckpt_path")
     if ckpt_path:
         _check_resume(ckpt_path, meta)
-    keys = set(MODEL_DEFAULTS) - {"experts", "state_dim"}
+    keys = set(MODEL_DEFAULTS) - {"experts", "state_dim", "history", "horizon"}
     model_cfg = controller_config(
-        **{k: v for k, v in cfg.model.items() if k in keys}, experts=cfg.experts
+        **{k: v for k, v in cfg.model.items() if k in keys},
+        experts=cfg.experts,
+        history=cfg.data.history,
+        horizon=cfg.data.horizon,
     )
     scheduler = cfg.model.get("scheduler")
+    if scheduler is not None and "T_max" in scheduler and scheduler.T_max is None:
+        scheduler = OmegaConf.merge(scheduler, {"T_max": int(cfg.trainer.max_epochs)})
     lit = LitController(
         model=model_cfg,
         optimizer=OmegaConf.to_container(cfg.model.optimizer, resolve=True),
@@ -223,11 +272,15 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     callbacks = _callbacks(cfg, run_dir)
     ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
     epoch_logger = mlflow_utils.MLflowEpochLogger()
+    dagger = _dagger(cfg, meta)
+    extra = {"reload_dataloaders_every_n_epochs": 1} if dagger else {}
+    own = [c for c in (dagger, _closed_loop_validation(cfg, meta)) if c is not None]
     trainer: L.Trainer = hydra.utils.instantiate(
         cfg.trainer,
-        callbacks=[*callbacks, epoch_logger],
+        callbacks=[*callbacks, *own, epoch_logger],
         logger=False,
         default_root_dir=str(run_dir),
+        **extra,
     )
     resume_id = mlflow_utils.run_id_from_checkpoint(ckpt_path) if ckpt_path else None
 
@@ -253,7 +306,8 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             "global_step": int(trainer.global_step),
         }
         policy, _ = load_policy(best)
-        models_dir = Path(cfg.paths.models_dir)
+        models_dir = job_models_dir(cfg)
+        mlflow.set_tag("policy_dir", str(models_dir.resolve()))
         policy_meta = {**meta, "metrics": metrics, "mlflow_run_id": run_id}
         policy_path = save_policy(models_dir / POLICY_FILE, policy, policy_meta)
         metrics_path = models_dir / METRICS_FILE

@@ -17,7 +17,15 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from generalist_control.plants import MAX_ORDER
 
-__all__ = ["Windows", "build_windows", "history_windows", "pad_states", "windows_per_trajectory"]
+__all__ = [
+    "HistoryBuffer",
+    "Windows",
+    "build_windows",
+    "history_windows",
+    "pad_states",
+    "validity_mask",
+    "windows_per_trajectory",
+]
 
 
 @dataclass(frozen=True)
@@ -87,9 +95,53 @@ def history_windows(
     rp = np.concatenate([np.repeat(r[:, :1], front, axis=1), r], axis=1)
     state = np.moveaxis(sliding_window_view(xp, history, axis=1), -1, 2)
     ref = sliding_window_view(rp, history, axis=1)
-    valid = (np.arange(MAX_ORDER) < np.asarray(order)[:, None]).astype(np.float32)
+    valid = validity_mask(order)
     mask = np.broadcast_to(valid[:, None, None, :], state.shape)
     return state * mask, mask, ref
+
+
+def validity_mask(order: np.ndarray) -> np.ndarray:
+    """Float32 (B, MAX_ORDER): one for the real state entries of each order, zero for padding."""
+    return (np.arange(MAX_ORDER) < np.asarray(order)[:, None]).astype(np.float32)
+
+
+class HistoryBuffer:
+    """The newest ``history`` samples of ``B`` running trajectories, for online stepping.
+
+    Gives, at every sample, exactly the last window :func:`history_windows` would build
+    from the whole trajectory so far (the first sample repeated in front until the history
+    is full), without rebuilding it: the deployment path of the one window builder.
+
+    Parameters
+    ----------
+    order : ndarray of int, shape (B,)
+    history : int
+    """
+
+    def __init__(self, order: np.ndarray, history: int) -> None:
+        self.mask = np.ascontiguousarray(
+            np.broadcast_to(validity_mask(order)[:, None, :], (len(order), history, MAX_ORDER))
+        )
+        self.state = np.zeros((len(order), history, MAX_ORDER), np.float32)
+        self.ref = np.zeros((len(order), history), np.float32)
+        self._empty = True
+
+    def push(self, x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Append zero-padded states ``x`` (B, MAX_ORDER) and references ``r`` (B,).
+
+        Returns the newest window ``(state, mask, ref)``: float32 (B, history, MAX_ORDER),
+        (B, history, MAX_ORDER) and (B, history); the state is masked.
+        """
+        x = x * self.mask[:, 0]
+        if self._empty:
+            self.state[:] = x[:, None, :]
+            self.ref[:] = r[:, None]
+            self._empty = False
+        else:
+            self.state[:, :-1] = self.state[:, 1:]
+            self.ref[:, :-1] = self.ref[:, 1:]
+            self.state[:, -1], self.ref[:, -1] = x, r
+        return self.state, self.mask, self.ref
 
 
 def build_windows(

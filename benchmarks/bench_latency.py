@@ -1,0 +1,128 @@
+"""Benchmark the deployed policy's batch-1 ``step()`` latency on one CPU core.
+
+Run: ``python benchmarks/bench_latency.py [--policy models/policy.ckpt] [--steps 5000]``.
+For eager PyTorch, TorchScript and ONNX Runtime, a :class:`PolicyRuntime` steps one plant
+in a closed loop with the plant (the plant's own update is not timed), after a warm-up.
+Beside them: the LQI law's own step (:class:`LQIController`, batch 1) and the network call
+alone (no history buffer). Prints p50 / p99 per path and the ratio of each p50 to the LQI
+step's, and writes ``benchmarks/results/latency.json``. Goal (issue 4): p50 at most 0.2 ms
+on the fastest path (the paper's loop ran at 100 Hz, a 10 ms budget).
+
+Without ``--policy`` a freshly initialised default policy (d = 32, M = 3) is timed: latency
+does not depend on the weights.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from generalist_control.catalog import load_plant  # noqa: E402
+from generalist_control.lqi import LQIController  # noqa: E402
+from generalist_control.policy import Policy, load_policy  # noqa: E402
+from generalist_control.runtime import PolicyRuntime, resolve  # noqa: E402
+from generalist_control.simulate import discretise  # noqa: E402
+
+
+def _percentiles(ns: list[int]) -> dict[str, float]:
+    a = np.asarray(ns, dtype=np.float64) / 1e6  # ms
+    return {
+        "p50_ms": float(np.percentile(a, 50)),
+        "p99_ms": float(np.percentile(a, 99)),
+        "mean_ms": float(a.mean()),
+    }
+
+
+def _time_loop(step, plant, steps: int, warmup: int) -> dict[str, float]:
+    """Closed loop: time ``step(x, r)`` only; the plant update runs outside the timer."""
+    Ad, Bd = discretise(plant.A, plant.B, plant.dt)
+    x = np.zeros(plant.order)
+    times = []
+    for k in range(warmup + steps):
+        r = 1.0 if (k // 200) % 2 == 0 else -1.0
+        t0 = time.perf_counter_ns()
+        u = step(x, r)
+        t1 = time.perf_counter_ns()
+        if k >= warmup:
+            times.append(t1 - t0)
+        x = Ad @ x + Bd[:, 0] * float(u)
+        if not np.all(np.isfinite(x)) or np.abs(x).max() > 1e6:
+            x = np.zeros(plant.order)
+    return _percentiles(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--policy", default=None, help="policy file or MLflow URI")
+    ap.add_argument("--plant", default="two_mass_spring")
+    ap.add_argument("--steps", type=int, default=5000)
+    ap.add_argument("--warmup", type=int, default=500)
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "latency.json"))
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    plant = load_plant(args.plant)
+    if args.policy:
+        policy, meta = load_policy(resolve(args.policy))
+    else:
+        torch.manual_seed(0)
+        policy = Policy({"hidden": 32, "experts": 3, "window_scale": 1, "linear_head": 1})
+        meta = {"tags": {plant.name: plant.tag}, "orders": {plant.name: plant.order},
+                "dt": plant.dt, "history": 8, "horizon": 3}  # fmt: skip
+
+    lqi = LQIController(plant)
+    lqi.reset(1)
+    results: dict[str, dict[str, float]] = {
+        "lqi_step": _time_loop(
+            lambda x, r: lqi.step(x[None, :], np.array([r]))[0], plant, args.steps, args.warmup
+        )
+    }
+    for backend in ("torch", "torchscript", "onnx"):
+        rt = PolicyRuntime(policy, meta, backend=backend)
+        rt.reset(plant.name)
+        results[f"{backend}_step"] = _time_loop(rt.step, plant, args.steps, args.warmup)
+        # the network call alone on the current window (no buffer bookkeeping)
+        win = rt.window()
+        results[f"{backend}_network_only"] = _time_loop(
+            lambda x, r, rt=rt, win=win: rt.run_window(*win)[0, 0], plant, args.steps, 0
+        )
+    base = results["lqi_step"]["p50_ms"]
+    steps = {k: v for k, v in results.items() if k.endswith("_step") and k != "lqi_step"}
+    fastest = min(steps, key=lambda k: steps[k]["p50_ms"])
+    print(f"batch-1 step() latency on 1 thread, plant {plant.name} ({args.steps} steps)")
+    print(f"{'path':<26}{'p50 ms':>10}{'p99 ms':>10}{'p50 / LQI':>12}")
+    for k, v in results.items():
+        print(f"{k:<26}{v['p50_ms']:>10.4f}{v['p99_ms']:>10.4f}{v['p50_ms'] / base:>12.1f}")
+    goal = steps[fastest]["p50_ms"] <= 0.2
+    print(f"fastest: {fastest} p50 {steps[fastest]['p50_ms']:.4f} ms; goal p50 <= 0.2 ms: "
+          f"{'met' if goal else 'NOT met'}")  # fmt: skip
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "plant": plant.name,
+        "policy": args.policy or "fresh d=32 M=3",
+        "steps": args.steps,
+        "threads": torch.get_num_threads(),
+        "machine": platform.processor() or platform.machine(),
+        "torch": torch.__version__,
+        "results": results,
+        "ratio_p50_to_lqi": {k: v["p50_ms"] / base for k, v in results.items()},
+        "fastest": fastest,
+        "goal_p50_le_0.2ms": goal,
+    }
+    tmp = out.with_name(f".{out.name}.tmp")
+    tmp.write_text(json.dumps(payload, indent=2) + "\n")
+    tmp.replace(out)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

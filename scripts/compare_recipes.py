@@ -1,0 +1,28 @@
+"""Print the quality-bar figures of several evaluations side by side (markdown).
+
+Run: ``python scripts/compare_recipes.py paper=<dir>/metrics.csv ours=reports/eval/metrics.csv``
+(each argument ``label=path`` of a ``metrics.csv`` written by
+``python -m generalist_control.evaluate``).
+"""
+
+from __future__ import annotations
+
+import sys
+
+import pandas as pd
+
+from generalist_control.eval_report import recipes_markdown
+
+
+def main(argv: list[str]) -> None:
+    if not argv or any("=" not in a for a in argv):
+        raise SystemExit(__doc__)
+    results = {}
+    for arg in argv:
+        label, _, path = arg.partition("=")
+        results[label] = pd.read_csv(path)
+    print(recipes_markdown(results), end="")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

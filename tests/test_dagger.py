@@ -1,0 +1,130 @@
+"""DAgger: expert labels on visited states, checked against the expert's own trajectories."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from generalist_control.catalog import load_plant
+from generalist_control.dagger import aggregate, bumpless_integrator, expert_plans
+from generalist_control.datamodule import WindowTensors
+from generalist_control.lqi import LQIController, design_lqi
+from generalist_control.policy import Policy
+from generalist_control.runtime import PolicyRuntime
+from generalist_control.simulate import simulate
+from generalist_control.windows import build_windows, pad_states
+
+
+@pytest.mark.parametrize("name", ["magnetic_levitation", "two_tank", "two_mass_spring"])
+def test_pure_expert_round_reproduces_the_demonstration_windows(name):
+    """With beta = 1 the expert's plan at each visited state is what it then did."""
+    plant = load_plant(name)
+    amps = np.array([1.0, -2.5]) * plant.amplitude_scale
+    steps, big = 60, np.full(plant.order, np.inf)
+    windows, counts = aggregate([plant], None, 1.0, {name: amps}, {name: big}, steps, 8, 3)
+    tr = simulate(plant, LQIController(plant), np.repeat(amps[:, None], steps, axis=1))
+    ref = build_windows(
+        pad_states(tr.x[:, :steps]), tr.r, tr.u, np.full(2, plant.tag), np.full(2, plant.order),
+        8, 3,
+    )  # fmt: skip
+    assert counts == {name: len(ref)}
+    np.testing.assert_allclose(windows.target, ref.target, rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(windows.state, ref.state)
+    np.testing.assert_array_equal(windows.ref, ref.ref)
+
+
+def test_expert_plan_first_control_is_the_lqi_law_at_any_state():
+    plant = load_plant("unstable")
+    g = design_lqi(plant)
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(3, 5, plant.order))
+    z = rng.normal(size=(3, 5))
+    r = rng.normal(size=(3, 5))
+    plans = expert_plans(plant, x, z, r, 3)
+    np.testing.assert_allclose(plans[..., 0], -(x @ g.Kx) - g.Ki * z, rtol=1e-12)
+    # second control: one ZOH step of the plant and one Euler step of the integrator
+    from generalist_control.simulate import discretise
+
+    Ad, Bd = discretise(plant.A, plant.B, plant.dt)
+    x1 = x @ Ad.T + plans[..., :1] * Bd[:, 0]
+    # the integrator integrates the error at sample k with r_k, not r_{k+1}
+    z1 = z + plant.dt * (r - x @ plant.C.ravel())
+    np.testing.assert_allclose(plans[..., 1], -(x1 @ g.Kx) - g.Ki * z1, rtol=1e-10)
+
+
+def test_policy_rollouts_are_cut_where_they_leave_the_range():
+    plant = load_plant("magnetic_levitation")
+    torch.manual_seed(0)
+    policy = Policy({"hidden": 8, "experts": 1}).eval()
+    meta = {"tags": {plant.name: plant.tag}, "orders": {plant.name: plant.order},
+            "dt": plant.dt, "history": 8, "horizon": 3}  # fmt: skip
+    rt = PolicyRuntime(policy, meta)
+    amps = {plant.name: np.array([1.0, 2.0]) * plant.amplitude_scale}
+    wide = {plant.name: np.full(plant.order, np.inf)}
+    w_all, c_all = aggregate([plant], rt, 0.0, amps, wide, 100, 8, 3)
+    bound = 0.5 * np.abs(w_all.state).max(axis=(0, 1))[: plant.order]
+    tight = {plant.name: bound}
+    w_cut, c_cut = aggregate([plant], rt, 0.0, amps, tight, 100, 8, 3)
+    assert 0 < c_cut[plant.name] < c_all[plant.name]
+    assert np.all(np.abs(w_cut.state).max(axis=(0, 1))[: plant.order] <= bound + 1e-6)
+    assert np.all(np.isfinite(w_all.target))
+    ds = WindowTensors(w_cut)
+    n = len(ds)
+    ds.append(w_all)
+    assert len(ds) == n + len(w_all)
+    assert torch.equal(ds.tensors["target"][n:], torch.from_numpy(w_all.target))
+
+
+@pytest.mark.slow
+def test_training_with_dagger_grows_the_training_set(tiny_data_dir, tmp_path, mlflow_uri):
+    from hydra import compose, initialize_config_dir
+
+    from generalist_control.paths import conf_dir
+    from generalist_control.train import train
+    from helpers import tiny_train_overrides
+
+    overrides = tiny_train_overrides(
+        tiny_data_dir, tmp_path, mlflow_uri, "logger.log_model=false", "trainer.max_epochs=3",
+        "model.hidden=8", "closed_loop.systems=[]", "dagger.start_epoch=1", "dagger.every=1",
+        "dagger.rounds=2", "dagger.rollouts=2", "dagger.duration=2.0",
+    )  # fmt: skip
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=overrides)
+    metrics, objects = train(cfg)
+    dm = objects["datamodule"]
+    (cb,) = [c for c in objects["trainer"].callbacks if type(c).__name__ == "DAggerCallback"]
+    assert cb.done == 2
+    added = sum(r["windows"] for r in cb.history)
+    assert added > 0
+    assert (
+        len(dm.train_set)
+        == dm.meta()["n_train"]
+        == objects["model"].hparams.meta["n_train"] + added
+    )
+    assert np.isfinite(metrics["val/loss"])
+
+
+def test_bumpless_integrator_is_the_tracked_one_on_expert_runs_and_velocity_form_elsewhere():
+    plant = load_plant("two_mass_spring")
+    g = design_lqi(plant)
+    r = np.full((2, 40), 1.5)
+    tr = simulate(plant, LQIController(plant), r)
+    x = tr.x[:, :40]
+    ctrl = LQIController(plant)
+    ctrl.reset(2)
+    tracked = []
+    for k in range(40):
+        tracked.append(ctrl.z.copy())
+        ctrl.step(x[:, k], r[:, k])
+    z = bumpless_integrator(plant, x, tr.u, r)
+    np.testing.assert_allclose(z, np.array(tracked).T, rtol=1e-9, atol=1e-12)
+    # any applied controls: the label is the LQI law in velocity form
+    u = np.random.default_rng(0).normal(size=(2, 40))
+    z = bumpless_integrator(plant, x, u, r)
+    label = -(x @ g.Kx) - g.Ki * z
+    y = x @ plant.C[0]
+    velocity = (
+        u[:, :-1] - (x[:, 1:] - x[:, :-1]) @ g.Kx - g.Ki * plant.dt * (r[:, :-1] - y[:, :-1])
+    )
+    np.testing.assert_allclose(label[:, 1:], velocity, rtol=1e-9, atol=1e-9)

@@ -1,0 +1,195 @@
+"""Closed-loop evaluation: LQI as the policy scores 1.0, divergence, the entry point end to end."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import pandas as pd
+import pytest
+from hydra import compose, initialize_config_dir
+
+from generalist_control.catalog import load_plant
+from generalist_control.eval_report import recipes_markdown, table2_markdown, table_all_markdown
+from generalist_control.evaluate import closed_loop_score, evaluate, output_mse, summarise
+from generalist_control.lqi import LQIController
+from generalist_control.paths import conf_dir
+from generalist_control.train import train
+from helpers import tiny_train_overrides
+
+REPO = Path(__file__).resolve().parents[1]
+PLANTS = ("cstr", "hydraulic_actuator")
+SCENARIOS = {
+    "step": {"kind": "step", "amplitude": 1.0, "duration": 15.0},
+    "random_steps": {"kind": "random_steps", "count": 3, "limit": 20.0, "seed": 0, "duration": 15},
+    "sine": {"kind": "sine", "amplitude": 1.0, "omega": 0.5, "y0": 0.5, "duration": 6.0},
+}
+
+
+class LQIRuntime:
+    """Duck-typed runtime whose 'policy' is the LQI law itself (integrator per row)."""
+
+    def __init__(self, names, gain: float = 1.0) -> None:
+        self.plants = {n: load_plant(n) for n in names}
+        self.tags = {n: p.tag for n, p in self.plants.items()}
+        self.systems = sorted(self.tags)
+        self.gain = gain
+
+    def reset(self, system) -> None:
+        names = [system] if isinstance(system, str) else list(system)
+        self.groups = []
+        for name in dict.fromkeys(names):
+            rows = np.array([i for i, n in enumerate(names) if n == name])
+            ctrl = LQIController(self.plants[name])
+            ctrl.reset(len(rows))
+            self.groups.append((ctrl, self.plants[name].order, rows))
+
+    def step(self, x, r):
+        x, r = np.atleast_2d(x), np.atleast_1d(r)
+        u = np.empty(len(r))
+        for ctrl, n, rows in self.groups:
+            u[rows] = ctrl.step(x[rows, :n], r[rows])
+        return self.gain * u
+
+
+def test_a_policy_that_is_the_lqi_law_scores_exactly_one():
+    plants = [load_plant(n) for n in PLANTS]
+    df, trajs = evaluate(LQIRuntime(PLANTS), plants, SCENARIOS)
+    assert set(df.columns) == {"system", "scenario", "controller", "run", "metric", "value"}
+    assert set(df.controller) == {"GC", "LQI", "LQI-AW"}
+    summary = summarise(df)
+    for scen in ("step", "random_steps"):
+        ratios = summary["ratios"][scen]
+        assert ratios["worst_ISE_ratio"] == pytest.approx(1.0, abs=1e-12)
+        assert ratios["worst_ITAE_ratio"] == pytest.approx(1.0, abs=1e-12)
+        assert ratios["worst_relative_ess_GC"] < 0.01
+    assert all(summary["quality_bar"].values())
+    side_by_side = recipes_markdown({"a": df, "b": df})
+    assert "| ISE ratio a | ISE ratio b |" in side_by_side
+    assert "| cstr | 1 | 1 | 1 | 1 |" in side_by_side  # ISE and ITAE ratios of both
+    gc = trajs["sine"]["GC"]["cstr"]
+    np.testing.assert_array_equal(gc.y, trajs["sine"]["LQI"]["cstr"].y)
+    assert output_mse(LQIRuntime(PLANTS), plants, duration=5.0) == {
+        "cstr": 0.0,
+        "hydraulic_actuator": 0.0,
+    }
+
+
+def test_lqi_through_the_evaluator_reproduces_the_data_stage(tiny_demos):
+    """The evaluator's LQI run of a step equals the stored demonstration, sample by sample."""
+    plants = [load_plant(n) for n in PLANTS]
+    amp = float(tiny_demos.r[0, 0])
+    name = str(tiny_demos.plant[0])
+    duration = tiny_demos.r.shape[1] * tiny_demos.dt
+    scen = {"step": {"kind": "step", "amplitude": amp, "duration": duration}}
+    plant = next(p for p in plants if p.name == name)
+    scen["step"]["amplitude"] = amp / plant.amplitude_scale
+    _, trajs = evaluate(LQIRuntime(PLANTS), plants, scen)
+    tr = trajs["step"]["LQI"][name]
+    n = plant.order
+    np.testing.assert_allclose(tr.u[0], tiny_demos.u[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(tr.x[0, :-1, :n], tiny_demos.x[0, :, :n], rtol=0, atol=1e-12)
+
+
+def test_divergence_is_reported_as_such_never_averaged():
+    plants = [load_plant(n) for n in PLANTS]
+    bad = LQIRuntime(PLANTS, gain=-25.0)  # sign-flipped, amplified LQI: unstable loop
+    df, _ = evaluate(bad, plants, {"step": SCENARIOS["step"]})
+    gc = df[(df.controller == "GC") & (df.scenario == "step")]
+    flags = gc[gc.metric == "diverged"].set_index("system")["value"]
+    assert (flags == 1.0).all()
+    assert gc[gc.metric == "ISE"]["value"].isna().all()  # no huge number to average
+    summary = summarise(df)
+    assert summary["diverged"]["GC"] == {"step": 2}
+    assert summary["diverged"]["LQI"] == {}
+    assert summary["quality_bar"]["stable_everywhere"] is False
+    assert "diverged" in table2_markdown(df)
+    assert "| cstr |" in table_all_markdown(df)
+
+
+def _tiny_policy(tiny_data_dir: Path, out: Path, uri: str) -> Path:
+    overrides = tiny_train_overrides(
+        tiny_data_dir, out, uri, "logger.log_model=false", "model.hidden=8", "experts=2",
+        f"closed_loop.systems=[{','.join(PLANTS)}]",
+    )  # fmt: skip
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=overrides)
+    metrics, objects = train(cfg)
+    assert np.isfinite(metrics["closed_loop/mse/cstr"]) or metrics["closed_loop/diverged"] > 0
+    return Path(objects["policy_path"])
+
+
+@pytest.mark.slow
+def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
+    tiny_data_dir, tmp_path, mlflow_uri
+):
+    policy = _tiny_policy(tiny_data_dir, tmp_path, mlflow_uri)
+    reports = tmp_path / "reports"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    cmd = [
+        sys.executable, "-m", "generalist_control.evaluate",
+        f"policy={policy}",
+        f"systems.include=[{','.join(PLANTS)}]",
+        f"paths.reports_dir={reports}",
+        f"logger.tracking_uri={mlflow_uri}",
+        f"logger.experiment_name={tmp_path.name}",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    ]  # fmt: skip
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+    df = pd.read_csv(reports / "metrics.csv")
+    assert list(df.columns) == ["system", "scenario", "controller", "run", "metric", "value"]
+    assert set(df.system) == set(PLANTS)
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        scenarios = set(compose("config").evaluation.scenarios)
+    # every configured scenario that applies to these plants, plus nothing else
+    expected = {s for s in scenarios if s not in ("saturation_0.5", "saturation_0.25")}
+    assert set(df.scenario) == expected
+    table = (reports / "table2.md").read_text()
+    assert "| NMP | H.Act |" in table and "(GC) paper" in table and "(LQI) ours" in table
+    summary = json.loads((reports / "summary.json").read_text())
+    assert set(summary["quality_bar"]) == {
+        "stable_everywhere", "ess_within_1pct", "ISE_ratio_le_1.15", "ITAE_ratio_le_2.0"
+    }  # fmt: skip
+    plots = {p.name for p in (reports / "plots").glob("*.png")}
+    assert {"cstr_step_sine.png", "hydraulic_actuator_step_sine.png"} <= plots
+    assert {"cstr_rate_limit_0.5.png", "cstr_noise_disturbance.png"} <= plots
+    responses = pd.read_csv(reports / "responses.csv")
+    assert {"system", "controller", "t", "y", "u"} <= set(responses.columns)
+
+    mlflow.set_tracking_uri(mlflow_uri)
+    (run,) = mlflow.search_runs(experiment_names=[tmp_path.name], output_format="list")
+    assert "eval/diverged/GC" in run.data.metrics
+    names = {a.path for a in mlflow.MlflowClient().list_artifacts(run.info.run_id, "eval")}
+    assert "eval/metrics.csv" in names and "eval/table2.md" in names
+
+    # the same policy through its MLflow URI gives the same closed loops
+    proc = subprocess.run(
+        [*cmd[:3], f"policy=runs:/{run.info.run_id}", *cmd[4:-1], "evaluation.plots=false",
+         f"hydra.run.dir={tmp_path / 'hydra2'}"],
+        cwd=REPO, capture_output=True, text=True, env=env, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    pd.testing.assert_frame_equal(pd.read_csv(reports / "metrics.csv"), df)
+    assert not (reports / "plots").exists()
+
+
+def test_closed_loop_score_is_zero_for_the_expert_and_one_for_divergence():
+    plants = [load_plant(n) for n in PLANTS]
+    assert closed_loop_score(LQIRuntime(PLANTS), plants, duration=4.0) == {
+        "cstr": 0.0,
+        "hydraulic_actuator": 0.0,
+    }
+    assert closed_loop_score(LQIRuntime(PLANTS, gain=-25.0), plants, duration=4.0) == {
+        "cstr": 1.0,
+        "hydraulic_actuator": 1.0,
+    }
+    half = closed_loop_score(LQIRuntime(PLANTS, gain=0.5), plants, duration=4.0)
+    assert all(0.0 < v < 1.0 for v in half.values())

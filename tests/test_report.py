@@ -1,0 +1,158 @@
+"""The ablation report on synthetic MLflow runs: figures, missing points, no runs, gates."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import pandas as pd
+import pytest
+from hydra import compose, initialize_config_dir
+
+from ablation_runs import PLANTS, log_runs, policy_meta
+from generalist_control.catalog import load_plant
+from generalist_control.paths import conf_dir
+from generalist_control.policy import Policy
+from generalist_control.report import (
+    RUN_TYPE_TAG,
+    NoAblationRunsError,
+    RunPoint,
+    gate_weights,
+    run,
+    select_sweeps,
+)
+
+
+def _cfg(uri: str, experiment: str, out: Path, *extra: str):
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        return compose(
+            "config",
+            overrides=[
+                f"logger.tracking_uri={uri}",
+                f"logger.experiment_name={experiment}",
+                f"logger.artifact_location={out / 'mlruns'}",
+                f"report.out_dir={out / 'ablation'}",
+                f"paths.reports_dir={out / 'eval'}",
+                f"report.plants=[{','.join(PLANTS)}]",
+                "report.gate.duration=2.0",
+                *extra,
+            ],
+        )
+
+
+def test_report_from_runs(tmp_path, mlflow_uri):
+    ids = log_runs(mlflow_uri, tmp_path.name, tmp_path)
+    (tmp_path / "eval").mkdir()
+    (tmp_path / "eval" / "summary.json").write_text(
+        json.dumps({"quality_bar": {"stable_everywhere": True}})
+    )
+    summary = run(_cfg(mlflow_uri, tmp_path.name, tmp_path))
+    out = tmp_path / "ablation"
+
+    stems = ["mse_hidden", "mse_experts", "loss_hidden", "loss_experts", "params_vs_mse"]
+    for stem in [*stems, "gate_weights"]:
+        assert (out / f"{stem}.png").stat().st_size > 1000
+        assert (out / f"{stem}.csv").is_file()
+    assert (out / "fig_hidden_ablation.png").is_file()
+    assert (out / "fig_expert_ablation.png").is_file()
+    assert not list(tmp_path.glob(".ablation.*"))  # the staging directory is gone
+
+    assert summary["missing"] == ["d=16"]
+    assert summary["points"]["hidden"]["d=64"] == ids[(64, 3)]
+    assert summary["gate_run"] == ids[(32, 5)]
+
+    mse = pd.read_csv(out / "mse_hidden.csv")
+    d16 = mse[mse["value"] == 16]
+    assert set(d16["status"]) == {"no run"} and d16["mse"].isna().all()
+    m1 = pd.read_csv(out / "mse_experts.csv").query("value == 1").set_index("plant")
+    assert m1.loc["cstr", "status"] == "no score"
+    assert m1.loc["double_integrator", "mse"] == pytest.approx(1e-2)
+
+    loss = pd.read_csv(out / "loss_experts.csv")
+    assert sorted(loss[loss["value"] == 5]["epoch"]) == [0, 1, 2]
+    assert loss[loss["value"] == 5]["train_loss"].iloc[-1] == pytest.approx(6e-4)
+
+    gates = pd.read_csv(out / "gate_weights.csv", index_col="plant")
+    assert list(gates.index) == sorted(PLANTS, key=lambda p: load_plant(p).tag)
+    assert gates.shape[1] == 5
+    np.testing.assert_allclose(gates.sum(axis=1), 1.0, rtol=1e-5)
+
+    text = (out / "comparison.md").read_text()
+    assert "| final training loss | d=16,M=3 | 1.02e-02 | no run |" in text
+    assert "| final training loss | d=32,M=3 | 9.43e-04 | 9.00e-04 |" in text
+    assert "| parameters | d=32,M=3 | 59,180 |" in text
+    assert "| crazyflie_altitude MSE | d=32,M=3 | 5.90e-02 | no score |" in text
+    assert "stable_everywhere" in text
+
+    # the report run: tagged, with the artifacts; a second report leaves it out of the search
+    client = mlflow.MlflowClient(mlflow_uri)
+    report = client.get_run(summary["report_run_id"])
+    assert report.data.tags[RUN_TYPE_TAG] == "report"
+    assert report.data.metrics["report/missing_points"] == 1.0
+    assert report.data.metrics["ablation/final_train_loss/d32_M3"] == pytest.approx(9e-4)
+    names = {a.path for a in client.list_artifacts(report.info.run_id, "ablation")}
+    assert "ablation/comparison.md" in names and "ablation/gate_weights.png" in names
+    again = run(_cfg(mlflow_uri, tmp_path.name, tmp_path, "report.log_mlflow=false"))
+    assert again["points"] == summary["points"]
+
+
+def test_no_runs_is_an_error_naming_the_sweeps(tmp_path, mlflow_uri):
+    cfg = _cfg(mlflow_uri, f"{tmp_path.name}-empty", tmp_path)
+    with pytest.raises(NoAblationRunsError, match=r"python train\.py -m model\.hidden=16,32,64"):
+        run(cfg)
+    assert not (tmp_path / "ablation").exists()
+
+
+def test_runs_off_both_sweeps_give_a_report_of_missing_points(tmp_path, mlflow_uri):
+    mlflow.set_tracking_uri(mlflow_uri)
+    exp_id = mlflow.create_experiment(tmp_path.name)
+    with mlflow.start_run(experiment_id=exp_id):
+        mlflow.log_params({"model.hidden": 8, "experts": 2, "n_parameters": 1000})
+        mlflow.log_metric("train/loss", 0.5, step=0)
+    summary = run(_cfg(mlflow_uri, tmp_path.name, tmp_path, "report.log_mlflow=false"))
+    assert len(summary["missing"]) == 6 and summary["gate_run"] is None
+    assert (tmp_path / "ablation" / "gate_weights.png").is_file()
+    text = (tmp_path / "ablation" / "comparison.md").read_text()
+    assert "| final training loss | d=32,M=3 | 9.43e-04 | no run |" in text
+
+
+def test_newest_run_of_a_configuration_wins():
+    def point(run_id, d, m, t):
+        return RunPoint(run_id, run_id, d, m, 1, 0.1, start_time=t)
+
+    points = [point("old", 32, 3, 1), point("new", 32, 3, 2), point("m5", 32, 5, 3)]
+    sweeps = select_sweeps(points, hidden=(16, 32), experts=(3, 5))
+    assert sweeps["hidden"] == {16: None, 32: points[1]}
+    assert sweeps["experts"] == {3: points[1], 5: points[2]}
+
+
+def test_gate_weights_follow_the_plants_asked_for():
+    policy = Policy({"hidden": 16, "experts": 3, "heads": 2})
+    gates = gate_weights(policy, policy_meta(), ["cstr"], duration=1.0)
+    assert list(gates.index) == ["cstr"] and list(gates.columns) == [
+        "expert_1",
+        "expert_2",
+        "expert_3",
+    ]
+    assert gates.to_numpy().sum() == pytest.approx(1.0, rel=1e-5)
+    with pytest.raises(KeyError, match="not trained on"):
+        gate_weights(policy, policy_meta(), ["boeing747"])
+
+
+def test_study_trials_and_parents_are_left_out(tmp_path, mlflow_uri):
+    from generalist_control.report import runs_from_mlflow
+
+    mlflow.set_tracking_uri(mlflow_uri)
+    exp_id = mlflow.create_experiment(tmp_path.name)
+    kept = {}
+    for role in ("sweep", "study"):
+        with mlflow.start_run(experiment_id=exp_id, tags={"gc.role": role}) as parent:
+            with mlflow.start_run(experiment_id=exp_id, nested=True) as child:
+                mlflow.log_params({"model.hidden": 32, "experts": 3})
+                kept[role] = child.info.run_id
+            mlflow.log_params({"model.hidden": 32, "experts": 3})  # even with params
+        assert parent.info.run_id
+    points = runs_from_mlflow(tmp_path.name, client=mlflow.MlflowClient(mlflow_uri))
+    assert [p.run_id for p in points] == [kept["sweep"]]

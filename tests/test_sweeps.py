@@ -1,0 +1,122 @@
+"""Grouped Hydra multiruns: one MLflow parent run per sweep, each job's run nested under it."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import mlflow
+import pytest
+from hydra.core.utils import JobReturn, JobStatus
+from omegaconf import OmegaConf
+
+from generalist_control import mlflow_utils
+from generalist_control.sweep import MLflowSweepCallback, sweep_overrides
+from helpers import quick_overrides
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _env() -> dict[str, str]:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    for key in ("MLFLOW_TRACKING_URI", mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV):
+        env.pop(key, None)
+    return env
+
+
+@pytest.mark.slow
+def test_multirun_makes_one_parent_with_a_child_per_point(tiny_data_dir, tmp_path, mlflow_uri):
+    """`python train.py -m model.hidden=8,16` (tiny data, one epoch): 2 children, 1 parent."""
+    sweep_dir = tmp_path / "multirun"
+    cmd = [
+        sys.executable,
+        "train.py",
+        "-m",
+        "model.hidden=8,16",
+        *quick_overrides(tiny_data_dir, tmp_path, mlflow_uri),
+        f"hydra.sweep.dir={sweep_dir}",
+    ]
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=_env(), timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+    mlflow.set_tracking_uri(mlflow_uri)
+    runs = mlflow.search_runs(experiment_names=[tmp_path.name], output_format="list")
+    parents = [r for r in runs if r.data.tags.get("gc.role") == "sweep"]
+    children = [r for r in runs if r not in parents]
+    (parent,) = parents
+    assert len(children) == 2
+    assert parent.info.status == "FINISHED"
+    assert parent.info.run_name == "sweep:model.hidden=8,16"
+    assert parent.data.metrics["sweep/n_runs"] == 2
+    assert {c.data.params["model.hidden"] for c in children} == {"8", "16"}
+    for child in children:
+        assert child.info.status == "FINISHED"
+        assert child.data.tags["mlflow.parentRunId"] == parent.info.run_id
+        assert child.data.tags["sweep"] == parent.info.run_name
+        # the closed-loop score of the ablation study rides on every sweep point
+        assert {"closed_loop/mse/cstr", "closed_loop/mse_mean"} <= set(child.data.metrics)
+    best = min(children, key=lambda c: c.data.metrics["best/val/loss"])
+    assert parent.data.tags["sweep.best_run_id"] == best.info.run_id
+    # each job keeps its model in its own directory, not in the DVC output models/
+    for job in ("0", "1"):
+        assert (sweep_dir / job / "models" / "policy.ckpt").is_file()
+    models = {c.data.tags["policy_dir"] for c in children}
+    assert models == {str(sweep_dir / "0" / "models"), str(sweep_dir / "1" / "models")}
+
+
+def _sweep_config(tmp_path: Path, uri: str, job: str = "train"):
+    return OmegaConf.create(
+        {
+            "hydra": {
+                "job": {"name": job},
+                "overrides": {"task": ["experts=1,3", "trainer.max_epochs=2"]},
+                "sweep": {"dir": str(tmp_path / "multirun")},
+                "sweeper": {"params": None},
+            },
+            "logger": {"tracking_uri": uri, "experiment_name": tmp_path.name},
+            "optimized_metric": "val/loss",
+        }
+    )
+
+
+def test_sweep_callback_parents_runs_and_ends_failed_on_a_failed_job(
+    tmp_path, mlflow_uri, monkeypatch
+):
+    for key in (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV):
+        monkeypatch.delenv(key, raising=False)
+    cfg = _sweep_config(tmp_path, mlflow_uri)
+    callback = MLflowSweepCallback()
+    callback.on_multirun_start(cfg)
+    parent_id = callback.run_id
+    assert os.environ[mlflow_utils.PARENT_RUN_ENV] == parent_id
+    with mlflow_utils.mlflow_run(cfg.logger) as run:  # what train() does in each job
+        mlflow.log_metric("best/val/loss", 0.5)
+        child_id = run.info.run_id
+    callback.on_job_end(cfg, JobReturn(status=JobStatus.COMPLETED))
+    callback.on_job_end(cfg, JobReturn(status=JobStatus.FAILED))
+    callback.on_multirun_end(cfg)
+
+    client = mlflow.MlflowClient()
+    parent, child = client.get_run(parent_id), client.get_run(child_id)
+    assert child.data.tags["mlflow.parentRunId"] == parent_id
+    assert child.data.tags["sweep"] == "sweep:experts=1,3"
+    assert parent.info.status == "FAILED"  # one job failed
+    assert parent.data.tags["sweep.best_run_id"] == child_id
+    assert parent.data.metrics["sweep/best/val/loss"] == pytest.approx(0.5)
+    assert mlflow_utils.PARENT_RUN_ENV not in os.environ  # restored after the sweep
+    with mlflow_utils.mlflow_run(cfg.logger) as run:  # a later plain run has no parent
+        assert "mlflow.parentRunId" not in client.get_run(run.info.run_id).data.tags
+
+
+def test_sweep_callback_ignores_other_entry_points(tmp_path, mlflow_uri):
+    callback = MLflowSweepCallback(jobs=["train"])
+    callback.on_multirun_start(_sweep_config(tmp_path, mlflow_uri, job="generate"))
+    assert callback.run_id is None
+    assert mlflow_utils.PARENT_RUN_ENV not in os.environ
+
+
+def test_sweep_overrides_keeps_only_sweeping_ones():
+    given = ["model.hidden=16,32,64", "experts=range(1,6,2)", "seed=1", "+x=choice(a,b)"]
+    assert sweep_overrides(given) == [given[0], given[1], given[3]]

@@ -1,0 +1,227 @@
+"""The Optuna study of tune.py: pruning, resuming, two PostgreSQL workers, a killed worker."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import mlflow
+import optuna
+import pytest
+import sqlalchemy
+from optuna.trial import TrialState
+
+from generalist_control import mlflow_utils
+from generalist_control.tune import PARENT_ATTR, open_storage, parse_space, run
+from helpers import compose_cfg, quick_overrides
+from pg import create_database
+
+REPO = Path(__file__).resolve().parents[1]
+#: A small space: the tiny data trains in about a second per trial.
+SMALL_SPACE = (
+    "hparams_search.params.model.hidden.choices=[8,16]",
+    "hparams_search.params.experts.choices=[1,3]",
+)
+
+
+def _tune_overrides(data_dir: Path, out: Path, mlflow_uri: str, storage: str, *extra: str):
+    return [
+        *quick_overrides(data_dir, out, mlflow_uri),
+        f"hparams_search.storage={storage}",
+        f"hparams_search.trials_dir={out / 'trials'}",
+        "hparams_search.study_name=tiny",
+        *SMALL_SPACE,
+        *extra,
+    ]
+
+
+def _cfg(*overrides: str):
+    return compose_cfg("hparams_search=default", *overrides)
+
+
+def _env() -> dict[str, str]:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    for key in ("MLFLOW_TRACKING_URI", mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV):
+        env.pop(key, None)
+    return env
+
+
+def _worker(overrides: list[str], hydra_dir: Path) -> subprocess.Popen:
+    """``python tune.py <overrides>`` in the repository."""
+    cmd = [sys.executable, "tune.py", *overrides, f"hydra.run.dir={hydra_dir}"]
+    return subprocess.Popen(
+        cmd, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+
+
+def _runs(uri: str, experiment: str) -> list:
+    mlflow.set_tracking_uri(uri)
+    return mlflow.search_runs(experiment_names=[experiment], output_format="list")
+
+
+# --------------------------------------------------------------------------- bad input
+def test_unknown_search_key_is_named_with_a_suggestion(tmp_path):
+    storage = tmp_path / "optuna.db"
+    cfg = _cfg(
+        f"hparams_search.storage=sqlite:///{storage}",
+        "+hparams_search.params.model.hiden={type:int,low:8,high:16}",
+    )
+    with pytest.raises(KeyError, match=r"unknown search-space key 'model\.hiden'.*model\.hidden"):
+        run(cfg)
+    assert not storage.exists()  # checked before the storage is touched
+    with pytest.raises(ValueError, match="names a config section"):
+        parse_space({"model": {"optimizer": {"type": "categorical", "choices": [1]}}}, cfg)
+    with pytest.raises(ValueError, match=r"needs low < high"):
+        parse_space({"experts": {"type": "int", "low": 5, "high": 1}}, cfg)
+    with pytest.raises(ValueError, match=r"type must be one of"):
+        parse_space({"experts": {"type": "uniform", "low": 1, "high": 5}}, cfg)
+
+
+@pytest.mark.parametrize(
+    ("url", "match"),
+    [
+        ("optuna.db", "not a database URL"),
+        ("postgres://u@localhost/optuna", r"write postgresql://"),
+        ("oracle://u@localhost/optuna", "is not one of"),
+    ],
+)
+def test_bad_storage_url_is_explained(url, match):
+    with pytest.raises(ValueError, match=match):
+        open_storage(url)
+
+
+def test_unreachable_storage_is_explained():
+    url = "postgresql+psycopg2://someone:secret@127.0.0.1:9/optuna"  # port 9: nobody listens
+    with pytest.raises(ConnectionError, match="cannot open the Optuna storage") as err:
+        open_storage(url)
+    assert "secret" not in str(err.value)
+
+
+def test_no_search_configured():
+    with pytest.raises(ValueError, match="hparams_search=default"):
+        run(compose_cfg())
+
+
+# ------------------------------------------------------------------- pruning and resuming
+@pytest.mark.slow
+def test_lightning_callback_prunes_and_rerun_continues_the_study(
+    tiny_data_dir, tmp_path, mlflow_uri
+):
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    common = _tune_overrides(tiny_data_dir, tmp_path, mlflow_uri, storage)
+    # every val/loss is above 0: the pruner prunes each trial at its first report
+    prune_all = [
+        "hparams_search.n_trials=2",
+        "~hparams_search.pruner",  # replace the median pruner (a `=` would merge into it)
+        "+hparams_search.pruner={_target_:optuna.pruners.ThresholdPruner,upper:0.0}",
+    ]
+    first = run(_cfg(*common, *prune_all))
+    assert [t.state for t in first.trials] == [TrialState.PRUNED] * 2
+    for trial in first.trials:
+        # reported and pruned by OptunaPruning from inside trainer.fit, after epoch 0
+        assert list(trial.intermediate_values) == [0]
+        assert trial.user_attrs["pruned_by"] == "OptunaPruning"
+        assert trial.user_attrs["pruned_at_epoch"] == 0
+        assert not (Path(trial.user_attrs["trial_dir"]) / "models").exists()
+
+    # the same command again continues the study: one more trial, never pruned this time
+    second = run(_cfg(*common, "hparams_search.n_trials=1", "hparams_search.pruner=null"))
+    assert second._study_id == first._study_id
+    assert [t.number for t in second.trials] == [0, 1, 2]
+    done = second.trials[2]
+    assert done.state == TrialState.COMPLETE
+    assert Path(done.user_attrs["trial_dir"], "models", "policy.ckpt").is_file()
+
+    runs = {r.info.run_id: r for r in _runs(mlflow_uri, tmp_path.name)}
+    parent_id = second.user_attrs[PARENT_ATTR]
+    parent = runs.pop(parent_id)
+    assert parent.data.tags["gc.role"] == "study"
+    assert parent.info.status == "FINISHED"
+    assert parent.data.metrics["study/n_trials"] == 3
+    assert parent.data.metrics["study/best_value"] == pytest.approx(done.value)
+    assert len(runs) == 3  # one MLflow run per trial, all under the study's parent
+    by_trial = {int(r.data.tags["optuna.trial"]): r for r in runs.values()}
+    for number, mlrun in by_trial.items():
+        assert mlrun.data.tags["mlflow.parentRunId"] == parent_id
+        assert mlrun.data.tags["optuna.study"] == "tiny"
+        assert mlrun.info.run_id == second.trials[number].user_attrs["mlflow_run_id"]
+    assert [by_trial[n].info.status for n in (0, 1)] == ["KILLED", "KILLED"]
+    assert by_trial[0].data.tags["optuna.state"] == "PRUNED"
+    assert by_trial[2].info.status == "FINISHED"
+    assert by_trial[2].data.metrics["best/val/loss"] == pytest.approx(done.value)
+    assert {"closed_loop/mse/cstr", "closed_loop/mse_mean"} <= set(by_trial[2].data.metrics)
+
+
+# ------------------------------------------------------------------------ several workers
+@pytest.mark.slow
+def test_two_workers_share_a_postgresql_study(tiny_data_dir, tmp_path, postgres_url):
+    """Two `python tune.py` at once on one PostgreSQL study (and one MLflow database)."""
+    mlflow_uri = create_database(postgres_url, "mlflow_two_workers")
+    mlflow.set_tracking_uri(mlflow_uri)
+    mlflow.MlflowClient().search_experiments()  # create MLflow's tables before the workers
+    common = _tune_overrides(
+        tiny_data_dir, tmp_path, mlflow_uri, postgres_url, "hparams_search.n_trials=2"
+    )
+    workers = [
+        _worker([*common, f"hparams_search.worker={k}"], tmp_path / f"hydra{k}") for k in (0, 1)
+    ]
+    for proc in workers:
+        out, _ = proc.communicate(timeout=300)
+        assert proc.returncode == 0, out[-3000:]
+
+    study = optuna.load_study(study_name="tiny", storage=postgres_url)
+    trials = study.trials
+    assert len(trials) == 4
+    assert {t.state for t in trials} <= {TrialState.COMPLETE, TrialState.PRUNED}
+    assert len({t.user_attrs["worker"] for t in trials}) == 2  # both workers ran trials
+    assert len({tuple(sorted(t.params.items())) for t in trials}) == 4  # own seeds
+
+    runs = _runs(mlflow_uri, tmp_path.name)
+    parents = [r for r in runs if r.data.tags.get("gc.role") == "study"]
+    assert [p.info.run_id for p in parents] == [study.user_attrs[PARENT_ATTR]]
+    children = [r for r in runs if r not in parents]
+    assert len(children) == 4
+    assert {c.data.tags["mlflow.parentRunId"] for c in children} == {parents[0].info.run_id}
+
+
+@pytest.mark.slow
+def test_killed_workers_trial_fails_and_the_study_goes_on(tiny_data_dir, tmp_path, mlflow_uri):
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    heartbeat = ["hparams_search.heartbeat.interval=1", "hparams_search.heartbeat.grace_period=2"]
+    common = _tune_overrides(tiny_data_dir, tmp_path, mlflow_uri, storage, *heartbeat)
+    # a trial that would train for hours: it is still running when the worker is killed
+    endless = [
+        "trainer.max_epochs=100000",
+        "~callbacks.early_stopping",
+        "hparams_search.n_trials=1",
+    ]
+    proc = _worker([*common, *endless, "hparams_search.n_trials=1"], tmp_path / "hydra_killed")
+    deadline = time.monotonic() + 180
+    trial = None
+    while time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.5)
+        try:
+            trials = optuna.load_study(study_name="tiny", storage=storage).trials
+        except (KeyError, sqlalchemy.exc.SQLAlchemyError):  # no study (or tables) yet
+            continue
+        if trials and "mlflow_run_id" in trials[0].user_attrs:  # training has started
+            trial = trials[0]
+            break
+    assert trial is not None, proc.communicate(timeout=30)[0][-3000:]
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=30)
+    assert optuna.load_study(study_name="tiny", storage=storage).trials[0].state == (
+        TrialState.RUNNING
+    )
+    time.sleep(4)  # > grace period (SQLite's clock has whole seconds)
+
+    study = run(_cfg(*common, "hparams_search.n_trials=1"))
+    states = [t.state for t in study.trials]
+    assert states == [TrialState.FAIL, TrialState.COMPLETE]
+    killed = mlflow.MlflowClient().get_run(trial.user_attrs["mlflow_run_id"])
+    assert killed.info.status == "FAILED"
+    assert killed.data.tags["optuna.state"] == "FAIL"
