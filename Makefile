@@ -1,6 +1,8 @@
 # Entry points; every target sets up .venv first (idempotent, fast when already done).
 VENV := .venv/bin
 export DVC_NO_ANALYTICS := 1
+# DVC runs each stage's `python -m ...` through the shell: the venv's python must come first.
+export PATH := $(CURDIR)/.venv/bin:$(PATH)
 
 .PHONY: setup pipeline data test lint format bench clean
 

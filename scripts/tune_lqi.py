@@ -43,7 +43,7 @@ from scipy.optimize import minimize
 from generalist_control.catalog import available_plants, load_plant
 from generalist_control.lqi import LQIController, LQIGains, design_lqi, sampled_closed_loop
 from generalist_control.metrics import step_metrics
-from generalist_control.paper import TABLE2, TABLE2_METRICS
+from generalist_control.paper import TABLE2, TABLE2_COLUMNS, TABLE2_METRICS
 from generalist_control.paths import conf_dir
 from generalist_control.plants import Plant, PlantConfigError
 from generalist_control.simulate import discretise, simulate
@@ -68,16 +68,8 @@ START_DECADES = range(-6, 7, 2)  # log10 scales of the state and integral weight
 N_STARTS = 3  # Nelder-Mead runs from the best grid starts
 RESTARTS = 1  # Nelder-Mead restarts from the best point (a fresh simplex escapes stalls)
 
-# The paper's Table 2 (tab:benchmark_performance), LQI rows, unit-step references.
-PAPER_COLUMNS = {
-    "unstable": "Unst.",
-    "cstr": "NMP",
-    "hydraulic_actuator": "H.Act",
-    "auv_yaw": "Yaw",
-    "boeing747": "B-747",
-    "two_mass_spring": "TMS",
-    "crazyflie_altitude": "Crazyflie",
-}
+# The paper's Table 2 (tab:benchmark_performance): column labels and the LQI rows.
+PAPER_COLUMNS = TABLE2_COLUMNS
 # The paper's Table 2 LQI row, keyed by the paper's symbols (t_r, M_p, ...).
 PAPER_LQI = {
     system: {TABLE2_METRICS[metric]: value for metric, value in row.items()}
@@ -88,15 +80,7 @@ FIT_WEIGHTS = dict(t_r=1.0, t_s=1.0, ISE=1.0, ITAE=1.0, u_max=1.0)
 OVERSHOOT_SCALE = 2.0  # percentage points counted as one unit of error
 
 KEYS = ("t_r", "M_p", "t_s", "e_ss", "ISE", "ITAE", "u_max")
-_METRIC_OF = dict(
-    t_r="rise_time",
-    M_p="overshoot",
-    t_s="settling_time",
-    e_ss="steady_state_error",
-    ISE="ISE",
-    ITAE="ITAE",
-    u_max="u_max",
-)
+_METRIC_OF = {symbol: metric for metric, symbol in TABLE2_METRICS.items()}
 FAIL = 1e3
 
 

@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 #: Tag that marks a parent run and says what it groups (``sweep`` or ``study``).
 ROLE_TAG = "gc.role"
 
+
 def sweep_overrides(overrides: Sequence[str]) -> list[str]:
     """The overrides of a Hydra command line that sweep (``a=1,2``, ``b=range(1,4)``, ...).
 
