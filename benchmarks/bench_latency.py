@@ -2,14 +2,16 @@
 
 Run: ``python benchmarks/bench_latency.py [--policy models/policy.ckpt] [--steps 5000]``.
 For eager PyTorch, TorchScript and ONNX Runtime, a :class:`PolicyRuntime` steps one plant
-in a closed loop with the plant (the plant's own update is not timed), after a warm-up.
+in a closed loop with the plant (the plant's own update is not timed), after a warm-up;
+the paths are timed in interleaved blocks (10 rounds), so drift of a shared machine's
+speed falls on all of them alike.
 Beside them: the LQI law's own step (:class:`LQIController`, batch 1) and the network call
 alone (no history buffer). Prints p50 / p99 per path and the ratio of each p50 to the LQI
 step's, and writes ``benchmarks/results/latency.json``. Goal (issue 4): p50 at most 0.2 ms
 on the fastest path (the paper's loop ran at 100 Hz, a 10 ms budget).
 
-Without ``--policy`` a freshly initialised default policy (d = 32, M = 3) is timed: latency
-does not depend on the weights.
+Without ``--policy`` a freshly initialised default policy (d = 32, M = 3, with the error
+integral) is timed: latency does not depend on the weights.
 """
 
 from __future__ import annotations
@@ -42,22 +44,42 @@ def _percentiles(ns: list[int]) -> dict[str, float]:
     }
 
 
-def _time_loop(step, plant, steps: int, warmup: int) -> dict[str, float]:
-    """Closed loop: time ``step(x, r)`` only; the plant update runs outside the timer."""
-    Ad, Bd = discretise(plant.A, plant.B, plant.dt)
-    x = np.zeros(plant.order)
-    times = []
-    for k in range(warmup + steps):
-        r = 1.0 if (k // 200) % 2 == 0 else -1.0
-        t0 = time.perf_counter_ns()
-        u = step(x, r)
-        t1 = time.perf_counter_ns()
-        if k >= warmup:
-            times.append(t1 - t0)
-        x = Ad @ x + Bd[:, 0] * float(u)
-        if not np.all(np.isfinite(x)) or np.abs(x).max() > 1e6:
-            x = np.zeros(plant.order)
-    return _percentiles(times)
+class _Loop:
+    """One timed path in its own closed loop with the plant (the plant update is not timed)."""
+
+    def __init__(self, step, plant) -> None:
+        self.step, self.k = step, 0
+        self.Ad, self.Bd = discretise(plant.A, plant.B, plant.dt)
+        self.x = np.zeros(plant.order)
+        self.times: list[int] = []
+
+    def run(self, n: int, record: bool = True) -> None:
+        for _ in range(n):
+            r = 1.0 if (self.k // 200) % 2 == 0 else -1.0
+            t0 = time.perf_counter_ns()
+            u = self.step(self.x, r)
+            t1 = time.perf_counter_ns()
+            if record:
+                self.times.append(t1 - t0)
+            self.k += 1
+            self.x = self.Ad @ self.x + self.Bd[:, 0] * float(u)
+            if not np.all(np.isfinite(self.x)) or np.abs(self.x).max() > 1e6:
+                self.x = np.zeros(self.x.shape)
+
+
+def _interleaved(loops: dict[str, _Loop], steps: int, warmup: int, rounds: int = 10):
+    """Time every path in round-robin blocks, so that all see the same machine conditions.
+
+    On a shared machine the speed drifts over seconds; timing one path after another
+    would charge that drift to whichever path ran at the time.
+    """
+    for loop in loops.values():
+        loop.run(warmup, record=False)
+    block = max(1, steps // rounds)
+    for _ in range(rounds):
+        for loop in loops.values():
+            loop.run(block)
+    return {name: _percentiles(loop.times) for name, loop in loops.items()}
 
 
 def main() -> None:
@@ -74,26 +96,24 @@ def main() -> None:
         policy, meta = load_policy(resolve(args.policy))
     else:
         torch.manual_seed(0)
-        policy = Policy({"hidden": 32, "experts": 3, "window_scale": 1, "linear_head": 1})
+        policy = Policy({"hidden": 32, "experts": 3, "window_scale": 1, "linear_head": 1,
+                         "integral": 1, "linear_samples": 1})  # fmt: skip
         meta = {"tags": {plant.name: plant.tag}, "orders": {plant.name: plant.order},
-                "dt": plant.dt, "history": 8, "horizon": 3}  # fmt: skip
+                "dt": plant.dt, "history": 8, "horizon": 3,
+                "outputs": {plant.name: plant.C[0].tolist()}}  # fmt: skip
 
     lqi = LQIController(plant)
     lqi.reset(1)
-    results: dict[str, dict[str, float]] = {
-        "lqi_step": _time_loop(
-            lambda x, r: lqi.step(x[None, :], np.array([r]))[0], plant, args.steps, args.warmup
-        )
-    }
+    loops = {"lqi_step": _Loop(lambda x, r: lqi.step(x[None, :], np.array([r]))[0], plant)}
     for backend in ("torch", "torchscript", "onnx"):
         rt = PolicyRuntime(policy, meta, backend=backend)
         rt.reset(plant.name)
-        results[f"{backend}_step"] = _time_loop(rt.step, plant, args.steps, args.warmup)
+        loops[f"{backend}_step"] = _Loop(rt.step, plant)
         # the network call alone on the current window (no buffer bookkeeping)
-        win = rt.window()
-        results[f"{backend}_network_only"] = _time_loop(
-            lambda x, r, rt=rt, win=win: rt.run_window(*win)[0, 0], plant, args.steps, 0
+        loops[f"{backend}_network_only"] = _Loop(
+            lambda x, r, rt=rt: rt.run_window(*rt.window())[0, 0], plant
         )
+    results = _interleaved(loops, args.steps, args.warmup)
     base = results["lqi_step"]["p50_ms"]
     steps = {k: v for k, v in results.items() if k.endswith("_step") and k != "lqi_step"}
     fastest = min(steps, key=lambda k: steps[k]["p50_ms"])

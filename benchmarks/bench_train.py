@@ -44,8 +44,9 @@ from generalist_control.demos import write_demos
 from generalist_control.generate import build_manifest, generate_demos
 from generalist_control.lit_module import LitController
 from generalist_control.lqi import design_lqi
-from generalist_control.model import controller_config, count_parameters
+from generalist_control.model import count_parameters
 from generalist_control.paths import conf_dir
+from generalist_control.train import model_config
 
 PLANTS = (
     "cstr",
@@ -84,20 +85,20 @@ def make_data(cfg, out: Path) -> Path:
     return write_demos(out / "demos", demos, manifest)
 
 
+def _scheduler(cfg) -> dict:
+    """The scheduler config, ``T_max: null`` resolved to the epoch count as train.py does."""
+    sched = OmegaConf.to_container(cfg.model.scheduler, resolve=True)
+    if sched.get("T_max") is None:
+        sched["T_max"] = int(cfg.trainer.max_epochs)
+    return sched
+
+
 def build(cfg, dm: DemoDataModule) -> LitController:
-    model = controller_config(
-        hidden=cfg.model.hidden,
-        heads=cfg.model.heads,
-        stride=cfg.model.stride,
-        history=cfg.model.history,
-        horizon=cfg.model.horizon,
-        n_tags=cfg.model.n_tags,
-        experts=cfg.experts,
-    )
+    model = model_config(cfg)  # the training config's network, as train.py builds it
     lit = LitController(
         model,
         OmegaConf.to_container(cfg.model.optimizer),
-        OmegaConf.to_container(cfg.model.scheduler, resolve=True),
+        _scheduler(cfg),
         dm.meta(),
     )
     lit.policy.normaliser.fit(**dm.train_set.tensors)
@@ -209,7 +210,12 @@ def main(argv: list[str] | None = None) -> dict:
         t0 = time.perf_counter()
         data_dir = args.data or make_data(cfg, Path(tmp))
         dm = DemoDataModule(
-            data_dir, cfg.model.history, cfg.model.horizon, seed=int(cfg.seed), **cfg.loader
+            data_dir,
+            cfg.data.history,
+            cfg.data.horizon,
+            seed=int(cfg.seed),
+            integral=bool(cfg.model.get("integral", False)),
+            **cfg.loader,
         )
         dm.setup("fit")
         result.update(

@@ -34,6 +34,27 @@ def test_pure_expert_round_reproduces_the_demonstration_windows(name):
     np.testing.assert_array_equal(windows.ref, ref.ref)
 
 
+def test_rounds_for_an_integrating_policy_label_the_augmented_state_it_sees():
+    """With model.integral the label is the LQI law at the window's own [x; z]."""
+    plant = load_plant("cstr")
+    g = design_lqi(plant)
+    torch.manual_seed(0)
+    policy = Policy({"hidden": 8, "experts": 1, "integral": 1}).eval()
+    meta = {"tags": {plant.name: plant.tag}, "orders": {plant.name: plant.order},
+            "dt": plant.dt, "history": 8, "horizon": 3}  # fmt: skip
+    runtime = PolicyRuntime(policy, meta)
+    big = {plant.name: np.full(plant.order, np.inf)}
+    amps = {plant.name: np.array([1.0, -2.0])}
+    with pytest.raises(ValueError, match="takeover=tracked"):
+        aggregate([plant], runtime, 0.5, amps, big, 40, 8, 3, "bumpless", integral=True)
+    w, _ = aggregate([plant], runtime, 0.5, amps, big, 40, 8, 3, "tracked", integral=True)
+    assert w.state.shape[1:] == (8, 5)
+    newest = w.state[:, -1].astype(float)
+    law = -(newest[:, : plant.order] @ g.Kx) - g.Ki * newest[:, 4]
+    np.testing.assert_allclose(w.target[:, 0], law, rtol=1e-4, atol=1e-5)
+    assert np.abs(newest[:, 4]).max() > 0.1  # the policy's rollouts moved the integrator
+
+
 def test_expert_plan_first_control_is_the_lqi_law_at_any_state():
     plant = load_plant("unstable")
     g = design_lqi(plant)

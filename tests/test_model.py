@@ -92,9 +92,73 @@ def test_parameter_count_of_the_baseline_matches_docs():
     # docs/training.md, table "Parameter counts"
     assert count_parameters(GeneralistController(hidden=32, experts=3)) == 55_826
     assert count_parameters(GeneralistController(hidden=64, experts=3)) == 215_567
+    ours = {"linear_head": 1, "integral": 1, "linear_samples": 1}  # conf/model/generalist.yaml
+    assert count_parameters(GeneralistController(hidden=32, experts=3, **ours)) == 56_340
+
+
+def test_integral_adds_one_state_channel_that_padding_never_reaches(tiny_demos):
+    """model.integral: one more encoder input (+ the linear head's), masks still hold."""
+    base = count_parameters(GeneralistController(hidden=32, experts=3, linear_head=1))
+    with_z = count_parameters(
+        GeneralistController(hidden=32, experts=3, linear_head=1, integral=1)
+    )
+    # two state encoders gain a d-wide input column each; the head gains T * K weights per tag
+    assert with_z - base == 2 * 32 + 25 * 8 * 3
+    windows = tiny_demos.windows(8, 3, integral=True)
+    torch.manual_seed(0)
+    pol = Policy(controller_config(hidden=16, experts=3, window_scale=1, integral=1))
+    pol.normaliser.fit(*_tensors(windows)[:4], torch.from_numpy(windows.target))
+    assert pol.normaliser.state_scale.shape == (25, 5)
+    state, mask, ref, tag = _tensors(windows)
+    assert (mask[..., :4] == 0).any() and (mask[..., 4] == 1).all()
+    noisy = state + 1e3 * torch.randn_like(state) * (1 - mask)
+    with torch.no_grad():
+        torch.testing.assert_close(pol(noisy, mask, ref, tag), pol(state, mask, ref, tag))
+        moved = state.clone()
+        moved[..., 4] += 1.0  # the integral is seen
+        assert not torch.allclose(pol(moved, mask, ref, tag)[0], pol(state, mask, ref, tag)[0])
+
+
+def test_least_squares_head_recovers_the_lqi_law_from_the_data(tiny_demos):
+    """linear_init=lstsq: from the demonstrations alone, the head's first control is
+    -Kx x - Ki z of each plant's LQI design, at any augmented state (not only on the data)."""
+    from generalist_control.catalog import load_plant
+    from generalist_control.lqi import design_lqi
+
+    windows = tiny_demos.windows(8, 3, integral=True)
+    cfg = controller_config(hidden=16, experts=2, window_scale=1, linear_head=1, integral=1,
+                            linear_samples=1)  # fmt: skip
+    torch.manual_seed(0)
+    pol = Policy(cfg)
+    tensors = dict(zip(("state", "mask", "ref", "tag"), _tensors(windows), strict=True))
+    tensors["target"] = torch.from_numpy(windows.target)
+    pol.normaliser.fit(**tensors)
+    residuals = pol.fit_linear_head(**tensors)
+    assert set(residuals) == {load_plant(n).tag for n in ("cstr", "hydraulic_actuator")}
+    assert max(residuals.values()) < 1e-4  # linear plants: the whole plan is linear
+    rng = np.random.default_rng(0)
+    for name in ("cstr", "hydraulic_actuator"):
+        plant = load_plant(name)
+        g = design_lqi(plant)
+        x = np.zeros((50, 8, 5), np.float32)
+        x[:, :, : plant.order] = rng.normal(size=(50, 8, plant.order))
+        x[:, :, 4] = rng.normal(size=(50, 8))
+        mask = np.zeros_like(x)
+        mask[:, :, : plant.order] = 1.0
+        mask[:, :, 4] = 1.0
+        r = rng.normal(size=(50, 8)).astype(np.float32)
+        tag = torch.full((50,), plant.tag)
+        with torch.no_grad():
+            u, _ = pol(torch.from_numpy(x), torch.from_numpy(mask), torch.from_numpy(r), tag)
+        law = -(x[:, -1, : plant.order].astype(float) @ g.Kx) - g.Ki * x[:, -1, 4]
+        np.testing.assert_allclose(u[:, 0].numpy(), law, rtol=1e-3, atol=1e-3 * np.abs(law).max())
+    with pytest.raises(ValueError, match="no linear head"):
+        Policy(controller_config(hidden=16)).fit_linear_head(**tensors)
 
 
 def test_model_config_is_checked():
+    with pytest.raises(ValueError, match=r"linear_samples \(9\) exceeds the history \(8\)"):
+        controller_config(linear_samples=9)
     with pytest.raises(ValueError, match="unknown model config keys"):
         controller_config(hiden=32)
     with pytest.raises(ValueError, match="must be even"):

@@ -12,9 +12,9 @@ from generalist_control.catalog import load_plant
 from generalist_control.lqi import LQIController
 from generalist_control.plants import MAX_ORDER
 from generalist_control.policy import Policy, load_policy, save_policy
-from generalist_control.runtime import PolicyRuntime, resolve
-from generalist_control.simulate import simulate
-from generalist_control.windows import build_windows, pad_states
+from generalist_control.runtime import PolicyController, PolicyRuntime, resolve
+from generalist_control.simulate import Run, simulate, simulate_many
+from generalist_control.windows import build_windows, integral_of_error, pad_states
 
 PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
 
@@ -29,15 +29,17 @@ def _meta() -> dict:
     }
 
 
-@pytest.fixture(scope="module", params=[0, 1], ids=["paper", "ours"])
+@pytest.fixture(scope="module", params=[0, 1, 2], ids=["paper", "ours-no-integral", "ours"])
 def policy(request) -> Policy:
     """A random policy with non-trivial normaliser scales (no training needed here).
 
-    ``ours``: window scaling and the linear head on, the head's weights made non-zero.
+    ``ours-no-integral``: window scaling and the linear head on, the head's weights made
+    non-zero; ``ours``: the same and the tracking-error integral as a state channel.
     """
     torch.manual_seed(0)
-    on = request.param
-    pol = Policy({"hidden": 16, "experts": 3, "window_scale": on, "linear_head": on}).eval()
+    on, integral = int(request.param > 0), int(request.param > 1)
+    cfg = {"hidden": 16, "experts": 3, "window_scale": on, "linear_head": on}
+    pol = Policy({**cfg, "integral": integral}).eval()
     g = torch.Generator().manual_seed(1)
     if on:
         with torch.no_grad():
@@ -61,7 +63,9 @@ def test_stepping_equals_the_batch_forward_on_built_windows(policy):
     for name, amp in (("cstr", 1.5), ("hydraulic_actuator", -3.0)):
         plant, tr = _lqi_trajectory(name, amp)
         x = pad_states(tr.x[:, :-1])
-        w = build_windows(x, tr.r, tr.u, np.array([plant.tag]), np.array([plant.order]), 8, 1)
+        z = integral_of_error(tr.r, tr.y[:, :-1], plant.dt) if runtime.integral else None
+        tag, order = np.array([plant.tag]), np.array([plant.order])
+        w = build_windows(x, tr.r, tr.u, tag, order, 8, 1, z)
         expected, _ = policy.predict_windows(w)
         runtime.reset(name)
         plans = []
@@ -70,6 +74,10 @@ def test_stepping_equals_the_batch_forward_on_built_windows(policy):
             assert u == pytest.approx(float(runtime.plan[0, 0]))
             plans.append(runtime.plan[0])
         np.testing.assert_allclose(np.array(plans), expected, rtol=1e-5, atol=1e-6)
+        if runtime.integral:  # the runtime's integrator is the expert's, sample by sample
+            np.testing.assert_allclose(
+                runtime.z, z[:, -1] + plant.dt * (tr.r - tr.y[:, :-1])[:, -1]
+            )
 
 
 def test_batched_stepping_equals_single_runs(policy):
@@ -145,3 +153,113 @@ def test_loading_is_weights_only(policy, tmp_path):
         torch.save(blob, fh, pickle_module=pickle)
     with pytest.raises(pickle.UnpicklingError):
         load_policy(evil)
+
+
+def _lqi_law_policy(names) -> tuple[Policy, dict]:
+    """A real integrating policy whose linear head *is* the LQI law ``-Kx x - Ki z``.
+
+    The experts' last layers are zero, so the policy's output is the head alone; the head's
+    weights on the newest sample are the LQI gains in the normaliser's units (non-trivial
+    scales), the same on every step of the horizon. Through window scaling (the head is
+    linear) and the runtime's own integrator, it must reproduce LQI exactly.
+    """
+    from generalist_control.lqi import design_lqi
+
+    torch.manual_seed(0)
+    pol = Policy({"hidden": 16, "experts": 2, "window_scale": 1, "linear_head": 1, "integral": 1})
+    g = torch.Generator().manual_seed(3)
+    width, T, K = MAX_ORDER + 1, 8, 3
+    with torch.no_grad():
+        for expert in pol.net.experts:
+            expert[-1].weight.zero_()
+            expert[-1].bias.zero_()
+        pol.normaliser.state_scale.uniform_(0.5, 3.0, generator=g)
+        pol.normaliser.control_scale.uniform_(0.5, 3.0, generator=g)
+        pol.net.linear.weight.zero_()
+        for name in names:
+            plant = load_plant(name)
+            gains = design_lqi(plant)
+            sx = pol.normaliser.state_scale[plant.tag].double()
+            su = float(pol.normaliser.control_scale[plant.tag])
+            row = np.zeros(T * width + T)
+            newest = (T - 1) * width
+            row[newest : newest + plant.order] = -gains.Kx * sx[: plant.order].numpy() / su
+            row[newest + MAX_ORDER] = -gains.Ki * float(sx[MAX_ORDER]) / su
+            pol.net.linear.weight[plant.tag] = torch.tensor(np.tile(row, K))
+    names = list(names)
+    meta = {
+        "tags": {n: load_plant(n).tag for n in names},
+        "orders": {n: load_plant(n).order for n in names},
+        "dt": 0.05,
+        "history": T,
+        "horizon": K,
+        "outputs": {n: load_plant(n).C[0].tolist() for n in names},
+    }
+    return pol.eval(), meta
+
+
+def test_an_integrating_policy_built_as_the_lqi_law_reproduces_lqi_in_closed_loop():
+    """The runtime's integrator, window builder and normaliser against LQI itself.
+
+    Includes a nonlinear plant (AUV yaw), whose output map goes through the plant.
+    """
+    names = ("cstr", "hydraulic_actuator", "auv_yaw")
+    pol, meta = _lqi_law_policy(names)
+    runtime = PolicyRuntime(pol, meta)
+    plants = [load_plant(n) for n in names]
+    runs = [
+        Run(p, np.full((2, 120), a * p.amplitude_scale))
+        for p, a in zip(plants, (1, -3, 2), strict=True)
+    ]
+    gc = simulate_many(runs, PolicyController(runtime))
+    for p, run, tr in zip(plants, runs, gc, strict=True):
+        ref = simulate(p, LQIController(p), run.r)
+        scale = np.abs(ref.u).max()
+        np.testing.assert_allclose(tr.u, ref.u, rtol=0, atol=2e-5 * scale)
+        np.testing.assert_allclose(tr.y, ref.y, rtol=0, atol=2e-5 * np.abs(ref.y).max())
+    # single-plant stepping with y = C x from the stored output rows gives the same controls
+    p, run = plants[0], runs[0]
+    ref = simulate(p, LQIController(p), run.r[:1])
+    runtime.reset(p.name)
+    u = [runtime.step(ref.x[0, k], ref.r[0, k]) for k in range(run.r.shape[1])]
+    np.testing.assert_allclose(u, ref.u[0], rtol=0, atol=2e-5 * np.abs(ref.u).max())
+
+
+def test_an_integrating_policy_needs_an_output_it_can_integrate():
+    pol, meta = _lqi_law_policy(("cstr",))
+    meta = {**meta, "tags": {"mystery": 0}, "orders": {"mystery": 2}, "outputs": {}}
+    runtime = PolicyRuntime(pol, meta)
+    runtime.reset("mystery")  # not in the catalogue: no output row to fall back on
+    with pytest.raises(ValueError, match=r"no output map for mystery: pass .*step\(x, r, y\)"):
+        runtime.step([0.1, 0.2], 1.0)
+    assert runtime.z == pytest.approx([0.0])  # nothing advanced on the failed step
+    runtime.step([0.1, 0.2], 1.0, y=0.3)
+    assert runtime.z == pytest.approx([0.05 * (1.0 - 0.3)])
+    with pytest.raises(ValueError, match="output contains NaN"):
+        runtime.step([0.1, 0.2], 1.0, y=np.nan)
+    with pytest.raises(ValueError, match=r"output has shape \(2,\); expected \(1,\)"):
+        runtime.step([0.1, 0.2], 1.0, y=[0.1, 0.2])
+
+
+@pytest.mark.parametrize(
+    ("name", "limits"),
+    [("two_mass_spring", {"u_limit": 0.25}), ("cstr", {"rate_limit": 0.5})],
+)
+def test_runtime_anti_windup_is_lqi_anti_windup_for_the_lqi_law(name, limits):
+    """Told the actuator limits, the runtime integrates as AntiWindupLQIController does."""
+    from generalist_control.lqi import AntiWindupLQIController
+    from generalist_control.simulate import PerPlantController, Perturbation
+
+    pol, meta = _lqi_law_policy((name,))
+    pert = Perturbation(**limits)
+    plant = load_plant(name)
+    run = Run(plant, np.full((1, 400), 1.0), None, pert)
+    aw = simulate_many([run], PerPlantController(lambda p: AntiWindupLQIController(p, pert)))[0]
+    plain = simulate_many([run], PerPlantController(LQIController))[0]
+    runtime = PolicyRuntime(pol, meta)
+    gc_aw = simulate_many([run], PolicyController(runtime, pert))[0]
+    gc = simulate_many([run], PolicyController(runtime))[0]  # limits cleared again
+    scale = np.abs(aw.y).max()
+    np.testing.assert_allclose(gc_aw.y, aw.y, rtol=0, atol=1e-4 * scale)
+    np.testing.assert_allclose(gc.y, plain.y, rtol=0, atol=1e-4 * np.abs(plain.y).max())
+    assert np.abs(plain.y - aw.y).max() > 0.1 * scale  # the limits matter in this scenario

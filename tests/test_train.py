@@ -124,3 +124,22 @@ def test_experiment_paper_is_the_baseline():
     assert cfg.trainer.gradient_clip_val == 1.0
     assert cfg.data.history == 8 and cfg.data.horizon == 3
     assert cfg.systems.name == "all"
+    # the paper's policy sees no error integral and has no linear head
+    assert not cfg.model.integral and not cfg.model.linear_head and not cfg.model.window_scale
+
+
+def test_default_recipe_config_and_its_bad_combinations_are_refused(tiny_data_dir, tmp_path):
+    from generalist_control.train import model_config
+
+    cfg = _cfg([])
+    m = model_config(cfg)
+    assert m["integral"] == 1 and m["linear_head"] == 1 and m["linear_samples"] == 1
+    assert cfg.model.linear_init == "lstsq" and cfg.dagger.takeover == "auto"
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    bad = _cfg(_overrides(tiny_data_dir, tmp_path, uri, "model.linear_init=magic"))
+    with pytest.raises(ValueError, match="model.linear_init must be 'zero' or 'lstsq'"):
+        train(bad)
+    bad = _cfg(_overrides(tiny_data_dir, tmp_path, uri, "dagger.takeover=bumpless"))
+    with pytest.raises(ValueError, match="dagger.takeover=tracked"):
+        train(bad)
+    assert not (tmp_path / "mlflow.db").exists()  # refused before anything was logged

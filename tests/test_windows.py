@@ -64,3 +64,44 @@ def test_pad_states_rejects_too_many_states():
     assert pad_states(np.ones((2, 3))).shape == (2, 4)
     with pytest.raises(ValueError, match="at most 4"):
         pad_states(np.ones((2, 5)))
+
+
+def test_integral_channel_is_the_lqi_experts_own_integrator():
+    """The error integral equals LQIController's z before each control, on a nonlinear plant."""
+    from generalist_control.catalog import load_plant
+    from generalist_control.lqi import LQIController
+    from generalist_control.simulate import simulate
+    from generalist_control.windows import HistoryBuffer, integral_of_error
+
+    plant = load_plant("two_tank")
+    ctrl = LQIController(plant)
+    seen = []
+
+    class Recording:
+        def reset(self, batch_size):
+            ctrl.reset(batch_size)
+
+        def step(self, x, r):
+            seen.append(ctrl.z.copy())
+            return ctrl.step(x, r)
+
+    r = np.array([[1.0] * 30 + [-2.0] * 30, [3.0] * 60]) * plant.amplitude_scale
+    tr = simulate(plant, Recording(), r)
+    z = integral_of_error(tr.r, tr.y[:, :-1], plant.dt)
+    np.testing.assert_allclose(z, np.stack(seen, axis=1), rtol=0, atol=1e-13)
+    # as the last state channel: always valid, after the (masked) padding
+    x = pad_states(tr.x[:, :-1])
+    order = np.full(2, plant.order)
+    w = build_windows(x, tr.r, tr.u, np.full(2, plant.tag), order, H, K, z)
+    assert w.state.shape[1:] == (H, 5) and w.mask[:, :, 4].min() == 1.0
+    assert np.all(w.mask[:, :, plant.order : 4] == 0) and np.all(w.state[:, :, 2:4] == 0)
+    keep = 60 - K + 1
+    np.testing.assert_allclose(w.state[:keep, -1, 4], z[0, :keep].astype(np.float32))
+    # the online buffer builds the same windows
+    buf = HistoryBuffer(order, H, integral=True)
+    for k in range(keep):
+        state, mask, ref = buf.push(x[:, k].astype(np.float32), tr.r[:, k], z[:, k])
+        np.testing.assert_array_equal(state[0], w.state[k])
+        np.testing.assert_array_equal(mask[1], w.mask[keep + k])
+    with pytest.raises(ValueError, match="keeps the error integral"):
+        buf.push(x[:, 0].astype(np.float32), tr.r[:, 0])

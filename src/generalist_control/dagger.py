@@ -15,7 +15,10 @@ integrator advance under the expert's own controls for the next ``K - 1`` sample
 (:func:`expert_plans`). That label is a function of the window, equals the demonstrations'
 label on the expert's own trajectories, and integrates a persistent error. (Integrating
 ``r - y`` along the rollout instead, ``takeover="tracked"``, gives labels that depend on
-the whole past; in our runs they made the policy worse round after round.) Rollouts
+the whole past; in our runs they made the policy worse round after round.) A policy
+trained with ``model.integral`` sees that integral itself, so there the label is simply the
+expert's plan from the augmented state ``[x; z]`` the policy is in (``takeover="tracked"``,
+chosen by the default ``"auto"``). Rollouts
 execute ``beta * u_expert + (1 - beta) * u_policy`` (``beta`` decays over the rounds); runs
 that leave the plant's data range are cut where they leave it.
 
@@ -34,7 +37,7 @@ import torch
 
 from generalist_control.lqi import LQIController, design_lqi
 from generalist_control.plants import Plant
-from generalist_control.runtime import PolicyRuntime
+from generalist_control.runtime import PolicyRuntime, stacked_output
 from generalist_control.simulate import Run, plant_stepper, simulate_many
 from generalist_control.windows import Windows, build_windows, pad_states
 
@@ -70,9 +73,12 @@ class MixedController:
             ctrl.reset(count)
             self._parts.append((ctrl, plant.order, slice(start, start + count)))
             start += count
+        self._output = None
         if self.runtime is not None and self.beta < 1.0:
             names = [p.name for p, c in zip(plants, counts, strict=True) for _ in range(c)]
             self.runtime.reset(names)
+            if getattr(self.runtime, "integral", False):
+                self._output = stacked_output(plants, counts)
         self._z: list[np.ndarray] = []
 
     def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -84,7 +90,11 @@ class MixedController:
         self._z.append(z)
         if self.runtime is None or self.beta >= 1.0:
             return u_e
-        return self.beta * u_e + (1.0 - self.beta) * self.runtime.step(x, r)
+        if self._output is None:
+            u_p = self.runtime.step(x, r)
+        else:
+            u_p = self.runtime.step(x, r, self._output(x))
+        return self.beta * u_e + (1.0 - self.beta) * u_p
 
     @property
     def z(self) -> np.ndarray:
@@ -180,6 +190,7 @@ def aggregate(
     history: int,
     horizon: int,
     takeover: str = "bumpless",
+    integral: bool = False,
 ) -> tuple[Windows, dict[str, int]]:
     """One DAgger round: rollouts of the mixed controller, labelled by the experts.
 
@@ -200,7 +211,11 @@ def aggregate(
         The integrator the expert takes over with: ``"bumpless"`` (default) sets it so
         that the expert's law reproduces the control applied one sample earlier (see
         :func:`bumpless_integrator`); ``"tracked"`` uses the integral of ``r - y`` along
-        the rollout, which the policy cannot see in its window.
+        the rollout, which the policy cannot see in its window unless ``integral``.
+    integral : bool
+        The windows carry the error integral as their last state channel (a policy trained
+        with ``model.integral``); requires ``takeover="tracked"``, since the label must come
+        from the integrator the policy sees.
 
     Returns
     -------
@@ -209,6 +224,11 @@ def aggregate(
     counts : dict
         Windows kept per plant.
     """
+    if integral and takeover != "tracked":
+        raise ValueError(
+            "a policy that sees the error integral is labelled from that integrator: "
+            "use dagger.takeover=tracked (or auto)"
+        )
     runs = [Run(p, np.repeat(amplitudes[p.name][:, None], steps, axis=1)) for p in plants]
     ctrl = MixedController(runtime, beta)
     trajs = simulate_many(runs, ctrl)
@@ -226,6 +246,7 @@ def aggregate(
         w = build_windows(
             pad_states(np.nan_to_num(x)), run.r, np.zeros_like(run.r),
             np.full(B, p.tag), np.full(B, p.order), history, horizon,
+            z if integral else None,
         )  # fmt: skip
         per = steps - horizon + 1
         keep = ok[:, horizon - 1 :].reshape(-1)  # every sample up to the plan's end in range
@@ -282,7 +303,7 @@ class DAggerCallback(L.Callback):
         beta: float = 0.5,
         beta_decay: float = 0.5,
         bound_factor: float = 3.0,
-        takeover: str = "bumpless",
+        takeover: str = "auto",
         seed: int = 0,
     ) -> None:
         self.plants = list(plants)
@@ -290,8 +311,10 @@ class DAggerCallback(L.Callback):
         self.rounds, self.rollouts, self.duration = int(rounds), int(rollouts), float(duration)
         self.beta, self.beta_decay = float(beta), float(beta_decay)
         self.bound_factor, self.seed = float(bound_factor), int(seed)
-        if takeover not in ("bumpless", "tracked"):
-            raise ValueError(f"dagger.takeover must be 'bumpless' or 'tracked', got {takeover!r}")
+        if takeover not in ("auto", "bumpless", "tracked"):
+            raise ValueError(
+                f"dagger.takeover must be 'auto', 'bumpless' or 'tracked', got {takeover!r}"
+            )
         self.takeover = takeover
         self.done = 0
         self.history: list[dict[str, Any]] = []
@@ -325,10 +348,14 @@ class DAggerCallback(L.Callback):
         policy = pl_module.policy
         was_training = policy.training
         runtime = PolicyRuntime(policy, dm.meta())
+        integral = runtime.integral
+        takeover = self.takeover
+        if takeover == "auto":
+            takeover = "tracked" if integral else "bumpless"
         with torch.inference_mode():
             windows, counts = aggregate(
                 self.plants, runtime, beta, amps, self._bounds(dm.train_set), steps,
-                dm.history, dm.horizon, self.takeover,
+                dm.history, dm.horizon, takeover, integral,
             )  # fmt: skip
         policy.train(was_training)
         dm.train_set.append(windows)

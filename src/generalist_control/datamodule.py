@@ -124,6 +124,9 @@ class DemoDataModule(L.LightningDataModule):
     batch_size, val_batch_size : int
     seed : int
         Seeds the split and the per-epoch shuffling.
+    integral : bool
+        Windows carry the tracking-error integral as the last state channel
+        (``model.integral``; see :func:`~generalist_control.windows.integral_of_error`).
 
     Attributes
     ----------
@@ -143,9 +146,11 @@ class DemoDataModule(L.LightningDataModule):
         batch_size: int = 512,
         val_batch_size: int = 8192,
         seed: int = 0,
+        integral: bool = False,
     ) -> None:
         super().__init__()
         self.data_dir = Path(data_dir)
+        self.integral = bool(integral)
         self.history, self.horizon = int(history), int(horizon)
         self.val_fraction = float(val_fraction)
         self.batch_size, self.val_batch_size = int(batch_size), int(val_batch_size)
@@ -168,7 +173,7 @@ class DemoDataModule(L.LightningDataModule):
         if self.train_set is not None:
             return
         demos, self.manifest = load_demos(self.data_dir)
-        windows = demos.windows(self.history, self.horizon)
+        windows = demos.windows(self.history, self.horizon, self.integral)
         is_val = split_by_trajectory(demos.plant, self.val_fraction, self.seed)[windows.traj]
         self.train_set = WindowTensors(windows, ~is_val)
         self.val_set = WindowTensors(windows, is_val)
@@ -184,6 +189,7 @@ class DemoDataModule(L.LightningDataModule):
             "dt": self.dt,
             "history": self.history,
             "horizon": self.horizon,
+            "integral": self.integral,
             "content_hash": str(self.manifest.get("content_hash", "")),
             "data_dir": str(self.data_dir),
             "n_train": len(self.train_set or ()),

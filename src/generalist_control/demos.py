@@ -23,7 +23,7 @@ import pyarrow.parquet as pq
 
 from generalist_control.paths import GENERATE_COMMAND
 from generalist_control.plants import MAX_ORDER
-from generalist_control.windows import Windows, build_windows
+from generalist_control.windows import Windows, build_windows, integral_of_error
 
 __all__ = [
     "DemoSet",
@@ -68,9 +68,14 @@ class DemoSet:
     amplitude: np.ndarray
     dt: float
 
-    def windows(self, history: int, horizon: int) -> Windows:
-        """All training windows of the set."""
-        return build_windows(self.x, self.r, self.u, self.tag, self.order, history, horizon)
+    def windows(self, history: int, horizon: int, integral: bool = False) -> Windows:
+        """All training windows of the set.
+
+        With ``integral``, the error integral is the last state channel (see
+        :func:`~generalist_control.windows.integral_of_error`).
+        """
+        z = integral_of_error(self.r, self.y, self.dt) if integral else None
+        return build_windows(self.x, self.r, self.u, self.tag, self.order, history, horizon, z)
 
 
 def content_hash(demos: DemoSet, config: dict[str, Any]) -> str:

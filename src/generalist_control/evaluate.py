@@ -2,10 +2,13 @@
 
 Every scenario of ``conf/evaluation`` runs three controllers on each plant it applies to:
 the learned Generalist Controller (GC), the LQI expert, and LQI with anti-windup
-(LQI-AW, conditional integration against the scenario's actuator limits). All plants of a
-scenario are simulated in lockstep so the policy is called once per sample for all of them.
-A run that diverges is reported as diverged (metric ``diverged`` = 1, other metrics NaN),
-never as a huge number in an average.
+(LQI-AW, conditional integration against the scenario's actuator limits). A policy that
+integrates the tracking error (``model.integral``) winds up like LQI, so in scenarios with
+actuator limits it also runs as GC-AW: the same policy, its runtime told the limits that
+LQI-AW knows (:meth:`~generalist_control.runtime.PolicyRuntime.set_actuator_limits`).
+All plants of a scenario are simulated in lockstep so the policy is called once per sample
+for all of them. A run that diverges is reported as diverged (metric ``diverged`` = 1,
+other metrics NaN), never as a huge number in an average.
 
 Outputs under ``paths.reports_dir`` (default ``reports/eval``): ``metrics.csv`` in long form
 (system, scenario, controller, run, metric, value), ``summary.json`` (the quality-bar
@@ -38,7 +41,7 @@ from generalist_control.crazyflie import fly
 from generalist_control.lqi import AntiWindupLQIController, LQIController
 from generalist_control.metrics import step_metrics, tracking_metrics
 from generalist_control.paths import HYDRA_CONFIG_PATH
-from generalist_control.plants import Plant
+from generalist_control.plants import MAX_ORDER, Plant
 from generalist_control.runtime import PolicyController, PolicyRuntime
 from generalist_control.scenarios import perturbation, references
 from generalist_control.simulate import (
@@ -63,6 +66,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 CONTROLLERS = ("GC", "LQI", "LQI-AW")
+#: Run as well where a scenario limits the actuator and the policy integrates.
+GC_ANTI_WINDUP = "GC-AW"
 STEP_KINDS = ("step", "random_steps")
 
 
@@ -78,14 +83,16 @@ class SinglePlantPolicy:
 
     def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Controls for unpadded states."""
-        padded = np.zeros((x.shape[0], 4))
+        padded = np.zeros((x.shape[0], MAX_ORDER))
         padded[:, : x.shape[1]] = x
-        return self.runtime.step(padded, r)
+        return self.runtime.step(padded, r)  # an integrating policy: y = C x (its meta)
 
 
 def _controller(name: str, runtime: PolicyRuntime, pert: Perturbation | None) -> BatchController:
     if name == "GC":
         return PolicyController(runtime)
+    if name == GC_ANTI_WINDUP:
+        return PolicyController(runtime, pert)
     if name == "LQI":
         return PerPlantController(LQIController)
     limits = pert or Perturbation()
@@ -142,7 +149,9 @@ def evaluate(
             r, x0 = references(name, spec, p)
             runs.append(Run(p, r, x0, pert))
         trajs[name] = {}
-        for ctrl in CONTROLLERS:
+        limited = pert is not None and (pert.u_limit is not None or pert.rate_limit is not None)
+        extra = (GC_ANTI_WINDUP,) if limited and getattr(runtime, "integral", False) else ()
+        for ctrl in (*CONTROLLERS, *extra):
             results = simulate_many(runs, _controller(ctrl, runtime, pert))
             trajs[name][ctrl] = {p.name: tr for p, tr in zip(chosen, results, strict=True)}
             for p, tr in zip(chosen, results, strict=True):
@@ -254,7 +263,7 @@ def summarise(df: pd.DataFrame) -> dict[str, Any]:
     """Quality-bar figures: divergences, worst ISE/ITAE ratios GC/LQI, worst relative e_ss."""
     mean = df.groupby(["scenario", "controller", "system", "metric"])["value"].mean()
     out: dict[str, Any] = {"diverged": {}, "ratios": {}}
-    for ctrl in CONTROLLERS:
+    for ctrl in [*CONTROLLERS, *sorted(set(df.controller) - set(CONTROLLERS))]:
         d = df[(df.controller == ctrl) & (df.metric == "diverged")]
         out["diverged"][ctrl] = {
             s: int(v) for s, v in d.groupby("scenario")["value"].sum().items() if v > 0

@@ -41,6 +41,7 @@ __all__ = [
     "SummaryAttention",
     "controller_config",
     "count_parameters",
+    "input_width",
 ]
 
 
@@ -48,7 +49,12 @@ __all__ = [
 #: ``history`` (T_h), ``horizon`` (K), ``experts`` (M), ``n_tags``, ``state_dim`` (n_max),
 #: ``window_scale`` (0 or 1: per-window amplitude scaling in
 #: :class:`~generalist_control.policy.Policy`; 0 is the paper's recipe), ``linear_head``
-#: (0 or 1: add a per-tag linear map of the window to the output; 0 is the paper's).
+#: (0 or 1: add a per-tag linear map of the window to the output; 0 is the paper's),
+#: ``integral`` (0 or 1: the window's state carries one more channel, the integral of the
+#: tracking error that the LQI expert itself integrates; 0 is the paper's),
+#: ``linear_samples`` (how many of the newest samples the linear head sees; 0, the default, is
+#: the whole window; 1 with ``integral``, where the LQI law is linear in the newest
+#: augmented state alone).
 MODEL_DEFAULTS: dict[str, int] = {
     "hidden": 32,
     "heads": 3,
@@ -60,10 +66,17 @@ MODEL_DEFAULTS: dict[str, int] = {
     "state_dim": MAX_ORDER,
     "window_scale": 0,
     "linear_head": 0,
+    "integral": 0,
+    "linear_samples": 0,
 }
 
 #: Keys that are switches (0 or 1) rather than sizes.
-_SWITCHES = ("window_scale", "linear_head")
+_SWITCHES = ("window_scale", "linear_head", "integral")
+
+
+def input_width(config: dict[str, int]) -> int:
+    """Width of the state input per time step: ``state_dim``, plus one with ``integral``."""
+    return int(config["state_dim"]) + int(config.get("integral", 0))
 
 
 def controller_config(**kwargs: Any) -> dict[str, int]:
@@ -84,8 +97,13 @@ def controller_config(**kwargs: Any) -> dict[str, int]:
         if key in _SWITCHES:
             if value not in (0, 1):
                 raise ValueError(f"model.{key} must be 0 or 1 (false/true), got {value}")
-        elif value < 1:
+        elif value < (0 if key == "linear_samples" else 1):
             raise ValueError(f"model.{key} must be a positive integer, got {value}")
+    if cfg["linear_samples"] > cfg["history"]:
+        raise ValueError(
+            f"model.linear_samples ({cfg['linear_samples']}) exceeds the history "
+            f"({cfg['history']})"
+        )
     if cfg["hidden"] % 2:
         raise ValueError(f"model.hidden must be even (encoders give hidden // 2), got {cfg}")
     return cfg
@@ -169,8 +187,9 @@ class GeneralistController(nn.Module):
         self.config = controller_config(**config)
         c = self.config
         d, e = c["hidden"], c["hidden"] // 2
-        self.state_encoder_1 = _mlp(c["state_dim"], d, e)
-        self.state_encoder_2 = _mlp(c["state_dim"], d, e)
+        width = input_width(c)
+        self.state_encoder_1 = _mlp(width, d, e)
+        self.state_encoder_2 = _mlp(width, d, e)
         self.ref_encoder = _mlp(1, d, e)
         # one-hot tag -> W_1 onehot + b_1 is a row lookup: an embedding of size d
         self.tag_embedding = nn.Embedding(c["n_tags"], d)
@@ -187,9 +206,11 @@ class GeneralistController(nn.Module):
         # consecutive states and the reference (its integrator is recoverable from
         # x_k - Ad x_(k-1)), so the head can carry the feedback precisely and the
         # experts the rest. Zero at initialisation: training starts from the paper's net.
+        # With model.integral the law is linear in the newest augmented state [x; z] alone
+        # (linear_samples = 1): the head is then the LQI law's own form.
         self.linear: nn.Embedding | None = None
         if c["linear_head"]:
-            n_in = c["history"] * (c["state_dim"] + 1)
+            n_in = (c["linear_samples"] or c["history"]) * (width + 1)
             self.linear = nn.Embedding(c["n_tags"], c["horizon"] * n_in)
             nn.init.zeros_(self.linear.weight)
         # the slow LSTM sees samples ..., t - 2 tau, t - tau, t (always the newest one)
@@ -216,7 +237,8 @@ class GeneralistController(nn.Module):
 
         Parameters
         ----------
-        state, mask : Tensor, shape (B, history, state_dim)
+        state, mask : Tensor, shape (B, history, width)
+            ``width`` = :func:`input_width`: ``state_dim``, plus the error integral.
         ref : Tensor, shape (B, history)
         tag : Tensor of int, shape (B,)
 
@@ -236,10 +258,15 @@ class GeneralistController(nn.Module):
         u_experts = torch.stack([expert(z_att) for expert in self.experts], dim=1)
         u = torch.einsum("bm,bmk->bk", gates, u_experts)
         if self.linear is not None:
-            window = torch.cat([(state * mask).flatten(1), ref], dim=1)
+            window = self.linear_features(state, mask, ref)
             weights = self.linear(tag).view(-1, self.config["horizon"], window.shape[1])
             u = u + torch.einsum("bkf,bf->bk", weights, window)
         return u, gates
+
+    def linear_features(self, state: Tensor, mask: Tensor, ref: Tensor) -> Tensor:
+        """What the linear head sees: the newest ``linear_samples`` of state and reference."""
+        n = self.config["linear_samples"] or self.config["history"]
+        return torch.cat([(state * mask)[:, -n:].flatten(1), ref[:, -n:]], dim=1)
 
 
 def count_parameters(module: nn.Module) -> int:

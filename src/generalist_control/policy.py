@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from generalist_control.model import GeneralistController, controller_config
+from generalist_control.model import GeneralistController, controller_config, input_width
 from generalist_control.normalise import Normaliser
 from generalist_control.windows import Windows
 
@@ -55,7 +55,7 @@ class Policy(nn.Module):
     def __init__(self, model: dict[str, Any]) -> None:
         super().__init__()
         self.config = controller_config(**model)
-        self.normaliser = Normaliser(self.config["n_tags"], self.config["state_dim"])
+        self.normaliser = Normaliser(self.config["n_tags"], input_width(self.config))
         self.net = GeneralistController(**self.config)
 
     def scaled(
@@ -70,15 +70,74 @@ class Policy(nn.Module):
         coincide, the network learns one shape per plant, and its error is relative to the
         signal, as precise for a unit step as for a step of 20. With it off, ``s = 1``.
         """
+        state, mask, ref, tag, s = self.network_inputs(state, mask, ref, tag)
+        u, gates = self.net(state, mask, ref, tag)
+        return u, gates, s
+
+    def network_inputs(
+        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Raw windows -> the network's inputs (normalised, window-scaled) and the scales s."""
         state, mask, ref, tag = self.normaliser.normalise_inputs(state, mask, ref, tag)
         if self.config["window_scale"]:
             peak = torch.maximum(state.abs().amax(dim=(1, 2)), ref.abs().amax(dim=1))
             s = peak.clamp(min=WINDOW_SCALE_FLOOR).unsqueeze(1)
-            u, gates = self.net(state / s.unsqueeze(2), mask, ref / s, tag)
-        else:
-            s = torch.ones_like(ref[:, :1])
-            u, gates = self.net(state, mask, ref, tag)
-        return u, gates, s
+            return state / s.unsqueeze(2), mask, ref / s, tag, s
+        return state, mask, ref, tag, torch.ones_like(ref[:, :1])
+
+    @torch.no_grad()
+    def fit_linear_head(
+        self,
+        state: Tensor,
+        mask: Tensor,
+        ref: Tensor,
+        tag: Tensor,
+        target: Tensor,
+        ridge: float = 1e-8,
+        **_: Any,
+    ) -> dict[int, float]:
+        """Set the linear head to the per-tag least-squares fit of ``target``; zero the experts.
+
+        A closed-form start for training (``model.linear_init: lstsq``): for each tag, the
+        head's weights solve the ridge-regularised least-squares problem from its features
+        (:meth:`GeneralistController.linear_features` of the network's inputs) to the
+        targets in the units the loss uses, and each expert's last layer is zeroed so that
+        the policy starts as exactly that linear law; the experts then learn the remainder
+        (for a nonlinear plant) by gradient descent. For a linear plant with
+        ``model.integral`` and ``linear_samples = 1`` the fit recovers the LQI law
+        ``-Kx x - Ki z`` from the data alone.
+
+        Returns
+        -------
+        dict
+            Per tag, the fit's relative RMS residual.
+        """
+        if self.net.linear is None:
+            raise ValueError("the policy has no linear head (model.linear_head=false)")
+        x, m, r, t, s = self.network_inputs(state, mask, ref, tag)
+        feats = self.net.linear_features(x, m, r).double()
+        y = (self.normaliser.normalise_controls(target, tag) / s).double()
+        weight = self.net.linear.weight
+        residuals = {}
+        for tg in torch.unique(t).tolist():
+            sel = t == tg
+            X, Y = feats[sel], y[sel]
+            G = X.T @ X
+            G += (
+                ridge
+                * (torch.trace(G) / G.shape[0] + 1e-30)
+                * torch.eye(G.shape[0], dtype=G.dtype)
+            )
+            W = torch.linalg.solve(G, X.T @ Y)  # (F, K)
+            weight[tg] = W.T.reshape(-1).to(weight.dtype)
+            res = Y - X @ W
+            residuals[int(tg)] = float(
+                res.pow(2).mean().sqrt() / Y.pow(2).mean().sqrt().clamp(min=1e-30)
+            )
+        for expert in self.net.experts:
+            expert[-1].weight.zero_()
+            expert[-1].bias.zero_()
+        return residuals
 
     def normalised(
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
@@ -121,7 +180,11 @@ class Policy(nn.Module):
 
 
 def flat_columns(history: int, state_dim: int) -> list[str]:
-    """Column names of :class:`FlatPolicy`'s input (``k = 0`` is the oldest sample)."""
+    """Column names of :class:`FlatPolicy`'s input (``k = 0`` is the oldest sample).
+
+    ``state_dim`` is the state input's width (with ``model.integral`` its last entry is the
+    error integral).
+    """
     cols = [f"state_{k}_{i}" for k in range(history) for i in range(state_dim)]
     cols += [f"mask_{k}_{i}" for k in range(history) for i in range(state_dim)]
     cols += [f"ref_{k}" for k in range(history)]
@@ -131,7 +194,8 @@ def flat_columns(history: int, state_dim: int) -> list[str]:
 class FlatPolicy(nn.Module):
     """One-tensor view of a :class:`Policy` for MLflow's PyTorch flavour.
 
-    Input: float32 (B, 2 * history * state_dim + history + 1), columns
+    Input: float32 (B, 2 * history * width + history + 1) (``width``:
+    :func:`~generalist_control.model.input_width`), columns
     :func:`flat_columns` (state, mask, reference, tag). Output: controls (B, horizon).
     """
 
@@ -142,7 +206,7 @@ class FlatPolicy(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         """Controls in plant units for flat rows ``x``."""
         c = self.policy.config
-        T, n = c["history"], c["state_dim"]
+        T, n = c["history"], input_width(c)
         state = x[:, : T * n].reshape(-1, T, n)
         mask = x[:, T * n : 2 * T * n].reshape(-1, T, n)
         ref = x[:, 2 * T * n : 2 * T * n + T]

@@ -27,7 +27,9 @@ and renamed into place, a PNG and a CSV for each figure:
 * ``comparison.md`` (our figures beside the paper's, :data:`generalist_control.paper.ABLATION`),
   ``runs.csv`` (the runs used) and ``summary.json``.
 
-Everything is logged to a ``report`` run of the same experiment (tag ``gc.run_type =
+The data come from :mod:`generalist_control.ablation_runs`, the drawing from
+:mod:`generalist_control.ablation_figures` (both re-exported here). Everything is logged to a
+``report`` run of the same experiment (tag ``gc.run_type =
 report``), which the run search leaves out. The drawing functions take a Matplotlib
 ``Axes`` and data frames, so notebooks reuse them (``notebooks/02_mlflow_comparison.ipynb``).
 """
@@ -40,23 +42,47 @@ import os
 import re
 import shutil
 import tempfile
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import hydra
 import numpy as np
 import pandas as pd
-from matplotlib.axes import Axes
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.patches import Patch
-from matplotlib.ticker import MaxNLocator
 from omegaconf import DictConfig, OmegaConf
 
+from generalist_control.ablation_figures import (
+    draw_gate_heatmap,
+    draw_loss_curves,
+    draw_mse_bars,
+    draw_params_vs_mse,
+    fmt_value,
+    new_figure,
+    placeholder,
+)
+from generalist_control.ablation_runs import (
+    NO_RUN,
+    NOT_AVAILABLE,
+    RUN_TYPE_TAG,
+    SWEEP_COMMANDS,
+    SWEEPS,
+    NoAblationRunsError,
+    RunPoint,
+    gate_weights,
+    loss_frame,
+    mlflow_client,
+    mse_frame,
+    params_frame,
+    point_label,
+    policy_of_run,
+    runs_from_mlflow,
+    select_sweeps,
+    unique_points,
+)
 from generalist_control.paper import ABLATION
 from generalist_control.paths import HYDRA_CONFIG_PATH
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "RUN_TYPE_TAG",
@@ -80,594 +106,6 @@ __all__ = [
     "write_report",
 ]
 
-log = logging.getLogger(__name__)
-
-#: The commands that create the sweep runs (quoted when there are none).
-SWEEP_COMMANDS = (
-    "python train.py -m model.hidden=16,32,64",
-    "python train.py -m experts=1,3,5",
-)
-#: Tag that marks runs written by this module (left out of the run search).
-RUN_TYPE_TAG = "gc.run_type"
-#: Tag of sweep and study parent runs (:mod:`generalist_control.sweep`): ``sweep`` or ``study``.
-ROLE_TAG = "gc.role"
-#: Sweep name -> (run attribute, symbol used in labels).
-SWEEPS = {"hidden": "d", "experts": "M"}
-NO_RUN = "no run"
-NOT_AVAILABLE = "no score"
-POLICY_ARTIFACT = "policy/policy.ckpt"
-
-
-class NoAblationRunsError(LookupError):
-    """The MLflow experiment holds no finished training run to report on."""
-
-
-@dataclass(frozen=True)
-class RunPoint:
-    """The figures of one finished training run that the report needs.
-
-    Attributes
-    ----------
-    run_id, run_name : str
-    hidden, experts : int
-        ``model.hidden`` (d) and ``experts`` (M).
-    n_parameters : int or None
-    train_loss : float or None
-        The last logged ``train/loss`` (the final training loss).
-    mse : dict
-        ``closed_loop/mse/<plant>`` by plant (only finite scores are logged by training).
-    diverged : int
-        ``closed_loop/diverged``: plants whose GC closed loop diverged (no score logged).
-    start_time : int
-        Milliseconds since the epoch.
-    """
-
-    run_id: str
-    run_name: str
-    hidden: int
-    experts: int
-    n_parameters: int | None
-    train_loss: float | None
-    mse: dict[str, float] = field(default_factory=dict)
-    diverged: int = 0
-    start_time: int = 0
-
-    @property
-    def label(self) -> str:
-        """``d=<hidden>,M=<experts>``, the key format of :data:`paper.ABLATION`."""
-        return f"d={self.hidden},M={self.experts}"
-
-
-def _as_int(text: str | None) -> int | None:
-    try:
-        return int(float(text)) if text is not None else None
-    except ValueError:
-        return None
-
-
-def _point(run: Any) -> RunPoint | None:
-    """A :class:`RunPoint` for an MLflow run, or None if it is no training run."""
-    params, metrics, tags = run.data.params, run.data.metrics, run.data.tags
-    if tags.get(RUN_TYPE_TAG) == "report":
-        return None
-    hidden, experts = _as_int(params.get("model.hidden")), _as_int(params.get("experts"))
-    if hidden is None or experts is None:
-        return None
-    prefix = "closed_loop/mse/"
-    mse = {k[len(prefix) :]: float(v) for k, v in metrics.items() if k.startswith(prefix)}
-    n_params = _as_int(params.get("n_parameters"))
-    if n_params is None and "n_parameters" in metrics:
-        n_params = int(metrics["n_parameters"])
-    loss = metrics.get("train/loss")
-    return RunPoint(
-        run_id=run.info.run_id,
-        run_name=run.info.run_name or "",
-        hidden=hidden,
-        experts=experts,
-        n_parameters=n_params,
-        train_loss=float(loss) if loss is not None else None,
-        mse=mse,
-        diverged=int(metrics.get("closed_loop/diverged", 0) or 0),
-        start_time=int(run.info.start_time or 0),
-    )
-
-
-def _client(tracking_uri: str | None = None) -> Any:
-    from mlflow.tracking import MlflowClient
-
-    return MlflowClient(tracking_uri=tracking_uri)
-
-
-def runs_from_mlflow(
-    experiment_name: str,
-    filter_string: str = "",
-    client: Any | None = None,
-) -> list[RunPoint]:
-    """Training runs of an MLflow experiment, newest first.
-
-    Parameters
-    ----------
-    experiment_name : str
-    filter_string : str
-        An MLflow search filter, e.g. ``"attributes.status = 'FINISHED'"``.
-    client : mlflow.tracking.MlflowClient, optional
-        Default: a client on the current tracking URI.
-
-    Returns
-    -------
-    list of RunPoint
-        Runs with ``model.hidden`` and ``experts`` params. Left out: report runs, the parent
-        runs of sweeps and studies (tag ``gc.role``) and the trials of Optuna studies (their
-        hyperparameters are not the baseline's); the jobs of a multirun sweep are kept. An
-        unknown experiment gives an empty list.
-    """
-    client = client or _client()
-    experiment = client.get_experiment_by_name(experiment_name)
-    if experiment is None:
-        return []
-    points, token = [], None
-    roles: dict[str, str | None] = {}  # parent run id -> its gc.role tag
-
-    def parent_role(run: Any) -> str | None:
-        parent = run.data.tags.get("mlflow.parentRunId")
-        if not parent:
-            return None
-        if parent not in roles:
-            try:
-                roles[parent] = client.get_run(parent).data.tags.get(ROLE_TAG)
-            except Exception:  # noqa: BLE001 (a deleted parent: keep the run)
-                roles[parent] = None
-        return roles[parent]
-
-    while True:
-        page = client.search_runs(
-            [experiment.experiment_id],
-            filter_string=filter_string or "",
-            order_by=["attributes.start_time DESC"],
-            max_results=1000,
-            page_token=token,
-        )
-        for run in page:
-            if run.data.tags.get(ROLE_TAG) or parent_role(run) == "study":
-                continue  # a sweep/study parent, or a trial of an Optuna study
-            point = _point(run)
-            if point is not None:
-                points.append(point)
-        token = page.token
-        if not token:
-            break
-    return sorted(points, key=lambda p: -p.start_time)
-
-
-def select_sweeps(
-    points: Sequence[RunPoint],
-    hidden: Sequence[int] = (16, 32, 64),
-    experts: Sequence[int] = (1, 3, 5),
-    baseline: Mapping[str, int] | None = None,
-) -> dict[str, dict[int, RunPoint | None]]:
-    """The run of each sweep point: the newest matching run, or None ("no run").
-
-    Parameters
-    ----------
-    points : sequence of RunPoint
-        Newest first (as :func:`runs_from_mlflow` returns them).
-    hidden, experts : sequence of int
-        The values of d (at the baseline M) and of M (at the baseline d).
-    baseline : mapping, optional
-        ``{"hidden": 32, "experts": 3}`` (the default).
-
-    Returns
-    -------
-    dict
-        ``{"hidden": {d: RunPoint | None}, "experts": {M: RunPoint | None}}``.
-    """
-    base = {"hidden": 32, "experts": 3, **(baseline or {})}
-    newest = sorted(points, key=lambda p: -p.start_time)
-
-    def first(d: int, m: int) -> RunPoint | None:
-        return next((p for p in newest if p.hidden == d and p.experts == m), None)
-
-    return {
-        "hidden": {int(d): first(int(d), int(base["experts"])) for d in hidden},
-        "experts": {int(m): first(int(base["hidden"]), int(m)) for m in experts},
-    }
-
-
-def _unique_points(sweeps: Mapping[str, Mapping[int, RunPoint | None]]) -> list[RunPoint]:
-    seen: dict[str, RunPoint] = {}
-    for by_value in sweeps.values():
-        for p in by_value.values():
-            if p is not None:
-                seen.setdefault(p.run_id, p)
-    return sorted(seen.values(), key=lambda p: (p.hidden, p.experts))
-
-
-def _label(sweep: str, value: int) -> str:
-    return f"{SWEEPS[sweep]}={value}"
-
-
-def mse_frame(
-    sweeps: Mapping[str, Mapping[int, RunPoint | None]], plants: Sequence[str]
-) -> pd.DataFrame:
-    """Per-plant closed-loop MSE of every sweep point, long form.
-
-    Returns
-    -------
-    DataFrame
-        Columns ``sweep, value, label, plant, mse, status, run_id``; ``status`` is ``ok``,
-        ``no run`` (no run for the point) or ``no score`` (the run has no score for the plant:
-        its closed loop diverged or it was not trained on the plant).
-    """
-    rows = []
-    for sweep, by_value in sweeps.items():
-        for value, p in by_value.items():
-            for plant in plants:
-                mse = p.mse.get(plant) if p is not None else None
-                status = NO_RUN if p is None else ("ok" if mse is not None else NOT_AVAILABLE)
-                rows.append(
-                    (sweep, value, _label(sweep, value), plant, mse, status, p and p.run_id)
-                )
-    cols = ["sweep", "value", "label", "plant", "mse", "status", "run_id"]
-    df = pd.DataFrame(rows, columns=cols)
-    df["mse"] = df["mse"].astype(float)
-    return df
-
-
-def loss_frame(
-    sweeps: Mapping[str, Mapping[int, RunPoint | None]], client: Any | None = None
-) -> pd.DataFrame:
-    """Training-loss history (``train/loss`` per epoch) of every sweep point, long form.
-
-    Returns
-    -------
-    DataFrame
-        Columns ``sweep, value, label, run_id, epoch, train_loss``; a point without a run
-        has no rows. Of repeated steps (a resumed run) the latest value is kept.
-    """
-    client = client or _client()
-    frames = []
-    cache: dict[str, pd.DataFrame] = {}
-    for sweep, by_value in sweeps.items():
-        for value, p in by_value.items():
-            if p is None:
-                continue
-            if p.run_id not in cache:
-                hist = client.get_metric_history(p.run_id, "train/loss")
-                h = pd.DataFrame(
-                    [(m.step, m.timestamp, m.value) for m in hist],
-                    columns=["epoch", "timestamp", "train_loss"],
-                )
-                h = h.sort_values(["epoch", "timestamp"]).drop_duplicates("epoch", keep="last")
-                cache[p.run_id] = h.drop(columns="timestamp")
-            h = cache[p.run_id].copy()
-            h.insert(0, "run_id", p.run_id)
-            h.insert(0, "label", _label(sweep, value))
-            h.insert(0, "value", value)
-            h.insert(0, "sweep", sweep)
-            frames.append(h)
-    cols = ["sweep", "value", "label", "run_id", "epoch", "train_loss"]
-    if not frames:
-        return pd.DataFrame(columns=cols)
-    return pd.concat(frames, ignore_index=True)[cols]
-
-
-def params_frame(
-    sweeps: Mapping[str, Mapping[int, RunPoint | None]], plants: Sequence[str]
-) -> pd.DataFrame:
-    """Parameter count and mean closed-loop MSE of every distinct run of the sweeps.
-
-    The mean is over the plants of ``plants`` that the run has a score for (``n_plants``).
-
-    Returns
-    -------
-    DataFrame
-        Columns ``label, hidden, experts, n_parameters, mse_mean, n_plants, final_train_loss,
-        run_id``.
-    """
-    rows = []
-    for p in _unique_points(sweeps):
-        scores = [p.mse[k] for k in plants if k in p.mse]
-        mean = float(np.mean(scores)) if scores else np.nan
-        rows.append(
-            (
-                p.label,
-                p.hidden,
-                p.experts,
-                p.n_parameters,
-                mean,
-                len(scores),
-                p.train_loss,
-                p.run_id,
-            )
-        )
-    cols = [
-        "label",
-        "hidden",
-        "experts",
-        "n_parameters",
-        "mse_mean",
-        "n_plants",
-        "final_train_loss",
-        "run_id",
-    ]
-    return pd.DataFrame(rows, columns=cols)
-
-
-def policy_of_run(run_id: str, client: Any | None = None) -> tuple[Any, dict[str, Any]]:
-    """Download a run's ``policy/policy.ckpt`` artifact and load it (``weights_only``)."""
-    from generalist_control.policy import load_policy
-
-    client = client or _client()
-    with tempfile.TemporaryDirectory(prefix="gc-policy-") as tmp:
-        path = client.download_artifacts(run_id, POLICY_ARTIFACT, tmp)
-        return load_policy(path)
-
-
-def gate_weights(
-    policy: Any,
-    meta: Mapping[str, Any],
-    plants: Iterable[str] | None = None,
-    duration: float = 15.0,
-) -> pd.DataFrame:
-    """Mean gate weight per expert and plant over closed-loop unit-step runs.
-
-    Each plant runs the policy in closed loop (the deployment runtime,
-    :class:`~generalist_control.runtime.PolicyRuntime`) on a unit step from rest, scaled by
-    its ``amplitude_scale`` as in evaluation, for ``duration`` seconds. The states and
-    references the runtime saw are turned back into its input windows by the project's
-    window builder (:func:`~generalist_control.windows.history_windows`, which pads the
-    first sample exactly as the runtime fills its buffer), and the gate weights the policy
-    gives those windows are averaged over the run. The weights are therefore those of the
-    policy at work on the plant, not on the expert's demonstrations.
-
-    Parameters
-    ----------
-    policy : Policy
-    meta : mapping
-        The policy's metadata (``tags``, ``orders``, ``history``, ``horizon``, ``dt``).
-    plants : iterable of str, optional
-        Default: every plant of the catalogue the policy was trained on, in tag order.
-    duration : float
-
-    Returns
-    -------
-    DataFrame
-        Index: plant (name); columns ``expert_1 .. expert_M``; rows sum to one.
-    """
-    from generalist_control.catalog import available_plants, load_plant
-    from generalist_control.runtime import PolicyController, PolicyRuntime
-    from generalist_control.scenarios import references
-    from generalist_control.simulate import Run, simulate_many
-    from generalist_control.windows import Windows, history_windows, pad_states
-
-    tags = {str(k): int(v) for k, v in meta["tags"].items()}
-    if plants is None:
-        known = set(available_plants())
-        plants = [k for k in sorted(tags, key=tags.get) if k in known]
-    plants = list(plants)
-    missing = [p for p in plants if p not in tags]
-    if missing:
-        raise KeyError(f"the policy was not trained on {', '.join(missing)}")
-    loaded = [load_plant(name) for name in plants]
-    runtime = PolicyRuntime(policy, dict(meta))
-    history = int(meta["history"])
-    experts = int(policy.config["experts"])
-    spec = {"kind": "step", "amplitude": 1.0, "duration": float(duration)}
-    out: dict[str, np.ndarray] = {}
-    by_dt: dict[float, list[Any]] = {}
-    for p in loaded:
-        by_dt.setdefault(p.dt, []).append(p)
-    for group in by_dt.values():
-        runs = [Run(p, *references("step", spec, p), None) for p in group]
-        trajs = simulate_many(runs, PolicyController(runtime))
-        for p, tr in zip(group, trajs, strict=True):
-            steps = tr.r.shape[1]
-            x = pad_states(tr.x[:, :steps])
-            order = np.full(x.shape[0], p.order)
-            state, mask, ref = history_windows(x, tr.r, order, history)
-            B, N = tr.r.shape
-            windows = Windows(
-                state=np.ascontiguousarray(state).reshape(B * N, history, -1),
-                mask=np.ascontiguousarray(mask).reshape(B * N, history, -1),
-                ref=np.ascontiguousarray(ref).reshape(B * N, history),
-                tag=np.full(B * N, tags[p.name], dtype=np.int64),
-                target=None,
-                traj=np.repeat(np.arange(B, dtype=np.int64), N),
-            )
-            _, gates = policy.predict_windows(windows)
-            out[p.name] = gates.mean(axis=0)
-    cols = [f"expert_{i + 1}" for i in range(experts)]
-    df = pd.DataFrame([out[p] for p in plants], index=pd.Index(plants, name="plant"), columns=cols)
-    return df.astype(float)
-
-
-# --- drawing (Axes-level, reused by the notebooks) ---------------------------------------
-
-
-def _fmt(v: float | None) -> str:
-    """Three significant digits, as the paper writes them: ``9.43e-04``, ``0.144``, ``1.35``."""
-    if v is None or not np.isfinite(v):
-        return NOT_AVAILABLE
-    if v != 0 and abs(v) < 0.1:
-        return f"{v:.2e}"
-    return f"{v:.3g}" if abs(v) < 1e4 else f"{v:,.0f}"
-
-
-def draw_mse_bars(ax: Axes, mse: pd.DataFrame, sweep: str) -> Axes:
-    """Grouped bars of per-plant output MSE, one bar per sweep value, log y.
-
-    Colours follow the position of the value in the sweep (as in :func:`draw_loss_curves`).
-    A value without a run is listed in the legend as "no run"; a run without a score for a
-    plant shows "no score" at that bar's place.
-    """
-    df = mse[mse["sweep"] == sweep]
-    plants = list(dict.fromkeys(df["plant"]))
-    values = list(dict.fromkeys(df["value"]))
-    width = 0.8 / max(1, len(values))
-    x = np.arange(len(plants))
-    handles = []
-    for i, value in enumerate(values):
-        part = df[df["value"] == value].set_index("plant").reindex(plants)
-        pos = x - 0.4 + width * (i + 0.5)
-        label = _label(sweep, value)
-        if (part["status"] == NO_RUN).all():
-            handles.append(
-                Patch(facecolor="none", edgecolor=f"C{i}", hatch="//", label=f"{label} ({NO_RUN})")
-            )
-            continue
-        handles.append(Patch(facecolor=f"C{i}", label=label))
-        heights = part["mse"].to_numpy(dtype=float)
-        ok = np.isfinite(heights) & (heights > 0)
-        ax.bar(pos[ok], heights[ok], width, color=f"C{i}")
-        for px in pos[~ok]:
-            ax.text(
-                px,
-                0.02,
-                NOT_AVAILABLE,
-                ha="center",
-                va="bottom",
-                fontsize=7,
-                rotation=90,
-                color=f"C{i}",
-                transform=ax.get_xaxis_transform(),
-            )
-    if (df["mse"] > 0).any():
-        ax.set_yscale("log")
-    ax.set_xticks(x, [p.replace("_", "\n") for p in plants], fontsize=8)
-    ax.set_ylabel("output MSE, GC vs LQI (unit step)")
-    ax.set_title(f"Closed-loop output MSE by {SWEEPS[sweep]}")
-    ax.legend(handles=handles, fontsize=8)
-    ax.grid(axis="y", which="both", alpha=0.3)
-    return ax
-
-
-def _paper_key(sweep: str, value: int, baseline: Mapping[str, int]) -> str:
-    if sweep == "hidden":
-        return f"d={value},M={baseline['experts']}"
-    return f"d={baseline['hidden']},M={value}"
-
-
-def draw_loss_curves(
-    ax: Axes,
-    loss: pd.DataFrame,
-    sweep: str,
-    values: Sequence[int] | None = None,
-    paper: bool = True,
-    baseline: Mapping[str, int] | None = None,
-) -> Axes:
-    """Training-loss curves (log y) of a sweep; the paper's final losses as dotted lines.
-
-    Parameters
-    ----------
-    ax : Axes
-    loss : DataFrame
-        From :func:`loss_frame`.
-    sweep : {"hidden", "experts"}
-    values : sequence of int, optional
-        The sweep's values, which fix the colours (default: the values in ``loss``); the
-        paper's final loss is drawn for each, whether or not it has a run.
-    paper : bool
-        Draw the paper's final training losses.
-    baseline : mapping, optional
-        ``hidden`` and ``experts`` of the baseline (default 32 and 3).
-    """
-    base = {"hidden": 32, "experts": 3, **(baseline or {})}
-    df = loss[loss["sweep"] == sweep]
-    values = list(values) if values is not None else sorted(set(df["value"]))
-    for i, value in enumerate(values):
-        part = df[df["value"] == value]
-        label = _label(sweep, value) + ("" if len(part) else f" ({NO_RUN})")
-        ax.plot(part["epoch"], part["train_loss"], color=f"C{i}", label=label, marker=".")
-        ref = ABLATION["final_train_loss"].get(_paper_key(sweep, value, base))
-        if paper and ref is not None:
-            ax.axhline(ref, color=f"C{i}", ls=":", lw=1)
-    if paper:
-        ax.plot([], [], color="grey", ls=":", label="paper, final")
-    ax.set_yscale("log")
-    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("train/loss")
-    ax.set_title(f"Training loss by {SWEEPS[sweep]}")
-    ax.legend(fontsize=8)
-    ax.grid(which="both", alpha=0.3)
-    return ax
-
-
-def draw_params_vs_mse(ax: Axes, params: pd.DataFrame) -> Axes:
-    """Parameter count against mean output MSE, one labelled point per run.
-
-    A mean over fewer plants than the others (a plant without a score) is labelled with
-    the count, e.g. ``d=32,M=1 (1/2 plants)``. The paper's parameter counts are dotted.
-    """
-    df = params.dropna(subset=["n_parameters"])
-    ax.scatter(df["n_parameters"], df["mse_mean"], zorder=3)
-    most = int(df["n_plants"].max()) if len(df) else 0
-    for _, row in df.iterrows():
-        if np.isfinite(row["mse_mean"]):
-            text = row["label"]
-            if row["n_plants"] < most:
-                text += f" ({row['n_plants']}/{most} plants)"
-            ax.annotate(
-                text,
-                (row["n_parameters"], row["mse_mean"]),
-                fontsize=8,
-                xytext=(4, 4),
-                textcoords="offset points",
-            )
-    for key, n in ABLATION["parameters"].items():
-        ax.axvline(n, color="grey", ls=":", lw=1)
-        ax.text(
-            n,
-            0.98,
-            f" paper {key}: {n:,}",
-            rotation=90,
-            va="top",
-            fontsize=7,
-            color="grey",
-            transform=ax.get_xaxis_transform(),
-        )
-    ax.set_xscale("log")
-    if (df["mse_mean"] > 0).any():
-        ax.set_yscale("log")
-    ax.set_xlabel("parameters")
-    ax.set_ylabel("mean output MSE")
-    ax.set_title("Complexity against performance")
-    ax.grid(which="both", alpha=0.3)
-    return ax
-
-
-def draw_gate_heatmap(ax: Axes, gates: pd.DataFrame) -> Axes:
-    """Mean gate weight per plant (rows) and expert (columns), annotated in percent."""
-    im = ax.imshow(gates.to_numpy(), vmin=0.0, vmax=1.0, cmap="viridis", aspect="auto")
-    for (i, j), v in np.ndenumerate(gates.to_numpy()):
-        ax.text(
-            j,
-            i,
-            f"{100 * v:.0f}%",
-            ha="center",
-            va="center",
-            fontsize=7,
-            color="white" if v < 0.6 else "black",
-        )
-    ax.set_xticks(range(gates.shape[1]), [c.replace("expert_", "E") for c in gates.columns])
-    ax.set_yticks(range(gates.shape[0]), list(gates.index), fontsize=7)
-    ax.set_xlabel("expert")
-    ax.set_title("Mean gate weight")
-    ax.figure.colorbar(im, ax=ax, fraction=0.046)
-    return ax
-
-
-def _figure(width: float, height: float, ncols: int = 1) -> tuple[Figure, list[Axes]]:
-    fig = Figure(figsize=(width, height), layout="constrained")
-    FigureCanvasAgg(fig)  # the Agg backend, without touching pyplot's global state
-    return fig, list(np.atleast_1d(fig.subplots(1, ncols)))
-
-
-def _placeholder(ax: Axes, text: str) -> None:
-    ax.text(0.5, 0.5, text, ha="center", va="center", wrap=True, transform=ax.transAxes)
-    ax.set_axis_off()
-
-
 # --- the comparison with the paper --------------------------------------------------------
 
 
@@ -686,7 +124,7 @@ def comparison_markdown(
     eval_summary: Mapping[str, Any] | None = None,
 ) -> str:
     """Markdown: our ablation figures beside the paper's, and the per-plant MSE tables."""
-    by_cfg = {(p.hidden, p.experts): p for p in _unique_points(sweeps)}
+    by_cfg = {(p.hidden, p.experts): p for p in unique_points(sweeps)}
 
     def find(key: str) -> RunPoint | None:
         return by_cfg.get(_parse_key(key))
@@ -694,7 +132,7 @@ def comparison_markdown(
     def mse_of(p: RunPoint | None, plant: str) -> str:
         if p is None:
             return NO_RUN
-        return _fmt(p.mse.get(plant))
+        return fmt_value(p.mse.get(plant))
 
     def run_of(p: RunPoint | None) -> str:
         return f"`{p.run_id[:8]}`" if p else ""
@@ -712,8 +150,8 @@ def comparison_markdown(
     ]
     for key, ref in ABLATION["final_train_loss"].items():
         p = find(key)
-        ours = NO_RUN if p is None else _fmt(p.train_loss)
-        lines.append(f"| final training loss | {key} | {_fmt(ref)} | {ours} | {run_of(p)} |")
+        ours = NO_RUN if p is None else fmt_value(p.train_loss)
+        lines.append(f"| final training loss | {key} | {fmt_value(ref)} | {ours} | {run_of(p)} |")
     for key, ref in ABLATION["parameters"].items():
         p = find(key)
         ours = (
@@ -725,7 +163,7 @@ def comparison_markdown(
         for key, ref in ABLATION[name].items():
             p = find(key)
             lines.append(
-                f"| {plant} MSE | {key} | {_fmt(ref)} | {mse_of(p, plant)} | {run_of(p)} |"
+                f"| {plant} MSE | {key} | {fmt_value(ref)} | {mse_of(p, plant)} | {run_of(p)} |"
             )
     gate_cfg = gate_run.label if gate_run else "d=32,M=5"  # the paper's gate model
     for plant, ref in ABLATION["gate_weights_m5"].items():
@@ -755,14 +193,14 @@ def comparison_markdown(
             "",
             f"## Output MSE by {symbol} (figure `mse_{sweep}.png`)",
             "",
-            "| plant | " + " | ".join(_label(sweep, v) for v in values) + " |",
+            "| plant | " + " | ".join(point_label(sweep, v) for v in values) + " |",
             "| --- |" + " --- |" * len(values),
         ]
         for plant, rows in part.groupby("plant", sort=False):
             cells = []
             for v in values:
                 r = rows[rows["value"] == v].iloc[0]
-                cells.append(_fmt(r["mse"]) if r["status"] == "ok" else r["status"])
+                cells.append(fmt_value(r["mse"]) if r["status"] == "ok" else r["status"])
             lines.append(f"| {plant} | " + " | ".join(cells) + " |")
     if eval_summary:
         qb = eval_summary.get("quality_bar", {})
@@ -806,7 +244,7 @@ def runs_table(sweeps: Mapping[str, Mapping[int, RunPoint | None]]) -> pd.DataFr
                 {
                     "sweep": sweep,
                     "value": value,
-                    "label": _label(sweep, value),
+                    "label": point_label(sweep, value),
                     "status": "ok" if p else NO_RUN,
                     "run_id": p.run_id if p else None,
                     "run_name": p.run_name if p else None,
@@ -854,7 +292,7 @@ def write_report(
         The summary also written to ``summary.json``: run ids per point, missing points,
         the gate model's run.
     """
-    client = client or _client()
+    client = client or mlflow_client()
     gate = dict(gate or {})
     base = {"hidden": 32, "experts": 3, **(baseline or {})}
     gate_m = int(gate.get("experts", 5))
@@ -867,7 +305,7 @@ def write_report(
         gate_run = next(
             (
                 p
-                for p in _unique_points(sweeps)
+                for p in unique_points(sweeps)
                 if (p.hidden, p.experts) == (base["hidden"], gate_m)
             ),
             None,
@@ -884,19 +322,19 @@ def write_report(
         for sweep in SWEEPS:
             mse[mse["sweep"] == sweep].to_csv(staging / f"mse_{sweep}.csv", index=False)
             loss[loss["sweep"] == sweep].to_csv(staging / f"loss_{sweep}.csv", index=False)
-            fig, (ax,) = _figure(7, 4)
+            fig, (ax,) = new_figure(7, 4)
             draw_mse_bars(ax, mse, sweep)
             fig.savefig(staging / f"mse_{sweep}.png", dpi=120)
-            fig, (ax,) = _figure(6, 4)
+            fig, (ax,) = new_figure(6, 4)
             draw_loss_curves(ax, loss, sweep, list(sweeps.get(sweep, {})), baseline=base)
             fig.savefig(staging / f"loss_{sweep}.png", dpi=120)
         params.to_csv(staging / "params_vs_mse.csv", index=False)
-        fig, (ax,) = _figure(6, 4)
+        fig, (ax,) = new_figure(6, 4)
         draw_params_vs_mse(ax, params)
         fig.savefig(staging / "params_vs_mse.png", dpi=120)
 
         gate_csv = staging / "gate_weights.csv"
-        fig, (ax,) = _figure(6, max(2.5, 0.8 + 0.3 * (len(gates) if gates is not None else 0)))
+        fig, (ax,) = new_figure(6, max(2.5, 0.8 + 0.3 * (len(gates) if gates is not None else 0)))
         if gates is not None:
             gates.to_csv(gate_csv)
             draw_gate_heatmap(ax, gates)
@@ -904,14 +342,14 @@ def write_report(
         else:
             cols = ["plant", *[f"expert_{i + 1}" for i in range(gate_m)]]
             pd.DataFrame(columns=cols).to_csv(gate_csv, index=False)
-            _placeholder(ax, f"{NO_RUN}: no finished run with d={base['hidden']}, M={gate_m}")
+            placeholder(ax, f"{NO_RUN}: no finished run with d={base['hidden']}, M={gate_m}")
         fig.savefig(staging / "gate_weights.png", dpi=120)
 
-        fig, axes = _figure(13, 4, ncols=2)  # the paper's Fig. hidden_ablation
+        fig, axes = new_figure(13, 4, ncols=2)  # the paper's Fig. hidden_ablation
         draw_mse_bars(axes[0], mse, "hidden")
         draw_loss_curves(axes[1], loss, "hidden", list(sweeps.get("hidden", {})), baseline=base)
         fig.savefig(staging / "fig_hidden_ablation.png", dpi=120)
-        fig, axes = _figure(13, 4, ncols=2)  # the paper's Fig. expert_ablation
+        fig, axes = new_figure(13, 4, ncols=2)  # the paper's Fig. expert_ablation
         draw_mse_bars(axes[0], mse, "experts")
         expert_ids = {p.run_id for p in sweeps.get("experts", {}).values() if p}
         draw_params_vs_mse(axes[1], params[params["run_id"].isin(expert_ids)])
@@ -922,11 +360,11 @@ def write_report(
         (staging / "comparison.md").write_text(text)
         summary = {
             "points": {
-                sweep: {_label(sweep, v): (p.run_id if p else None) for v, p in by_v.items()}
+                sweep: {point_label(sweep, v): (p.run_id if p else None) for v, p in by_v.items()}
                 for sweep, by_v in sweeps.items()
             },
             "missing": [
-                _label(sweep, v)
+                point_label(sweep, v)
                 for sweep, by_v in sweeps.items()
                 for v, p in by_v.items()
                 if p is None
@@ -1009,7 +447,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     rcfg = cfg.report
     experiment = rcfg.get("experiment_name") or cfg.logger.experiment_name
     uri = mlflow_utils.set_tracking(cfg.logger)
-    client = _client(uri)
+    client = mlflow_client(uri)
     points = runs_from_mlflow(experiment, rcfg.get("filter_string") or "", client)
     baseline = OmegaConf.to_container(rcfg.baseline, resolve=True)
     sweeps = select_sweeps(points, list(rcfg.hidden), list(rcfg.experts), baseline)
@@ -1024,7 +462,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         plants = (cfg.get("closed_loop") or {}).get("systems")
     plants = list(plants or [])
     if not plants:
-        plants = sorted({k for p in _unique_points(sweeps) for k in p.mse})
+        plants = sorted({k for p in unique_points(sweeps) for k in p.mse})
     eval_summary = None
     summary_path = Path(cfg.paths.get("reports_dir", "reports/eval")) / "summary.json"
     if summary_path.is_file():

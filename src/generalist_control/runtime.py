@@ -10,12 +10,19 @@ and applies the first of the ``horizon`` predicted controls each sample::
     u = rt.step(x, r)                                     # once per dt
 
 On the first step after ``reset`` the buffer is filled with that first sample, exactly as
-the window builder pads the start of a training trajectory. Many plants can be stepped at
-once (``reset([...names])`` and ``step`` on ``(B, MAX_ORDER)`` zero-padded states), which is
-how evaluation batches all plants through one network call per sample.
+the window builder pads the start of a training trajectory. A policy trained with
+``model.integral`` also sees the integral of the tracking error, which the runtime keeps
+exactly as the LQI expert does (``z += dt (r - y)`` after each sample's control, from zero
+at ``reset``); ``y`` is the plant's output ``C x`` (rows stored with the policy), or the
+measured output passed as ``step(x, r, y)``. Like LQI, such a policy winds up against an
+actuator limit; given the limits (:meth:`PolicyRuntime.set_actuator_limits`) the runtime
+integrates conditionally, as :class:`~generalist_control.lqi.AntiWindupLQIController`
+does. Many plants can be stepped at once (``reset([...names])`` and ``step`` on
+``(B, MAX_ORDER)`` zero-padded states), which is how evaluation batches all plants through
+one network call per sample.
 
 Backends: ``"torch"`` (eager), ``"torchscript"`` and ``"onnx"`` (ONNX Runtime); see
-:func:`export_torchscript` and :func:`export_onnx`.
+:mod:`generalist_control.export`.
 """
 
 from __future__ import annotations
@@ -26,19 +33,25 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
+from generalist_control.export import backend as _backend
+from generalist_control.export import export_onnx, export_torchscript
 from generalist_control.paths import TRAIN_COMMAND
 from generalist_control.plants import MAX_ORDER
 from generalist_control.policy import Policy, load_policy
+from generalist_control.simulate import Perturbation
 from generalist_control.windows import HistoryBuffer
 
-__all__ = ["PolicyController", "PolicyRuntime", "export_onnx", "export_torchscript", "resolve"]
+__all__ = [
+    "PolicyController",
+    "PolicyRuntime",
+    "export_onnx",
+    "export_torchscript",
+    "resolve",
+    "stacked_output",
+]
 
 POLICY_FILE = "policy.ckpt"
-_INPUTS = ("state", "mask", "ref", "tag")
-
-Backend = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
 def resolve(source: str | Path) -> Path:
@@ -73,78 +86,6 @@ def resolve(source: str | Path) -> Path:
     return local
 
 
-def _torch_backend(policy: Policy) -> Backend:
-    @torch.inference_mode()
-    def run(state, mask, ref, tag):
-        u, _ = policy(*(torch.from_numpy(a) for a in (state, mask, ref, tag)))
-        return u.numpy()
-
-    return run
-
-
-def _example(policy: Policy, batch: int = 2) -> tuple[torch.Tensor, ...]:
-    c = policy.config
-    T, n = c["history"], c["state_dim"]
-    return (
-        torch.zeros(batch, T, n),
-        torch.ones(batch, T, n),
-        torch.zeros(batch, T),
-        torch.zeros(batch, dtype=torch.long),
-    )
-
-
-def export_torchscript(policy: Policy, path: str | Path) -> Path:
-    """Trace ``policy`` (raw windows in, ``(controls, gates)`` out) to a TorchScript file."""
-    path = Path(path)
-    with torch.no_grad():
-        traced = torch.jit.trace(policy.eval(), _example(policy), check_trace=False)
-    traced.save(str(path))
-    return path
-
-
-def export_onnx(policy: Policy, path: str | Path) -> Path:
-    """Export ``policy`` to ONNX with a dynamic batch axis (inputs state, mask, ref, tag)."""
-    path = Path(path)
-    dyn = {k: {0: "batch"} for k in (*_INPUTS, "controls", "gates")}
-    with torch.no_grad():
-        torch.onnx.export(
-            policy.eval(),
-            _example(policy),
-            str(path),
-            input_names=list(_INPUTS),
-            output_names=["controls", "gates"],
-            dynamic_axes=dyn,
-            opset_version=17,
-            dynamo=False,
-        )
-    return path
-
-
-def _backend(policy: Policy, backend: str) -> Backend:
-    if backend == "torch":
-        return _torch_backend(policy)
-    tmp = Path(tempfile.mkdtemp())
-    if backend == "torchscript":
-        module = torch.jit.load(str(export_torchscript(policy, tmp / "policy.ts")))
-
-        @torch.inference_mode()
-        def run(state, mask, ref, tag):
-            return module(*(torch.from_numpy(a) for a in (state, mask, ref, tag)))[0].numpy()
-
-        return run
-    if backend == "onnx":
-        import onnxruntime as ort
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = 1
-        opts.inter_op_num_threads = 1
-        sess = ort.InferenceSession(str(export_onnx(policy, tmp / "policy.onnx")), opts)
-        return lambda state, mask, ref, tag: sess.run(
-            ["controls"], {"state": state, "mask": mask, "ref": ref, "tag": tag}
-        )[0]
-    raise ValueError(f"unknown backend '{backend}'; choose torch, torchscript or onnx")
-
-
 class PolicyRuntime:
     """A trained policy stepping one or many plants in a sampled loop.
 
@@ -163,6 +104,15 @@ class PolicyRuntime:
         self.orders: dict[str, int] = {str(k): int(v) for k, v in meta["orders"].items()}
         self.history, self.horizon = int(meta["history"]), int(meta["horizon"])
         self.dt = float(meta["dt"])
+        self.integral = bool(policy.config.get("integral", 0))
+        self.outputs: dict[str, np.ndarray] = {
+            str(k): np.asarray(v, dtype=np.float64) for k, v in meta.get("outputs", {}).items()
+        }
+        #: per plant, the sign of d u / d z of the expert the policy imitates (``-Ki``)
+        self.directions: dict[str, float] = {
+            str(k): float(v) for k, v in meta.get("integral_directions", {}).items()
+        }
+        self.limits: Perturbation | None = None
         self.backend = backend
         self._run = _backend(policy, backend)
         self._systems: list[str] = []
@@ -193,8 +143,20 @@ class PolicyRuntime:
         self._systems = names
         self._tag = np.array([self.tags[s] for s in names], dtype=np.int64)
         self._order = np.array([self.orders[s] for s in names], dtype=np.int64)
-        self._buffer = HistoryBuffer(self._order, self.history)
+        self._buffer = HistoryBuffer(self._order, self.history, self.integral)
         self._padded = np.zeros((len(names), MAX_ORDER), np.float32)
+        self.z = np.zeros(len(names))
+        self._u_prev = np.zeros(len(names))
+        self._direction: np.ndarray | None = None
+        self._C: np.ndarray | None = None
+        if self.integral:
+            self._catalog_outputs(names)
+            if self.limits is not None:
+                self._direction = self._integral_directions(names)
+        if all(name in self.outputs for name in names):
+            self._C = np.zeros((len(names), MAX_ORDER))
+            for i, name in enumerate(names):
+                self._C[i, : len(self.outputs[name])] = self.outputs[name]
 
     def _check(self, x: Any, r: Any) -> tuple[np.ndarray, np.ndarray]:
         if not self._systems:
@@ -232,25 +194,143 @@ class PolicyRuntime:
         """The backend's controls (B, horizon) for raw windows (no history bookkeeping)."""
         return self._run(state, mask, ref, tag)
 
-    def step(self, x: Any, r: Any) -> float | np.ndarray:
-        """Control for the current sample (the first of the predicted sequence)."""
+    def set_actuator_limits(
+        self, u_limit: float | None = None, rate_limit: float | None = None
+    ) -> None:
+        """Known actuator limits for anti-windup of an integrating policy (None: no limit).
+
+        While the actuator clips the command (``|u| <= u_limit``, ``|du/dt| <= rate_limit``)
+        the error integral is frozen whenever integrating would push the command further
+        into the limit, the direction being that of the LQI expert the policy imitates
+        (``-Ki``). Without limits nothing changes. Takes effect at the next :meth:`reset`.
+        """
+        if u_limit is None and rate_limit is None:
+            self.limits = None
+        else:
+            self.limits = Perturbation(u_limit=u_limit, rate_limit=rate_limit)
+
+    def _integral_directions(self, names: Sequence[str]) -> np.ndarray:
+        """Per row, the sign with which the integral moves the command (from the expert)."""
+        missing = sorted(set(names) - set(self.directions))
+        if missing:
+            from generalist_control.catalog import load_plant
+            from generalist_control.lqi import design_lqi
+
+            for name in missing:
+                self.directions[name] = float(np.sign(-design_lqi(load_plant(name)).Ki))
+        return np.array([self.directions[n] for n in names])
+
+    def _catalog_outputs(self, names: Sequence[str]) -> None:
+        """Output rows of plants the policy's meta lacks, from the plant catalogue."""
+        from generalist_control.catalog import available_plants, load_plant
+
+        missing = sorted(set(names) - set(self.outputs))
+        if missing:
+            known = set(available_plants())
+            for name in missing:
+                if name in known:
+                    self.outputs[name] = np.asarray(load_plant(name).C[0], dtype=np.float64)
+
+    def _output(self, y: Any, x: np.ndarray) -> np.ndarray:
+        if y is None:
+            if self._C is None:
+                missing = [s for s in self._systems if s not in self.outputs]
+                raise ValueError(
+                    f"this policy integrates the tracking error but has no output map for "
+                    f"{', '.join(sorted(set(missing)))}: pass the measured output, step(x, r, y)"
+                )
+            return np.einsum("bi,bi->b", self._C, x)  # float64: C is
+        y = np.asarray(y, dtype=np.float64).reshape(-1)
+        if y.shape != (len(self._systems),):
+            raise ValueError(f"output has shape {y.shape}; expected ({len(self._systems)},)")
+        if not np.isfinite(y).all():
+            raise ValueError("output contains NaN or inf")
+        return y
+
+    def step(self, x: Any, r: Any, y: Any = None) -> float | np.ndarray:
+        """Control for the current sample (the first of the predicted sequence).
+
+        Parameters
+        ----------
+        x : array_like
+            State deviation, (n,) for one plant or (B, MAX_ORDER) zero-padded for a batch.
+        r : float or array_like
+            Reference deviation, scalar or (B,).
+        y : float or array_like, optional
+            Measured output deviation, for a policy trained with ``model.integral``;
+            default ``C x`` with the output rows stored with the policy.
+        """
         x, r = self._check(x, r)
-        state, mask, ref = self._buffer.push(x, r)
+        if not self.integral:
+            state, mask, ref = self._buffer.push(x, r)
+            self.plan = self._run(state, mask, ref, self._tag)
+            u = self.plan[:, 0].astype(np.float64)
+            return float(u[0]) if self._single else u
+        y = self._output(y, x)  # checked before anything changes
+        state, mask, ref = self._buffer.push(x, r, self.z)
         self.plan = self._run(state, mask, ref, self._tag)
         u = self.plan[:, 0].astype(np.float64)
+        dz = self.dt * (r - y)
+        if self.limits is not None and self._direction is not None:
+            u_act = self.limits.actuate(u, self._u_prev, self.dt)
+            excess = u - u_act
+            winding = (np.abs(excess) > 1e-12) & (np.sign(self._direction * dz) == np.sign(excess))
+            dz = np.where(winding, 0.0, dz)
+            self._u_prev = u_act
+        self.z = self.z + dz
         return float(u[0]) if self._single else u
 
 
-class PolicyController:
-    """Adapter: a :class:`PolicyRuntime` as the simulator's batch controller."""
+def stacked_output(
+    plants: Sequence[Any], counts: Sequence[int]
+) -> Callable[[np.ndarray], np.ndarray]:
+    """``y(x)`` for zero-padded states of ``counts[i]`` stacked runs of ``plants[i]``.
 
-    def __init__(self, runtime: PolicyRuntime) -> None:
-        self.runtime = runtime
+    Each group of rows goes through its plant's own output map (``plant.output``, nonlinear
+    where the plant's is), as the LQI expert measures it.
+    """
+    parts, start = [], 0
+    for plant, count in zip(plants, counts, strict=True):
+        parts.append((plant, slice(start, start + count)))
+        start += count
+
+    def output(x: np.ndarray) -> np.ndarray:
+        y = np.empty(x.shape[0])
+        for plant, rows in parts:
+            y[rows] = plant.output(np.asarray(x[rows, : plant.order], dtype=np.float64))
+        return y
+
+    return output
+
+
+class PolicyController:
+    """Adapter: a :class:`PolicyRuntime` as the simulator's batch controller.
+
+    Parameters
+    ----------
+    runtime : PolicyRuntime
+    limits : Perturbation, optional
+        Actuator limits the runtime's anti-windup knows (see
+        :meth:`PolicyRuntime.set_actuator_limits`); None: it knows none.
+    """
+
+    def __init__(self, runtime: PolicyRuntime, limits: Perturbation | None = None) -> None:
+        self.runtime, self.limits = runtime, limits
+        self._output: Callable[[np.ndarray], np.ndarray] | None = None
 
     def reset(self, plants: Sequence[Any], counts: Sequence[int]) -> None:
         """One batch row per run, plant names repeated by their counts."""
+        if hasattr(self.runtime, "set_actuator_limits"):
+            lim = self.limits
+            self.runtime.set_actuator_limits(
+                lim.u_limit if lim else None, lim.rate_limit if lim else None
+            )
         self.runtime.reset([p.name for p, c in zip(plants, counts, strict=True) for _ in range(c)])
+        integral = getattr(self.runtime, "integral", False)  # duck-typed runtimes: none
+        self._output = stacked_output(plants, counts) if integral else None
 
     def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
-        """Controls for zero-padded states."""
-        return self.runtime.step(x, r)
+        """Controls for zero-padded states (and their plants' outputs, if integrating)."""
+        if self._output is None:
+            return self.runtime.step(x, r)
+        return self.runtime.step(x, r, self._output(x))

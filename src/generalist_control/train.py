@@ -33,11 +33,16 @@ from omegaconf import DictConfig, OmegaConf
 from generalist_control import mlflow_utils
 from generalist_control.datamodule import DemoDataModule
 from generalist_control.lit_module import LitController
-from generalist_control.model import MODEL_DEFAULTS, controller_config, count_parameters
+from generalist_control.model import (
+    MODEL_DEFAULTS,
+    controller_config,
+    count_parameters,
+    input_width,
+)
 from generalist_control.paths import HYDRA_CONFIG_PATH
 from generalist_control.policy import FlatPolicy, Policy, flat_columns, load_policy, save_policy
 
-__all__ = ["job_models_dir", "main", "train"]
+__all__ = ["job_models_dir", "main", "model_config", "train"]
 
 log = logging.getLogger(__name__)
 
@@ -116,6 +121,11 @@ def _dagger(cfg: DictConfig, meta: dict[str, Any]) -> L.Callback | None:
     kwargs.pop("enabled")
     kwargs.setdefault("limit", float(cfg.data.amplitudes.limit))
     kwargs.setdefault("seed", int(cfg.seed or 0))
+    if cfg.model.get("integral", False) and kwargs.get("takeover") == "bumpless":
+        raise ValueError(
+            "model.integral=true: DAgger must label from the integrator the policy sees; "
+            "set dagger.takeover=tracked (or auto)"
+        )
     return DAggerCallback(plants, **kwargs)
 
 
@@ -172,9 +182,43 @@ def _log_model(policy: Policy, windows: dict[str, torch.Tensor]) -> None:
             signature=infer_signature(x, y),
             input_example=x,
             serialization_format="pt2",  # a traced graph: loading runs no pickled code
-            metadata={"columns": flat_columns(c["history"], c["state_dim"])},
+            metadata={"columns": flat_columns(c["history"], input_width(c))},
             pip_requirements=[f"torch=={torch.__version__.split('+')[0]}", "numpy"],
         )
+
+
+def model_config(cfg: DictConfig) -> dict[str, int]:
+    """The network config of a training config: ``model.*``, ``experts`` and the window sizes.
+
+    ``experts`` is a top-level key (``experts=5`` works as typed); ``history`` and ``horizon``
+    come from the data config, so the network always matches the windows it is fed.
+    """
+    keys = set(MODEL_DEFAULTS) - {"experts", "state_dim", "history", "horizon"}
+    return controller_config(
+        **{k: v for k, v in cfg.model.items() if k in keys},
+        experts=cfg.experts,
+        history=cfg.data.history,
+        horizon=cfg.data.horizon,
+    )
+
+
+def _integral_facts(tags: dict[str, int]) -> dict[str, dict[str, Any]]:
+    """Per plant, the output row ``C`` and the sign of ``-Ki`` of its LQI expert.
+
+    Stored in the policy's meta so that a deployed runtime can integrate the tracking error
+    of a policy trained with ``model.integral`` from the state alone (``y = C x``, of the
+    linearisation for a nonlinear plant) and knows which way the integral moves the command
+    (anti-windup). Plants the catalogue does not know are left out.
+    """
+    from generalist_control.catalog import available_plants, load_plant
+    from generalist_control.lqi import design_lqi
+
+    known = set(available_plants())
+    plants = [load_plant(n) for n in sorted(tags) if n in known]
+    return {
+        "outputs": {p.name: [float(c) for c in p.C[0]] for p in plants},
+        "integral_directions": {p.name: float(np.sign(-design_lqi(p).Ki)) for p in plants},
+    }
 
 
 def _check_resume(ckpt_path: str, meta: dict[str, Any]) -> None:
@@ -243,20 +287,15 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         cfg.data.history,
         cfg.data.horizon,
         seed=int(cfg.seed or 0),
+        integral=bool(cfg.model.get("integral", False)),
         **cfg.loader,
     )
     dm.setup("fit")
-    meta = dm.meta()
+    meta = {**dm.meta(), **_integral_facts(dm.tags)}
     ckpt_path = cfg.get("ckpt_path")
     if ckpt_path:
         _check_resume(ckpt_path, meta)
-    keys = set(MODEL_DEFAULTS) - {"experts", "state_dim", "history", "horizon"}
-    model_cfg = controller_config(
-        **{k: v for k, v in cfg.model.items() if k in keys},
-        experts=cfg.experts,
-        history=cfg.data.history,
-        horizon=cfg.data.horizon,
-    )
+    model_cfg = model_config(cfg)
     scheduler = cfg.model.get("scheduler")
     if scheduler is not None and "T_max" in scheduler and scheduler.T_max is None:
         scheduler = OmegaConf.merge(scheduler, {"T_max": int(cfg.trainer.max_epochs)})
@@ -267,6 +306,18 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         meta=meta,
     )
     lit.policy.normaliser.fit(**dm.train_set.tensors)
+    linear_init = cfg.model.get("linear_init", "zero")
+    if linear_init not in ("zero", "lstsq"):
+        raise ValueError(f"model.linear_init must be 'zero' or 'lstsq', got {linear_init!r}")
+    if linear_init == "lstsq" and model_cfg["linear_head"] and not ckpt_path:
+        residuals = lit.policy.fit_linear_head(**dm.train_set.tensors)
+        names = {t: n for n, t in dm.tags.items()}
+        worst = max(residuals, key=residuals.get)
+        log.info(
+            "linear head: least-squares start, worst relative residual %.3g (%s)",
+            residuals[worst],
+            names.get(worst, worst),
+        )
     n_params = count_parameters(lit.policy)
     run_dir = _run_dir(cfg)
     callbacks = _callbacks(cfg, run_dir)

@@ -3,7 +3,11 @@
 A window at sample ``k`` holds the last ``history`` samples ``k - history + 1 .. k`` of the
 state (zero-padded to :data:`~generalist_control.plants.MAX_ORDER` and masked) and of the
 reference, the plant's tag, and, for training, the next ``horizon`` expert controls
-``u[k] .. u[k + horizon - 1]``. Before the first sample the history repeats the first
+``u[k] .. u[k + horizon - 1]``. Optionally (``model.integral``, our recipe) the state gets one
+more channel after the padded plant state: the integral of the tracking error
+``z[k] = z[k-1] + dt (r[k-1] - y[k-1])``, ``z[0] = 0``, exactly the LQI expert's own
+integrator (:func:`integral_of_error`), so the window holds the expert's augmented state
+``[x; z]``. Before the first sample the history repeats the first
 sample (the runtime fills its buffer the same way on its first step), so every sample
 ``k = 0 .. N - horizon`` of a trajectory of ``N`` samples yields a window.
 """
@@ -22,6 +26,7 @@ __all__ = [
     "Windows",
     "build_windows",
     "history_windows",
+    "integral_of_error",
     "pad_states",
     "validity_mask",
     "windows_per_trajectory",
@@ -34,8 +39,9 @@ class Windows:
 
     Attributes
     ----------
-    state, mask : ndarray, float32, shape (W, history, MAX_ORDER)
-        Masked, zero-padded state history and its validity mask.
+    state, mask : ndarray, float32, shape (W, history, width)
+        Masked, zero-padded state history and its validity mask; ``width`` is
+        ``MAX_ORDER``, or ``MAX_ORDER + 1`` with the error integral as the last channel.
     ref : ndarray, float32, shape (W, history)
     tag : ndarray, int64, shape (W,)
     target : ndarray, float32, shape (W, horizon), or None at deployment
@@ -69,8 +75,36 @@ def pad_states(x: np.ndarray) -> np.ndarray:
     return out
 
 
+def integral_of_error(r: np.ndarray, y: np.ndarray, dt: float) -> np.ndarray:
+    """The LQI expert's forward-Euler error integrator before each sample's control.
+
+    ``z[:, 0] = 0`` and ``z[:, k] = z[:, k - 1] + dt (r[:, k - 1] - y[:, k - 1])``, summed in
+    float64 in the same order as :class:`~generalist_control.lqi.LQIController` does.
+
+    Parameters
+    ----------
+    r, y : ndarray, shape (B, N)
+        Reference and measured output deviations.
+    dt : float
+
+    Returns
+    -------
+    ndarray, float64, shape (B, N)
+    """
+    r = np.asarray(r, dtype=np.float64)
+    inc = float(dt) * (r - np.asarray(y, dtype=np.float64))
+    z = np.zeros_like(r)
+    if r.shape[1] > 1:
+        z[:, 1:] = np.cumsum(inc[:, :-1], axis=1)
+    return z
+
+
 def history_windows(
-    x: np.ndarray, r: np.ndarray, order: np.ndarray, history: int
+    x: np.ndarray,
+    r: np.ndarray,
+    order: np.ndarray,
+    history: int,
+    z: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """State, mask and reference histories ending at every sample.
 
@@ -82,12 +116,17 @@ def history_windows(
     order : ndarray of int, shape (B,)
         Number of real state entries of each trajectory.
     history : int
+    z : ndarray, shape (B, N), optional
+        Error integral (:func:`integral_of_error`), appended as the last state channel.
 
     Returns
     -------
-    state, mask : ndarray, float32, shape (B, N, history, MAX_ORDER)
+    state, mask : ndarray, float32, shape (B, N, history, width)
+        ``width`` is ``MAX_ORDER``, or ``MAX_ORDER + 1`` when ``z`` is given.
     ref : ndarray, float32, shape (B, N, history)
     """
+    if z is not None:
+        x = np.concatenate([np.asarray(x), np.asarray(z)[..., None]], axis=-1)
     x = np.asarray(x, dtype=np.float32)
     r = np.asarray(r, dtype=np.float32)
     front = history - 1
@@ -95,14 +134,20 @@ def history_windows(
     rp = np.concatenate([np.repeat(r[:, :1], front, axis=1), r], axis=1)
     state = np.moveaxis(sliding_window_view(xp, history, axis=1), -1, 2)
     ref = sliding_window_view(rp, history, axis=1)
-    valid = validity_mask(order)
+    valid = validity_mask(order, integral=z is not None)
     mask = np.broadcast_to(valid[:, None, None, :], state.shape)
     return state * mask, mask, ref
 
 
-def validity_mask(order: np.ndarray) -> np.ndarray:
-    """Float32 (B, MAX_ORDER): one for the real state entries of each order, zero for padding."""
-    return (np.arange(MAX_ORDER) < np.asarray(order)[:, None]).astype(np.float32)
+def validity_mask(order: np.ndarray, integral: bool = False) -> np.ndarray:
+    """Float32 (B, width): one for the real state entries of each order, zero for padding.
+
+    With ``integral`` the width is ``MAX_ORDER + 1`` and the last (integral) entry is one.
+    """
+    valid = np.arange(MAX_ORDER) < np.asarray(order)[:, None]
+    if integral:
+        valid = np.concatenate([valid, np.ones((valid.shape[0], 1), bool)], axis=1)
+    return valid.astype(np.float32)
 
 
 class HistoryBuffer:
@@ -116,31 +161,45 @@ class HistoryBuffer:
     ----------
     order : ndarray of int, shape (B,)
     history : int
+    integral : bool
+        Keep the error integral as the last state channel (``push(x, r, z)``).
     """
 
-    def __init__(self, order: np.ndarray, history: int) -> None:
+    def __init__(self, order: np.ndarray, history: int, integral: bool = False) -> None:
+        valid = validity_mask(order, integral)
+        self.integral = bool(integral)
         self.mask = np.ascontiguousarray(
-            np.broadcast_to(validity_mask(order)[:, None, :], (len(order), history, MAX_ORDER))
+            np.broadcast_to(valid[:, None, :], (len(order), history, valid.shape[1]))
         )
-        self.state = np.zeros((len(order), history, MAX_ORDER), np.float32)
+        self.state = np.zeros(self.mask.shape, np.float32)
         self.ref = np.zeros((len(order), history), np.float32)
+        self._row = np.zeros((len(order), valid.shape[1]), np.float32)
         self._empty = True
 
-    def push(self, x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def push(
+        self, x: np.ndarray, r: np.ndarray, z: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Append zero-padded states ``x`` (B, MAX_ORDER) and references ``r`` (B,).
 
-        Returns the newest window ``(state, mask, ref)``: float32 (B, history, MAX_ORDER),
-        (B, history, MAX_ORDER) and (B, history); the state is masked.
+        With ``integral``, also the error integrals ``z`` (B,) before this sample.
+        Returns the newest window ``(state, mask, ref)``: float32 (B, history, width),
+        (B, history, width) and (B, history); the state is masked.
         """
-        x = x * self.mask[:, 0]
+        row = self._row
+        row[:, : x.shape[1]] = x  # written in place: this runs once per sample in deployment
+        if self.integral:
+            if z is None:
+                raise ValueError("this buffer keeps the error integral: push(x, r, z)")
+            row[:, -1] = z
+        np.multiply(row, self.mask[:, 0], out=row)
         if self._empty:
-            self.state[:] = x[:, None, :]
+            self.state[:] = row[:, None, :]
             self.ref[:] = r[:, None]
             self._empty = False
         else:
             self.state[:, :-1] = self.state[:, 1:]
             self.ref[:, :-1] = self.ref[:, 1:]
-            self.state[:, -1], self.ref[:, -1] = x, r
+            self.state[:, -1], self.ref[:, -1] = row, r
         return self.state, self.mask, self.ref
 
 
@@ -152,6 +211,7 @@ def build_windows(
     order: np.ndarray,
     history: int,
     horizon: int,
+    z: np.ndarray | None = None,
 ) -> Windows:
     """Training windows from ``B`` trajectories of ``N`` samples.
 
@@ -163,6 +223,9 @@ def build_windows(
         Reference and expert control at each sample.
     tag, order : ndarray of int, shape (B,)
     history, horizon : int
+    z : ndarray, shape (B, N), optional
+        Error integral before each sample (:func:`integral_of_error`); given, it becomes
+        the last state channel.
 
     Returns
     -------
@@ -171,12 +234,13 @@ def build_windows(
     """
     B, N = r.shape
     keep = windows_per_trajectory(N, horizon)
-    state, mask, ref = history_windows(x, r, order, history)
+    state, mask, ref = history_windows(x, r, order, history, z)
     target = sliding_window_view(np.asarray(u, dtype=np.float32), horizon, axis=1)
     W = B * keep
+    width = state.shape[-1]
     return Windows(
-        state=np.ascontiguousarray(state[:, :keep]).reshape(W, history, MAX_ORDER),
-        mask=np.ascontiguousarray(mask[:, :keep]).reshape(W, history, MAX_ORDER),
+        state=np.ascontiguousarray(state[:, :keep]).reshape(W, history, width),
+        mask=np.ascontiguousarray(mask[:, :keep]).reshape(W, history, width),
         ref=np.ascontiguousarray(ref[:, :keep]).reshape(W, history),
         tag=np.repeat(np.asarray(tag, dtype=np.int64), keep),
         target=np.ascontiguousarray(target[:, :keep]).reshape(W, horizon),
