@@ -225,3 +225,30 @@ def test_killed_workers_trial_fails_and_the_study_goes_on(tiny_data_dir, tmp_pat
     killed = mlflow.MlflowClient().get_run(trial.user_attrs["mlflow_run_id"])
     assert killed.info.status == "FAILED"
     assert killed.data.tags["optuna.state"] == "FAIL"
+
+
+def test_writes_to_the_shared_parent_run_retry_a_clash_between_workers():
+    """Two workers ending at once clash on MLflow's read-then-insert of a tag: retried."""
+    from mlflow.exceptions import MlflowException
+
+    from generalist_control.tune import _shared_write
+
+    calls = []
+
+    def flaky(key, value):
+        calls.append((key, value))
+        if len(calls) == 1:
+            raise MlflowException('duplicate key value violates unique constraint "tag_pk"')
+        return "ok"
+
+    assert _shared_write(flaky, "study.best_params", "{}") == "ok"
+    assert calls == [("study.best_params", "{}")] * 2
+
+    def broken(*_):
+        calls.append("broken")
+        raise MlflowException("RESOURCE_DOES_NOT_EXIST: run not found")
+
+    calls.clear()
+    with pytest.raises(MlflowException, match="run not found"):
+        _shared_write(broken, "x")
+    assert calls == ["broken"]  # anything but a clash is raised at once

@@ -535,8 +535,32 @@ def _study_parent(study: optuna.Study, logger: Mapping[str, Any], storage: str) 
     return run_id
 
 
+def _shared_write(call: Any, *args: Any, attempts: int = 6) -> Any:
+    """``call(*args)`` on the run that every worker of a study writes to, retried on a clash.
+
+    MLflow's SQL store writes a tag or a latest metric as a read followed by an insert, so
+    two workers that end at the same moment can both try the insert, and one of them fails
+    with a unique-key violation (seen on PostgreSQL). The retry, after a short random wait,
+    finds the row and updates it.
+    """
+    for attempt in range(attempts):
+        try:
+            return call(*args)
+        except mlflow.exceptions.MlflowException as exc:
+            text = str(exc).lower()
+            clash = "unique" in text or "duplicate key" in text or "integrity" in text
+            if not clash or attempt == attempts - 1:
+                raise
+            time.sleep(random.uniform(0.05, 0.3) * (attempt + 1))
+    return None
+
+
 def _summarise(study: optuna.Study, parent_id: str, status: str) -> dict[str, Any]:
-    """Log the study's state to its parent run and end that run with ``status``."""
+    """Log the study's state to its parent run and end that run with ``status``.
+
+    Every worker does this when it stops (the last one leaves the final state), so each
+    write goes through :func:`_shared_write`.
+    """
     trials = study.get_trials(deepcopy=False)
     counts = {s.name.lower(): sum(t.state == s for t in trials) for s in TrialState}
     summary: dict[str, Any] = {"n_trials": len(trials), **counts}
@@ -547,13 +571,17 @@ def _summarise(study: optuna.Study, parent_id: str, status: str) -> dict[str, An
         best = study.best_trial
         summary.update(best_trial=best.number, best_value=best.value, best_params=best.params)
         metrics["study/best_value"] = float(best.value)
-        client.set_tag(parent_id, "study.best_trial", str(best.number))
-        client.set_tag(parent_id, "study.best_params", json.dumps(best.params)[:5000])
+        tags = {
+            "study.best_trial": str(best.number),
+            "study.best_params": json.dumps(best.params)[:5000],
+        }
         if best.user_attrs.get("mlflow_run_id"):
-            client.set_tag(parent_id, "study.best_run_id", best.user_attrs["mlflow_run_id"])
+            tags["study.best_run_id"] = best.user_attrs["mlflow_run_id"]
+        for key, value in tags.items():
+            _shared_write(client.set_tag, parent_id, key, value)
     for key, value in metrics.items():
-        client.log_metric(parent_id, key, value)
-    client.set_terminated(parent_id, status)
+        _shared_write(client.log_metric, parent_id, key, value)
+    _shared_write(client.set_terminated, parent_id, status)
     return summary
 
 
