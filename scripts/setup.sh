@@ -16,4 +16,6 @@ python -m pip install -q -e '.[dev]'
 # PostgreSQL's server programs, for the multi-worker Optuna tests (tests/pg.py starts a
 # throw-away cluster); a no-op when installed. Without them those tests fail and say why.
 bash scripts/postgres.sh || echo "warning: PostgreSQL is missing; the PostgreSQL tests will fail" >&2
+# A Compose client, for the test that validates docker/compose.yaml (no engine needed).
+bash scripts/compose.sh || echo "warning: no Compose client; tests/test_docker.py will fail" >&2
 echo "setup done: $(python -c 'import torch; print("torch", torch.__version__)')"

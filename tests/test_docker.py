@@ -116,7 +116,11 @@ def test_compose_client_validates_the_file():
     elif shutil.which("docker-compose"):
         cmd = ["docker-compose"]
     else:
-        pytest.skip("no Compose client (docker compose / docker-compose) installed")
+        pytest.fail(
+            "no Compose client (docker compose / docker-compose): bash scripts/compose.sh "
+            "installs Debian's docker-compose (make setup runs it)",
+            pytrace=False,
+        )
     proc = subprocess.run(
         [*cmd, "-f", str(DOCKER / "compose.yaml"), "config", "-q"],
         capture_output=True,
