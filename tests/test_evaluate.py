@@ -34,6 +34,11 @@ SCENARIOS = {
 class LQIRuntime:
     """Duck-typed runtime whose 'policy' is the LQI law itself (integrator per row)."""
 
+    integral = False  # its integrators are its own: the simulator passes no output
+
+    def set_actuator_limits(self, u_limit=None, rate_limit=None) -> None:
+        """Knows no actuator (plain LQI)."""
+
     def __init__(self, names, gain: float = 1.0) -> None:
         self.plants = {n: load_plant(n) for n in names}
         self.tags = {n: p.tag for n, p in self.plants.items()}

@@ -38,7 +38,7 @@ import torch
 from generalist_control.lqi import LQIController, design_lqi
 from generalist_control.plants import Plant
 from generalist_control.runtime import PolicyRuntime, stacked_output
-from generalist_control.simulate import Run, plant_stepper, simulate_many
+from generalist_control.simulate import Run, plant_stepper, row_slices, simulate_many
 from generalist_control.windows import Windows, build_windows, pad_states
 
 __all__ = [
@@ -67,17 +67,16 @@ class MixedController:
 
     def reset(self, plants: Sequence[Plant], counts: Sequence[int]) -> None:
         """One LQI expert per plant group; the policy over all rows."""
-        self._parts, start = [], 0
-        for plant, count in zip(plants, counts, strict=True):
+        self._parts = []
+        for plant, count, rows in zip(plants, counts, row_slices(counts), strict=True):
             ctrl = LQIController(plant)
             ctrl.reset(count)
-            self._parts.append((ctrl, plant.order, slice(start, start + count)))
-            start += count
+            self._parts.append((ctrl, plant.order, rows))
         self._output = None
         if self.runtime is not None and self.beta < 1.0:
             names = [p.name for p, c in zip(plants, counts, strict=True) for _ in range(c)]
             self.runtime.reset(names)
-            if getattr(self.runtime, "integral", False):
+            if self.runtime.integral:
                 self._output = stacked_output(plants, counts)
         self._z: list[np.ndarray] = []
 

@@ -189,7 +189,6 @@ class DemoDataModule(L.LightningDataModule):
             "dt": self.dt,
             "history": self.history,
             "horizon": self.horizon,
-            "integral": self.integral,
             "content_hash": str(self.manifest.get("content_hash", "")),
             "data_dir": str(self.data_dir),
             "n_train": len(self.train_set or ()),

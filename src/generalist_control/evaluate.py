@@ -150,7 +150,7 @@ def evaluate(
             runs.append(Run(p, r, x0, pert))
         trajs[name] = {}
         limited = pert is not None and (pert.u_limit is not None or pert.rate_limit is not None)
-        extra = (GC_ANTI_WINDUP,) if limited and getattr(runtime, "integral", False) else ()
+        extra = (GC_ANTI_WINDUP,) if limited and runtime.integral else ()
         for ctrl in (*CONTROLLERS, *extra):
             results = simulate_many(runs, _controller(ctrl, runtime, pert))
             trajs[name][ctrl] = {p.name: tr for p, tr in zip(chosen, results, strict=True)}

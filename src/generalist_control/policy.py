@@ -94,7 +94,6 @@ class Policy(nn.Module):
         tag: Tensor,
         target: Tensor,
         ridge: float = 1e-8,
-        **_: Any,
     ) -> dict[int, float]:
         """Set the linear head to the per-tag least-squares fit of ``target``; zero the experts.
 

@@ -39,7 +39,7 @@ from generalist_control.export import export_onnx, export_torchscript
 from generalist_control.paths import TRAIN_COMMAND
 from generalist_control.plants import MAX_ORDER
 from generalist_control.policy import Policy, load_policy
-from generalist_control.simulate import Perturbation
+from generalist_control.simulate import Perturbation, row_slices
 from generalist_control.windows import HistoryBuffer
 
 __all__ = [
@@ -47,6 +47,7 @@ __all__ = [
     "PolicyRuntime",
     "export_onnx",
     "export_torchscript",
+    "integral_facts",
     "resolve",
     "stacked_output",
 ]
@@ -112,6 +113,7 @@ class PolicyRuntime:
         self.directions: dict[str, float] = {
             str(k): float(v) for k, v in meta.get("integral_directions", {}).items()
         }
+        self._unknown: set[str] = set()  # plants neither the meta nor the catalogue knows
         self.limits: Perturbation | None = None
         self.backend = backend
         self._run = _backend(policy, backend)
@@ -149,14 +151,15 @@ class PolicyRuntime:
         self._u_prev = np.zeros(len(names))
         self._direction: np.ndarray | None = None
         self._C: np.ndarray | None = None
-        if self.integral:
-            self._catalog_outputs(names)
-            if self.limits is not None:
-                self._direction = self._integral_directions(names)
-        if all(name in self.outputs for name in names):
-            self._C = np.zeros((len(names), MAX_ORDER))
-            for i, name in enumerate(names):
-                self._C[i, : len(self.outputs[name])] = self.outputs[name]
+        if self.limits is not None and self.integral:
+            self._from_catalogue(names)
+            unknown = sorted(set(names) - set(self.directions))
+            if unknown:
+                raise ValueError(
+                    f"anti-windup needs the direction of each plant's integral action; none "
+                    f"for {', '.join(unknown)} (not in the policy's meta nor the catalogue)"
+                )
+            self._direction = np.array([self.directions[n] for n in names])
 
     def _check(self, x: Any, r: Any) -> tuple[np.ndarray, np.ndarray]:
         if not self._systems:
@@ -209,36 +212,36 @@ class PolicyRuntime:
         else:
             self.limits = Perturbation(u_limit=u_limit, rate_limit=rate_limit)
 
-    def _integral_directions(self, names: Sequence[str]) -> np.ndarray:
-        """Per row, the sign with which the integral moves the command (from the expert)."""
-        missing = sorted(set(names) - set(self.directions))
+    def _from_catalogue(self, names: Sequence[str]) -> None:
+        """Output rows and integral directions the policy's meta lacks, from the catalogue."""
+        known = set(self.outputs) & set(self.directions)
+        missing = sorted(set(names) - known - self._unknown)
         if missing:
-            from generalist_control.catalog import load_plant
-            from generalist_control.lqi import design_lqi
+            facts = integral_facts(missing)
+            for k, v in facts["outputs"].items():
+                self.outputs.setdefault(k, np.asarray(v, dtype=np.float64))
+            for k, v in facts["integral_directions"].items():
+                self.directions.setdefault(k, v)
+            self._unknown.update(set(missing) - set(facts["outputs"]))
 
-            for name in missing:
-                self.directions[name] = float(np.sign(-design_lqi(load_plant(name)).Ki))
-        return np.array([self.directions[n] for n in names])
-
-    def _catalog_outputs(self, names: Sequence[str]) -> None:
-        """Output rows of plants the policy's meta lacks, from the plant catalogue."""
-        from generalist_control.catalog import available_plants, load_plant
-
-        missing = sorted(set(names) - set(self.outputs))
+    def _output_rows(self) -> np.ndarray:
+        """``C`` (B, MAX_ORDER) of the current rows, built when ``y`` is first left out."""
+        self._from_catalogue(self._systems)
+        missing = sorted({s for s in self._systems if s not in self.outputs})
         if missing:
-            known = set(available_plants())
-            for name in missing:
-                if name in known:
-                    self.outputs[name] = np.asarray(load_plant(name).C[0], dtype=np.float64)
+            raise ValueError(
+                f"this policy integrates the tracking error but has no output map for "
+                f"{', '.join(missing)}: pass the measured output, step(x, r, y)"
+            )
+        C = np.zeros((len(self._systems), MAX_ORDER))
+        for i, name in enumerate(self._systems):
+            C[i, : len(self.outputs[name])] = self.outputs[name]
+        return C
 
     def _output(self, y: Any, x: np.ndarray) -> np.ndarray:
         if y is None:
             if self._C is None:
-                missing = [s for s in self._systems if s not in self.outputs]
-                raise ValueError(
-                    f"this policy integrates the tracking error but has no output map for "
-                    f"{', '.join(sorted(set(missing)))}: pass the measured output, step(x, r, y)"
-                )
+                self._C = self._output_rows()
             return np.einsum("bi,bi->b", self._C, x)  # float64: C is
         y = np.asarray(y, dtype=np.float64).reshape(-1)
         if y.shape != (len(self._systems),):
@@ -246,6 +249,17 @@ class PolicyRuntime:
         if not np.isfinite(y).all():
             raise ValueError("output contains NaN or inf")
         return y
+
+    def _integrate(self, u: np.ndarray, r: np.ndarray, y: np.ndarray) -> None:
+        """Advance the error integral after control ``u``, conditionally under known limits."""
+        dz = self.dt * (r - y)
+        if self._direction is not None:
+            u_act = self.limits.actuate(u, self._u_prev, self.dt)
+            excess = u - u_act
+            winding = (np.abs(excess) > 1e-12) & (np.sign(self._direction * dz) == np.sign(excess))
+            dz = np.where(winding, 0.0, dz)
+            self._u_prev = u_act
+        self.z = self.z + dz
 
     def step(self, x: Any, r: Any, y: Any = None) -> float | np.ndarray:
         """Control for the current sample (the first of the predicted sequence).
@@ -261,24 +275,35 @@ class PolicyRuntime:
             default ``C x`` with the output rows stored with the policy.
         """
         x, r = self._check(x, r)
-        if not self.integral:
+        if self.integral:
+            y = self._output(y, x)  # checked before anything changes
+            state, mask, ref = self._buffer.push(x, r, self.z)
+        else:
             state, mask, ref = self._buffer.push(x, r)
-            self.plan = self._run(state, mask, ref, self._tag)
-            u = self.plan[:, 0].astype(np.float64)
-            return float(u[0]) if self._single else u
-        y = self._output(y, x)  # checked before anything changes
-        state, mask, ref = self._buffer.push(x, r, self.z)
         self.plan = self._run(state, mask, ref, self._tag)
         u = self.plan[:, 0].astype(np.float64)
-        dz = self.dt * (r - y)
-        if self.limits is not None and self._direction is not None:
-            u_act = self.limits.actuate(u, self._u_prev, self.dt)
-            excess = u - u_act
-            winding = (np.abs(excess) > 1e-12) & (np.sign(self._direction * dz) == np.sign(excess))
-            dz = np.where(winding, 0.0, dz)
-            self._u_prev = u_act
-        self.z = self.z + dz
+        if self.integral:
+            self._integrate(u, r, y)
         return float(u[0]) if self._single else u
+
+
+def integral_facts(names: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """Per catalogue plant in ``names``, its output row ``C`` and the sign of its expert's -Ki.
+
+    What an integrating policy's runtime needs to integrate ``r - C x`` from the state alone
+    (``C`` of the linearisation for a nonlinear plant) and to know which way the integral
+    moves the command (anti-windup). Training stores them in the policy's meta
+    (``outputs``, ``integral_directions``); names the catalogue does not know are left out.
+    """
+    from generalist_control.catalog import available_plants, load_plant
+    from generalist_control.lqi import design_lqi
+
+    known = set(available_plants())
+    plants = [load_plant(n) for n in sorted(names) if n in known]
+    return {
+        "outputs": {p.name: [float(c) for c in p.C[0]] for p in plants},
+        "integral_directions": {p.name: float(np.sign(-design_lqi(p).Ki)) for p in plants},
+    }
 
 
 def stacked_output(
@@ -289,10 +314,7 @@ def stacked_output(
     Each group of rows goes through its plant's own output map (``plant.output``, nonlinear
     where the plant's is), as the LQI expert measures it.
     """
-    parts, start = [], 0
-    for plant, count in zip(plants, counts, strict=True):
-        parts.append((plant, slice(start, start + count)))
-        start += count
+    parts = list(zip(plants, row_slices(counts), strict=True))
 
     def output(x: np.ndarray) -> np.ndarray:
         y = np.empty(x.shape[0])
@@ -320,14 +342,10 @@ class PolicyController:
 
     def reset(self, plants: Sequence[Any], counts: Sequence[int]) -> None:
         """One batch row per run, plant names repeated by their counts."""
-        if hasattr(self.runtime, "set_actuator_limits"):
-            lim = self.limits
-            self.runtime.set_actuator_limits(
-                lim.u_limit if lim else None, lim.rate_limit if lim else None
-            )
+        lim = self.limits or Perturbation()
+        self.runtime.set_actuator_limits(lim.u_limit, lim.rate_limit)
         self.runtime.reset([p.name for p, c in zip(plants, counts, strict=True) for _ in range(c)])
-        integral = getattr(self.runtime, "integral", False)  # duck-typed runtimes: none
-        self._output = stacked_output(plants, counts) if integral else None
+        self._output = stacked_output(plants, counts) if self.runtime.integral else None
 
     def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Controls for zero-padded states (and their plants' outputs, if integrating)."""

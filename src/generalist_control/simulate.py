@@ -30,6 +30,7 @@ __all__ = [
     "Trajectory",
     "discretise",
     "plant_stepper",
+    "row_slices",
     "simulate",
     "simulate_many",
 ]
@@ -288,6 +289,12 @@ def simulate_many(runs: Sequence[Run], controller: BatchController) -> list[Traj
     return [g.result() for g in groups]
 
 
+def row_slices(counts: Sequence[int]) -> list[slice]:
+    """The rows of each group when ``counts[i]`` runs of group ``i`` are stacked in order."""
+    ends = np.cumsum([0, *counts])
+    return [slice(int(a), int(b)) for a, b in zip(ends[:-1], ends[1:], strict=True)]
+
+
 class PerPlantController:
     """A :class:`BatchController` made of one single-plant controller per group of rows.
 
@@ -304,12 +311,11 @@ class PerPlantController:
 
     def reset(self, plants: Sequence[Plant], counts: Sequence[int]) -> None:
         """Build and reset one controller per plant."""
-        self._parts, start = [], 0
-        for plant, count in zip(plants, counts, strict=True):
+        self._parts = []
+        for plant, count, rows in zip(plants, counts, row_slices(counts), strict=True):
             ctrl = self.make(plant)
             ctrl.reset(count)
-            self._parts.append((ctrl, plant.order, slice(start, start + count)))
-            start += count
+            self._parts.append((ctrl, plant.order, rows))
 
     def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Route each group's rows (unpadded) to its controller."""

@@ -41,6 +41,7 @@ from generalist_control.model import (
 )
 from generalist_control.paths import HYDRA_CONFIG_PATH
 from generalist_control.policy import FlatPolicy, Policy, flat_columns, load_policy, save_policy
+from generalist_control.runtime import integral_facts
 
 __all__ = ["job_models_dir", "main", "model_config", "train"]
 
@@ -202,25 +203,6 @@ def model_config(cfg: DictConfig) -> dict[str, int]:
     )
 
 
-def _integral_facts(tags: dict[str, int]) -> dict[str, dict[str, Any]]:
-    """Per plant, the output row ``C`` and the sign of ``-Ki`` of its LQI expert.
-
-    Stored in the policy's meta so that a deployed runtime can integrate the tracking error
-    of a policy trained with ``model.integral`` from the state alone (``y = C x``, of the
-    linearisation for a nonlinear plant) and knows which way the integral moves the command
-    (anti-windup). Plants the catalogue does not know are left out.
-    """
-    from generalist_control.catalog import available_plants, load_plant
-    from generalist_control.lqi import design_lqi
-
-    known = set(available_plants())
-    plants = [load_plant(n) for n in sorted(tags) if n in known]
-    return {
-        "outputs": {p.name: [float(c) for c in p.C[0]] for p in plants},
-        "integral_directions": {p.name: float(np.sign(-design_lqi(p).Ki)) for p in plants},
-    }
-
-
 def _check_resume(ckpt_path: str, meta: dict[str, Any]) -> None:
     old = torch.load(ckpt_path, map_location="cpu", weights_only=True)["hyper_parameters"]
     old_hash = old.get("meta", {}).get("content_hash")
@@ -291,7 +273,7 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         **cfg.loader,
     )
     dm.setup("fit")
-    meta = {**dm.meta(), **_integral_facts(dm.tags)}
+    meta = {**dm.meta(), **integral_facts(list(dm.tags))}
     ckpt_path = cfg.get("ckpt_path")
     if ckpt_path:
         _check_resume(ckpt_path, meta)
