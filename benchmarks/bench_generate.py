@@ -22,9 +22,9 @@ import json, resource, sys, time
 t0 = time.perf_counter()
 import numpy as np
 from hydra import compose, initialize_config_dir
-from generalist_control.paths import conf_dir
+from generalist_control.common.paths import conf_dir
 from generalist_control.generate import run
-from generalist_control.demos import load_demos
+from generalist_control.data.demos import load_demos
 t_import = time.perf_counter() - t0
 rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 with initialize_config_dir(str(conf_dir()), version_base="1.3"):

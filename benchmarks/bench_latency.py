@@ -28,11 +28,12 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from generalist_control.catalog import load_plant  # noqa: E402
-from generalist_control.lqi import LQIController  # noqa: E402
-from generalist_control.policy import Policy, load_policy  # noqa: E402
-from generalist_control.runtime import PolicyRuntime, resolve  # noqa: E402
-from generalist_control.simulate import discretise  # noqa: E402
+from generalist_control.deploy.resolve import resolve
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.model.policy import Policy, load_policy
+from generalist_control.plants.catalog import load_plant
+from generalist_control.simulation.lqi import LQIController
+from generalist_control.simulation.simulate import discretise
 
 
 def _percentiles(ns: list[int]) -> dict[str, float]:

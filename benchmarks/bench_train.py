@@ -38,15 +38,15 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from generalist_control.catalog import load_plant
-from generalist_control.datamodule import DemoDataModule
-from generalist_control.demos import write_demos
-from generalist_control.generate import build_manifest, generate_demos
-from generalist_control.lit_module import LitController
-from generalist_control.lqi import design_lqi
-from generalist_control.model import count_parameters
-from generalist_control.paths import conf_dir
-from generalist_control.train import model_config
+from generalist_control.common.paths import conf_dir
+from generalist_control.data.demos import write_demos
+from generalist_control.data.generation import build_manifest, generate_demos
+from generalist_control.model.network import count_parameters
+from generalist_control.plants.catalog import load_plant
+from generalist_control.simulation.lqi import design_lqi
+from generalist_control.training.datamodule import DemoDataModule
+from generalist_control.training.lit_module import ImitationModule
+from generalist_control.training.setup import model_config
 
 PLANTS = (
     "cstr",
@@ -93,9 +93,9 @@ def _scheduler(cfg) -> dict:
     return sched
 
 
-def build(cfg, dm: DemoDataModule) -> LitController:
+def build(cfg, dm: DemoDataModule) -> ImitationModule:
     model = model_config(cfg)  # the training config's network, as train.py builds it
-    lit = LitController(
+    lit = ImitationModule(
         model,
         OmegaConf.to_container(cfg.model.optimizer),
         _scheduler(cfg),
@@ -106,7 +106,7 @@ def build(cfg, dm: DemoDataModule) -> LitController:
 
 
 def bench_steps(
-    lit: LitController, dm: DemoDataModule, device: str, repeats: int, steps: int
+    lit: ImitationModule, dm: DemoDataModule, device: str, repeats: int, steps: int
 ) -> dict:
     """Median samples/s of bare optimisation steps over ``repeats`` passes of ``steps``."""
     lit = lit.to(device).train()

@@ -40,13 +40,18 @@ import control
 import numpy as np
 from scipy.optimize import minimize
 
-from generalist_control.catalog import available_plants, load_plant
-from generalist_control.lqi import LQIController, LQIGains, design_lqi, sampled_closed_loop
-from generalist_control.metrics import step_metrics
-from generalist_control.paper import TABLE2, TABLE2_COLUMNS, TABLE2_METRICS
-from generalist_control.paths import conf_dir
-from generalist_control.plants import Plant, PlantConfigError
-from generalist_control.simulate import discretise, simulate
+from generalist_control.common.paths import conf_dir
+from generalist_control.evaluation.paper import TABLE2, TABLE2_COLUMNS, TABLE2_METRICS
+from generalist_control.plants.catalog import available_plants, load_plant
+from generalist_control.plants.plant import Plant, PlantConfigError
+from generalist_control.simulation.lqi import (
+    LQIController,
+    LQIGains,
+    design_lqi,
+    sampled_closed_loop,
+)
+from generalist_control.simulation.metrics import step_metrics
+from generalist_control.simulation.simulate import discretise, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 REPORT = ROOT / "reports" / "lqi_table2.md"

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import mlflow
 
-from generalist_control.catalog import load_plant
-from generalist_control.model import count_parameters
-from generalist_control.policy import Policy, save_policy
+from generalist_control.model.network import count_parameters
+from generalist_control.model.policy import Policy, save_policy
+from generalist_control.plants.catalog import load_plant
 
 PLANTS = ("double_integrator", "cstr")
 #: (d, M) -> (final train loss, {plant: mse}); d = 16 is left out on purpose.

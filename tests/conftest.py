@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from generalist_control.catalog import load_plant
-from generalist_control.demos import DemoSet, write_demos
-from generalist_control.generate import build_manifest, generate_demos
+from generalist_control.data.demos import DemoSet, write_demos
+from generalist_control.data.generation import build_manifest, generate_demos
+from generalist_control.plants.catalog import load_plant
 
 # One thread: the tiny batches gain nothing from two, and on a shared 2-core machine a second
 # OpenMP thread that waits for a busy core can stall every step by orders of magnitude.

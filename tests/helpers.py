@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from hydra import compose, initialize_config_dir
 
-from generalist_control.paths import conf_dir
+from generalist_control.common.paths import conf_dir
 
 
 def compose_cfg(*overrides: str):

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from generalist_control.catalog import load_plant
-from generalist_control.crazyflie import CrazyflieParams, fly
-from generalist_control.lqi import LQIController
-from generalist_control.simulate import simulate
+from generalist_control.plants.catalog import load_plant
+from generalist_control.simulation.crazyflie import CrazyflieParams, fly
+from generalist_control.simulation.lqi import LQIController
+from generalist_control.simulation.simulate import simulate
 
 IDEAL = CrazyflieParams(
     mass=0.027,

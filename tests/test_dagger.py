@@ -6,14 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-from generalist_control.catalog import load_plant
-from generalist_control.dagger import aggregate, bumpless_integrator, expert_plans
-from generalist_control.datamodule import WindowTensors
-from generalist_control.lqi import LQIController, design_lqi
-from generalist_control.policy import Policy
-from generalist_control.runtime import PolicyRuntime
-from generalist_control.simulate import simulate
-from generalist_control.windows import build_windows, pad_states
+from generalist_control.data.windows import build_windows
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.model.policy import Policy
+from generalist_control.plants.catalog import load_plant
+from generalist_control.plants.plant import pad_states
+from generalist_control.simulation.lqi import LQIController, design_lqi
+from generalist_control.simulation.simulate import simulate
+from generalist_control.training.dagger import aggregate, bumpless_integrator, expert_plans
+from generalist_control.training.datamodule import WindowTensors
 
 
 @pytest.mark.parametrize("name", ["magnetic_levitation", "two_tank", "two_mass_spring"])
@@ -65,7 +66,7 @@ def test_expert_plan_first_control_is_the_lqi_law_at_any_state():
     plans = expert_plans(plant, x, z, r, 3)
     np.testing.assert_allclose(plans[..., 0], -(x @ g.Kx) - g.Ki * z, rtol=1e-12)
     # second control: one ZOH step of the plant and one Euler step of the integrator
-    from generalist_control.simulate import discretise
+    from generalist_control.simulation.simulate import discretise
 
     Ad, Bd = discretise(plant.A, plant.B, plant.dt)
     x1 = x @ Ad.T + plans[..., :1] * Bd[:, 0]
@@ -101,8 +102,8 @@ def test_policy_rollouts_are_cut_where_they_leave_the_range():
 def test_training_with_dagger_grows_the_training_set(tiny_data_dir, tmp_path, mlflow_uri):
     from hydra import compose, initialize_config_dir
 
-    from generalist_control.paths import conf_dir
-    from generalist_control.train import train
+    from generalist_control.common.paths import conf_dir
+    from generalist_control.training.fit import train
     from helpers import tiny_train_overrides
 
     overrides = tiny_train_overrides(

@@ -16,7 +16,7 @@ import pytest
 import yaml
 from hydra import compose, initialize_config_dir
 
-from generalist_control.paths import conf_dir
+from generalist_control.common.paths import conf_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCKER = ROOT / "docker"

@@ -14,12 +14,19 @@ import pandas as pd
 import pytest
 from hydra import compose, initialize_config_dir
 
-from generalist_control.catalog import load_plant
-from generalist_control.eval_report import recipes_markdown, table2_markdown, table_all_markdown
-from generalist_control.evaluate import closed_loop_score, evaluate, output_mse, summarise
-from generalist_control.lqi import LQIController
-from generalist_control.paths import conf_dir
-from generalist_control.train import train
+from generalist_control.common.paths import conf_dir
+from generalist_control.deploy.adapter import RuntimeAdapter
+from generalist_control.evaluation.runner import evaluate
+from generalist_control.evaluation.summary import summarise
+from generalist_control.evaluation.tables import (
+    recipes_markdown,
+    table2_markdown,
+    table_all_markdown,
+)
+from generalist_control.plants.catalog import load_plant
+from generalist_control.simulation.comparison import closed_loop_score, output_mse
+from generalist_control.simulation.lqi import LQIController
+from generalist_control.training.fit import train
 from helpers import tiny_train_overrides
 
 REPO = Path(__file__).resolve().parents[1]
@@ -79,7 +86,7 @@ def test_a_policy_that_is_the_lqi_law_scores_exactly_one():
     assert "| cstr | 1 | 1 | 1 | 1 |" in side_by_side  # ISE and ITAE ratios of both
     gc = trajs["sine"]["GC"]["cstr"]
     np.testing.assert_array_equal(gc.y, trajs["sine"]["LQI"]["cstr"].y)
-    assert output_mse(LQIRuntime(PLANTS), plants, duration=5.0) == {
+    assert output_mse(RuntimeAdapter(LQIRuntime(PLANTS)), plants, duration=5.0) == {
         "cstr": 0.0,
         "hydraulic_actuator": 0.0,
     }
@@ -188,13 +195,15 @@ def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
 
 def test_closed_loop_score_is_zero_for_the_expert_and_one_for_divergence():
     plants = [load_plant(n) for n in PLANTS]
-    assert closed_loop_score(LQIRuntime(PLANTS), plants, duration=4.0) == {
+    assert closed_loop_score(RuntimeAdapter(LQIRuntime(PLANTS)), plants, duration=4.0) == {
         "cstr": 0.0,
         "hydraulic_actuator": 0.0,
     }
-    assert closed_loop_score(LQIRuntime(PLANTS, gain=-25.0), plants, duration=4.0) == {
+    assert closed_loop_score(
+        RuntimeAdapter(LQIRuntime(PLANTS, gain=-25.0)), plants, duration=4.0
+    ) == {
         "cstr": 1.0,
         "hydraulic_actuator": 1.0,
     }
-    half = closed_loop_score(LQIRuntime(PLANTS, gain=0.5), plants, duration=4.0)
+    half = closed_loop_score(RuntimeAdapter(LQIRuntime(PLANTS, gain=0.5)), plants, duration=4.0)
     assert all(0.0 < v < 1.0 for v in half.values())

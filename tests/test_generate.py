@@ -9,11 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from generalist_control import demos as demos_mod
-from generalist_control.catalog import UnknownPlantError, plants_from_config
-from generalist_control.demos import MissingDataError, load_demos
-from generalist_control.generate import DataConfigError, amplitude_grid, run
-from generalist_control.plants import PlantConfigError
+from generalist_control.data import demos as demos_mod
+from generalist_control.data.demos import MissingDataError, load_demos
+from generalist_control.data.generation import DataConfigError, amplitude_grid
+from generalist_control.generate import run
+from generalist_control.plants.catalog import UnknownPlantError, plants_from_config
+from generalist_control.plants.plant import PlantConfigError
 from helpers import compose_cfg
 
 PAPER_WINDOWS = 314_630

@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 from scipy.linalg import solve_continuous_are
 
-from generalist_control.catalog import load_plant
-from generalist_control.lqi import LQIController, design_lqi, sampled_closed_loop
-from generalist_control.plants import PlantConfigError, plant_from_config
-from generalist_control.simulate import discretise, simulate
+from generalist_control.plants.catalog import load_plant
+from generalist_control.plants.config import plant_from_config
+from generalist_control.plants.plant import PlantConfigError
+from generalist_control.simulation.lqi import LQIController, design_lqi, sampled_closed_loop
+from generalist_control.simulation.simulate import discretise, simulate
 
 PAPER_LINEAR = ["cstr", "unstable", "boeing747", "hydraulic_actuator", "two_mass_spring"]
 

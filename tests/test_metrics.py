@@ -4,10 +4,10 @@ import control
 import numpy as np
 import pytest
 
-from generalist_control.catalog import load_plant
-from generalist_control.lqi import LQIController
-from generalist_control.metrics import step_metrics, tracking_metrics
-from generalist_control.simulate import simulate
+from generalist_control.plants.catalog import load_plant
+from generalist_control.simulation.lqi import LQIController
+from generalist_control.simulation.metrics import step_metrics, tracking_metrics
+from generalist_control.simulation.simulate import simulate
 
 
 def compare_with_step_info(t, y, r_final):

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
 
-from generalist_control.datamodule import BatchIndexSampler, split_by_trajectory
-from generalist_control.model import GeneralistController, controller_config, count_parameters
-from generalist_control.normalise import Normaliser
-from generalist_control.policy import FlatPolicy, Policy, load_policy, save_policy
+from generalist_control.model.flat import FlatPolicy
+from generalist_control.model.network import GeneralistNetwork, count_parameters, network_config
+from generalist_control.model.normalise import Normaliser
+from generalist_control.model.policy import Policy, load_policy, save_policy
+from generalist_control.training.datamodule import BatchIndexSampler, split_by_trajectory
 
 
 def _tensors(windows):
@@ -27,14 +30,14 @@ def windows(tiny_demos):
 @pytest.fixture(scope="module")
 def policy(windows):
     torch.manual_seed(0)
-    pol = Policy(controller_config(hidden=16, experts=3))
+    pol = Policy(network_config(hidden=16, experts=3))
     pol.normaliser.fit(*_tensors(windows)[:4], torch.from_numpy(windows.target))
     return pol.eval()
 
 
 @pytest.mark.parametrize(("hidden", "experts", "heads"), [(16, 1, 3), (32, 3, 3), (64, 5, 4)])
 def test_output_shapes(hidden, experts, heads):
-    net = GeneralistController(hidden=hidden, experts=experts, heads=heads)
+    net = GeneralistNetwork(hidden=hidden, experts=experts, heads=heads)
     B = 7
     u, gates = net(
         torch.randn(B, 8, 4), torch.ones(B, 8, 4), torch.randn(B, 8), torch.randint(0, 25, (B,))
@@ -64,22 +67,82 @@ def test_padded_state_entries_do_not_change_the_output(policy, windows):
     torch.testing.assert_close(n1, n0, rtol=0, atol=0)  # the network masks on its own too
 
 
+def _lstm_inputs(net, *args):
+    """``net(*args)`` with forward pre-hooks recording the sequence each LSTM is given."""
+    seen = {}
+    hooks = [
+        lstm.register_forward_pre_hook(lambda m, a, key=key: seen.__setitem__(key, a[0]))
+        for key, lstm in (("fast", net.lstm_fast), ("slow", net.lstm_slow))
+    ]
+    try:
+        with torch.no_grad():
+            u, _ = net(*args)
+    finally:
+        for h in hooks:
+            h.remove()
+    return u, seen["fast"], seen["slow"]
+
+
 def test_slow_lstm_ends_at_the_newest_sample():
-    for history, stride in [(8, 2), (8, 3), (8, 1), (5, 4)]:
-        net = GeneralistController(history=history, stride=stride)
-        idx = list(range(history))[net.slow_start :: stride]
-        assert idx[-1] == history - 1 and idx[1:] == [i + stride for i in idx[:-1]]
+    """Run forward and record what each LSTM is given.
+
+    The fast LSTM sees all ``history`` feature vectors; the slow one sees exactly the
+    samples ``t - k tau, ..., t - tau, t`` (t = history - 1, the newest), oldest first;
+    the indices are written out here by hand, not taken from ``net.slow_start``.
+    """
+    expected_slow = {  # (history, stride): sample indices the slow LSTM sees
+        (8, 2): [1, 3, 5, 7],
+        (8, 3): [1, 4, 7],
+        (8, 1): [0, 1, 2, 3, 4, 5, 6, 7],
+        (5, 4): [0, 4],
+        (6, 4): [1, 5],
+        (7, 7): [6],
+    }
+    B = 3
+    for (history, stride), idx in expected_slow.items():
+        torch.manual_seed(0)
+        net = GeneralistNetwork(hidden=8, history=history, stride=stride).eval()
+        state, mask, ref = (
+            torch.randn(B, history, 4),
+            torch.ones(B, history, 4),
+            torch.randn(B, history),
+        )
+        tag = torch.tensor([0, 5, 24])
+        u, fast, slow = _lstm_inputs(net, state, mask, ref, tag)
+        assert fast.shape == (B, history, 4 * 4), (history, stride)  # 4 encoders of d/2 = 4
+        assert slow.shape == (B, len(idx), 4 * 4), (history, stride)
+        # every step's features differ (random inputs), so equal rows identify the samples
+        torch.testing.assert_close(slow, fast[:, idx], rtol=0, atol=0)
+        # the output is the documented pipeline on exactly those two sequences
+        with torch.no_grad():
+            _, (h_fast, _) = net.lstm_fast(fast)
+            _, (h_slow, _) = net.lstm_slow(fast[:, idx])
+            z = torch.cat([h_fast[-1], h_slow[-1]], dim=-1)
+            z_att = net.attention(z.unsqueeze(1)).squeeze(1)
+            gates = torch.softmax(net.gate(z_att), dim=-1)
+            u_hand = sum(gates[:, i : i + 1] * e(z_att) for i, e in enumerate(net.experts))
+        torch.testing.assert_close(u, u_hand, rtol=1e-5, atol=1e-6)
+        # changing only samples the slow LSTM skips changes only what the fast one sees
+        skipped = [k for k in range(history) if k not in idx]
+        if skipped:
+            state2, ref2 = state.clone(), ref.clone()
+            state2[:, skipped] += 1.0
+            ref2[:, skipped] -= 1.0
+            _, fast2, slow2 = _lstm_inputs(net, state2, mask, ref2, tag)
+            torch.testing.assert_close(slow2, slow, rtol=0, atol=0)
+            torch.testing.assert_close(fast2[:, idx], fast[:, idx], rtol=0, atol=0)
+            assert (fast2[:, skipped] != fast[:, skipped]).any(dim=-1).all()
 
 
 def test_heads_that_do_not_divide_the_width():
-    net = GeneralistController(hidden=32, heads=3)  # 2 d_h = 64, d_k = ceil(64 / 3) = 22
+    net = GeneralistNetwork(hidden=32, heads=3)  # 2 d_h = 64, d_k = ceil(64 / 3) = 22
     assert net.attention.d_k == 22
     assert net.attention.out.in_features == 66 and net.attention.out.out_features == 64
 
 
 def test_attention_over_one_token_leaves_query_and_key_without_gradient():
     # docs/training.md: the paper's attention runs over the single vector z
-    net = GeneralistController(hidden=16, heads=3)
+    net = GeneralistNetwork(hidden=16, heads=3)
     u, _ = net(torch.randn(4, 8, 4), torch.ones(4, 8, 4), torch.randn(4, 8), torch.arange(4))
     u.sum().backward()
     inner = net.attention.heads * net.attention.d_k
@@ -88,25 +151,134 @@ def test_attention_over_one_token_leaves_query_and_key_without_gradient():
     assert grad[: 2 * inner].abs().max() < 1e-6 * grad[2 * inner :].abs().max()
 
 
-def test_parameter_count_of_the_baseline_matches_docs():
-    # docs/training.md, table "Parameter counts"
-    assert count_parameters(GeneralistController(hidden=32, experts=3)) == 55_826
-    assert count_parameters(GeneralistController(hidden=64, experts=3)) == 215_567
-    ours = {"linear_head": 1, "integral": 1, "linear_samples": 1}  # conf/model/generalist.yaml
-    assert count_parameters(GeneralistController(hidden=32, experts=3, **ours)) == 56_340
+def _documented_parameter_parts(
+    d: int,
+    M: int,
+    heads: int = 3,
+    integral: int = 0,
+    linear_head: int = 0,
+    linear_samples: int = 0,
+    history: int = 8,
+    horizon: int = 3,
+    n_tags: int = 25,
+    state_dim: int = 4,
+) -> dict[str, int]:
+    """The architecture of model.py's docstring and docs/training.md, counted by hand.
+
+    ``Linear(a, b)`` has ``a b + b`` parameters, ``LayerNorm(b)`` ``2 b``, an embedding
+    ``rows x cols`` ``rows cols``; a PyTorch LSTM of input ``i`` and hidden ``h`` has four
+    gates of ``i h + h h`` weights and two bias vectors: ``4 (i h + h h + 2 h)``.
+    Per-module counts: one state encoder, one LSTM, one expert.
+    """
+
+    def linear(a, b):
+        return a * b + b
+
+    e = d // 2  # every encoder ends at d/2; four of them give d_f = 2d
+    width = state_dim + integral  # the error integral is one more state channel
+    d_k = -(-2 * d // heads)  # ceil(2d / heads)
+    return {
+        "state_encoder": linear(width, d) + linear(d, e),
+        "ref_encoder": linear(1, d) + linear(d, e),
+        "tag_encoder": n_tags * d + linear(d, e),  # one-hot -> d is an embedding (no bias)
+        "lstm": 4 * (2 * d * d + d * d + 2 * d),  # input 4 (d/2) = 2d, hidden d
+        "attention": linear(2 * d, 3 * heads * d_k) + linear(heads * d_k, 2 * d),
+        "expert": linear(2 * d, d) + 2 * d + linear(d, d) + 2 * d + linear(d, horizon),
+        "gate": linear(2 * d, M),
+        "linear_head": (
+            n_tags * horizon * (linear_samples or history) * (width + 1) if linear_head else 0
+        ),
+    }
+
+
+def _documented_parameter_count(d: int, M: int, **config: int) -> int:
+    parts = _documented_parameter_parts(d, M, **config)
+    twice = {"state_encoder": 2, "lstm": 2, "expert": M}
+    return sum(twice.get(k, 1) * v for k, v in parts.items())
+
+
+def _module_parts(net: GeneralistNetwork) -> dict[str, int]:
+    return {
+        "state_encoder": count_parameters(net.state_encoder_1),
+        "ref_encoder": count_parameters(net.ref_encoder),
+        "tag_encoder": count_parameters(net.tag_embedding) + count_parameters(net.tag_encoder),
+        "lstm": count_parameters(net.lstm_slow),
+        "attention": count_parameters(net.attention),
+        "expert": count_parameters(net.experts[0]),
+        "gate": count_parameters(net.gate),
+        "linear_head": count_parameters(net.linear) if net.linear is not None else 0,
+    }
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        {"hidden": 32, "experts": 3},  # the paper's baseline
+        {"hidden": 64, "experts": 3},
+        {"hidden": 16, "experts": 1},
+        {"hidden": 64, "experts": 5, "heads": 4},
+        {"hidden": 32, "experts": 3, "integral": 1, "linear_head": 1, "linear_samples": 1},
+        {"hidden": 32, "experts": 3, "linear_head": 1},  # whole-window head, no integral
+        {"hidden": 8, "experts": 2, "heads": 5, "integral": 1},
+        {"hidden": 24, "experts": 4, "heads": 7, "linear_head": 1, "linear_samples": 3},
+        {"hidden": 16, "experts": 2, "history": 6, "horizon": 5, "n_tags": 10, "linear_head": 1},
+    ],
+)
+def test_parameter_count_follows_the_documented_architecture(config):
+    net = GeneralistNetwork(**config)
+    rest = {k: v for k, v in config.items() if k not in ("hidden", "experts")}
+    d, M = config["hidden"], config["experts"]
+    assert count_parameters(net) == _documented_parameter_count(d, M, **rest)
+    # module by module, so that two errors cannot cancel
+    assert _module_parts(net) == _documented_parameter_parts(d, M, **rest)
+    assert count_parameters(net.state_encoder_2) == count_parameters(net.state_encoder_1)
+    assert count_parameters(net.lstm_fast) == count_parameters(net.lstm_slow)
+    assert len(net.experts) == M
+    # the policy adds only the normaliser's buffers, no trainable parameter
+    assert count_parameters(Policy(network_config(**config))) == count_parameters(net)
+
+
+def test_parameter_counts_in_docs_follow_the_documented_architecture():
+    """docs/training.md's table and breakdown, and how our count relates to the paper's."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "training.md").read_text()
+    text = " ".join(text.split())  # undo line wrapping
+    for d in (16, 32, 64):
+        (row,) = re.findall(rf"\| {d} \|((?: [0-9,*]+ \|){{3}})", text)
+        cells = [int(c.strip(" *").replace(",", "")) for c in row.split("|")[:3]]
+        assert cells == [_documented_parameter_count(d, M) for M in (1, 3, 5)], d
+    p = _documented_parameter_parts(32, 3)  # d_k = ceil(64 / 3) = 22, N_h d_k = 66
+    breakdown = (
+        f"At d = 32, M = 3: state encoders 2 x {p['state_encoder']:,}, reference encoder "
+        f"{p['ref_encoder']:,}, tag encoder {p['tag_encoder']:,}, LSTMs 2 x {p['lstm']:,}, "
+        f"attention {p['attention']:,}, experts 3 x {p['expert']:,}, gate {p['gate']:,}."
+    )
+    assert breakdown in text
+    assert "(8,580 of the 55,826 parameters at d = 32)" in text
+    assert 2 * (64 * 66 + 66) == 8_580  # the Q and K projections, 64 -> 66 each
+    baseline = _documented_parameter_count(32, 3)
+    assert baseline == 55_826
+    # our default recipe: + d per state encoder (integral) + 25 x 3 x 6 (newest-sample head)
+    ours = _documented_parameter_count(32, 3, integral=1, linear_head=1, linear_samples=1)
+    assert ours == baseline + 2 * 32 + 25 * 3 * 6 == 56_340 and "**56,340**" in text
+    whole_window = _documented_parameter_count(32, 3, linear_head=1)
+    assert whole_window == baseline + 25 * 3 * 8 * 5 == 58_826 and "58,826" in text
+    # the paper states 59,180 for its baseline (M = 3, d = 32): ours is 5.7 % below, as the
+    # paper leaves the encoder and expert widths open (docs/training.md)
+    assert 0.05 < (59_180 - baseline) / 59_180 < 0.07
+    assert "59,180" in text
 
 
 def test_integral_adds_one_state_channel_that_padding_never_reaches(tiny_demos):
     """model.integral: one more encoder input (+ the linear head's), masks still hold."""
-    base = count_parameters(GeneralistController(hidden=32, experts=3, linear_head=1))
-    with_z = count_parameters(
-        GeneralistController(hidden=32, experts=3, linear_head=1, integral=1)
-    )
+    base = count_parameters(GeneralistNetwork(hidden=32, experts=3, linear_head=1))
+    with_z = count_parameters(GeneralistNetwork(hidden=32, experts=3, linear_head=1, integral=1))
     # two state encoders gain a d-wide input column each; the head gains T * K weights per tag
     assert with_z - base == 2 * 32 + 25 * 8 * 3
     windows = tiny_demos.windows(8, 3, integral=True)
     torch.manual_seed(0)
-    pol = Policy(controller_config(hidden=16, experts=3, window_scale=1, integral=1))
+    pol = Policy(network_config(hidden=16, experts=3, window_scale=1, integral=1))
     pol.normaliser.fit(*_tensors(windows)[:4], torch.from_numpy(windows.target))
     assert pol.normaliser.state_scale.shape == (25, 5)
     state, mask, ref, tag = _tensors(windows)
@@ -122,11 +294,11 @@ def test_integral_adds_one_state_channel_that_padding_never_reaches(tiny_demos):
 def test_least_squares_head_recovers_the_lqi_law_from_the_data(tiny_demos):
     """linear_init=lstsq: from the demonstrations alone, the head's first control is
     -Kx x - Ki z of each plant's LQI design, at any augmented state (not only on the data)."""
-    from generalist_control.catalog import load_plant
-    from generalist_control.lqi import design_lqi
+    from generalist_control.plants.catalog import load_plant
+    from generalist_control.simulation.lqi import design_lqi
 
     windows = tiny_demos.windows(8, 3, integral=True)
-    cfg = controller_config(hidden=16, experts=2, window_scale=1, linear_head=1, integral=1,
+    cfg = network_config(hidden=16, experts=2, window_scale=1, linear_head=1, integral=1,
                             linear_samples=1)  # fmt: skip
     torch.manual_seed(0)
     pol = Policy(cfg)
@@ -153,16 +325,16 @@ def test_least_squares_head_recovers_the_lqi_law_from_the_data(tiny_demos):
         law = -(x[:, -1, : plant.order].astype(float) @ g.Kx) - g.Ki * x[:, -1, 4]
         np.testing.assert_allclose(u[:, 0].numpy(), law, rtol=1e-3, atol=1e-3 * np.abs(law).max())
     with pytest.raises(ValueError, match="no linear head"):
-        Policy(controller_config(hidden=16)).fit_linear_head(**tensors)
+        Policy(network_config(hidden=16)).fit_linear_head(**tensors)
 
 
 def test_model_config_is_checked():
     with pytest.raises(ValueError, match=r"linear_samples \(9\) exceeds the history \(8\)"):
-        controller_config(linear_samples=9)
+        network_config(linear_samples=9)
     with pytest.raises(ValueError, match="unknown model config keys"):
-        controller_config(hiden=32)
+        network_config(hiden=32)
     with pytest.raises(ValueError, match="must be even"):
-        controller_config(hidden=33)
+        network_config(hidden=33)
 
 
 def test_normalisation_round_trips(policy, windows):
@@ -250,9 +422,9 @@ def test_batch_sampler_reshuffles_per_epoch_and_covers_all():
 def test_linear_head_adds_a_per_tag_linear_map_of_the_window(windows):
     """Zero at start (the paper's network); then exactly W[tag] @ [state*mask, ref]."""
     torch.manual_seed(0)
-    base = GeneralistController(**controller_config(hidden=8))
+    base = GeneralistNetwork(**network_config(hidden=8))
     torch.manual_seed(0)
-    head = GeneralistController(**controller_config(hidden=8, linear_head=1))
+    head = GeneralistNetwork(**network_config(hidden=8, linear_head=1))
     args = [
         torch.as_tensor(np.asarray(a))
         for a in (windows.state, windows.mask, windows.ref, windows.tag)
@@ -270,4 +442,4 @@ def test_linear_head_adds_a_per_tag_linear_map_of_the_window(windows):
         u2 - u0, torch.einsum("bkf,bf->bk", w, window), rtol=1e-4, atol=1e-4
     )
     with pytest.raises(ValueError, match="linear_head must be 0 or 1"):
-        controller_config(linear_head=2)
+        network_config(linear_head=2)

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-import generalist_control.paths
-from generalist_control.catalog import plants_from_config
-from generalist_control.lqi import LQIController, design_lqi
-from generalist_control.metrics import step_metrics
-from generalist_control.plants import Plant
-from generalist_control.simulate import simulate
+import generalist_control.common.paths
+from generalist_control.plants.catalog import plants_from_config
+from generalist_control.plants.plant import Plant
+from generalist_control.simulation.lqi import LQIController, design_lqi
+from generalist_control.simulation.metrics import step_metrics
+from generalist_control.simulation.simulate import simulate
 
 NAMES = [
     "mass_spring_damper",
@@ -91,7 +91,7 @@ HORIZON = 300  # samples (15 s at dt = 0.05 s)
 
 
 def _compose(systems: str) -> dict[str, Plant]:
-    conf = str(generalist_control.paths.conf_dir())
+    conf = str(generalist_control.common.paths.conf_dir())
     with initialize_config_dir(conf, version_base="1.3"):
         cfg = compose("config", overrides=[f"systems={systems}"])
     return {p.name: p for p in plants_from_config(cfg.systems)}
@@ -260,10 +260,11 @@ def test_equilibrium_check_is_relative(u_op, ok):
     """two_tank's u_op to 7 digits is an equilibrium; 1% off is not (a clear error)."""
     from omegaconf import OmegaConf
 
-    from generalist_control.plants import PlantConfigError, plant_from_config
+    from generalist_control.plants.config import plant_from_config
+    from generalist_control.plants.plant import PlantConfigError
 
     cfg = OmegaConf.to_container(
-        OmegaConf.load(generalist_control.paths.CONF_DIR / "plants/two_tank.yaml")
+        OmegaConf.load(generalist_control.common.paths.CONF_DIR / "plants/two_tank.yaml")
     )
     cfg["dynamics"]["u_op"] = u_op
     if ok:

@@ -12,15 +12,15 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from ablation_runs import PLANTS, log_runs, policy_meta
-from generalist_control.catalog import load_plant
-from generalist_control.paths import conf_dir
-from generalist_control.policy import Policy
-from generalist_control.report import (
+from generalist_control.common.paths import conf_dir
+from generalist_control.model.policy import Policy
+from generalist_control.plants.catalog import load_plant
+from generalist_control.report import run
+from generalist_control.reports.gates import gate_weights
+from generalist_control.reports.runs import (
     RUN_TYPE_TAG,
     NoAblationRunsError,
     RunPoint,
-    gate_weights,
-    run,
     select_sweeps,
 )
 
@@ -142,7 +142,7 @@ def test_gate_weights_follow_the_plants_asked_for():
 
 
 def test_study_trials_and_parents_are_left_out(tmp_path, mlflow_uri):
-    from generalist_control.report import runs_from_mlflow
+    from generalist_control.reports.runs import runs_from_mlflow
 
     mlflow.set_tracking_uri(mlflow_uri)
     exp_id = mlflow.create_experiment(tmp_path.name)

@@ -8,13 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from generalist_control.catalog import load_plant
-from generalist_control.lqi import LQIController
-from generalist_control.plants import MAX_ORDER
-from generalist_control.policy import Policy, load_policy, save_policy
-from generalist_control.runtime import PolicyController, PolicyRuntime, resolve
-from generalist_control.simulate import Run, simulate, simulate_many
-from generalist_control.windows import build_windows, integral_of_error, pad_states
+from generalist_control.data.windows import build_windows, integral_of_error
+from generalist_control.deploy.adapter import RuntimeAdapter
+from generalist_control.deploy.resolve import resolve
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.model.policy import Policy, load_policy, save_policy
+from generalist_control.plants.catalog import load_plant
+from generalist_control.plants.plant import MAX_ORDER, pad_states
+from generalist_control.simulation.lqi import LQIController
+from generalist_control.simulation.simulate import Run, simulate, simulate_many
 
 PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
 
@@ -163,7 +165,7 @@ def _lqi_law_policy(names) -> tuple[Policy, dict]:
     scales), the same on every step of the horizon. Through window scaling (the head is
     linear) and the runtime's own integrator, it must reproduce LQI exactly.
     """
-    from generalist_control.lqi import design_lqi
+    from generalist_control.simulation.lqi import design_lqi
 
     torch.manual_seed(0)
     pol = Policy({"hidden": 16, "experts": 2, "window_scale": 1, "linear_head": 1, "integral": 1})
@@ -211,7 +213,7 @@ def test_an_integrating_policy_built_as_the_lqi_law_reproduces_lqi_in_closed_loo
         Run(p, np.full((2, 120), a * p.amplitude_scale))
         for p, a in zip(plants, (1, -3, 2), strict=True)
     ]
-    gc = simulate_many(runs, PolicyController(runtime))
+    gc = simulate_many(runs, RuntimeAdapter(runtime))
     for p, run, tr in zip(plants, runs, gc, strict=True):
         ref = simulate(p, LQIController(p), run.r)
         scale = np.abs(ref.u).max()
@@ -247,8 +249,8 @@ def test_an_integrating_policy_needs_an_output_it_can_integrate():
 )
 def test_runtime_anti_windup_is_lqi_anti_windup_for_the_lqi_law(name, limits):
     """Told the actuator limits, the runtime integrates as AntiWindupLQIController does."""
-    from generalist_control.lqi import AntiWindupLQIController
-    from generalist_control.simulate import PerPlantController, Perturbation
+    from generalist_control.simulation.lqi import AntiWindupLQIController
+    from generalist_control.simulation.simulate import PerPlantController, Perturbation
 
     pol, meta = _lqi_law_policy((name,))
     pert = Perturbation(**limits)
@@ -257,8 +259,8 @@ def test_runtime_anti_windup_is_lqi_anti_windup_for_the_lqi_law(name, limits):
     aw = simulate_many([run], PerPlantController(lambda p: AntiWindupLQIController(p, pert)))[0]
     plain = simulate_many([run], PerPlantController(LQIController))[0]
     runtime = PolicyRuntime(pol, meta)
-    gc_aw = simulate_many([run], PolicyController(runtime, pert))[0]
-    gc = simulate_many([run], PolicyController(runtime))[0]  # limits cleared again
+    gc_aw = simulate_many([run], RuntimeAdapter(runtime, pert))[0]
+    gc = simulate_many([run], RuntimeAdapter(runtime))[0]  # limits cleared again
     scale = np.abs(aw.y).max()
     np.testing.assert_allclose(gc_aw.y, aw.y, rtol=0, atol=1e-4 * scale)
     np.testing.assert_allclose(gc.y, plain.y, rtol=0, atol=1e-4 * np.abs(plain.y).max())

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from generalist_control.catalog import load_plant
-from generalist_control.scenarios import ScenarioError, perturbation, references
-from generalist_control.simulate import Perturbation
+from generalist_control.plants.catalog import load_plant
+from generalist_control.simulation.scenarios import ScenarioError, perturbation, references
+from generalist_control.simulation.simulate import Perturbation
 
 
 def test_reference_shapes_and_values():
@@ -49,9 +49,71 @@ def test_perturbation_and_errors():
 
 
 def test_default_scenarios_are_valid():
-    from generalist_control.paths import conf_dir
+    """Every scenario of conf/evaluation/default.yaml builds the documented signals.
+
+    Checked on the plants it names, or else on plants of different order and amplitude
+    scale; each kind's shape is recomputed here from the spec (amplitudes times the plant's
+    ``amplitude_scale``), and a perturbation is built exactly when the spec gives one.
+    """
+    from dataclasses import fields
+
+    from generalist_control.common.paths import conf_dir
 
     specs = OmegaConf.to_container(OmegaConf.load(conf_dir() / "evaluation/default.yaml"))
-    for name, spec in specs["scenarios"].items():
-        references(name, spec, load_plant("cstr"))
-        perturbation(name, spec)
+    scenarios = specs["scenarios"]
+    kinds = {spec["kind"] for spec in scenarios.values()}
+    assert kinds == {"step", "random_steps", "sine", "ramp", "composite"}
+    default_plants = ("cstr", "two_mass_spring", "magnetic_levitation")  # orders 2, 4, 3
+    assert {load_plant(n).amplitude_scale for n in default_plants} == {1.0, 0.1}
+    for name, spec in scenarios.items():
+        for plant_name in spec.get("plants") or default_plants:
+            p = load_plant(plant_name)
+            r, x0 = references(name, spec, p)
+            n_steps = round(spec["duration"] / p.dt)
+            rows = spec.get("count", 8) if spec["kind"] == "random_steps" else 1
+            where = f"{name} on {plant_name}"
+            assert r.shape == (rows, n_steps), where
+            assert np.all(np.isfinite(r)), where
+            t = np.arange(n_steps) * p.dt
+            s = p.amplitude_scale
+            amp = spec.get("amplitude", 1.0) * s
+            if spec["kind"] == "step":
+                np.testing.assert_array_equal(r, np.full((1, n_steps), amp), err_msg=where)
+            elif spec["kind"] == "random_steps":
+                assert np.all(r == r[:, :1]), where  # each run is one constant step
+                assert np.all(np.abs(r) <= spec["limit"] * s) and np.all(r != 0), where
+                assert len(np.unique(r[:, 0])) == rows, where
+                assert np.ptp(r[:, 0]) > 0.5 * spec["limit"] * s, where  # spread over +-limit
+                again, _ = references(name, spec, p)
+                np.testing.assert_array_equal(again, r, err_msg=where)  # seeded
+            elif spec["kind"] == "sine":
+                want = amp * np.sin(spec["omega"] * t)
+                np.testing.assert_allclose(r[0], want, rtol=0, atol=1e-12, err_msg=where)
+                assert x0.shape == (1, p.order), where
+                assert p.output(x0)[0] == pytest.approx(spec["y0"] * s, rel=1e-12), where
+            elif spec["kind"] == "ramp":
+                want = spec["slope"] * s * t
+                np.testing.assert_allclose(r[0], want, rtol=1e-12, atol=0, err_msg=where)
+            else:  # composite: step to A for a third, ramp to 3 A, then a sine about 3 A
+                third = t[-1] / 3
+                first, middle = t < third, (t >= third) & (t <= 2 * third)
+                last = t > 2 * third
+                np.testing.assert_array_equal(r[0, first], amp, err_msg=where)
+                np.testing.assert_allclose(
+                    r[0, middle], amp * (1 + 2 * (t[middle] - third) / third), rtol=1e-12
+                )
+                sine = 3 * amp + amp * np.sin(spec["omega"] * (t[last] - 2 * third))
+                np.testing.assert_allclose(r[0, last], sine, rtol=1e-12, atol=1e-12 * amp)
+            if spec["kind"] != "sine":
+                assert x0 is None, where  # from rest
+            pert = perturbation(name, spec)
+            if "perturbation" not in spec:
+                assert pert is None, where
+                continue
+            assert isinstance(pert, Perturbation), where
+            given = spec["perturbation"]
+            defaults = Perturbation()
+            for f in fields(Perturbation):
+                want = given.get(f.name, getattr(defaults, f.name))
+                want = tuple(want) if isinstance(want, list) else want
+                assert getattr(pert, f.name) == want, (where, f.name)

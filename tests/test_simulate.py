@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from generalist_control.catalog import load_plant
-from generalist_control.lqi import LQIController
-from generalist_control.plants import Plant, Signal
-from generalist_control.simulate import simulate
+from generalist_control.plants.catalog import load_plant
+from generalist_control.plants.plant import Plant, Signal
+from generalist_control.simulation.lqi import LQIController
+from generalist_control.simulation.simulate import simulate
 
 A = np.array([[0.0, 1.0], [-2.0, -0.5]])
 B = np.array([[0.0], [1.0]])
@@ -99,7 +99,7 @@ def test_x0_shape_error():
 
 
 def test_actuator_limits_are_respected():
-    from generalist_control.simulate import Perturbation
+    from generalist_control.simulation.simulate import Perturbation
 
     p = load_plant("cstr")
     amp = simulate(
@@ -113,7 +113,7 @@ def test_actuator_limits_are_respected():
 
 
 def test_noise_is_seeded_and_starts_on_time():
-    from generalist_control.simulate import Perturbation
+    from generalist_control.simulation.simulate import Perturbation
 
     p = load_plant("cstr")
     pert = Perturbation(noise_std=0.05, noise_start=2.0, seed=3)
@@ -127,7 +127,7 @@ def test_noise_is_seeded_and_starts_on_time():
 
 
 def test_integral_action_rejects_a_constant_input_disturbance():
-    from generalist_control.simulate import Perturbation
+    from generalist_control.simulation.simulate import Perturbation
 
     p = load_plant("cstr")
     pert = Perturbation(disturbance=0.5, disturbance_start=5.0)
@@ -141,9 +141,9 @@ def test_integral_action_rejects_a_constant_input_disturbance():
 
 
 def test_anti_windup_equals_lqi_without_limits_and_helps_with_them():
-    from generalist_control.lqi import AntiWindupLQIController
-    from generalist_control.metrics import step_metrics
-    from generalist_control.simulate import Perturbation
+    from generalist_control.simulation.lqi import AntiWindupLQIController
+    from generalist_control.simulation.metrics import step_metrics
+    from generalist_control.simulation.simulate import Perturbation
 
     p = load_plant("cstr")
     free = Perturbation()
@@ -160,8 +160,13 @@ def test_anti_windup_equals_lqi_without_limits_and_helps_with_them():
 
 
 def test_simulate_many_equals_separate_runs():
-    from generalist_control.lqi import AntiWindupLQIController
-    from generalist_control.simulate import PerPlantController, Perturbation, Run, simulate_many
+    from generalist_control.simulation.lqi import AntiWindupLQIController
+    from generalist_control.simulation.simulate import (
+        PerPlantController,
+        Perturbation,
+        Run,
+        simulate_many,
+    )
 
     plants = [load_plant(n) for n in ("cstr", "hydraulic_actuator", "two_mass_spring")]
     pert = Perturbation(u_limit=0.4, noise_std=0.01, seed=5)

@@ -12,8 +12,8 @@ import pytest
 from hydra.core.utils import JobReturn, JobStatus
 from omegaconf import OmegaConf
 
-from generalist_control import mlflow_utils
-from generalist_control.sweep import MLflowSweepCallback, sweep_overrides
+from generalist_control.sweeps.hydra_callback import MLflowSweepCallback, sweep_overrides
+from generalist_control.tracking import mlflow_utils
 from helpers import quick_overrides
 
 REPO = Path(__file__).resolve().parents[1]

@@ -13,10 +13,10 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from generalist_control.demos import MissingDataError
-from generalist_control.paths import conf_dir
-from generalist_control.policy import load_policy
-from generalist_control.train import train
+from generalist_control.common.paths import conf_dir
+from generalist_control.data.demos import MissingDataError
+from generalist_control.model.policy import load_policy
+from generalist_control.training.fit import train
 from helpers import tiny_train_overrides
 
 REPO = Path(__file__).resolve().parents[1]
@@ -129,7 +129,7 @@ def test_experiment_paper_is_the_baseline():
 
 
 def test_default_recipe_config_and_its_bad_combinations_are_refused(tiny_data_dir, tmp_path):
-    from generalist_control.train import model_config
+    from generalist_control.training.setup import model_config
 
     cfg = _cfg([])
     m = model_config(cfg)

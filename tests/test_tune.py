@@ -15,8 +15,11 @@ import pytest
 import sqlalchemy
 from optuna.trial import TrialState
 
-from generalist_control import mlflow_utils
-from generalist_control.tune import PARENT_ATTR, open_storage, parse_space, run
+from generalist_control.sweeps.space import parse_space
+from generalist_control.sweeps.storage import open_storage
+from generalist_control.sweeps.study import PARENT_ATTR
+from generalist_control.tracking import mlflow_utils
+from generalist_control.tune import run
 from helpers import compose_cfg, quick_overrides
 from pg import create_database
 
@@ -231,7 +234,7 @@ def test_writes_to_the_shared_parent_run_retry_a_clash_between_workers():
     """Two workers ending at once clash on MLflow's read-then-insert of a tag: retried."""
     from mlflow.exceptions import MlflowException
 
-    from generalist_control.tune import _shared_write
+    from generalist_control.sweeps.study import _shared_write
 
     calls = []
 

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from generalist_control.windows import build_windows, history_windows, pad_states
+from generalist_control.data.windows import build_windows, history_windows
+from generalist_control.plants.plant import pad_states
 
 H, K = 8, 3
 
@@ -68,10 +69,10 @@ def test_pad_states_rejects_too_many_states():
 
 def test_integral_channel_is_the_lqi_experts_own_integrator():
     """The error integral equals LQIController's z before each control, on a nonlinear plant."""
-    from generalist_control.catalog import load_plant
-    from generalist_control.lqi import LQIController
-    from generalist_control.simulate import simulate
-    from generalist_control.windows import HistoryBuffer, integral_of_error
+    from generalist_control.data.windows import HistoryBuffer, integral_of_error
+    from generalist_control.plants.catalog import load_plant
+    from generalist_control.simulation.lqi import LQIController
+    from generalist_control.simulation.simulate import simulate
 
     plant = load_plant("two_tank")
     ctrl = LQIController(plant)

@@ -86,29 +86,12 @@ def f(
 ) -> np.ndarray:
     """State derivative of the REMUS sway-yaw-heading model, batched.
 
-    Parameters
-    ----------
-    x : ndarray, shape (batch, 3)
-        ``[v (cm/s), r (deg/s), psi (deg)]``.
-    u : ndarray, shape (batch,)
-        Rudder angle in degrees.
-    u0 : float
-        Constant surge speed (m/s).
-    m, Izz : float
-        Vehicle mass (kg) and yaw moment of inertia (kg m^2).
-    Yvdot, Yrdot, Nvdot, Nrdot : float
-        Added-mass coefficients (kg, kg m, kg m, kg m^2).
-    Yuv, Yur, Nuv, Nur : float
-        Combined body/fin lift and added-mass cross terms (kg/m, kg/rad, kg, kg m/rad).
-    Yuudr, Nuudr : float
-        Rudder lift force and moment (kg/(m rad), kg/rad).
-    Yvv, Yrr, Nvv, Nrr : float
-        Cross-flow drag coefficients (kg/m, kg m/rad^2, kg, kg m^2/rad^2).
-
-    Returns
-    -------
-    ndarray, shape (batch, 3)
-        ``[dv/dt (cm/s^2), dr/dt (deg/s^2), dpsi/dt (deg/s)]``.
+    ``x`` (batch, 3) is ``[v (cm/s), r (deg/s), psi (deg)]``, ``u`` (batch,) the rudder
+    angle in degrees; returns ``[dv/dt (cm/s^2), dr/dt (deg/s^2), dpsi/dt (deg/s)]``. The
+    keyword coefficients are those of :data:`PRESTERO_2001` (see the module docstring):
+    surge speed ``u0`` (m/s), mass ``m`` and inertia ``Izz``, added mass ``Yvdot .. Nrdot``,
+    lift and cross terms ``Yuv .. Nur``, rudder ``Yuudr, Nuudr``, cross-flow drag
+    ``Yvv .. Nrr``.
 
     Examples
     --------

@@ -1,0 +1,1 @@
+"""Shared helpers with no project dependencies: locations, atomic output, strict JSON."""

@@ -1,0 +1,37 @@
+"""Locations the package needs: the Hydra config directory and the default data directory.
+
+The config directory is ``conf/`` at the repository root (the package is installed in
+editable mode). ``GC_CONF_DIR`` overrides it, e.g. for a copy of the configs elsewhere.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+__all__ = ["CONF_DIR", "GENERATE_COMMAND", "HYDRA_CONFIG_PATH", "TRAIN_COMMAND", "conf_dir"]
+
+#: ``conf/`` beside ``src/`` in the source tree.
+CONF_DIR = Path(__file__).resolve().parents[3] / "conf"
+
+#: The command that creates the demonstration dataset (quoted in missing-data errors).
+GENERATE_COMMAND = "python -m generalist_control.generate  (or: dvc repro generate)"
+
+#: The command that trains the default policy (quoted in missing-model errors).
+TRAIN_COMMAND = "python train.py  (or: dvc repro train)"
+
+#: ``config_path`` of every ``@hydra.main``. Absolute on purpose: a relative one resolves
+#: against the *package* (pkg://) when ``main`` is imported rather than run as ``__main__``,
+#: i.e. from the root shims and the console scripts.
+HYDRA_CONFIG_PATH = os.environ.get("GC_CONF_DIR", str(CONF_DIR))
+
+
+def conf_dir() -> Path:
+    """The Hydra config directory, honouring ``GC_CONF_DIR``."""
+    path = Path(os.environ.get("GC_CONF_DIR", CONF_DIR))
+    if not (path / "config.yaml").is_file():
+        raise FileNotFoundError(
+            f"no Hydra config found at {path}/config.yaml; install the package from a source "
+            "checkout (pip install -e .) or set GC_CONF_DIR to a copy of conf/"
+        )
+    return path

@@ -1,0 +1,1 @@
+"""The demonstrations: generation, the dataset on disk, and the one window builder."""

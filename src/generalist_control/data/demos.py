@@ -1,0 +1,226 @@
+"""The demonstration dataset on disk: ``trajectories.parquet`` plus ``manifest.json``.
+
+Trajectories are stored one row per sample (long form); windows are cut at load time by
+:func:`generalist_control.data.windows.build_windows`, and the manifest counts them. Writes
+go to a temporary folder that is swapped into place
+(:func:`generalist_control.common.atomic.publish_directory`), so an interrupted run never
+leaves a half-written or missing dataset, and a folder holding anything else is never
+replaced. Loading checks the dataset against its manifest: the file's SHA-256, the table's
+shape, and the content hash recomputed from the arrays, so a changed or spliced file is
+refused with the command that regenerates it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from generalist_control.common.atomic import (
+    check_replaceable,
+    publish_directory,
+    recover,
+    staging_directory,
+)
+from generalist_control.common.paths import GENERATE_COMMAND
+from generalist_control.data.windows import Windows, build_windows, integral_of_error
+from generalist_control.plants.plant import MAX_ORDER
+
+__all__ = [
+    "OWNED",
+    "CorruptDataError",
+    "DemoSet",
+    "MissingDataError",
+    "check_data_dir",
+    "content_hash",
+    "load_demos",
+    "write_demos",
+]
+
+TRAJECTORIES = "trajectories.parquet"
+MANIFEST = "manifest.json"
+FORMAT_VERSION = 1
+
+
+#: What a dataset folder holds: the only entries that may be replaced by a new dataset.
+OWNED: dict[str, str | None] = {TRAJECTORIES: None, MANIFEST: None}
+
+
+class MissingDataError(FileNotFoundError):
+    """The demonstration dataset is missing or incomplete."""
+
+
+class CorruptDataError(ValueError):
+    """The dataset on disk does not match its manifest (changed, truncated or spliced)."""
+
+
+@dataclass(frozen=True)
+class DemoSet:
+    """``B`` trajectories of ``N`` samples each, in deviation coordinates.
+
+    Attributes
+    ----------
+    x : ndarray, shape (B, N, MAX_ORDER)
+        Zero-padded states at each sample.
+    r, u, y : ndarray, shape (B, N)
+    tag, order : ndarray of int, shape (B,)
+    plant : ndarray of str, shape (B,)
+    amplitude : ndarray, shape (B,)
+        Step amplitude of each trajectory (after the plant's amplitude scale).
+    dt : float
+    """
+
+    x: np.ndarray
+    r: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    tag: np.ndarray
+    order: np.ndarray
+    plant: np.ndarray
+    amplitude: np.ndarray
+    dt: float
+
+    def windows(self, history: int, horizon: int, integral: bool = False) -> Windows:
+        """All training windows of the set.
+
+        With ``integral``, the error integral is the last state channel (see
+        :func:`~generalist_control.data.windows.integral_of_error`).
+        """
+        z = integral_of_error(self.r, self.y, self.dt) if integral else None
+        return build_windows(self.x, self.r, self.u, self.tag, self.order, history, horizon, z)
+
+
+def content_hash(demos: DemoSet, config: dict[str, Any]) -> str:
+    """SHA-256 over the arrays' bytes and the canonical JSON of the data config."""
+    h = hashlib.sha256()
+    for a in (demos.x, demos.r, demos.u, demos.y, demos.amplitude):
+        h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
+    for a in (demos.tag, demos.order):
+        h.update(np.ascontiguousarray(a, dtype="<i8").tobytes())
+    h.update("\0".join(demos.plant.tolist()).encode())
+    h.update(json.dumps(config, sort_keys=True, separators=(",", ":")).encode())
+    return "sha256:" + h.hexdigest()
+
+
+def _to_table(demos: DemoSet) -> pa.Table:
+    B, N = demos.r.shape
+    rep = lambda a: np.repeat(a, N)  # noqa: E731
+    cols: dict[str, Any] = {
+        "traj": rep(np.arange(B, dtype=np.int32)),
+        "plant": pa.array(rep(demos.plant)).dictionary_encode(),
+        "tag": rep(demos.tag.astype(np.int16)),
+        "order": rep(demos.order.astype(np.int8)),
+        "amplitude": rep(demos.amplitude),
+        "k": np.tile(np.arange(N, dtype=np.int32), B),
+        "t": np.tile(np.arange(N) * demos.dt, B),
+    }
+    for i in range(MAX_ORDER):
+        cols[f"x{i}"] = demos.x[:, :, i].ravel()
+    cols.update(r=demos.r.ravel(), u=demos.u.ravel(), y=demos.y.ravel())
+    return pa.table(cols)
+
+
+def check_data_dir(out_dir: str | Path) -> None:
+    """Refuse (before any work) a ``paths.data_dir`` that holds anything but a dataset."""
+    check_replaceable(out_dir, OWNED, "paths.data_dir")
+
+
+def write_demos(out_dir: str | Path, demos: DemoSet, manifest: dict[str, Any]) -> Path:
+    """Write the dataset atomically to ``out_dir``, replacing a previous dataset only.
+
+    Raises
+    ------
+    generalist_control.common.atomic.ForeignDirectoryError
+        If ``out_dir`` holds anything but a dataset's two files; nothing is changed.
+    """
+    check_data_dir(out_dir)
+    with staging_directory(out_dir) as tmp:
+        pq.write_table(_to_table(demos), tmp / TRAJECTORIES, compression="zstd")
+        digest = hashlib.sha256((tmp / TRAJECTORIES).read_bytes()).hexdigest()
+        manifest = {**manifest, "files": {TRAJECTORIES: "sha256:" + digest}}
+        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+        return publish_directory(tmp, out_dir, OWNED, "paths.data_dir")
+
+
+def _corrupt(data_dir: Path, what: str) -> CorruptDataError:
+    return CorruptDataError(
+        f"the dataset at '{data_dir}' does not match its manifest: {what}. It was changed "
+        f"after it was written; regenerate it with: {GENERATE_COMMAND}"
+    )
+
+
+def _read_manifest(data_dir: Path) -> dict[str, Any]:
+    """The manifest, after checking that both files exist and the format is ours."""
+    recover(data_dir)
+    for name in (MANIFEST, TRAJECTORIES):
+        if not (data_dir / name).is_file():
+            raise MissingDataError(
+                f"no demonstration data at '{data_dir}' ({name} is missing). "
+                f"Create it with: {GENERATE_COMMAND}"
+            )
+    manifest = json.loads((data_dir / MANIFEST).read_text())
+    if manifest.get("format_version") != FORMAT_VERSION:
+        raise MissingDataError(
+            f"'{data_dir}' holds dataset format {manifest.get('format_version')}, this code "
+            f"reads format {FORMAT_VERSION}; regenerate it with: {GENERATE_COMMAND}"
+        )
+    expected = (manifest.get("files") or {}).get(TRAJECTORIES)
+    actual = "sha256:" + hashlib.sha256((data_dir / TRAJECTORIES).read_bytes()).hexdigest()
+    if expected != actual:
+        raise _corrupt(data_dir, f"{TRAJECTORIES} has {actual}, the manifest says {expected}")
+    return manifest
+
+
+def load_demos(data_dir: str | Path, verify: bool = True) -> tuple[DemoSet, dict[str, Any]]:
+    """Read and verify the dataset written by the ``generate`` stage.
+
+    The manifest's ``content_hash`` is recomputed from the arrays read (and the data
+    config it records); the returned manifest carries it as ``content_hash``.
+
+    Raises
+    ------
+    MissingDataError
+        If the directory, its manifest or its trajectories are missing, with the command
+        that creates them.
+    CorruptDataError
+        If the file's SHA-256, the table's shape or the content hash disagree with the
+        manifest, with the command that regenerates it.
+    """
+    data_dir = Path(data_dir)
+    manifest = _read_manifest(data_dir)
+    tbl = pq.read_table(data_dir / TRAJECTORIES)
+    B = int(manifest["n_trajectories"])
+    N = int(manifest["steps_per_trajectory"])
+    if tbl.num_rows != B * N:
+        raise _corrupt(data_dir, f"{tbl.num_rows} rows, not {B} trajectories x {N} samples")
+    col = lambda name: tbl.column(name).to_numpy()  # noqa: E731
+    k, traj = col("k").reshape(B, N), col("traj").reshape(B, N)
+    if not (np.all(k == np.arange(N)) and np.all(traj == np.arange(B)[:, None])):
+        raise _corrupt(data_dir, "the rows are not whole trajectories in order")
+    first = np.arange(B) * N
+    x = np.stack([col(f"x{i}") for i in range(MAX_ORDER)], axis=-1).reshape(B, N, MAX_ORDER)
+    demos = DemoSet(
+        x=x,
+        r=col("r").reshape(B, N),
+        u=col("u").reshape(B, N),
+        y=col("y").reshape(B, N),
+        tag=col("tag")[first].astype(np.int64),
+        order=col("order")[first].astype(np.int64),
+        plant=np.asarray(tbl.column("plant").to_pylist())[first],
+        amplitude=col("amplitude")[first],
+        dt=float(manifest["dt"]),
+    )
+    if verify:
+        computed = content_hash(demos, manifest.get("config", {}))
+        if computed != manifest.get("content_hash"):
+            raise _corrupt(
+                data_dir,
+                f"content hash {computed}, the manifest says {manifest.get('content_hash')}",
+            )
+    return demos, manifest

@@ -1,0 +1,237 @@
+"""The one window builder shared by training, evaluation and deployment.
+
+A window at sample ``k`` holds the last ``history`` samples ``k - history + 1 .. k`` of the
+state (zero-padded to :data:`~generalist_control.plants.plant.MAX_ORDER` and masked) and of the
+reference, the plant's tag, and, for training, the next ``horizon`` expert controls
+``u[k] .. u[k + horizon - 1]``. Optionally (``model.integral``, our recipe) the state gets one
+more channel after the padded plant state: the integral of the tracking error
+``z[k] = z[k-1] + dt (r[k-1] - y[k-1])``, ``z[0] = 0``, exactly the LQI expert's own
+integrator (:func:`integral_of_error`), so the window holds the expert's augmented state
+``[x; z]``. Before the first sample the history repeats the first
+sample (the runtime fills its buffer the same way on its first step), so every sample
+``k = 0 .. N - horizon`` of a trajectory of ``N`` samples yields a window.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from generalist_control.plants.plant import MAX_ORDER
+
+__all__ = [
+    "HistoryBuffer",
+    "Windows",
+    "build_windows",
+    "history_windows",
+    "integral_of_error",
+    "validity_mask",
+    "windows_per_trajectory",
+]
+
+
+@dataclass(frozen=True)
+class Windows:
+    """Policy inputs (and targets) for ``W`` windows.
+
+    Attributes
+    ----------
+    state, mask : ndarray, float32, shape (W, history, width)
+        Masked, zero-padded state history and its validity mask; ``width`` is
+        ``MAX_ORDER``, or ``MAX_ORDER + 1`` with the error integral as the last channel.
+    ref : ndarray, float32, shape (W, history)
+    tag : ndarray, int64, shape (W,)
+    target : ndarray, float32, shape (W, horizon), or None at deployment
+    traj : ndarray, int64, shape (W,)
+        Index of the trajectory each window comes from (for splits by trajectory).
+    """
+
+    state: np.ndarray
+    mask: np.ndarray
+    ref: np.ndarray
+    tag: np.ndarray
+    target: np.ndarray | None
+    traj: np.ndarray
+
+    def __len__(self) -> int:
+        return self.state.shape[0]
+
+
+def windows_per_trajectory(n_samples: int, horizon: int) -> int:
+    """Windows cut from one trajectory of ``n_samples`` samples."""
+    return max(0, n_samples - horizon + 1)
+
+
+def integral_of_error(r: np.ndarray, y: np.ndarray, dt: float) -> np.ndarray:
+    """The LQI expert's forward-Euler error integrator before each sample's control.
+
+    ``z[:, 0] = 0`` and ``z[:, k] = z[:, k - 1] + dt (r[:, k - 1] - y[:, k - 1])``, summed in
+    float64 in the same order as :class:`~generalist_control.simulation.lqi.LQIController` does.
+
+    Parameters
+    ----------
+    r, y : ndarray, shape (B, N)
+        Reference and measured output deviations.
+    dt : float
+
+    Returns
+    -------
+    ndarray, float64, shape (B, N)
+    """
+    r = np.asarray(r, dtype=np.float64)
+    inc = float(dt) * (r - np.asarray(y, dtype=np.float64))
+    z = np.zeros_like(r)
+    if r.shape[1] > 1:
+        z[:, 1:] = np.cumsum(inc[:, :-1], axis=1)
+    return z
+
+
+def history_windows(
+    x: np.ndarray,
+    r: np.ndarray,
+    order: np.ndarray,
+    history: int,
+    z: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """State, mask and reference histories ending at every sample.
+
+    Parameters
+    ----------
+    x : ndarray, shape (B, N, MAX_ORDER)
+        Zero-padded states of ``B`` trajectories.
+    r : ndarray, shape (B, N)
+    order : ndarray of int, shape (B,)
+        Number of real state entries of each trajectory.
+    history : int
+    z : ndarray, shape (B, N), optional
+        Error integral (:func:`integral_of_error`), appended as the last state channel.
+
+    Returns
+    -------
+    state, mask : ndarray, float32, shape (B, N, history, width)
+        ``width`` is ``MAX_ORDER``, or ``MAX_ORDER + 1`` when ``z`` is given.
+    ref : ndarray, float32, shape (B, N, history)
+    """
+    if z is not None:
+        x = np.concatenate([np.asarray(x), np.asarray(z)[..., None]], axis=-1)
+    x = np.asarray(x, dtype=np.float32)
+    r = np.asarray(r, dtype=np.float32)
+    front = history - 1
+    xp = np.concatenate([np.repeat(x[:, :1], front, axis=1), x], axis=1)
+    rp = np.concatenate([np.repeat(r[:, :1], front, axis=1), r], axis=1)
+    state = np.moveaxis(sliding_window_view(xp, history, axis=1), -1, 2)
+    ref = sliding_window_view(rp, history, axis=1)
+    valid = validity_mask(order, integral=z is not None)
+    mask = np.broadcast_to(valid[:, None, None, :], state.shape)
+    return state * mask, mask, ref
+
+
+def validity_mask(order: np.ndarray, integral: bool = False) -> np.ndarray:
+    """Float32 (B, width): one for the real state entries of each order, zero for padding.
+
+    With ``integral`` the width is ``MAX_ORDER + 1`` and the last (integral) entry is one.
+    """
+    valid = np.arange(MAX_ORDER) < np.asarray(order)[:, None]
+    if integral:
+        valid = np.concatenate([valid, np.ones((valid.shape[0], 1), bool)], axis=1)
+    return valid.astype(np.float32)
+
+
+class HistoryBuffer:
+    """The newest ``history`` samples of ``B`` running trajectories, for online stepping.
+
+    Gives, at every sample, exactly the last window :func:`history_windows` would build
+    from the whole trajectory so far (the first sample repeated in front until the history
+    is full), without rebuilding it: the deployment path of the one window builder.
+
+    Parameters
+    ----------
+    order : ndarray of int, shape (B,)
+    history : int
+    integral : bool
+        Keep the error integral as the last state channel (``push(x, r, z)``).
+    """
+
+    def __init__(self, order: np.ndarray, history: int, integral: bool = False) -> None:
+        valid = validity_mask(order, integral)
+        self.integral = bool(integral)
+        self.mask = np.ascontiguousarray(
+            np.broadcast_to(valid[:, None, :], (len(order), history, valid.shape[1]))
+        )
+        self.state = np.zeros(self.mask.shape, np.float32)
+        self.ref = np.zeros((len(order), history), np.float32)
+        self._row = np.zeros((len(order), valid.shape[1]), np.float32)
+        self._empty = True
+
+    def push(
+        self, x: np.ndarray, r: np.ndarray, z: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Append zero-padded states ``x`` (B, MAX_ORDER) and references ``r`` (B,).
+
+        With ``integral``, also the error integrals ``z`` (B,) before this sample.
+        Returns the newest window ``(state, mask, ref)``: float32 (B, history, width),
+        (B, history, width) and (B, history); the state is masked.
+        """
+        row = self._row
+        row[:, : x.shape[1]] = x  # written in place: this runs once per sample in deployment
+        if self.integral:
+            if z is None:
+                raise ValueError("this buffer keeps the error integral: push(x, r, z)")
+            row[:, -1] = z
+        np.multiply(row, self.mask[:, 0], out=row)
+        if self._empty:
+            self.state[:] = row[:, None, :]
+            self.ref[:] = r[:, None]
+            self._empty = False
+        else:
+            self.state[:, :-1] = self.state[:, 1:]
+            self.ref[:, :-1] = self.ref[:, 1:]
+            self.state[:, -1], self.ref[:, -1] = row, r
+        return self.state, self.mask, self.ref
+
+
+def build_windows(
+    x: np.ndarray,
+    r: np.ndarray,
+    u: np.ndarray,
+    tag: np.ndarray,
+    order: np.ndarray,
+    history: int,
+    horizon: int,
+    z: np.ndarray | None = None,
+) -> Windows:
+    """Training windows from ``B`` trajectories of ``N`` samples.
+
+    Parameters
+    ----------
+    x : ndarray, shape (B, N, MAX_ORDER)
+        Zero-padded states at each sample.
+    r, u : ndarray, shape (B, N)
+        Reference and expert control at each sample.
+    tag, order : ndarray of int, shape (B,)
+    history, horizon : int
+    z : ndarray, shape (B, N), optional
+        Error integral before each sample (:func:`integral_of_error`); given, it becomes
+        the last state channel.
+
+    Returns
+    -------
+    Windows
+        ``B * (N - horizon + 1)`` windows, trajectory-major.
+    """
+    B, N = r.shape
+    keep = windows_per_trajectory(N, horizon)
+    state, mask, ref = history_windows(x, r, order, history, z)
+    target = sliding_window_view(np.asarray(u, dtype=np.float32), horizon, axis=1)
+    W = B * keep
+    width = state.shape[-1]
+    return Windows(
+        state=np.ascontiguousarray(state[:, :keep]).reshape(W, history, width),
+        mask=np.ascontiguousarray(mask[:, :keep]).reshape(W, history, width),
+        ref=np.ascontiguousarray(ref[:, :keep]).reshape(W, history),
+        tag=np.repeat(np.asarray(tag, dtype=np.int64), keep),
+        target=np.ascontiguousarray(target[:, :keep]).reshape(W, horizon),
+        traj=np.repeat(np.arange(B, dtype=np.int64), keep),
+    )

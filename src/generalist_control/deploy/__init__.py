@@ -1,0 +1,1 @@
+"""Deployment: the real-time policy runtime, its export backends and simulator adapters."""

@@ -1,0 +1,47 @@
+"""Where a policy comes from: a local file, or an MLflow run or registered model.
+
+MLflow is imported only for an MLflow URI: a deployed runtime loading a local file needs
+no tracking client.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+from generalist_control.common.paths import TRAIN_COMMAND
+from generalist_control.model.policy import POLICY_FILE
+
+__all__ = ["resolve"]
+
+
+def resolve(source: str | Path) -> Path:
+    """A local policy file for a path or an MLflow URI (``runs:/...``, ``models:/...``).
+
+    For an MLflow URI the run's ``policy/policy.ckpt`` artifact is downloaded (the plain
+    tensor file, never the pickled MLflow model), so loading stays ``weights_only``.
+    """
+    text = str(source)
+    if "://" not in text and not text.startswith(("runs:/", "models:/")):
+        path = Path(text)
+        if not path.is_file():
+            raise FileNotFoundError(f"no policy at '{path}'. Train one with: {TRAIN_COMMAND}")
+        return path
+    import mlflow  # optional and heavy: only for runs:/ and models:/ sources
+    from mlflow.tracking import MlflowClient
+
+    if text.startswith("models:/"):
+        name, _, version = text[len("models:/") :].partition("/")
+        mv = MlflowClient().get_model_version(name, version or "1")
+        text = f"runs:/{mv.run_id}/policy/{POLICY_FILE}"
+    elif text.startswith("runs:/") and "/" not in text[len("runs:/") :].strip("/"):
+        text = text.rstrip("/") + "/policy"  # a bare run: its policy folder
+    local = Path(
+        mlflow.artifacts.download_artifacts(artifact_uri=text, dst_path=tempfile.mkdtemp())
+    )
+    if local.is_dir():
+        found = sorted(local.rglob(POLICY_FILE))
+        if not found:
+            raise FileNotFoundError(f"no {POLICY_FILE} among the artifacts of '{source}'")
+        local = found[0]
+    return local

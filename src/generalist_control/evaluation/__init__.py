@@ -1,0 +1,1 @@
+"""Evaluation: the closed loop of a trained policy against LQI, its summary, tables and plots."""

@@ -1,0 +1,172 @@
+"""Tables of the closed-loop evaluation: the paper's Table 2 layout, every plant, recipes."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numpy as np
+import pandas as pd
+
+from generalist_control.evaluation.paper import TABLE2, TABLE2_COLUMNS, TABLE2_METRICS
+from generalist_control.simulation.simulate import Trajectory
+
+__all__ = [
+    "recipes_markdown",
+    "responses_csv",
+    "table2_markdown",
+    "table_all_markdown",
+]
+
+
+def _fmt(v: float) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "n/a"
+    return f"{v:.3g}" if abs(v) < 100 else f"{v:.0f}"
+
+
+def _step_means(df: pd.DataFrame, scenario: str = "step") -> pd.Series:
+    d = df[df.scenario == scenario]
+    return d.groupby(["controller", "system", "metric"])["value"].mean()
+
+
+def table2_markdown(df: pd.DataFrame) -> str:
+    """The paper's Table 2 layout for the paper systems present: paper values beside ours."""
+    means = _step_means(df)
+    systems = [s for s in TABLE2_COLUMNS if ("GC", s, "ISE") in means.index]
+    if not systems:
+        return "No system of the paper's Table 2 was evaluated.\n"
+    head = ["Metric", *(TABLE2_COLUMNS[s] for s in systems)]
+    lines = [
+        "# Unit-step metrics: the paper's Table 2 beside ours",
+        "",
+        "Unit step from rest, dt = 0.05 s. *paper*: Agyei & Sarhadi 2026, Table 2. "
+        "A diverged run shows as `diverged`.",
+        "",
+        "| " + " | ".join(head) + " |",
+        "| " + " | ".join(["---"] + ["---:"] * len(systems)) + " |",
+    ]
+    for metric, symbol in TABLE2_METRICS.items():
+        for ctrl in ("LQI", "GC"):
+            paper = [_fmt(TABLE2[ctrl][s][metric]) for s in systems]
+            ours = []
+            for s in systems:
+                if means.get((ctrl, s, "diverged"), 0) > 0:
+                    ours.append("diverged")
+                else:
+                    ours.append(_fmt(means.get((ctrl, s, metric), np.nan)))
+            lines.append(f"| {symbol} ({ctrl}) paper | " + " | ".join(paper) + " |")
+            lines.append(f"| {symbol} ({ctrl}) ours | " + " | ".join(ours) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def table_all_markdown(df: pd.DataFrame) -> str:
+    """Every plant: GC and LQI unit-step metrics, ratios, and random-step results."""
+    means = _step_means(df)
+    rnd = _step_means(df, "random_steps")
+    systems = sorted(df.system.unique())
+    cols = ["t_r", "M_p", "t_s", "e_ss", "ISE", "ITAE", "u_max"]
+    head = [
+        "system",
+        *(f"{c} GC/LQI" for c in cols),
+        "ISE ratio",
+        "ITAE ratio",
+        "random: ISE ratio",
+        "random: max rel. e_ss GC",
+        "diverged GC",
+    ]
+    lines = [
+        "# Unit-step and random-step metrics, all plants (GC / LQI)",
+        "",
+        "| " + " | ".join(head) + " |",
+        "| " + " | ".join(["---"] + ["---:"] * (len(head) - 1)) + " |",
+    ]
+    d = df[(df.controller == "GC") & (df.metric == "diverged")].groupby("system")["value"].sum()
+    rel = (
+        df[
+            (df.scenario == "random_steps")
+            & (df.controller == "GC")
+            & (df.metric == "relative_steady_state_error")
+        ]
+        .groupby("system")["value"]
+        .max()
+    )
+    for s in systems:
+
+        def get(c: str, m: str, src: pd.Series = means, s: str = s) -> float:
+            return src.get((c, s, m), np.nan)
+
+        cells = [f"{_fmt(get('GC', m))} / {_fmt(get('LQI', m))}" for m in TABLE2_METRICS]
+        cells += [_fmt(get("GC", k) / get("LQI", k)) for k in ("ISE", "ITAE")]
+        cells.append(_fmt(get("GC", "ISE", rnd) / get("LQI", "ISE", rnd)))
+        cells.append(_fmt(rel.get(s, np.nan)))
+        cells.append(str(int(d.get(s, 0))))
+        lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def recipes_markdown(results: Mapping[str, pd.DataFrame]) -> str:
+    """Per plant, the quality-bar figures of several evaluations side by side.
+
+    Parameters
+    ----------
+    results : mapping
+        Label (e.g. ``"paper"``, ``"ours"``) -> long-form metrics of an evaluation
+        (``metrics.csv``).
+    """
+    labels = list(results)
+    head = ["system"]
+    for what in ("ISE ratio", "ITAE ratio", "e_ss (rel.)", "random: worst rel. e_ss", "diverged"):
+        head += [f"{what} {label}" for label in labels]
+    per: dict[str, dict[str, pd.Series]] = {}
+    for label, df in results.items():
+        gc = df[df.controller == "GC"]
+        means = _step_means(df)
+        step_rel = gc[(gc.scenario == "step") & (gc.metric == "relative_steady_state_error")]
+        rnd_rel = gc[
+            (gc.scenario == "random_steps") & (gc.metric == "relative_steady_state_error")
+        ]
+        div = gc[(gc.metric == "diverged") & gc.scenario.isin(["step", "random_steps"])]
+        per[label] = {
+            "ISE": means.get("GC", pd.Series(dtype=float)).xs("ISE", level="metric")
+            / means["LQI"].xs("ISE", level="metric"),
+            "ITAE": means.get("GC", pd.Series(dtype=float)).xs("ITAE", level="metric")
+            / means["LQI"].xs("ITAE", level="metric"),
+            "ess": step_rel.groupby("system")["value"].mean(),
+            "rnd": rnd_rel.groupby("system")["value"].max(),
+            "div": div.groupby("system")["value"].sum(),
+        }
+    systems = sorted(set().union(*(set(df.system) for df in results.values())))
+    lines = [
+        "| " + " | ".join(head) + " |",
+        "| " + " | ".join(["---"] + ["---:"] * (len(head) - 1)) + " |",
+    ]
+    for s in systems:
+        cells = [s]
+        for key in ("ISE", "ITAE", "ess", "rnd", "div"):
+            for label in labels:
+                v = per[label][key].get(s, np.nan)
+                cells.append(str(int(v)) if key == "div" else _fmt(v))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def responses_csv(trajs: Mapping[str, Mapping[str, Mapping[str, Trajectory]]]) -> pd.DataFrame:
+    """Unit-step responses in long form (DVC plots): system, controller, t, r, y, u."""
+    frames = []
+    for ctrl, by_system in trajs.get("step", {}).items():
+        for system, tr in by_system.items():
+            n = tr.u.shape[1]
+            frames.append(
+                pd.DataFrame(
+                    {
+                        "system": system,
+                        "controller": ctrl,
+                        "t": tr.t[:n],
+                        "r": tr.r[0],
+                        "y": tr.y[0, :n],
+                        "u": tr.u[0],
+                    }
+                )
+            )
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()

@@ -1,0 +1,1 @@
+"""The policy: the network of the paper, its per-tag normaliser, and the policy file."""

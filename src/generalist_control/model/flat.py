@@ -1,0 +1,50 @@
+"""A one-tensor view of a :class:`~generalist_control.model.policy.Policy` for MLflow.
+
+MLflow's PyTorch flavour and its model signature take one input array; :class:`FlatPolicy`
+takes the window's state, mask and reference history and the tag as the columns of
+:func:`flat_columns`.
+"""
+
+from __future__ import annotations
+
+from torch import Tensor, nn
+
+from generalist_control.model.network import input_width
+from generalist_control.model.policy import Policy
+
+__all__ = ["FlatPolicy", "flat_columns"]
+
+
+def flat_columns(history: int, state_dim: int) -> list[str]:
+    """Column names of :class:`FlatPolicy`'s input (``k = 0`` is the oldest sample).
+
+    ``state_dim`` is the state input's width (with ``model.integral`` its last entry is the
+    error integral).
+    """
+    cols = [f"state_{k}_{i}" for k in range(history) for i in range(state_dim)]
+    cols += [f"mask_{k}_{i}" for k in range(history) for i in range(state_dim)]
+    cols += [f"ref_{k}" for k in range(history)]
+    return [*cols, "tag"]
+
+
+class FlatPolicy(nn.Module):
+    """One-tensor view of a :class:`Policy` for MLflow's PyTorch flavour.
+
+    Input: float32 (B, 2 * history * width + history + 1) (``width``:
+    :func:`~generalist_control.model.network.input_width`), columns
+    :func:`flat_columns` (state, mask, reference, tag). Output: controls (B, horizon).
+    """
+
+    def __init__(self, policy: Policy) -> None:
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Controls in plant units for flat rows ``x``."""
+        c = self.policy.config
+        T, n = c["history"], input_width(c)
+        state = x[:, : T * n].reshape(-1, T, n)
+        mask = x[:, T * n : 2 * T * n].reshape(-1, T, n)
+        ref = x[:, 2 * T * n : 2 * T * n + T]
+        tag = x[:, -1].round().long()
+        return self.policy(state, mask, ref, tag)[0]

@@ -1,0 +1,87 @@
+"""The plant catalogue: plant configs under ``conf/plants`` and the sets in ``conf/systems``.
+
+A set (``systems=all|paper|ablation``) is a Hydra config whose defaults list places each
+plant file at ``systems.plants.<name>``; :func:`plants_from_config` turns that mapping into
+validated :class:`~generalist_control.plants.Plant` objects.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from generalist_control.common.paths import conf_dir
+from generalist_control.plants.config import plant_from_config
+from generalist_control.plants.plant import Plant, PlantConfigError
+
+__all__ = ["UnknownPlantError", "available_plants", "load_plant", "plants_from_config"]
+
+
+class UnknownPlantError(KeyError):
+    """A plant name that is not in the catalogue."""
+
+    def __str__(self) -> str:  # KeyError quotes its message; show it plainly
+        return str(self.args[0])
+
+
+def available_plants() -> list[str]:
+    """Names of all plant files in ``conf/plants``."""
+    return sorted(p.stem for p in (conf_dir() / "plants").glob("*.yaml"))
+
+
+def _unknown(name: str, known: Iterable[str]) -> UnknownPlantError:
+    return UnknownPlantError(
+        f"unknown plant '{name}'; known plants: {', '.join(sorted(known))}. "
+        "Add conf/plants/<name>.yaml and list it in a conf/systems set to define a new one."
+    )
+
+
+def load_plant(name: str) -> Plant:
+    """Load and validate one plant from ``conf/plants/<name>.yaml``.
+
+    Examples
+    --------
+    >>> load_plant("cstr").order
+    2
+    """
+    path = conf_dir() / "plants" / f"{name}.yaml"
+    if not path.is_file():
+        raise _unknown(name, available_plants())
+    cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    return plant_from_config(name, cfg)
+
+
+def plants_from_config(systems: DictConfig | Mapping[str, Any]) -> list[Plant]:
+    """Validated plants of a composed ``systems`` config, ordered by tag.
+
+    ``systems.include`` (a list of names, optional) keeps only those plants of the set.
+
+    Raises
+    ------
+    UnknownPlantError
+        If ``include`` names a plant that is not in the set.
+    PlantConfigError
+        If a plant is invalid or two plants share a tag.
+    """
+    if isinstance(systems, DictConfig):
+        systems = OmegaConf.to_container(systems, resolve=True)
+    entries: Mapping[str, Any] = systems.get("plants") or {}
+    if not entries:
+        raise PlantConfigError(f"systems set '{systems.get('name', '?')}' lists no plants")
+    include = systems.get("include")
+    if include:
+        for name in include:
+            if name not in entries:
+                raise _unknown(name, entries)
+        entries = {k: v for k, v in entries.items() if k in include}
+    plants = sorted((plant_from_config(k, v) for k, v in entries.items()), key=lambda p: p.tag)
+    seen: dict[int, str] = {}
+    for p in plants:
+        if p.tag in seen:
+            raise PlantConfigError(
+                f"plants '{seen[p.tag]}' and '{p.name}' share tag {p.tag}; tags must be unique"
+            )
+        seen[p.tag] = p.name
+    return plants

@@ -1,0 +1,1 @@
+"""Reports: the ablation study from MLflow runs, and the notebooks' plant and data tables."""

@@ -1,0 +1,378 @@
+"""The ablation report (paper, Section 7) redrawn from the MLflow training runs.
+
+Run ``python -m generalist_control.report`` (Hydra; settings in ``conf/report``) or
+``dvc repro report``. Nothing is trained here: the report reads the finished training runs
+of one MLflow experiment, each of which carries ``model.hidden`` and ``experts`` (params),
+``n_parameters``, the per-epoch ``train/loss`` history and ``closed_loop/mse/<plant>``, the
+GC-vs-LQI unit-step output MSE on the ablation set. The two sweeps are
+
+* the hidden dimension ``d`` in ``report.hidden`` at ``M = report.baseline.experts``
+  (created by ``python train.py -m model.hidden=16,32,64``), and
+* the expert count ``M`` in ``report.experts`` at ``d = report.baseline.hidden``
+  (``python train.py -m experts=1,3,5``);
+
+when several runs share a configuration the newest one is used. A configuration without a
+run is drawn and tabulated as "no run"; an experiment without any finished training run is
+an error (:class:`NoAblationRunsError`) that names the commands above.
+
+Outputs under ``report.out_dir`` (``reports/ablation``), written to a temporary directory
+and renamed into place, a PNG and a CSV for each figure:
+
+* ``mse_hidden``, ``mse_experts``: per-plant closed-loop output MSE (grouped bars, log y);
+* ``loss_hidden``, ``loss_experts``: training-loss curves (``train/loss`` per epoch);
+* ``params_vs_mse``: parameter count against the mean MSE over the plants;
+* ``gate_weights``: mean gate weight per expert and plant of the ``M = report.gate.experts``
+  model (see :func:`~generalist_control.reports.gates.gate_weights`);
+* ``fig_hidden_ablation.png``, ``fig_expert_ablation.png``: the paper's two-panel layouts;
+* ``comparison.md`` (our figures beside the paper's,
+  :data:`generalist_control.evaluation.paper.ABLATION`),
+  ``runs.csv`` (the runs used) and ``summary.json``.
+
+The data come from :mod:`generalist_control.reports.runs` and
+:mod:`generalist_control.reports.gates`, the drawing from
+:mod:`generalist_control.reports.figures`, the paper comparison from
+:mod:`generalist_control.reports.comparison`. Everything is logged to a ``report`` run of the
+same experiment (tag ``gc.run_type = report``), which the run search leaves out.
+The drawing functions take a Matplotlib
+``Axes`` and data frames, so notebooks reuse them (``notebooks/02_mlflow_comparison.ipynb``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import mlflow
+import numpy as np
+import pandas as pd
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from generalist_control.common.atomic import (
+    check_replaceable,
+    publish_directory,
+    staging_directory,
+)
+from generalist_control.reports.comparison import comparison_markdown
+from generalist_control.reports.figures import (
+    draw_gate_heatmap,
+    draw_loss_curves,
+    draw_mse_bars,
+    draw_params_vs_mse,
+    new_figure,
+    placeholder,
+)
+from generalist_control.reports.gates import gate_weights, policy_of_run
+from generalist_control.reports.runs import (
+    NO_RUN,
+    RUN_TYPE_TAG,
+    SWEEP_COMMANDS,
+    SWEEPS,
+    NoAblationRunsError,
+    RunPoint,
+    loss_frame,
+    mlflow_client,
+    mse_frame,
+    params_frame,
+    point_label,
+    runs_from_mlflow,
+    select_sweeps,
+    unique_points,
+)
+from generalist_control.tracking import mlflow_utils
+
+__all__ = ["OWNED", "build_report", "runs_table", "write_report"]
+
+log = logging.getLogger(__name__)
+
+
+def _finite(value: Any) -> float | None:
+    """A finite float, or None (for JSON)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return v if np.isfinite(v) else None
+
+
+def runs_table(sweeps: Mapping[str, Mapping[int, RunPoint | None]]) -> pd.DataFrame:
+    """One row per sweep point: its run (or "no run") and the run's figures."""
+    rows = []
+    for sweep, by_value in sweeps.items():
+        for value, p in by_value.items():
+            rows.append(
+                {
+                    "sweep": sweep,
+                    "value": value,
+                    "label": point_label(sweep, value),
+                    "status": "ok" if p else NO_RUN,
+                    "run_id": p.run_id if p else None,
+                    "run_name": p.run_name if p else None,
+                    "hidden": p.hidden if p else None,
+                    "experts": p.experts if p else None,
+                    "n_parameters": p.n_parameters if p else None,
+                    "final_train_loss": p.train_loss if p else None,
+                    "closed_loop_diverged": p.diverged if p else None,
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+#: What a report folder holds: the only entries a new report may replace.
+OWNED: dict[str, str | None] = {
+    "*.png": None,
+    "*.csv": None,
+    "comparison.md": None,
+    "summary.json": None,
+}
+
+
+def _gate_model(
+    sweeps: Mapping[str, Mapping[int, RunPoint | None]],
+    gate: Mapping[str, Any],
+    base: Mapping[str, int],
+    client: Any,
+) -> tuple[RunPoint | None, pd.DataFrame | None]:
+    """The run of the gate-weight model (``M = gate.experts`` at the baseline d) and its gates."""
+    gate_m = int(gate.get("experts", 5))
+    gate_run = sweeps.get("experts", {}).get(gate_m)
+    if gate_run is None:
+        same = (
+            p for p in unique_points(sweeps) if (p.hidden, p.experts) == (base["hidden"], gate_m)
+        )
+        gate_run = next(same, None)
+    if gate_run is None:
+        return None, None
+    policy, meta = policy_of_run(gate_run.run_id, client)
+    gates = gate_weights(policy, meta, gate.get("plants"), float(gate.get("duration", 15.0)))
+    return gate_run, gates
+
+
+def _sweep_figures(
+    staging: Path,
+    sweeps: Mapping[str, Mapping[int, RunPoint | None]],
+    frames: Mapping[str, pd.DataFrame],
+    base: Mapping[str, int],
+) -> None:
+    """Per sweep: MSE bars and loss curves; parameters against MSE; the paper's layouts."""
+    mse, loss, params = frames["mse"], frames["loss"], frames["params"]
+    for sweep in SWEEPS:
+        mse[mse["sweep"] == sweep].to_csv(staging / f"mse_{sweep}.csv", index=False)
+        loss[loss["sweep"] == sweep].to_csv(staging / f"loss_{sweep}.csv", index=False)
+        fig, (ax,) = new_figure(7, 4)
+        draw_mse_bars(ax, mse, sweep)
+        fig.savefig(staging / f"mse_{sweep}.png", dpi=120)
+        fig, (ax,) = new_figure(6, 4)
+        draw_loss_curves(ax, loss, sweep, list(sweeps.get(sweep, {})), baseline=base)
+        fig.savefig(staging / f"loss_{sweep}.png", dpi=120)
+    params.to_csv(staging / "params_vs_mse.csv", index=False)
+    fig, (ax,) = new_figure(6, 4)
+    draw_params_vs_mse(ax, params)
+    fig.savefig(staging / "params_vs_mse.png", dpi=120)
+    fig, axes = new_figure(13, 4, ncols=2)  # the paper's Fig. hidden_ablation
+    draw_mse_bars(axes[0], mse, "hidden")
+    draw_loss_curves(axes[1], loss, "hidden", list(sweeps.get("hidden", {})), baseline=base)
+    fig.savefig(staging / "fig_hidden_ablation.png", dpi=120)
+    fig, axes = new_figure(13, 4, ncols=2)  # the paper's Fig. expert_ablation
+    draw_mse_bars(axes[0], mse, "experts")
+    expert_ids = {p.run_id for p in sweeps.get("experts", {}).values() if p}
+    draw_params_vs_mse(axes[1], params[params["run_id"].isin(expert_ids)])
+    fig.savefig(staging / "fig_expert_ablation.png", dpi=120)
+
+
+def _gate_figure(
+    staging: Path,
+    gates: pd.DataFrame | None,
+    gate_run: RunPoint | None,
+    gate_m: int,
+    base: Mapping[str, int],
+) -> None:
+    """The gate-weight heatmap and CSV (a placeholder without the model)."""
+    gate_csv = staging / "gate_weights.csv"
+    fig, (ax,) = new_figure(6, max(2.5, 0.8 + 0.3 * (len(gates) if gates is not None else 0)))
+    if gates is not None and gate_run is not None:
+        gates.to_csv(gate_csv)
+        draw_gate_heatmap(ax, gates)
+        ax.set_title(f"Mean gate weight, {gate_run.label} (run {gate_run.run_id[:8]})")
+    else:
+        cols = ["plant", *[f"expert_{i + 1}" for i in range(gate_m)]]
+        pd.DataFrame(columns=cols).to_csv(gate_csv, index=False)
+        placeholder(ax, f"{NO_RUN}: no finished run with d={base['hidden']}, M={gate_m}")
+    fig.savefig(staging / "gate_weights.png", dpi=120)
+
+
+def _summary(
+    sweeps: Mapping[str, Mapping[int, RunPoint | None]],
+    gate_run: RunPoint | None,
+    plants: Sequence[str],
+    params: pd.DataFrame,
+) -> dict[str, Any]:
+    """``summary.json``: run ids per point, missing points, the gate model, per-config figures."""
+    return {
+        "points": {
+            sweep: {point_label(sweep, v): (p.run_id if p else None) for v, p in by_v.items()}
+            for sweep, by_v in sweeps.items()
+        },
+        "missing": [
+            point_label(sweep, v)
+            for sweep, by_v in sweeps.items()
+            for v, p in by_v.items()
+            if p is None
+        ],
+        "gate_run": gate_run.run_id if gate_run else None,
+        "plants": list(plants),
+        "configs": {
+            row.label: {
+                "run_id": row.run_id,
+                "final_train_loss": _finite(row.final_train_loss),
+                "n_parameters": _finite(row.n_parameters),
+                "mse_mean": _finite(row.mse_mean),
+            }
+            for row in params.itertuples()
+        },
+    }
+
+
+def write_report(
+    out_dir: str | Path,
+    sweeps: Mapping[str, Mapping[int, RunPoint | None]],
+    plants: Sequence[str],
+    client: Any | None = None,
+    gate: Mapping[str, Any] | None = None,
+    baseline: Mapping[str, int] | None = None,
+    eval_summary: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Draw every figure and table from the selected runs; write them atomically.
+
+    Parameters
+    ----------
+    out_dir : path
+        Replaced as a whole (staged in a temporary sibling directory, then swapped in), and
+        only if it holds nothing but a report's own outputs.
+    sweeps : mapping
+        From :func:`~generalist_control.reports.runs.select_sweeps`.
+    plants : sequence of str
+        Plants of the MSE figures (``closed_loop/mse/<plant>``).
+    client : mlflow.tracking.MlflowClient, optional
+    gate : mapping, optional
+        ``experts`` (M of the gate-weight model, default 5), ``plants`` (None: all it
+        knows), ``duration`` (s).
+    baseline : mapping, optional
+        ``hidden`` of the gate-weight model (default 32).
+    eval_summary : mapping, optional
+        The evaluate stage's ``summary.json``, quoted in ``comparison.md``.
+
+    Returns
+    -------
+    dict
+        The summary also written to ``summary.json``: run ids per point, missing points,
+        the gate model's run.
+    """
+    check_replaceable(out_dir, OWNED, "report.out_dir")
+    client = client or mlflow_client()
+    gate = dict(gate or {})
+    base = {"hidden": 32, "experts": 3, **(baseline or {})}
+    sweeps = {k: dict(v) for k, v in sweeps.items()}
+    frames = {
+        "mse": mse_frame(sweeps, plants),
+        "loss": loss_frame(sweeps, client),
+        "params": params_frame(sweeps, plants),
+    }
+    gate_run, gates = _gate_model(sweeps, gate, base, client)
+    with staging_directory(out_dir) as staging:
+        _sweep_figures(staging, sweeps, frames, base)
+        _gate_figure(staging, gates, gate_run, int(gate.get("experts", 5)), base)
+        runs_table(sweeps).to_csv(staging / "runs.csv", index=False)
+        text = comparison_markdown(sweeps, frames["mse"], gates, gate_run, eval_summary)
+        (staging / "comparison.md").write_text(text)
+        summary = _summary(sweeps, gate_run, plants, frames["params"])
+        (staging / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        publish_directory(staging, out_dir, OWNED, "report.out_dir")
+    return summary
+
+
+def _log_to_mlflow(
+    cfg: DictConfig, experiment: str, out_dir: Path, summary: Mapping[str, Any]
+) -> str:
+    """Log the report as a ``report`` run of the experiment; return its run id."""
+    rcfg = cfg.report
+    logger = {
+        **OmegaConf.to_container(cfg.logger, resolve=True),
+        "experiment_name": experiment,
+        "run_name": rcfg.get("run_name") or "ablation-report",
+    }
+    with mlflow_utils.mlflow_run(logger) as active:
+        mlflow.set_tags(
+            {
+                RUN_TYPE_TAG: "report",
+                "report.kind": "ablation",
+                "report.missing": ", ".join(summary["missing"]) or "none",
+            }
+        )
+        flat = mlflow_utils.flatten_params({"report": OmegaConf.to_container(rcfg, resolve=True)})
+        mlflow.log_params(flat)
+        mlflow.log_dict(dict(summary), "ablation/summary.json")
+        mlflow.log_artifacts(str(out_dir), "ablation")
+        metrics = {"report/missing_points": float(len(summary["missing"]))}
+        for label, fig in summary["configs"].items():
+            key = label.replace("=", "").replace(",", "_")  # d32_M3
+            for name in ("final_train_loss", "n_parameters", "mse_mean"):
+                value = fig.get(name)
+                if value is not None and np.isfinite(value):
+                    metrics[f"ablation/{name}/{key}"] = float(value)
+        mlflow.log_metrics(metrics)
+        return active.info.run_id
+
+
+def build_report(cfg: DictConfig) -> dict[str, Any]:
+    """Find the sweep runs, write ``report.out_dir`` and log the report to MLflow.
+
+    Training runs that lie on neither sweep (e.g. a ``dvc exp run -S experts=4``) leave
+    every point "no run" in the report, with a warning naming the sweep commands.
+
+    Raises
+    ------
+    NoAblationRunsError
+        If the experiment holds no finished training run at all; nothing is written.
+    """
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    rcfg = cfg.report
+    experiment = rcfg.get("experiment_name") or cfg.logger.experiment_name
+    uri = mlflow_utils.set_tracking(cfg.logger)
+    client = mlflow_client(uri)
+    points = runs_from_mlflow(experiment, rcfg.get("filter_string") or "", client)
+    baseline = OmegaConf.to_container(rcfg.baseline, resolve=True)
+    sweeps = select_sweeps(points, list(rcfg.hidden), list(rcfg.experts), baseline)
+    if not points:
+        raise NoAblationRunsError(
+            f"no finished training run in MLflow experiment '{experiment}' at {uri} "
+            f"(filter: {rcfg.get('filter_string')!r}). Create the ablation runs with:\n  "
+            + "\n  ".join(SWEEP_COMMANDS)
+        )
+    plants = rcfg.get("plants")
+    if plants is None:
+        plants = (cfg.get("closed_loop") or {}).get("systems")
+    plants = list(plants or [])
+    if not plants:
+        plants = sorted({k for p in unique_points(sweeps) for k in p.mse})
+    eval_summary = None
+    summary_path = Path(cfg.paths.get("reports_dir", "reports/eval")) / "summary.json"
+    if summary_path.is_file():
+        eval_summary = json.loads(summary_path.read_text())
+    out_dir = Path(rcfg.out_dir)
+    gate = OmegaConf.to_container(rcfg.gate, resolve=True) if rcfg.get("gate") else {}
+    summary = write_report(out_dir, sweeps, plants, client, gate, baseline, eval_summary)
+    if summary["missing"]:
+        log.warning(
+            "no run for %s; create them with: %s",
+            ", ".join(summary["missing"]),
+            " and ".join(SWEEP_COMMANDS),
+        )
+    if rcfg.get("log_mlflow", True):
+        summary["report_run_id"] = _log_to_mlflow(cfg, experiment, out_dir, summary)
+    log.info("ablation report written to %s", out_dir)
+    return summary

@@ -1,0 +1,112 @@
+"""Gate weights of a trained policy at work: per plant, mean over closed-loop unit steps."""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from generalist_control.data.windows import Windows, history_windows, integral_of_error
+from generalist_control.deploy.adapter import RuntimeAdapter
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
+from generalist_control.plants.catalog import available_plants, load_plant
+from generalist_control.plants.plant import Plant, pad_states
+from generalist_control.reports.runs import mlflow_client
+from generalist_control.simulation.scenarios import references
+from generalist_control.simulation.simulate import Run, Trajectory, simulate_many
+
+__all__ = ["gate_weights", "policy_of_run"]
+
+POLICY_ARTIFACT = f"policy/{POLICY_FILE}"
+
+
+def policy_of_run(run_id: str, client: Any | None = None) -> tuple[Policy, dict[str, Any]]:
+    """Download a run's ``policy/policy.ckpt`` artifact and load it (``weights_only``)."""
+    client = client or mlflow_client()
+    with tempfile.TemporaryDirectory(prefix="gc-policy-") as tmp:
+        path = client.download_artifacts(run_id, POLICY_ARTIFACT, tmp)
+        return load_policy(path)
+
+
+def _mean_gates(policy: Policy, tr: Trajectory, p: Plant, tag: int, history: int) -> np.ndarray:
+    """Mean gate weights the policy gave the windows it saw along closed-loop runs ``tr``."""
+    steps = tr.r.shape[1]
+    x = pad_states(tr.x[:, :steps])
+    order = np.full(x.shape[0], p.order)
+    z = None
+    if policy.config.get("integral", 0):
+        z = integral_of_error(tr.r, tr.y[:, :steps], p.dt)
+    state, mask, ref = history_windows(x, tr.r, order, history, z)
+    B, N = tr.r.shape
+    windows = Windows(
+        state=np.ascontiguousarray(state).reshape(B * N, history, -1),
+        mask=np.ascontiguousarray(mask).reshape(B * N, history, -1),
+        ref=np.ascontiguousarray(ref).reshape(B * N, history),
+        tag=np.full(B * N, tag, dtype=np.int64),
+        target=None,
+        traj=np.repeat(np.arange(B, dtype=np.int64), N),
+    )
+    _, gates = policy.predict_windows(windows)
+    return gates.mean(axis=0)
+
+
+def gate_weights(
+    policy: Policy,
+    meta: Mapping[str, Any],
+    plants: Iterable[str] | None = None,
+    duration: float = 15.0,
+) -> pd.DataFrame:
+    """Mean gate weight per expert and plant over closed-loop unit-step runs.
+
+    Each plant runs the policy in closed loop (the deployment runtime,
+    :class:`~generalist_control.deploy.runtime.PolicyRuntime`) on a unit step from rest, scaled by
+    its ``amplitude_scale`` as in evaluation, for ``duration`` seconds. The states and
+    references the runtime saw are turned back into its input windows by the project's
+    window builder (:func:`~generalist_control.data.windows.history_windows`, which pads the
+    first sample exactly as the runtime fills its buffer), and the gate weights the policy
+    gives those windows are averaged over the run. The weights are therefore those of the
+    policy at work on the plant, not on the expert's demonstrations.
+
+    Parameters
+    ----------
+    policy : Policy
+    meta : mapping
+        The policy's metadata (``tags``, ``orders``, ``history``, ``horizon``, ``dt``).
+    plants : iterable of str, optional
+        Default: every plant of the catalogue the policy was trained on, in tag order.
+    duration : float
+
+    Returns
+    -------
+    DataFrame
+        Index: plant (name); columns ``expert_1 .. expert_M``; rows sum to one.
+    """
+    tags = {str(k): int(v) for k, v in meta["tags"].items()}
+    if plants is None:
+        known = set(available_plants())
+        plants = [k for k in sorted(tags, key=tags.get) if k in known]
+    plants = list(plants)
+    missing = [p for p in plants if p not in tags]
+    if missing:
+        raise KeyError(f"the policy was not trained on {', '.join(missing)}")
+    loaded = [load_plant(name) for name in plants]
+    runtime = PolicyRuntime(policy, dict(meta))
+    history = int(meta["history"])
+    experts = int(policy.config["experts"])
+    spec = {"kind": "step", "amplitude": 1.0, "duration": float(duration)}
+    out: dict[str, np.ndarray] = {}
+    by_dt: dict[float, list[Any]] = {}
+    for p in loaded:
+        by_dt.setdefault(p.dt, []).append(p)
+    for group in by_dt.values():
+        runs = [Run(p, *references("step", spec, p), None) for p in group]
+        trajs = simulate_many(runs, RuntimeAdapter(runtime))
+        for p, tr in zip(group, trajs, strict=True):
+            out[p.name] = _mean_gates(policy, tr, p, tags[p.name], history)
+    cols = [f"expert_{i + 1}" for i in range(experts)]
+    df = pd.DataFrame([out[p] for p in plants], index=pd.Index(plants, name="plant"), columns=cols)
+    return df.astype(float)

@@ -1,0 +1,350 @@
+"""The ablation study's data, read back from the MLflow training runs (paper, Section 7).
+
+The sweeps' training runs of one experiment (:func:`runs_from_mlflow`), the newest run per
+configuration (:func:`select_sweeps`), and the frames the report draws: per-plant
+closed-loop output MSE (:func:`mse_frame`), training-loss curves (:func:`loss_frame`),
+parameters against mean MSE (:func:`params_frame`);
+:mod:`generalist_control.reports.gates` adds the closed-loop gate
+weights and :mod:`generalist_control.reports.ablation` writes the report from them.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from mlflow.tracking import MlflowClient
+
+from generalist_control.tracking.parents import ROLE_TAG
+
+__all__ = [
+    "NOT_AVAILABLE",
+    "NO_RUN",
+    "RUN_TYPE_TAG",
+    "SWEEPS",
+    "SWEEP_COMMANDS",
+    "NoAblationRunsError",
+    "RunPoint",
+    "loss_frame",
+    "mlflow_client",
+    "mse_frame",
+    "params_frame",
+    "point_label",
+    "runs_from_mlflow",
+    "select_sweeps",
+    "unique_points",
+]
+
+log = logging.getLogger(__name__)
+
+#: The commands that create the sweep runs (quoted when there are none).
+SWEEP_COMMANDS = (
+    "python train.py -m model.hidden=16,32,64",
+    "python train.py -m experts=1,3,5",
+)
+#: Tag that marks runs written by this module (left out of the run search).
+RUN_TYPE_TAG = "gc.run_type"
+#: Sweep name -> (run attribute, symbol used in labels).
+SWEEPS = {"hidden": "d", "experts": "M"}
+NO_RUN = "no run"
+NOT_AVAILABLE = "no score"
+
+
+class NoAblationRunsError(LookupError):
+    """The MLflow experiment holds no finished training run to report on."""
+
+
+@dataclass(frozen=True)
+class RunPoint:
+    """The figures of one finished training run that the report needs.
+
+    Attributes
+    ----------
+    run_id, run_name : str
+    hidden, experts : int
+        ``model.hidden`` (d) and ``experts`` (M).
+    n_parameters : int or None
+    train_loss : float or None
+        The last logged ``train/loss`` (the final training loss).
+    mse : dict
+        ``closed_loop/mse/<plant>`` by plant (only finite scores are logged by training).
+    diverged : int
+        ``closed_loop/diverged``: plants whose GC closed loop diverged (no score logged).
+    start_time : int
+        Milliseconds since the epoch.
+    """
+
+    run_id: str
+    run_name: str
+    hidden: int
+    experts: int
+    n_parameters: int | None
+    train_loss: float | None
+    mse: dict[str, float] = field(default_factory=dict)
+    diverged: int = 0
+    start_time: int = 0
+
+    @property
+    def label(self) -> str:
+        """``d=<hidden>,M=<experts>``, the key format of :data:`paper.ABLATION`."""
+        return f"d={self.hidden},M={self.experts}"
+
+
+def _as_int(text: str | None) -> int | None:
+    try:
+        return int(float(text)) if text is not None else None
+    except ValueError:
+        return None
+
+
+def _point(run: Any) -> RunPoint | None:
+    """A :class:`RunPoint` for an MLflow run, or None if it is no training run."""
+    params, metrics, tags = run.data.params, run.data.metrics, run.data.tags
+    if tags.get(RUN_TYPE_TAG) == "report":
+        return None
+    hidden, experts = _as_int(params.get("model.hidden")), _as_int(params.get("experts"))
+    if hidden is None or experts is None:
+        return None
+    prefix = "closed_loop/mse/"
+    mse = {k[len(prefix) :]: float(v) for k, v in metrics.items() if k.startswith(prefix)}
+    n_params = _as_int(params.get("n_parameters"))
+    if n_params is None and "n_parameters" in metrics:
+        n_params = int(metrics["n_parameters"])
+    loss = metrics.get("train/loss")
+    return RunPoint(
+        run_id=run.info.run_id,
+        run_name=run.info.run_name or "",
+        hidden=hidden,
+        experts=experts,
+        n_parameters=n_params,
+        train_loss=float(loss) if loss is not None else None,
+        mse=mse,
+        diverged=int(metrics.get("closed_loop/diverged", 0) or 0),
+        start_time=int(run.info.start_time or 0),
+    )
+
+
+def mlflow_client(tracking_uri: str | None = None) -> Any:
+    """An MLflow client for ``tracking_uri`` (default: the current tracking URI)."""
+    return MlflowClient(tracking_uri=tracking_uri)
+
+
+def runs_from_mlflow(
+    experiment_name: str,
+    filter_string: str = "",
+    client: Any | None = None,
+) -> list[RunPoint]:
+    """Training runs of an MLflow experiment, newest first.
+
+    Parameters
+    ----------
+    experiment_name : str
+    filter_string : str
+        An MLflow search filter, e.g. ``"attributes.status = 'FINISHED'"``.
+    client : mlflow.tracking.MlflowClient, optional
+        Default: a client on the current tracking URI.
+
+    Returns
+    -------
+    list of RunPoint
+        Runs with ``model.hidden`` and ``experts`` params. Left out: report runs, the parent
+        runs of sweeps and studies (tag ``gc.role``) and the trials of Optuna studies (their
+        hyperparameters are not the baseline's); the jobs of a multirun sweep are kept. An
+        unknown experiment gives an empty list.
+    """
+    client = client or mlflow_client()
+    experiment = client.get_experiment_by_name(experiment_name)
+    if experiment is None:
+        return []
+    points, token = [], None
+    roles: dict[str, str | None] = {}  # parent run id -> its gc.role tag
+
+    def parent_role(run: Any) -> str | None:
+        parent = run.data.tags.get("mlflow.parentRunId")
+        if not parent:
+            return None
+        if parent not in roles:
+            try:
+                roles[parent] = client.get_run(parent).data.tags.get(ROLE_TAG)
+            except Exception:  # noqa: BLE001 (a deleted parent: keep the run)
+                roles[parent] = None
+        return roles[parent]
+
+    while True:
+        page = client.search_runs(
+            [experiment.experiment_id],
+            filter_string=filter_string or "",
+            order_by=["attributes.start_time DESC"],
+            max_results=1000,
+            page_token=token,
+        )
+        for run in page:
+            if run.data.tags.get(ROLE_TAG) or parent_role(run) == "study":
+                continue  # a sweep/study parent, or a trial of an Optuna study
+            point = _point(run)
+            if point is not None:
+                points.append(point)
+        token = page.token
+        if not token:
+            break
+    return sorted(points, key=lambda p: -p.start_time)
+
+
+def select_sweeps(
+    points: Sequence[RunPoint],
+    hidden: Sequence[int] = (16, 32, 64),
+    experts: Sequence[int] = (1, 3, 5),
+    baseline: Mapping[str, int] | None = None,
+) -> dict[str, dict[int, RunPoint | None]]:
+    """The run of each sweep point: the newest matching run, or None ("no run").
+
+    Parameters
+    ----------
+    points : sequence of RunPoint
+        Newest first (as :func:`runs_from_mlflow` returns them).
+    hidden, experts : sequence of int
+        The values of d (at the baseline M) and of M (at the baseline d).
+    baseline : mapping, optional
+        ``{"hidden": 32, "experts": 3}`` (the default).
+
+    Returns
+    -------
+    dict
+        ``{"hidden": {d: RunPoint | None}, "experts": {M: RunPoint | None}}``.
+    """
+    base = {"hidden": 32, "experts": 3, **(baseline or {})}
+    newest = sorted(points, key=lambda p: -p.start_time)
+
+    def first(d: int, m: int) -> RunPoint | None:
+        return next((p for p in newest if p.hidden == d and p.experts == m), None)
+
+    return {
+        "hidden": {int(d): first(int(d), int(base["experts"])) for d in hidden},
+        "experts": {int(m): first(int(base["hidden"]), int(m)) for m in experts},
+    }
+
+
+def unique_points(sweeps: Mapping[str, Mapping[int, RunPoint | None]]) -> list[RunPoint]:
+    """The runs of all sweeps, each once (the baseline belongs to both sweeps)."""
+    seen: dict[str, RunPoint] = {}
+    for by_value in sweeps.values():
+        for p in by_value.values():
+            if p is not None:
+                seen.setdefault(p.run_id, p)
+    return sorted(seen.values(), key=lambda p: (p.hidden, p.experts))
+
+
+def point_label(sweep: str, value: int) -> str:
+    """``d=32`` or ``M=5``: a sweep point as the figures label it."""
+    return f"{SWEEPS[sweep]}={value}"
+
+
+def mse_frame(
+    sweeps: Mapping[str, Mapping[int, RunPoint | None]], plants: Sequence[str]
+) -> pd.DataFrame:
+    """Per-plant closed-loop MSE of every sweep point, long form.
+
+    Returns
+    -------
+    DataFrame
+        Columns ``sweep, value, label, plant, mse, status, run_id``; ``status`` is ``ok``,
+        ``no run`` (no run for the point) or ``no score`` (the run has no score for the plant:
+        its closed loop diverged or it was not trained on the plant).
+    """
+    rows = []
+    for sweep, by_value in sweeps.items():
+        for value, p in by_value.items():
+            for plant in plants:
+                mse = p.mse.get(plant) if p is not None else None
+                status = NO_RUN if p is None else ("ok" if mse is not None else NOT_AVAILABLE)
+                rows.append(
+                    (sweep, value, point_label(sweep, value), plant, mse, status, p and p.run_id)
+                )
+    cols = ["sweep", "value", "label", "plant", "mse", "status", "run_id"]
+    df = pd.DataFrame(rows, columns=cols)
+    df["mse"] = df["mse"].astype(float)
+    return df
+
+
+def loss_frame(
+    sweeps: Mapping[str, Mapping[int, RunPoint | None]], client: Any | None = None
+) -> pd.DataFrame:
+    """Training-loss history (``train/loss`` per epoch) of every sweep point, long form.
+
+    Returns
+    -------
+    DataFrame
+        Columns ``sweep, value, label, run_id, epoch, train_loss``; a point without a run
+        has no rows. Of repeated steps (a resumed run) the latest value is kept.
+    """
+    client = client or mlflow_client()
+    frames = []
+    cache: dict[str, pd.DataFrame] = {}
+    for sweep, by_value in sweeps.items():
+        for value, p in by_value.items():
+            if p is None:
+                continue
+            if p.run_id not in cache:
+                hist = client.get_metric_history(p.run_id, "train/loss")
+                h = pd.DataFrame(
+                    [(m.step, m.timestamp, m.value) for m in hist],
+                    columns=["epoch", "timestamp", "train_loss"],
+                )
+                h = h.sort_values(["epoch", "timestamp"]).drop_duplicates("epoch", keep="last")
+                cache[p.run_id] = h.drop(columns="timestamp")
+            h = cache[p.run_id].copy()
+            h.insert(0, "run_id", p.run_id)
+            h.insert(0, "label", point_label(sweep, value))
+            h.insert(0, "value", value)
+            h.insert(0, "sweep", sweep)
+            frames.append(h)
+    cols = ["sweep", "value", "label", "run_id", "epoch", "train_loss"]
+    if not frames:
+        return pd.DataFrame(columns=cols)
+    return pd.concat(frames, ignore_index=True)[cols]
+
+
+def params_frame(
+    sweeps: Mapping[str, Mapping[int, RunPoint | None]], plants: Sequence[str]
+) -> pd.DataFrame:
+    """Parameter count and mean closed-loop MSE of every distinct run of the sweeps.
+
+    The mean is over the plants of ``plants`` that the run has a score for (``n_plants``).
+
+    Returns
+    -------
+    DataFrame
+        Columns ``label, hidden, experts, n_parameters, mse_mean, n_plants, final_train_loss,
+        run_id``.
+    """
+    rows = []
+    for p in unique_points(sweeps):
+        scores = [p.mse[k] for k in plants if k in p.mse]
+        mean = float(np.mean(scores)) if scores else np.nan
+        rows.append(
+            (
+                p.label,
+                p.hidden,
+                p.experts,
+                p.n_parameters,
+                mean,
+                len(scores),
+                p.train_loss,
+                p.run_id,
+            )
+        )
+    cols = [
+        "label",
+        "hidden",
+        "experts",
+        "n_parameters",
+        "mse_mean",
+        "n_plants",
+        "final_train_loss",
+        "run_id",
+    ]
+    return pd.DataFrame(rows, columns=cols)

@@ -1,0 +1,1 @@
+"""Closed-loop simulation, the LQI experts, metrics, scenarios and the Crazyflie stand-in."""

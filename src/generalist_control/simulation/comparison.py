@@ -1,0 +1,70 @@
+"""Closed-loop scores of any batch controller against the LQI experts, on steps from rest.
+
+Used by training (the closed-loop validation and the ablation's score) and by evaluation;
+the controller is anything with the simulator's batch protocol, e.g. the policy runtime's
+adapter :class:`~generalist_control.deploy.adapter.RuntimeAdapter`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from generalist_control.plants.plant import Plant
+from generalist_control.simulation.lqi import LQIController
+from generalist_control.simulation.scenarios import references
+from generalist_control.simulation.simulate import (
+    BatchController,
+    PerPlantController,
+    Run,
+    simulate_many,
+)
+
+__all__ = ["closed_loop_score", "output_mse"]
+
+
+def output_mse(
+    controller: BatchController, plants: Sequence[Plant], duration: float = 15.0
+) -> dict[str, float]:
+    """The ablation study's closed-loop score: per plant, the output MSE against LQI.
+
+    Both controllers track a unit step (scaled by the plant's ``amplitude_scale``) from
+    rest for ``duration`` seconds; the score is the mean of ``(y - y_LQI)**2`` over the
+    samples. A diverged run scores ``inf``.
+    """
+    spec = {"kind": "step", "amplitude": 1.0, "duration": float(duration)}
+    runs = [Run(p, *references("step", spec, p), None) for p in plants]
+    ours = simulate_many(runs, controller)
+    lqi = simulate_many(runs, PerPlantController(LQIController))
+    return {
+        p.name: float("inf") if a.diverged.any() else float(np.mean((a.y - b.y) ** 2))
+        for p, a, b in zip(plants, ours, lqi, strict=True)
+    }
+
+
+def closed_loop_score(
+    controller: BatchController,
+    plants: Sequence[Plant],
+    amplitudes: Sequence[float] = (1.0, -3.0),
+    duration: float = 10.0,
+) -> dict[str, float]:
+    """Per plant, the output error against LQI on steps, relative to LQI's, capped at 1.
+
+    ``mean((y - y_LQI)**2) / mean(y_LQI**2)`` over steps of each amplitude (times the
+    plant's ``amplitude_scale``) from rest; 1 for a diverged run (and at most 1 anyway), so
+    the mean over plants is a bounded closed-loop validation score.
+    """
+    steps = int(round(duration / plants[0].dt))
+    amps = np.asarray(amplitudes, dtype=float)
+    runs = [Run(p, np.repeat(amps[:, None] * p.amplitude_scale, steps, axis=1)) for p in plants]
+    ours = simulate_many(runs, controller)
+    lqi = simulate_many(runs, PerPlantController(LQIController))
+    out = {}
+    for p, a, b in zip(plants, ours, lqi, strict=True):
+        if a.diverged.any():
+            out[p.name] = 1.0
+            continue
+        err = np.mean((a.y - b.y) ** 2, axis=1) / np.maximum(np.mean(b.y**2, axis=1), 1e-300)
+        out[p.name] = float(min(1.0, err.mean()))
+    return out

@@ -1,0 +1,98 @@
+"""Evaluation scenarios: reference signals, initial states and perturbations per plant.
+
+A scenario is a mapping from ``conf/evaluation/*.yaml``::
+
+    kind: step | random_steps | sine | ramp | composite
+    duration: 15.0               # seconds
+    plants: [two_mass_spring]    # optional: only these plants (default: every evaluated plant)
+    perturbation: {u_limit: 0.5} # optional: fields of simulate.Perturbation
+
+plus the parameters of its kind (see :func:`references`). Amplitudes are multiplied by each
+plant's ``amplitude_scale`` (the same factor the data stage applies to its grid).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from generalist_control.plants.plant import Plant
+from generalist_control.simulation.simulate import Perturbation
+
+__all__ = ["KINDS", "ScenarioError", "perturbation", "references"]
+
+KINDS = ("step", "random_steps", "sine", "ramp", "composite")
+
+
+class ScenarioError(ValueError):
+    """An evaluation scenario is misconfigured; the message names the field."""
+
+
+def _x0_for_output(plant: Plant, y0: float, batch: int) -> np.ndarray:
+    """The smallest state (deviation) whose output is ``y0``."""
+    c = plant.C[0]
+    return np.repeat((y0 * c / (c @ c))[None, :], batch, axis=0)
+
+
+def references(
+    name: str, spec: Mapping[str, Any], plant: Plant
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Reference signals ``(B, N)`` and initial states ``(B, n)`` (or None: rest).
+
+    Kinds and their parameters:
+
+    - ``step``: ``amplitude`` (default 1), a step at t = 0 from rest;
+    - ``random_steps``: ``count`` steps from rest with amplitudes uniform in ``+-limit``
+      (drawn with ``seed``; a continuous draw lies off the training grid almost surely);
+    - ``sine``: ``amplitude * sin(omega t)`` from an initial state with output ``y0``;
+    - ``ramp``: ``slope * t`` from rest;
+    - ``composite``: a step to ``amplitude`` for the first third, a ramp to
+      ``3 * amplitude`` over the second, then a sine of amplitude ``amplitude`` about it.
+    """
+    kind = spec.get("kind")
+    if kind not in KINDS:
+        raise ScenarioError(f"scenario '{name}': kind '{kind}' is not one of {', '.join(KINDS)}")
+    duration = float(spec.get("duration", 15.0))
+    steps = int(round(duration / plant.dt))
+    if steps < 2:
+        raise ScenarioError(f"scenario '{name}': duration {duration} s is too short")
+    t = np.arange(steps) * plant.dt
+    scale = plant.amplitude_scale
+    amp = float(spec.get("amplitude", 1.0)) * scale
+    x0 = None
+    if kind == "step":
+        r = np.full((1, steps), amp)
+    elif kind == "random_steps":
+        rng = np.random.default_rng(int(spec.get("seed", 0)) + 1000 * plant.tag)
+        limit = float(spec.get("limit", 20.0)) * scale
+        amps = rng.uniform(-limit, limit, size=int(spec.get("count", 8)))
+        r = np.repeat(amps[:, None], steps, axis=1)
+    elif kind == "sine":
+        omega = float(spec.get("omega", 0.5))
+        r = amp * np.sin(omega * t)[None, :]
+        x0 = _x0_for_output(plant, float(spec.get("y0", 0.5)) * scale, 1)
+    elif kind == "ramp":
+        r = (float(spec.get("slope", 0.2)) * scale * t)[None, :]
+    else:  # composite
+        third = t[-1] / 3
+        ramp = amp + 2 * amp * np.clip((t - third) / third, 0, 1)
+        sine = np.where(
+            t > 2 * third, amp * np.sin(float(spec.get("omega", 1.0)) * (t - 2 * third)), 0
+        )
+        r = np.where(t < third, amp, ramp + sine)[None, :]
+    return r, x0
+
+
+def perturbation(name: str, spec: Mapping[str, Any]) -> Perturbation | None:
+    """The scenario's :class:`~generalist_control.simulate.Perturbation`, if it has one."""
+    fields = spec.get("perturbation")
+    if not fields:
+        return None
+    try:
+        return Perturbation(
+            **{k: (tuple(v) if isinstance(v, list) else v) for k, v in fields.items()}
+        )
+    except TypeError as exc:
+        raise ScenarioError(f"scenario '{name}': bad perturbation field ({exc})") from exc

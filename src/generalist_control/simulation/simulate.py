@@ -1,0 +1,322 @@
+"""Closed-loop simulation of a plant under any controller, vectorised over runs.
+
+Linear plants are advanced with the exact zero-order-hold discretisation of ``(A, B)``;
+nonlinear plants with fixed-step RK4 using ``plant.substeps`` sub-steps per sample. The
+controller is sampled every ``plant.dt``: at sample ``k`` it sees the state ``x[k]`` and the
+reference ``r[k]`` and returns ``u[k]``, held constant until ``k + 1``.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from scipy.linalg import expm
+
+from generalist_control.plants.plant import Plant, pad_states
+
+__all__ = [
+    "BatchController",
+    "Controller",
+    "PerPlantController",
+    "Perturbation",
+    "Run",
+    "Trajectory",
+    "discretise",
+    "plant_stepper",
+    "row_slices",
+    "simulate",
+    "simulate_many",
+]
+
+#: A state whose magnitude exceeds this is treated as diverged.
+DIVERGENCE_BOUND = 1e6
+
+
+class Controller(Protocol):
+    """What the simulator drives: batched, stateful, one call per sample."""
+
+    def reset(self, batch_size: int) -> None:
+        """Clear internal state before ``batch_size`` parallel runs."""
+
+    def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Controls ``(batch,)`` for states ``(batch, n)`` and references ``(batch,)``."""
+
+
+@dataclass(frozen=True)
+class Perturbation:
+    """Conditions the controller was not trained for, applied inside the loop.
+
+    Attributes
+    ----------
+    u_limit : float, optional
+        Actuator amplitude saturation ``|u| <= u_limit``.
+    rate_limit : float, optional
+        Actuator rate saturation ``|du/dt| <= rate_limit`` (per second).
+    noise_std : float or sequence of float, optional
+        Standard deviation of white noise added to the measured state (per state entry),
+        from ``noise_start`` seconds on.
+    disturbance : float
+        Constant input disturbance added to the applied control from ``disturbance_start``.
+    seed : int
+        Seed of the noise generator (same seed, same noise).
+    """
+
+    u_limit: float | None = None
+    rate_limit: float | None = None
+    noise_std: float | tuple[float, ...] | None = None
+    noise_start: float = 0.0
+    disturbance: float = 0.0
+    disturbance_start: float = 0.0
+    seed: int = 0
+
+    def actuate(self, u_cmd: np.ndarray, u_prev: np.ndarray, dt: float) -> np.ndarray:
+        """The control the actuator delivers for command ``u_cmd`` after ``u_prev``."""
+        u = u_cmd
+        if self.rate_limit is not None:
+            du = self.rate_limit * dt
+            u = np.clip(u, u_prev - du, u_prev + du)
+        if self.u_limit is not None:
+            u = np.clip(u, -self.u_limit, self.u_limit)
+        return u
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A batch of closed-loop runs, in deviation coordinates.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N + 1,)
+    x : ndarray, shape (batch, N + 1, n)
+    u, r : ndarray, shape (batch, N)
+        Control delivered by the actuator (after any saturation, before any input
+        disturbance) and reference, over each sample interval.
+    y : ndarray, shape (batch, N + 1)
+    diverged : ndarray of bool, shape (batch,)
+        Runs whose state became non-finite or exceeded ``DIVERGENCE_BOUND``; their
+        trajectories are frozen at the last finite state.
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    u: np.ndarray
+    r: np.ndarray
+    y: np.ndarray
+    diverged: np.ndarray
+
+
+def discretise(A: np.ndarray, B: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact zero-order-hold discretisation via the block matrix exponential (cached)."""
+    A, B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
+    Ad, Bd = _discretise(A.tobytes(), B.tobytes(), B.shape, float(dt))
+    return Ad.copy(), Bd.copy()
+
+
+@functools.lru_cache(maxsize=512)
+def _discretise(
+    a: bytes, b: bytes, shape: tuple[int, int], dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    n, m = shape
+    M = np.zeros((n + m, n + m))
+    M[:n, :n] = np.frombuffer(a).reshape(n, n)
+    M[:n, n:] = np.frombuffer(b).reshape(n, m)
+    E = expm(M * dt)
+    return E[:n, :n], E[:n, n:]
+
+
+class _Group:
+    """The state of a batch of runs on one plant while the loop advances."""
+
+    def __init__(
+        self,
+        plant: Plant,
+        r: np.ndarray,
+        x0: np.ndarray | None,
+        perturbation: Perturbation | None,
+    ) -> None:
+        r = np.atleast_2d(np.asarray(r, dtype=float))
+        self.plant, self.r, self.pert = plant, r, perturbation
+        self.batch, self.steps = r.shape
+        n = plant.order
+        self.x = np.zeros((self.batch, self.steps + 1, n))
+        if x0 is not None:
+            x0 = np.asarray(x0, dtype=float)
+            if x0.shape != (self.batch, n):
+                raise ValueError(
+                    f"x0 has shape {x0.shape}; plant '{plant.name}' needs ({self.batch}, {n})"
+                )
+            self.x[:, 0] = x0
+        self.u = np.zeros((self.batch, self.steps))
+        self.u_prev = np.zeros(self.batch)
+        self.diverged = np.zeros(self.batch, dtype=bool)
+        self.rng = np.random.default_rng(perturbation.seed) if perturbation is not None else None
+        if plant.is_linear:
+            self.Ad, self.Bd = discretise(plant.A, plant.B, plant.dt)
+
+    def _advance(self, xk: np.ndarray, uk: np.ndarray) -> np.ndarray:
+        p = self.plant
+        if p.is_linear:
+            return xk @ self.Ad.T + uk[:, None] * self.Bd[:, 0]
+        h = p.dt / p.substeps
+        for _ in range(p.substeps):
+            k1 = p.deriv(xk, uk)
+            k2 = p.deriv(xk + 0.5 * h * k1, uk)
+            k3 = p.deriv(xk + 0.5 * h * k2, uk)
+            k4 = p.deriv(xk + h * k3, uk)
+            xk = xk + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+        return xk
+
+    def measure(self, k: int) -> np.ndarray:
+        """The state the controller sees at sample ``k`` (with noise, if any)."""
+        xm, pert = self.x[:, k], self.pert
+        if (
+            pert is not None
+            and pert.noise_std is not None
+            and k * self.plant.dt >= pert.noise_start
+        ):
+            std = np.broadcast_to(pert.noise_std, (self.plant.order,))
+            xm = xm + self.rng.normal(size=xm.shape) * std
+        return xm
+
+    def apply(self, k: int, u_cmd: np.ndarray) -> None:
+        """Pass the command through the actuator and advance one sample."""
+        uk = np.asarray(u_cmd, dtype=float).reshape(self.batch)
+        pert = self.pert
+        if pert is not None:
+            uk = pert.actuate(uk, self.u_prev, self.plant.dt)
+            self.u_prev = uk
+        self.u[:, k] = uk
+        if pert is not None and pert.disturbance and k * self.plant.dt >= pert.disturbance_start:
+            uk = uk + pert.disturbance
+        nxt = self._advance(self.x[:, k], uk)
+        bad = ~np.all(np.isfinite(nxt) & (np.abs(nxt) < DIVERGENCE_BOUND), axis=1)
+        self.diverged |= bad
+        self.x[:, k + 1] = np.where(self.diverged[:, None], self.x[:, k], nxt)
+
+    def result(self) -> Trajectory:
+        n = self.plant.order
+        y = self.plant.output(self.x.reshape(-1, n)).reshape(self.batch, self.steps + 1)
+        t = np.arange(self.steps + 1) * self.plant.dt
+        return Trajectory(t=t, x=self.x, u=self.u, r=self.r, y=y, diverged=self.diverged)
+
+
+def plant_stepper(plant: Plant) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """``advance(x, u) -> x_next``: one sample of ``plant`` for batches (B, n) and (B,).
+
+    The simulator's own update: exact zero-order hold for linear plants, RK4 with the
+    plant's sub-steps for nonlinear ones (no perturbation).
+    """
+    return _Group(plant, np.zeros((1, 1)), None, None)._advance
+
+
+def simulate(
+    plant: Plant,
+    controller: Controller,
+    r: np.ndarray,
+    x0: np.ndarray | None = None,
+    perturbation: Perturbation | None = None,
+) -> Trajectory:
+    """Simulate ``controller`` on ``plant`` for references ``r``.
+
+    Parameters
+    ----------
+    plant : Plant
+    controller : Controller
+    r : ndarray, shape (batch, N)
+        Reference deviation at each sample.
+    x0 : ndarray, shape (batch, n), optional
+        Initial state deviation; rest (zeros) by default.
+    perturbation : Perturbation, optional
+        Actuator limits, measurement noise and input disturbance.
+
+    Returns
+    -------
+    Trajectory
+    """
+    g = _Group(plant, r, x0, perturbation)
+    controller.reset(g.batch)
+    with np.errstate(all="ignore"):
+        for k in range(g.steps):
+            g.apply(k, controller.step(g.measure(k), g.r[:, k]))
+    return g.result()
+
+
+@dataclass(frozen=True)
+class Run:
+    """A batch of runs on one plant for :func:`simulate_many`."""
+
+    plant: Plant
+    r: np.ndarray
+    x0: np.ndarray | None = None
+    perturbation: Perturbation | None = None
+
+
+class BatchController(Protocol):
+    """A controller of many plants at once (the learned policy, or LQI experts stacked)."""
+
+    def reset(self, plants: Sequence[Plant], counts: Sequence[int]) -> None:
+        """Prepare for ``counts[i]`` runs of ``plants[i]``, stacked in that order."""
+
+    def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Controls ``(B,)`` for zero-padded states ``(B, MAX_ORDER)`` and references."""
+
+
+def simulate_many(runs: Sequence[Run], controller: BatchController) -> list[Trajectory]:
+    """Simulate runs on several plants in lockstep, one controller call per sample.
+
+    All runs must share the sample time and the number of samples. Rows are stacked in the
+    order of ``runs``; states reach the controller zero-padded to ``MAX_ORDER``.
+    """
+    groups = [_Group(run.plant, run.r, run.x0, run.perturbation) for run in runs]
+    if len({g.steps for g in groups}) != 1 or len({g.plant.dt for g in groups}) != 1:
+        raise ValueError("simulate_many needs runs of equal length and sample time")
+    controller.reset([g.plant for g in groups], [g.batch for g in groups])
+    splits = np.cumsum([g.batch for g in groups])[:-1]
+    with np.errstate(all="ignore"):
+        for k in range(groups[0].steps):
+            x = np.concatenate([pad_states(g.measure(k)) for g in groups])
+            r = np.concatenate([g.r[:, k] for g in groups])
+            u = np.asarray(controller.step(x, r), dtype=float)
+            for g, uk in zip(groups, np.split(u, splits), strict=True):
+                g.apply(k, uk)
+    return [g.result() for g in groups]
+
+
+def row_slices(counts: Sequence[int]) -> list[slice]:
+    """The rows of each group when ``counts[i]`` runs of group ``i`` are stacked in order."""
+    ends = np.cumsum([0, *counts])
+    return [slice(int(a), int(b)) for a, b in zip(ends[:-1], ends[1:], strict=True)]
+
+
+class PerPlantController:
+    """A :class:`BatchController` made of one single-plant controller per group of rows.
+
+    Parameters
+    ----------
+    make : callable
+        ``make(plant) -> Controller``, e.g. ``LQIController`` or
+        ``lambda p: AntiWindupLQIController(p, limits)``.
+    """
+
+    def __init__(self, make: Callable[[Plant], Controller]) -> None:
+        self.make = make
+        self._parts: list[tuple[Controller, int, slice]] = []
+
+    def reset(self, plants: Sequence[Plant], counts: Sequence[int]) -> None:
+        """Build and reset one controller per plant."""
+        self._parts = []
+        for plant, count, rows in zip(plants, counts, row_slices(counts), strict=True):
+            ctrl = self.make(plant)
+            ctrl.reset(count)
+            self._parts.append((ctrl, plant.order, rows))
+
+    def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Route each group's rows (unpadded) to its controller."""
+        u = np.empty(x.shape[0])
+        for ctrl, n, rows in self._parts:
+            u[rows] = ctrl.step(x[rows, :n], r[rows])
+        return u

@@ -1,0 +1,1 @@
+"""Sweeps and studies: Hydra multiruns grouped in MLflow, and the Optuna search."""

@@ -1,0 +1,138 @@
+"""Grouped sweeps: one MLflow parent run per Hydra multirun, every job's run nested under it.
+
+``python train.py -m model.hidden=16,32,64`` (or ``experts=1,3,5``, or both: the product)
+runs one training per point. :class:`MLflowSweepCallback`, registered under
+``hydra.callbacks`` in ``conf/config.yaml``, opens a *parent* run in the training's MLflow
+experiment before the first job and exports its id in ``GC_PARENT_RUN_ID`` (and the sweep's
+name in ``GC_SWEEP_NAME``); :func:`generalist_control.tracking.mlflow_utils.mlflow_run` then tags
+every job's run with ``mlflow.parentRunId`` and ``sweep``, so the MLflow UI shows the points
+as children of one row and compares them side by side. After the last job the parent gets a
+summary (``sweep/n_runs``, ``sweep/best/<metric>``, tag ``sweep.best_run_id``) and ends
+``FINISHED``, or ``FAILED`` if a job failed.
+
+Hydra's basic launcher runs the jobs one after another in this process; a launcher that
+starts worker processes inherits the environment, so the jobs still find their parent.
+:func:`generalist_control.tracking.parents.parent_run` is the same mechanism for code (the
+Optuna study of :mod:`generalist_control.sweeps.study` files its trials under a study run
+with it).
+"""
+
+from __future__ import annotations
+
+import atexit
+import json
+import logging
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import mlflow
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.utils import JobReturn, JobStatus
+from hydra.experimental.callback import Callback
+from mlflow.entities import RunStatus
+from omegaconf import DictConfig
+
+from generalist_control.tracking import mlflow_utils
+from generalist_control.tracking.parents import create_parent_run, summarise_children
+
+__all__ = ["MLflowSweepCallback", "sweep_overrides"]
+
+log = logging.getLogger(__name__)
+
+
+def sweep_overrides(overrides: Sequence[str]) -> list[str]:
+    """The overrides of a Hydra command line that sweep (``a=1,2``, ``b=range(1,4)``, ...).
+
+    Examples
+    --------
+    >>> sweep_overrides(["model.hidden=16,32", "trainer.max_epochs=5", "experts=1,3"])
+    ['model.hidden=16,32', 'experts=1,3']
+    """
+    parsed = OverridesParser.create().parse_overrides(list(overrides))
+    return [o.input_line for o in parsed if o.is_sweep_override()]
+
+
+class MLflowSweepCallback(Callback):
+    """Hydra callback: one MLflow parent run per multirun of the training.
+
+    Parameters
+    ----------
+    jobs : sequence of str
+        Hydra job names (``hydra.job.name``) whose multiruns are grouped; other entry points
+        sharing ``conf/config.yaml`` (``generate``, ``evaluate``) log no MLflow runs and get
+        no parent.
+    name : str, optional
+        The parent run's name and the children's ``sweep`` tag; default ``sweep:`` followed
+        by the sweeping overrides, e.g. ``sweep:model.hidden=16,32,64``.
+
+    Each job of a multirun writes its model to ``<its output dir>/models`` unless
+    ``paths.models_dir`` is on the command line
+    (:func:`generalist_control.training.outputs.job_models_dir`),
+    so the jobs overwrite neither each other's model nor the DVC output ``models/``.
+    """
+
+    def __init__(self, jobs: Sequence[str] = ("train",), name: str | None = None) -> None:
+        self.jobs = tuple(jobs)
+        self.name = name
+        self.run_id: str | None = None
+        self._failed = 0
+        self._tracking_uri: str | None = None
+        self._saved_env: dict[str, str | None] = {}
+
+    def _active(self, config: DictConfig) -> bool:
+        return str(config.hydra.job.name) in self.jobs
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """Create the parent run and export its id to the jobs."""
+        if not self._active(config):
+            return
+        overrides = [str(o) for o in config.hydra.overrides.task]
+        swept = sweep_overrides(overrides)
+        name = self.name or "sweep:" + " ".join(swept or overrides or ["(no overrides)"])
+        tags = {
+            "sweep.overrides": json.dumps(overrides)[:5000],
+            "sweep.swept": json.dumps(swept)[:5000],
+            "sweep.dir": str(config.hydra.sweep.dir),
+        }
+        self.run_id = create_parent_run(config.logger, name, "sweep", tags)
+        self._tracking_uri = mlflow.get_tracking_uri()
+        self._failed = 0
+        keys = (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV)
+        self._saved_env = {k: os.environ.get(k) for k in keys}
+        os.environ.update(dict(zip(keys, (self.run_id, name), strict=True)))
+        # A failed job makes Hydra raise before on_multirun_end: end the parent at exit then.
+        atexit.register(self._end, RunStatus.to_string(RunStatus.FAILED))
+        log.info("MLflow sweep %r: parent run %s", name, self.run_id)
+
+    def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
+        """Count the failed jobs (the parent then ends ``FAILED``)."""
+        if self.run_id and job_return.status == JobStatus.FAILED:
+            self._failed += 1
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        """Summarise the children into the parent and end it."""
+        if self.run_id is None:
+            return
+        try:
+            mlflow.set_tracking_uri(self._tracking_uri)
+            metric = str(config.get("optimized_metric") or "val/loss")
+            summary = summarise_children(self.run_id, metric)
+            log.info("MLflow sweep %s: %s", self.run_id, summary)
+        finally:
+            status = RunStatus.FAILED if self._failed else RunStatus.FINISHED
+            self._end(RunStatus.to_string(status))
+
+    def _end(self, status: str) -> None:
+        if self.run_id is None:
+            return
+        run_id, self.run_id = self.run_id, None
+        atexit.unregister(self._end)
+        for key, value in self._saved_env.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+        if self._tracking_uri:
+            mlflow.set_tracking_uri(self._tracking_uri)
+        mlflow.MlflowClient().set_terminated(run_id, status)

@@ -1,0 +1,146 @@
+"""Optuna's RDB storage: opening it (workers racing to create tables), and dead workers' trials."""
+
+from __future__ import annotations
+
+import logging
+import random
+import time
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import mlflow
+import optuna
+import sqlalchemy
+from mlflow.exceptions import MlflowException
+from optuna.trial import FrozenTrial
+
+from generalist_control.common.secrets import redact
+from generalist_control.tracking import mlflow_utils
+
+__all__ = ["fail_stale_trials", "open_storage", "StaleTrialHandler"]
+
+log = logging.getLogger(__name__)
+
+_CREATE_ATTEMPTS = 5
+_BACKENDS = ("sqlite", "postgresql", "mysql")
+
+
+_EXAMPLE = "e.g. sqlite:///optuna.db or postgresql+psycopg2://user:password@host:5432/optuna"
+
+
+def _parse(url: str) -> sqlalchemy.engine.URL:
+    """The parsed storage URL; a clear error for a bad URL or an unsupported database."""
+    try:
+        parsed = sqlalchemy.engine.make_url(str(url))
+    except sqlalchemy.exc.ArgumentError as e:
+        raise ValueError(
+            f"bad Optuna storage URL {redact(url)!r}: not a database URL ({_EXAMPLE})"
+        ) from e
+    backend = parsed.get_backend_name()
+    if backend not in _BACKENDS:
+        hint = " (write postgresql://, not postgres://)" if backend == "postgres" else ""
+        raise ValueError(
+            f"bad Optuna storage URL {redact(url)!r}: database {backend!r} is not one of "
+            f"{', '.join(_BACKENDS)}{hint}; {_EXAMPLE}"
+        )
+    return parsed
+
+
+def _heartbeat_kwargs(heartbeat: Mapping[str, Any] | None, on_stale_trial: Any) -> dict[str, Any]:
+    """``RDBStorage`` keywords of ``hparams_search.heartbeat`` (none when it is off)."""
+    hb = dict(heartbeat or {})
+    if not hb.get("interval"):
+        return {}
+    return {
+        "heartbeat_interval": int(hb["interval"]),
+        "grace_period": int(hb["grace_period"]) if hb.get("grace_period") else None,
+        "heartbeat_stale_trial_callback": on_stale_trial,
+    }
+
+
+def open_storage(
+    url: str,
+    heartbeat: Mapping[str, Any] | None = None,
+    on_stale_trial: Any | None = None,
+) -> optuna.storages.RDBStorage:
+    """Open (and create the tables of) the Optuna RDB storage at ``url``.
+
+    Parameters
+    ----------
+    url : str
+        SQLAlchemy URL: ``sqlite:///optuna.db`` (relative to the working directory),
+        ``postgresql+psycopg2://user:password@host:5432/db``, or a MySQL URL.
+    heartbeat : mapping, optional
+        ``interval`` and ``grace_period`` (positive whole seconds); ``interval`` null
+        turns the heartbeat (and the failing of dead workers' trials) off.
+    on_stale_trial : callable, optional
+        Called with ``(study, trial)`` for each trial the heartbeat check sets to ``FAIL``.
+
+    Raises
+    ------
+    ValueError
+        An unparsable URL or an unsupported database.
+    ConnectionError
+        The database cannot be reached or opened.
+    """
+    parsed = _parse(url)
+    backend = parsed.get_backend_name()
+    if backend == "sqlite" and parsed.database not in (None, "", ":memory:"):
+        Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
+    kwargs = _heartbeat_kwargs(heartbeat, on_stale_trial)
+    engine_kwargs = {} if backend == "sqlite" else {"pool_pre_ping": True}
+    where = redact(url)
+    for attempt in range(1, _CREATE_ATTEMPTS + 1):
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                return optuna.storages.RDBStorage(str(url), engine_kwargs=engine_kwargs, **kwargs)
+        except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError) as e:
+            # workers that start together on an empty database race to create the tables:
+            # the loser sees "already exists" and tries again
+            if attempt == _CREATE_ATTEMPTS:
+                raise ConnectionError(f"cannot create the Optuna tables in {where}: {e}") from e
+            time.sleep(0.5 * attempt + random.random())
+        except (sqlalchemy.exc.SQLAlchemyError, ImportError) as e:
+            reason = str(getattr(e, "orig", None) or e).strip()
+            raise ConnectionError(f"cannot open the Optuna storage {where}: {reason}") from e
+    raise AssertionError("unreachable")
+
+
+class StaleTrialHandler:
+    """Heartbeat-stale trial (its worker died): log it, end its MLflow run, maybe retry."""
+
+    def __init__(self, logger: Mapping[str, Any], max_retry: int) -> None:
+        self.logger = dict(logger)
+        self.max_retry = int(max_retry or 0)
+
+    def __call__(self, study: optuna.Study, trial: FrozenTrial) -> None:
+        """Fail the trial's MLflow run; retry the trial if configured."""
+        log.warning(
+            "trial %d of study %r lost its worker (no heartbeat within the grace period): FAIL",
+            trial.number,
+            study.study_name,
+        )
+        run_id = trial.user_attrs.get("mlflow_run_id")
+        if run_id:
+            try:
+                mlflow_utils.set_tracking(self.logger)
+                client = mlflow.MlflowClient()
+                client.set_tag(run_id, "optuna.state", "FAIL")
+                client.set_terminated(run_id, "FAILED")
+            except MlflowException as e:  # the run lives in another store
+                log.warning("could not end MLflow run %s of trial %d: %s", run_id, trial.number, e)
+        if self.max_retry > 0:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                retry = optuna.storages.RetryHeartbeatStaleTrialCallback(self.max_retry)
+            retry(study, trial)
+
+
+def fail_stale_trials(study: optuna.Study) -> None:
+    """Set every trial of ``study`` whose worker stopped beating to ``FAIL``."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        optuna.storages.fail_stale_trials(study)

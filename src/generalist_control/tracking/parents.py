@@ -1,0 +1,117 @@
+"""Parent runs: one MLflow run that groups the training runs of a sweep or a study.
+
+A parent is created with :func:`create_parent_run`; inside :func:`parent_run` (or with
+``GC_PARENT_RUN_ID`` set) every training run is filed under it
+(:func:`generalist_control.tracking.mlflow_utils.parent_run_tags`), and
+:func:`summarise_children` logs the best child to the parent.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from typing import Any
+
+import mlflow
+
+from generalist_control.tracking import mlflow_utils
+
+__all__ = ["ROLE_TAG", "create_parent_run", "parent_run", "summarise_children"]
+
+#: Tag that marks a parent run and says what it groups (``sweep`` or ``study``).
+ROLE_TAG = "gc.role"
+
+
+def create_parent_run(
+    logger: Mapping[str, Any],
+    name: str,
+    role: str,
+    tags: Mapping[str, str] | None = None,
+) -> str:
+    """Create a ``RUNNING`` parent run in ``logger``'s experiment; return its id.
+
+    Parameters
+    ----------
+    logger : mapping
+        The ``logger`` config (tracking URI, experiment name, artifact location).
+    name : str
+        Run name, shown in the MLflow UI; also the children's ``sweep`` tag.
+    role : str
+        What the parent groups: ``"sweep"`` (a multirun) or ``"study"`` (Optuna).
+    tags : mapping, optional
+        Further tags of the parent run.
+    """
+    exp_id = mlflow_utils.experiment_id(logger)
+    run = mlflow.MlflowClient().create_run(
+        exp_id, run_name=name, tags={ROLE_TAG: role, "sweep": name, **(tags or {})}
+    )
+    return run.info.run_id
+
+
+@contextmanager
+def parent_run(run_id: str, name: str) -> Iterator[None]:
+    """Within the block, new training runs are children of ``run_id`` (tag ``sweep=name``).
+
+    The previous values of ``GC_PARENT_RUN_ID`` and ``GC_SWEEP_NAME`` come back afterwards.
+    """
+    keys = (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV)
+    saved = {k: os.environ.get(k) for k in keys}
+    os.environ.update(dict(zip(keys, (run_id, name), strict=True)))
+    try:
+        yield
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def summarise_children(parent_id: str, metric: str = "val/loss", mode: str = "min") -> dict:
+    """Log a summary of the parent's child runs to the parent; return it.
+
+    Parameters
+    ----------
+    parent_id : str
+        The parent run (its experiment is searched for runs tagged with it).
+    metric : str
+        The children's score: their ``best/<metric>`` if logged, else ``<metric>``.
+    mode : {"min", "max"}
+        Whether lower or higher is better.
+
+    Returns
+    -------
+    dict
+        ``n_runs``, ``n_finished`` and, when a child has the metric, ``best_value`` and
+        ``best_run_id``; logged as ``sweep/n_runs``, ``sweep/n_finished``,
+        ``sweep/best/<metric>`` and the tag ``sweep.best_run_id``.
+    """
+    if mode not in ("min", "max"):
+        raise ValueError(f"mode must be 'min' or 'max', not {mode!r}")
+    client = mlflow.MlflowClient()
+    parent = client.get_run(parent_id)
+    children = client.search_runs(
+        [parent.info.experiment_id],
+        filter_string=f"tags.mlflow.parentRunId = '{parent_id}'",
+        max_results=10_000,
+    )
+    summary: dict[str, Any] = {
+        "n_runs": len(children),
+        "n_finished": sum(c.info.status == "FINISHED" for c in children),
+    }
+    scored = []
+    for child in children:
+        value = child.data.metrics.get(f"best/{metric}", child.data.metrics.get(metric))
+        if value is not None and math.isfinite(value):
+            scored.append((value, child.info.run_id))
+    metrics = {"sweep/n_runs": summary["n_runs"], "sweep/n_finished": summary["n_finished"]}
+    if scored:
+        best_value, best_id = (min if mode == "min" else max)(scored)
+        summary.update(best_value=best_value, best_run_id=best_id)
+        metrics[f"sweep/best/{metric}"] = best_value
+        client.set_tag(parent_id, "sweep.best_run_id", best_id)
+    for key, value in metrics.items():
+        client.log_metric(parent_id, key, float(value))
+    return summary

@@ -1,0 +1,206 @@
+"""Training and validation windows of ``data/demos``, split by trajectory, held in memory.
+
+The windows come from the one window builder (:meth:`DemoSet.windows
+<generalist_control.demos.DemoSet.windows>`). The split is by trajectory, stratified by
+plant: a fraction of each plant's trajectories (at least one, when it has two or more)
+goes to validation, so no window of a validation trajectory is seen in training and every
+plant has a validation MSE.
+
+All windows live in a few tensors (about 110 MB for the full 317k-window set). Batches are
+cut by a sampler that yields whole index batches (shuffled per epoch from ``seed + epoch``,
+so a resumed run sees the same order as an uninterrupted one) and a dataset that indexes
+the tensors with them: one gather per batch, no per-sample ``__getitem__`` and no worker
+processes, which would only copy the tensors around.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from generalist_control.data.demos import load_demos
+from generalist_control.data.windows import Windows
+
+__all__ = ["BatchIndexSampler", "DemoDataModule", "WindowTensors", "split_by_trajectory"]
+
+FIELDS = ("state", "mask", "ref", "tag", "target")
+
+
+def split_by_trajectory(plant: np.ndarray, val_fraction: float, seed: int) -> np.ndarray:
+    """Validation flags of ``B`` trajectories, stratified by plant.
+
+    Parameters
+    ----------
+    plant : ndarray of str, shape (B,)
+        Plant of each trajectory.
+    val_fraction : float
+        Fraction of each plant's trajectories for validation, in ``[0, 1)``; a plant with
+        two or more trajectories gets at least one.
+    seed : int
+
+    Returns
+    -------
+    ndarray of bool, shape (B,)
+    """
+    if not 0.0 <= val_fraction < 1.0:
+        raise ValueError(f"loader.val_fraction must lie in [0, 1), got {val_fraction}")
+    rng = np.random.default_rng(seed)
+    is_val = np.zeros(len(plant), dtype=bool)
+    if val_fraction == 0.0:
+        return is_val
+    for name in np.unique(plant):
+        idx = np.flatnonzero(plant == name)
+        n_val = min(len(idx) - 1, max(1, round(val_fraction * len(idx))))
+        is_val[rng.permutation(idx)[:n_val]] = True
+    return is_val
+
+
+class WindowTensors(Dataset):
+    """Window tensors indexed a whole batch at a time: ``ds[idx]`` -> dict of tensors."""
+
+    def __init__(self, windows: Windows, keep: np.ndarray | None = None) -> None:
+        sel = slice(None) if keep is None else np.flatnonzero(keep)
+        self.tensors: dict[str, Tensor] = {
+            k: torch.from_numpy(np.ascontiguousarray(getattr(windows, k)[sel])) for k in FIELDS
+        }
+
+    def __len__(self) -> int:
+        return self.tensors["tag"].shape[0]
+
+    def append(self, windows: Windows) -> None:
+        """Add windows (e.g. DAgger's); a dataloader built afterwards sees them."""
+        for k in FIELDS:
+            extra = torch.from_numpy(np.ascontiguousarray(getattr(windows, k)))
+            self.tensors[k] = torch.cat([self.tensors[k], extra.to(self.tensors[k].dtype)])
+
+    def __getitem__(self, idx: Tensor) -> dict[str, Tensor]:
+        return {k: v[idx] for k, v in self.tensors.items()}
+
+
+class BatchIndexSampler(Sampler[Tensor]):
+    """Index batches over ``n`` items, reshuffled each epoch from ``seed + epoch``."""
+
+    def __init__(self, n: int, batch_size: int, shuffle: bool, seed: int = 0) -> None:
+        if batch_size < 1:
+            raise ValueError(f"batch size must be positive, got {batch_size}")
+        self.n, self.batch_size, self.shuffle, self.seed = n, batch_size, shuffle, seed
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """Called by Lightning at the start of every training epoch."""
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return math.ceil(self.n / self.batch_size)
+
+    def __iter__(self) -> Iterator[Tensor]:
+        if self.shuffle:
+            g = torch.Generator().manual_seed(self.seed + self.epoch)
+            order = torch.randperm(self.n, generator=g)
+        else:
+            order = torch.arange(self.n)
+        yield from order.split(self.batch_size)
+
+
+class DemoDataModule(L.LightningDataModule):
+    """Windows of the dataset at ``data_dir`` for Lightning.
+
+    Parameters
+    ----------
+    data_dir : str or Path
+        Directory written by the ``generate`` stage.
+    history, horizon : int
+        Window sizes (the policy's ``T_h`` and ``K``).
+    val_fraction : float
+        Fraction of each plant's trajectories held out for validation.
+    batch_size, val_batch_size : int
+    seed : int
+        Seeds the split and the per-epoch shuffling.
+    integral : bool
+        Windows carry the tracking-error integral as the last state channel
+        (``model.integral``; see :func:`~generalist_control.windows.integral_of_error`).
+
+    Attributes
+    ----------
+    manifest : dict
+        The dataset's manifest (after :meth:`setup`).
+    train_set, val_set : WindowTensors
+    tags, orders : dict of str to int
+        Plant name -> system tag and state dimension, for the plants in the data.
+    """
+
+    def __init__(
+        self,
+        data_dir: str | Path,
+        history: int,
+        horizon: int,
+        val_fraction: float = 0.1,
+        batch_size: int = 512,
+        val_batch_size: int = 8192,
+        seed: int = 0,
+        integral: bool = False,
+    ) -> None:
+        super().__init__()
+        self.data_dir = Path(data_dir)
+        self.integral = bool(integral)
+        self.history, self.horizon = int(history), int(horizon)
+        self.val_fraction = float(val_fraction)
+        self.batch_size, self.val_batch_size = int(batch_size), int(val_batch_size)
+        self.seed = int(seed)
+        self.manifest: dict[str, Any] = {}
+        self.tags: dict[str, int] = {}
+        self.orders: dict[str, int] = {}
+        self.dt = float("nan")
+        self.train_set: WindowTensors | None = None
+        self.val_set: WindowTensors | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        """Load the data and split it (once).
+
+        Raises
+        ------
+        generalist_control.demos.MissingDataError
+            If ``data_dir`` holds no dataset; the message gives the command that creates it.
+        """
+        if self.train_set is not None:
+            return
+        demos, self.manifest = load_demos(self.data_dir)
+        windows = demos.windows(self.history, self.horizon, self.integral)
+        is_val = split_by_trajectory(demos.plant, self.val_fraction, self.seed)[windows.traj]
+        self.train_set = WindowTensors(windows, ~is_val)
+        self.val_set = WindowTensors(windows, is_val)
+        self.tags = {str(p): int(t) for p, t in zip(demos.plant, demos.tag, strict=True)}
+        self.orders = {str(p): int(n) for p, n in zip(demos.plant, demos.order, strict=True)}
+        self.dt = float(demos.dt)
+
+    def meta(self) -> dict[str, Any]:
+        """Plain-typed facts a trained policy needs to be traced and deployed."""
+        return {
+            "tags": dict(self.tags),
+            "orders": dict(self.orders),
+            "dt": self.dt,
+            "history": self.history,
+            "horizon": self.horizon,
+            "content_hash": str(self.manifest.get("content_hash", "")),
+            "data_dir": str(self.data_dir),
+            "n_train": len(self.train_set or ()),
+            "n_val": len(self.val_set or ()),
+        }
+
+    def train_dataloader(self) -> DataLoader:
+        """Shuffled index batches over the training windows."""
+        sampler = BatchIndexSampler(len(self.train_set), self.batch_size, True, self.seed)
+        return DataLoader(self.train_set, sampler=sampler, batch_size=None)
+
+    def val_dataloader(self) -> DataLoader:
+        """Validation windows in order."""
+        sampler = BatchIndexSampler(len(self.val_set), self.val_batch_size, False)
+        return DataLoader(self.val_set, sampler=sampler, batch_size=None)

@@ -1,0 +1,218 @@
+"""Training: demonstrations -> trained policy, logged to MLflow.
+
+:func:`train` does the work for the ``train`` stage (:mod:`generalist_control.train`, run
+as ``python train.py``) and for every sweep job and Optuna trial. Outputs:
+
+* ``<run_dir>/checkpoints/``: Lightning checkpoints (best on ``monitor``, and ``last.ckpt``
+  to resume with ``ckpt_path=<run_dir>/checkpoints/last.ckpt``);
+* ``<paths.models_dir>/policy.ckpt`` (the best policy, loadable with
+  :func:`generalist_control.model.policy.load_policy`) and ``metrics.json``;
+* one MLflow run (see :mod:`generalist_control.tracking.mlflow_utils`).
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from pathlib import Path
+from typing import Any
+
+import hydra
+import lightning as L
+import mlflow
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from generalist_control.common.jsonsafe import write_json
+from generalist_control.deploy.runtime import integral_facts
+from generalist_control.model.network import count_parameters
+from generalist_control.model.policy import POLICY_FILE, Policy, load_policy, save_policy
+from generalist_control.tracking import mlflow_utils
+from generalist_control.training import outputs
+from generalist_control.training.datamodule import DemoDataModule
+from generalist_control.training.lit_module import ImitationModule
+from generalist_control.training.setup import (
+    check_resume,
+    closed_loop_validation,
+    config_callbacks,
+    dagger_callback,
+    model_config,
+    training_plants,
+)
+
+__all__ = ["METRICS_FILE", "train"]
+
+log = logging.getLogger(__name__)
+
+METRICS_FILE = "metrics.json"
+
+
+def _data(cfg: DictConfig) -> tuple[DemoDataModule, dict[str, Any]]:
+    """The loaded, split data and the meta a policy trained on it carries."""
+    dm = DemoDataModule(
+        cfg.paths.data_dir,
+        cfg.data.history,
+        cfg.data.horizon,
+        seed=int(cfg.seed or 0),
+        integral=bool(cfg.model.get("integral", False)),
+        **cfg.loader,
+    )
+    dm.setup("fit")
+    return dm, {**dm.meta(), **integral_facts(list(dm.tags))}
+
+
+def _module(cfg: DictConfig, dm: DemoDataModule, meta: dict[str, Any]) -> ImitationModule:
+    """The Lightning module, its normaliser fitted, its linear head started as configured."""
+    model_cfg = model_config(cfg)
+    scheduler = cfg.model.get("scheduler")
+    if scheduler is not None and "T_max" in scheduler and scheduler.T_max is None:
+        scheduler = OmegaConf.merge(scheduler, {"T_max": int(cfg.trainer.max_epochs)})
+    lit = ImitationModule(
+        model=model_cfg,
+        optimizer=OmegaConf.to_container(cfg.model.optimizer, resolve=True),
+        scheduler=OmegaConf.to_container(scheduler, resolve=True) if scheduler else None,
+        meta=meta,
+    )
+    lit.policy.normaliser.fit(**dm.train_set.tensors)
+    linear_init = cfg.model.get("linear_init", "zero")
+    if linear_init not in ("zero", "lstsq"):
+        raise ValueError(f"model.linear_init must be 'zero' or 'lstsq', got {linear_init!r}")
+    if linear_init == "lstsq" and model_cfg["linear_head"] and not cfg.get("ckpt_path"):
+        residuals = lit.policy.fit_linear_head(**dm.train_set.tensors)
+        names = {t: n for n, t in dm.tags.items()}
+        worst = max(residuals, key=residuals.__getitem__)
+        log.info(
+            "linear head: least-squares start, worst relative residual %.3g (%s)",
+            residuals[worst],
+            names.get(worst, worst),
+        )
+    return lit
+
+
+def _trainer(
+    cfg: DictConfig, run_dir: Path, meta: dict[str, Any]
+) -> tuple[L.Trainer, L.pytorch.callbacks.ModelCheckpoint, mlflow_utils.MLflowEpochLogger]:
+    """The Lightning trainer with the config's callbacks, DAgger and closed-loop validation."""
+    callbacks = config_callbacks(cfg, run_dir)
+    ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
+    epoch_logger = mlflow_utils.MLflowEpochLogger()
+    plants = training_plants(cfg, meta)
+    dagger = dagger_callback(cfg, plants)
+    extra = {"reload_dataloaders_every_n_epochs": 1} if dagger else {}
+    own = [c for c in (dagger, closed_loop_validation(cfg, plants)) if c is not None]
+    trainer: L.Trainer = hydra.utils.instantiate(
+        cfg.trainer,
+        callbacks=[*callbacks, *own, epoch_logger],
+        logger=False,
+        default_root_dir=str(run_dir),
+        **extra,
+    )
+    return trainer, ckpt_cb, epoch_logger
+
+
+def _fit(
+    trainer: L.Trainer,
+    lit: ImitationModule,
+    dm: DemoDataModule,
+    ckpt_path: str | None,
+    ckpt_cb: L.pytorch.callbacks.ModelCheckpoint,
+) -> tuple[str, dict[str, Any]]:
+    """Fit, then validate the best checkpoint; return its path and the metrics."""
+    with warnings.catch_warnings():
+        # batches are gathered from in-memory tensors: worker processes would only slow it
+        warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+        trainer.fit(lit, datamodule=dm, ckpt_path=ckpt_path)
+        best = ckpt_cb.best_model_path or ckpt_cb.last_model_path
+        train_loss = float(trainer.callback_metrics.get("train/loss", float("nan")))
+        trainer.validate(lit, datamodule=dm, ckpt_path=best, verbose=False)
+    best_metrics = {
+        k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val/")
+    }
+    metrics: dict[str, Any] = {
+        **best_metrics,
+        "train/loss": train_loss,
+        "n_parameters": count_parameters(lit.policy),
+        "epochs": int(trainer.current_epoch),
+        "global_step": int(trainer.global_step),
+    }
+    mlflow.log_metrics(
+        {f"best/{k}": v for k, v in best_metrics.items()}, step=trainer.current_epoch
+    )
+    return best, metrics
+
+
+def _publish(
+    cfg: DictConfig, best: str, metrics: dict[str, Any], meta: dict[str, Any], run_id: str
+) -> tuple[Policy, Path]:
+    """Save the best policy and its metrics, log them to the run, add closed-loop scores."""
+    policy, _ = load_policy(best)
+    models_dir = outputs.job_models_dir(cfg)
+    mlflow.set_tag("policy_dir", str(models_dir.resolve()))
+    policy_meta = {**meta, "metrics": metrics, "mlflow_run_id": run_id}
+    policy_path = save_policy(models_dir / POLICY_FILE, policy, policy_meta)
+    metrics_path = write_json(models_dir / METRICS_FILE, metrics, sort_keys=True)
+    mlflow.log_artifact(best, "checkpoints")
+    mlflow.log_artifact(str(policy_path), "policy")
+    mlflow.log_artifact(str(metrics_path), "policy")
+    scores = outputs.closed_loop_scores(cfg, policy, policy_meta)
+    if scores:
+        mlflow.log_metrics({k: v for k, v in scores.items() if np.isfinite(v)})
+        metrics.update(scores)
+        write_json(metrics_path, metrics, sort_keys=True)
+    return policy, policy_path
+
+
+def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Train the policy described by ``cfg``; return its metrics and the objects made.
+
+    Parameters
+    ----------
+    cfg : DictConfig
+        The composed primary config (``conf/config.yaml``).
+
+    Returns
+    -------
+    metrics : dict
+        ``val/loss`` and ``val/mse/<plant>`` of the best checkpoint, ``train/loss`` of the
+        last epoch, ``n_parameters``, ``epochs``, ``global_step``.
+    objects : dict
+        ``trainer``, ``model`` (the LightningModule), ``datamodule``, ``policy`` (the best),
+        ``run_id`` (MLflow), ``best_checkpoint``, ``policy_path``.
+
+    Raises
+    ------
+    generalist_control.data.demos.MissingDataError
+        Before anything is logged, if there is no dataset at ``paths.data_dir``.
+    """
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    if cfg.get("seed") is not None:
+        L.seed_everything(int(cfg.seed), workers=True)
+    dm, meta = _data(cfg)
+    ckpt_path = cfg.get("ckpt_path")
+    if ckpt_path:
+        check_resume(ckpt_path, meta)
+    lit = _module(cfg, dm, meta)
+    n_params = count_parameters(lit.policy)
+    run_dir = outputs.run_dir(cfg)
+    trainer, ckpt_cb, epoch_logger = _trainer(cfg, run_dir, meta)
+    resume_id = mlflow_utils.run_id_from_checkpoint(ckpt_path) if ckpt_path else None
+    with mlflow_utils.mlflow_run(cfg.logger, resume_run_id=resume_id) as run:
+        run_id = epoch_logger.run_id = run.info.run_id
+        outputs.log_inputs(cfg, dm, n_params, run_dir)
+        log.info("MLflow run %s (%s); %d parameters", run_id, mlflow.get_tracking_uri(), n_params)
+        best, metrics = _fit(trainer, lit, dm, ckpt_path, ckpt_cb)
+        policy, policy_path = _publish(cfg, best, metrics, meta, run_id)
+        if cfg.logger.get("log_model", True):
+            outputs.log_model(policy, dm.val_set.tensors)
+    objects = {
+        "trainer": trainer,
+        "model": lit,
+        "datamodule": dm,
+        "policy": policy,
+        "run_id": run_id,
+        "best_checkpoint": best,
+        "policy_path": policy_path,
+    }
+    return metrics, objects

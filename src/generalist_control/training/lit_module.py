@@ -1,0 +1,120 @@
+"""Lightning training of a :class:`~generalist_control.policy.Policy` by behaviour cloning.
+
+The loss is the MSE between the network's ``horizon`` controls and the LQI expert's, both in
+the per-tag normalised units of the policy's :class:`~generalist_control.normalise.Normaliser`
+(so every plant weighs alike whatever the scale of its input). Logged names:
+``train/loss`` and ``val/loss`` per epoch and ``val/mse/<plant>`` (normalised units).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import lightning as L
+import torch
+from hydra.utils import instantiate
+from torch import Tensor
+
+from generalist_control.model.policy import Policy
+
+__all__ = ["ImitationModule"]
+
+
+class ImitationModule(L.LightningModule):
+    """Behaviour cloning of the LQI experts.
+
+    Parameters
+    ----------
+    model : dict
+        Network config (:func:`generalist_control.model.controller_config`).
+    optimizer : dict
+        Hydra config of a partial optimiser (``_target_``, ``_partial_: true``, ...).
+    scheduler : dict, optional
+        Hydra config of a partial epoch-wise LR scheduler.
+    meta : dict, optional
+        Plain-typed data facts (``tags`` plant -> tag, ``dt``, ``content_hash``, ...),
+        stored in every checkpoint with the hyper-parameters.
+
+    Notes
+    -----
+    All arguments are plain dicts, so checkpoints load with ``weights_only=True``; the
+    normaliser's scales are buffers of ``policy`` and are saved in its ``state_dict``.
+    """
+
+    def __init__(
+        self,
+        model: dict[str, Any],
+        optimizer: dict[str, Any],
+        scheduler: dict[str, Any] | None = None,
+        meta: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.policy = Policy(model)
+        tags = (meta or {}).get("tags", {})
+        self.tag_names = {int(t): str(name) for name, t in tags.items()}
+        n_tags = self.policy.config["n_tags"]
+        self._val_sse = torch.zeros(n_tags, dtype=torch.float64)
+        self._val_count = torch.zeros(n_tags, dtype=torch.float64)
+
+    def forward(
+        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """Controls in plant units and gate weights (see :meth:`Policy.forward`)."""
+        return self.policy(state, mask, ref, tag)
+
+    def _errors(self, batch: dict[str, Tensor]) -> Tensor:
+        """Squared errors (B, horizon) in normalised units, relative to the window scale.
+
+        Without ``window_scale`` the scale is one: the paper's MSE in normalised units.
+        """
+        u, _, s = self.policy.scaled(batch["state"], batch["mask"], batch["ref"], batch["tag"])
+        target = self.policy.normaliser.normalise_controls(batch["target"], batch["tag"])
+        return (u - target / s) ** 2
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        """MSE on the control sequence of one batch."""
+        loss = self._errors(batch).mean()
+        self.log(
+            "train/loss",
+            loss,
+            on_step=False,
+            on_epoch=True,
+            prog_bar=True,
+            logger=False,
+            batch_size=batch["tag"].shape[0],
+        )
+        return loss
+
+    def on_validation_epoch_start(self) -> None:
+        """Reset the per-tag error sums."""
+        self._val_sse = torch.zeros_like(self._val_sse, device=self.device)
+        self._val_count = torch.zeros_like(self._val_count, device=self.device)
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        """Accumulate squared errors per system tag."""
+        err = self._errors(batch).to(torch.float64)
+        self._val_sse.index_add_(0, batch["tag"], err.sum(1))
+        self._val_count.index_add_(0, batch["tag"], torch.full_like(err[:, 0], err.shape[1]))
+
+    def on_validation_epoch_end(self) -> None:
+        """Log ``val/loss`` (MSE over all validation windows) and ``val/mse/<plant>``."""
+        total = self._val_count.sum()
+        if total == 0:
+            return
+        self.log("val/loss", (self._val_sse.sum() / total).float(), prog_bar=True, logger=False)
+        for tag in torch.nonzero(self._val_count).flatten().tolist():
+            name = self.tag_names.get(tag, f"tag{tag}")
+            mse = self._val_sse[tag] / self._val_count[tag]
+            self.log(f"val/mse/{name}", mse.float(), logger=False)
+
+    def configure_optimizers(self) -> dict[str, Any]:
+        """The optimiser (and epoch-wise scheduler) from the Hydra partials in the hparams."""
+        optimizer = instantiate(self.hparams.optimizer)(params=self.parameters())
+        if not self.hparams.scheduler:
+            return {"optimizer": optimizer}
+        scheduler = instantiate(self.hparams.scheduler)(optimizer=optimizer)
+        return {
+            "optimizer": optimizer,
+            "lr_scheduler": {"scheduler": scheduler, "interval": "epoch", "frequency": 1},
+        }
