@@ -4,7 +4,7 @@ export DVC_NO_ANALYTICS := 1
 # DVC runs each stage's `python -m ...` through the shell: the venv's python must come first.
 export PATH := $(CURDIR)/.venv/bin:$(PATH)
 
-.PHONY: setup pipeline data test lint format bench clean
+.PHONY: setup pipeline data test test-fast lint typecheck format bench clean
 
 setup:
 	bash scripts/setup.sh
@@ -17,14 +17,24 @@ pipeline: setup
 data: setup
 	$(VENV)/dvc repro generate
 
-## Lint and the whole test suite (what CI runs).
+## Lint, type check and the whole test suite (what CI runs).
 test: setup
 	$(VENV)/ruff check src tests benchmarks scripts train.py tune.py
+	$(VENV)/mypy
 	$(VENV)/python -m pytest -q
+
+## The fast tests only (no whole-stage runs: those are marked slow), a minute or two.
+test-fast: setup
+	$(VENV)/python -m pytest -q -m "not slow"
 
 lint: setup
 	$(VENV)/ruff check src tests benchmarks scripts train.py tune.py
 	$(VENV)/ruff format --check src tests benchmarks scripts train.py tune.py
+	$(VENV)/mypy
+
+## The type checker alone (mypy on src/, settings in pyproject.toml).
+typecheck: setup
+	$(VENV)/mypy
 
 format: setup
 	$(VENV)/ruff format src tests benchmarks scripts train.py tune.py

@@ -17,8 +17,9 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.mlflow_log import log_to_mlflow
@@ -41,8 +42,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     mlflow_utils.set_tracking(cfg.logger)  # for runs:/ and models:/ policy URIs
     runtime = PolicyRuntime.load(source, backend=cfg.evaluation.get("backend", "torch"))
     plants = plants_from_config(cfg.systems)
-    scen = OmegaConf.to_container(cfg.evaluation.scenarios, resolve=True)
-    cf = OmegaConf.to_container(cfg.evaluation.get("crazyflie") or {}, resolve=True)
+    scen = as_dict(cfg.evaluation.scenarios)
+    cf = as_dict(cfg.evaluation.get("crazyflie") or {})
     df, trajs = evaluate(runtime, plants, scen, cf)
     summary = write_reports(df, trajs, out_dir, bool(cfg.evaluation.get("plots", True)))
     log_to_mlflow(cfg, runtime.meta, summary, out_dir)

@@ -7,6 +7,8 @@ and the ablation figures of Section 7.
 
 from __future__ import annotations
 
+from typing import Any
+
 __all__ = ["ABLATION", "TABLE2", "TABLE2_COLUMNS", "TABLE2_METRICS"]
 
 #: Table 2 column label for each of the seven systems, in the paper's order.
@@ -63,7 +65,7 @@ TABLE2: dict[str, dict[str, dict[str, float]]] = {
 }
 
 #: Section 7 figures: final training loss per configuration, parameter counts, MSEs.
-ABLATION = {
+ABLATION: dict[str, dict[str, Any]] = {
     "final_train_loss": {
         "d=32,M=3": 9.43e-4,
         "d=16,M=3": 1.02e-2,

@@ -62,13 +62,13 @@ def plot_all(trajs: Mapping[str, Mapping[str, Mapping[str, Trajectory]]], out: P
         fig.savefig(path, dpi=80)
         plt.close(fig)
         written.append(path)
-    for scen, by_ctrl in trajs.items():
+    for scen, runs in trajs.items():
         if scen in ("step", "sine", "ramp", "composite", "random_steps"):
             continue
-        for s in by_ctrl.get("GC", {}):
+        for s in runs.get("GC", {}):
             fig, (ax_y, ax_u) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
-            order = tuple(c for c in ("GC", "GC-AW", "LQI", "LQI-AW") if c in by_ctrl)
-            _panel(ax_y, ax_u, {c: by_ctrl[c][s] for c in by_ctrl}, order)
+            order = tuple(c for c in ("GC", "GC-AW", "LQI", "LQI-AW") if c in runs)
+            _panel(ax_y, ax_u, {c: runs[c][s] for c in runs}, order)
             ax_y.set_title(f"{s}: {scen}")
             fig.subplots_adjust(left=0.11, right=0.97, bottom=0.1, top=0.94, hspace=0.08)
             path = out / f"{s}_{scen}.png"

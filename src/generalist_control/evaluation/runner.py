@@ -31,6 +31,7 @@ from generalist_control.simulation.metrics import step_metrics, tracking_metrics
 from generalist_control.simulation.scenarios import perturbation, references
 from generalist_control.simulation.simulate import (
     BatchController,
+    Controller,
     PerPlantController,
     Perturbation,
     Run,
@@ -82,7 +83,7 @@ def _crazyflie(
     """The sim-to-real stand-in (:mod:`~generalist_control.simulation.crazyflie`): metric rows."""
     steps = int(round(float(spec.get("duration", 15.0)) * 100))
     r = np.full((int(spec.get("runs", 4)), steps), float(spec.get("amplitude", 1.0)))
-    ctrls = {
+    ctrls: dict[str, Controller] = {
         "GC": SinglePlantAdapter(runtime, plant.name),
         "LQI": LQIController(plant),
         "LQI-AW": LQIController(plant),  # no known limits to wind up against here

@@ -136,8 +136,9 @@ class Policy(nn.Module):
                 res.pow(2).mean().sqrt() / Y.pow(2).mean().sqrt().clamp(min=1e-30)
             )
         for expert in self.net.experts:
-            expert[-1].weight.zero_()
-            expert[-1].bias.zero_()
+            last = expert[-1]  # type: ignore[index]  # an ExpertMLP (nn.Sequential)
+            last.weight.zero_()
+            last.bias.zero_()
         return residuals
 
     def normalised(

@@ -56,6 +56,7 @@ from generalist_control.common.atomic import (
     publish_directory,
     staging_directory,
 )
+from generalist_control.common.configs import as_dict
 from generalist_control.reports.comparison import comparison_markdown
 from generalist_control.reports.figures import (
     draw_gate_heatmap,
@@ -300,7 +301,7 @@ def _log_to_mlflow(
     """Log the report as a ``report`` run of the experiment; return its run id."""
     rcfg = cfg.report
     logger = {
-        **OmegaConf.to_container(cfg.logger, resolve=True),
+        **as_dict(cfg.logger),
         "experiment_name": experiment,
         "run_name": rcfg.get("run_name") or "ablation-report",
     }
@@ -345,7 +346,7 @@ def build_report(cfg: DictConfig) -> dict[str, Any]:
     uri = mlflow_utils.set_tracking(cfg.logger)
     client = mlflow_client(uri)
     points = runs_from_mlflow(experiment, rcfg.get("filter_string") or "", client)
-    baseline = OmegaConf.to_container(rcfg.baseline, resolve=True)
+    baseline = as_dict(rcfg.baseline)
     sweeps = select_sweeps(points, list(rcfg.hidden), list(rcfg.experts), baseline)
     if not points:
         raise NoAblationRunsError(
@@ -364,7 +365,7 @@ def build_report(cfg: DictConfig) -> dict[str, Any]:
     if summary_path.is_file():
         eval_summary = json.loads(summary_path.read_text())
     out_dir = Path(rcfg.out_dir)
-    gate = OmegaConf.to_container(rcfg.gate, resolve=True) if rcfg.get("gate") else {}
+    gate = as_dict(rcfg.gate) if rcfg.get("gate") else {}
     summary = write_report(out_dir, sweeps, plants, client, gate, baseline, eval_summary)
     if summary["missing"]:
         log.warning(

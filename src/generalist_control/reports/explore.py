@@ -197,7 +197,8 @@ def plot_windows(demos: DemoSet, history: int, horizon: int, n: int = 4, seed: i
         for j in range(order):
             ax.plot(k_hist, windows.state[i, :, j], marker=".", lw=1, label=f"x{j + 1}")
         ax.plot(k_hist, windows.ref[i], "k--", lw=1, label="r")
-        ax.step(k_next, windows.target[i], where="post", color="C3", lw=2, label="u target")
+        if windows.target is not None:
+            ax.step(k_next, windows.target[i], where="post", color="C3", lw=2, label="u target")
         ax.axvline(0, color="grey", lw=0.5)
         ax.set_title(f"{demos.plant[traj]} (tag {int(windows.tag[i])}), window {i}", fontsize=8)
         ax.set_xlabel("sample k (0 = now)")

@@ -88,7 +88,7 @@ def gate_weights(
     tags = {str(k): int(v) for k, v in meta["tags"].items()}
     if plants is None:
         known = set(available_plants())
-        plants = [k for k in sorted(tags, key=tags.get) if k in known]
+        plants = [k for k in sorted(tags, key=tags.__getitem__) if k in known]
     plants = list(plants)
     missing = [p for p in plants if p not in tags]
     if missing:

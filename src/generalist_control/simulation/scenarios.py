@@ -90,9 +90,10 @@ def perturbation(name: str, spec: Mapping[str, Any]) -> Perturbation | None:
     fields = spec.get("perturbation")
     if not fields:
         return None
+    kwargs: dict[str, Any] = {
+        k: (tuple(v) if isinstance(v, list) else v) for k, v in fields.items()
+    }
     try:
-        return Perturbation(
-            **{k: (tuple(v) if isinstance(v, list) else v) for k, v in fields.items()}
-        )
+        return Perturbation(**kwargs)
     except TypeError as exc:
         raise ScenarioError(f"scenario '{name}': bad perturbation field ({exc})") from exc

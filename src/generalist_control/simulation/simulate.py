@@ -175,6 +175,7 @@ class _Group:
         xm, pert = self.x[:, k], self.pert
         if (
             pert is not None
+            and self.rng is not None
             and pert.noise_std is not None
             and k * self.plant.dt >= pert.noise_start
         ):

@@ -50,7 +50,7 @@ def sweep_overrides(overrides: Sequence[str]) -> list[str]:
     ['model.hidden=16,32', 'experts=1,3']
     """
     parsed = OverridesParser.create().parse_overrides(list(overrides))
-    return [o.input_line for o in parsed if o.is_sweep_override()]
+    return [str(o.input_line) for o in parsed if o.is_sweep_override()]
 
 
 class MLflowSweepCallback(Callback):
@@ -115,7 +115,8 @@ class MLflowSweepCallback(Callback):
         if self.run_id is None:
             return
         try:
-            mlflow.set_tracking_uri(self._tracking_uri)
+            if self._tracking_uri:
+                mlflow.set_tracking_uri(self._tracking_uri)
             metric = str(config.get("optimized_metric") or "val/loss")
             summary = summarise_children(self.run_id, metric)
             log.info("MLflow sweep %s: %s", self.run_id, summary)

@@ -67,10 +67,10 @@ class OptunaPruning(L.Callback):
         """Report the epoch's value; raise :class:`optuna.TrialPruned` if pruned."""
         if trainer.sanity_checking or trainer.state.fn != TrainerFn.FITTING:
             return
-        value = trainer.callback_metrics.get(self.monitor)
-        if value is None:
+        logged = trainer.callback_metrics.get(self.monitor)
+        if logged is None:
             raise KeyError(f"OptunaPruning: no logged metric {self.monitor!r} to report")
-        value, epoch = float(value), int(trainer.current_epoch)
+        value, epoch = float(logged), int(trainer.current_epoch)
         self.trial.report(value, step=epoch)
         if self.trial.should_prune():
             self.trial.set_user_attr("pruned_at_epoch", epoch)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import difflib
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import optuna
 from omegaconf import DictConfig, OmegaConf
@@ -56,14 +56,11 @@ class Param:
         """Draw this parameter's value for ``trial``."""
         if self.type == "categorical":
             return trial.suggest_categorical(self.key, list(self.choices or ()))
+        low, high = float(self.low or 0), float(self.high or 0)  # set for int and float
         if self.type == "int":
             step = int(self.step) if self.step else 1
-            return trial.suggest_int(
-                self.key, int(self.low), int(self.high), step=step, log=self.log
-            )
-        return trial.suggest_float(
-            self.key, float(self.low), float(self.high), step=self.step, log=self.log
-        )
+            return trial.suggest_int(self.key, int(low), int(high), step=step, log=self.log)
+        return trial.suggest_float(self.key, low, high, step=self.step, log=self.log)
 
 
 def parse_space(params: Mapping[str, Any], cfg: DictConfig) -> list[Param]:
@@ -123,7 +120,7 @@ def _specs(node: Any, prefix: str) -> dict[str, Any]:
 
 def _leaf_keys(cfg: DictConfig) -> list[str]:
     container = OmegaConf.to_container(cfg, resolve=False)
-    return list(mlflow_utils.flatten_params(container, exclude=()))
+    return list(mlflow_utils.flatten_params(cast(dict[str, Any], container), exclude=()))
 
 
 def _param(key: str, spec: Any) -> Param:

@@ -42,6 +42,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from optuna.trial import TrialState
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.secrets import redact
 from generalist_control.sweeps.space import parse_space
 from generalist_control.sweeps.storage import StaleTrialHandler, fail_stale_trials, open_storage
@@ -101,8 +102,8 @@ def _study_parent(study: optuna.Study, logger: Mapping[str, Any], storage: str) 
     query = f"tags.`{ROLE_TAG}` = 'study' and tags.`optuna.study` = '{study.study_name}'"
 
     def oldest() -> str | None:
-        runs = client.search_runs([exp_id], filter_string=query, max_results=1000)
-        runs = [r for r in runs if r.data.tags.get("optuna.storage") == storage]
+        found = client.search_runs([exp_id], filter_string=query, max_results=1000)
+        runs = [r for r in found if r.data.tags.get("optuna.storage") == storage]
         runs.sort(key=lambda r: (r.info.start_time, r.info.run_id))
         return runs[0].info.run_id if runs else None
 
@@ -153,17 +154,17 @@ def _summarise(study: optuna.Study, parent_id: str, status: str) -> dict[str, An
     if counts["complete"]:
         best = study.best_trial
         summary.update(best_trial=best.number, best_value=best.value, best_params=best.params)
-        metrics["study/best_value"] = float(best.value)
-        tags = {
+        metrics["study/best_value"] = float(study.best_value)
+        tags: dict[str, str] = {
             "study.best_trial": str(best.number),
             "study.best_params": json.dumps(best.params)[:5000],
         }
         if best.user_attrs.get("mlflow_run_id"):
             tags["study.best_run_id"] = best.user_attrs["mlflow_run_id"]
-        for key, value in tags.items():
-            _shared_write(client.set_tag, parent_id, key, value)
-    for key, value in metrics.items():
-        _shared_write(client.log_metric, parent_id, key, value)
+        for key, text in tags.items():
+            _shared_write(client.set_tag, parent_id, key, text)
+    for key, number in metrics.items():
+        _shared_write(client.log_metric, parent_id, key, number)
     _shared_write(client.set_terminated, parent_id, status)
     return summary
 
@@ -184,7 +185,7 @@ def _checked_search(cfg: DictConfig) -> DictConfig:
     if direction not in ("minimize", "maximize"):
         raise ValueError(f"hparams_search.direction must be minimize or maximize: {direction!r}")
     # resolve once: the trials' configs must not depend on the search section they drop
-    return OmegaConf.create(OmegaConf.to_container(search, resolve=True))
+    return OmegaConf.create(as_dict(search))
 
 
 def _open_study(cfg: DictConfig, search: DictConfig) -> optuna.Study:
@@ -194,7 +195,7 @@ def _open_study(cfg: DictConfig, search: DictConfig) -> optuna.Study:
     heartbeat = search.get("heartbeat") or {}
     handler = StaleTrialHandler(cfg.logger, heartbeat.get("max_retry") or 0)
     storage = open_storage(str(search.storage), heartbeat, handler)
-    direction = str(search.get("direction", "minimize"))
+    direction: Any = str(search.get("direction", "minimize"))
     study = optuna.create_study(
         storage=storage,
         study_name=str(search.study_name),

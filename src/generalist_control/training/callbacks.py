@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any, cast
 
 import lightning as L
 import numpy as np
@@ -10,6 +11,7 @@ import torch
 
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.model.policy import Policy
 from generalist_control.plants.plant import Plant
 from generalist_control.simulation.comparison import closed_loop_score
 
@@ -36,9 +38,9 @@ class ClosedLoopValidation(L.Callback):
         """Score the current policy in closed loop and log it."""
         if trainer.sanity_checking or not self.plants:
             return
-        policy = pl_module.policy
+        policy = cast(Policy, pl_module.policy)
         was_training = policy.training
-        runtime = PolicyRuntime(policy, trainer.datamodule.meta())
+        runtime = PolicyRuntime(policy, cast(Any, trainer).datamodule.meta())
         with torch.inference_mode():
             scores = closed_loop_score(
                 RuntimeAdapter(runtime), self.plants, self.amplitudes, self.duration

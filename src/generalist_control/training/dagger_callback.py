@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import lightning as L
 import numpy as np
 import torch
 
 from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.model.policy import Policy
 from generalist_control.plants.plant import Plant
 from generalist_control.training.dagger import aggregate
 
@@ -92,7 +93,7 @@ class DAggerCallback(L.Callback):
         """Run a round when one is due; append its windows to the training set."""
         if not self._due(trainer.current_epoch + 1):
             return
-        dm = trainer.datamodule
+        dm = cast(Any, trainer).datamodule
         rng = np.random.default_rng(self.seed + self.done)
         amps = {
             p.name: rng.uniform(-self.limit, self.limit, self.rollouts) * p.amplitude_scale
@@ -100,7 +101,7 @@ class DAggerCallback(L.Callback):
         }
         steps = int(round(self.duration / self.plants[0].dt))
         beta = self.beta * self.beta_decay**self.done
-        policy = pl_module.policy
+        policy = cast(Policy, pl_module.policy)
         was_training = policy.training
         runtime = PolicyRuntime(policy, dm.meta())
         integral = runtime.integral
@@ -116,7 +117,7 @@ class DAggerCallback(L.Callback):
         dm.train_set.append(windows)
         self.done += 1
         # The training set changed: early stopping's patience starts again from here.
-        for cb in trainer.callbacks:
+        for cb in cast(Any, trainer).callbacks:
             if isinstance(cb, L.pytorch.callbacks.EarlyStopping):
                 cb.wait_count = 0
         trainer.should_stop = False

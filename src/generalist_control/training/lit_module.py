@@ -108,12 +108,13 @@ class ImitationModule(L.LightningModule):
             mse = self._val_sse[tag] / self._val_count[tag]
             self.log(f"val/mse/{name}", mse.float(), logger=False)
 
-    def configure_optimizers(self) -> dict[str, Any]:
+    def configure_optimizers(self) -> Any:
         """The optimiser (and epoch-wise scheduler) from the Hydra partials in the hparams."""
-        optimizer = instantiate(self.hparams.optimizer)(params=self.parameters())
-        if not self.hparams.scheduler:
+        hp = self.hparams
+        optimizer = instantiate(hp["optimizer"])(params=self.parameters())
+        if not hp["scheduler"]:
             return {"optimizer": optimizer}
-        scheduler = instantiate(self.hparams.scheduler)(optimizer=optimizer)
+        scheduler = instantiate(hp["scheduler"])(optimizer=optimizer)
         return {
             "optimizer": optimizer,
             "lr_scheduler": {"scheduler": scheduler, "interval": "epoch", "frequency": 1},
