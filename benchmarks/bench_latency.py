@@ -29,7 +29,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from generalist_control.deploy.resolve import resolve
-from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.deploy.runtime import PolicyRuntime, RejectedStep
 from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import LQIController
@@ -48,8 +48,8 @@ def _percentiles(ns: list[int]) -> dict[str, float]:
 class _Loop:
     """One timed path in its own closed loop with the plant (the plant update is not timed)."""
 
-    def __init__(self, step, plant) -> None:
-        self.step, self.k = step, 0
+    def __init__(self, step, plant, reset=None) -> None:
+        self.step, self.k, self.reset = step, 0, reset
         self.Ad, self.Bd = discretise(plant.A, plant.B, plant.dt)
         self.x = np.zeros(plant.order)
         self.times: list[int] = []
@@ -58,7 +58,13 @@ class _Loop:
         for _ in range(n):
             r = 1.0 if (self.k // 200) % 2 == 0 else -1.0
             t0 = time.perf_counter_ns()
-            u = self.step(self.x, r)
+            try:
+                u = self.step(self.x, r)
+            except RejectedStep:  # the loop left the policy's range (an untrained policy)
+                self.x = np.zeros(self.x.shape)
+                if self.reset is not None:
+                    self.reset()
+                continue
             t1 = time.perf_counter_ns()
             if record:
                 self.times.append(t1 - t0)
@@ -109,7 +115,7 @@ def main() -> None:
     for backend in ("torch", "torchscript", "onnx"):
         rt = PolicyRuntime(policy, meta, backend=backend)
         rt.reset(plant.name)
-        loops[f"{backend}_step"] = _Loop(rt.step, plant)
+        loops[f"{backend}_step"] = _Loop(rt.step, plant, lambda rt=rt: rt.reset(plant.name))
         # the network call alone on the current window (no buffer bookkeeping)
         loops[f"{backend}_network_only"] = _Loop(
             lambda x, r, rt=rt: rt.run_window(*rt.window())[0, 0], plant

@@ -36,9 +36,19 @@ def test_default_grid_is_non_uniform_and_bounded():
     assert {0.2, 1.0, 5.0} <= gaps
 
 
-def test_default_counts_match_the_paper(full):
-    out, manifest = full
+@pytest.fixture(scope="module")
+def paper(tmp_path_factory):
+    """The paper's data stage (``experiment=paper``: steps from rest only)."""
+    out = tmp_path_factory.mktemp("gen") / "paper"
+    manifest = run(compose_cfg("experiment=paper", f"paths.data_dir={out}"))
+    return out, manifest
+
+
+def test_paper_counts_match_the_paper(paper):
+    out, manifest = paper
     assert abs(manifest["n_demonstrations"] - PAPER_WINDOWS) / PAPER_WINDOWS < 0.01
+    assert manifest["n_demonstrations"] == 25 * 64 * (200 - 3 + 1)
+    assert set(manifest["families"]) == {"steps"}
     assert len(manifest["plants"]) == 25
     assert {m["order"] for m in manifest["plants"].values()} == {2, 3, 4}
     assert sorted(m["tag"] for m in manifest["plants"].values()) == list(range(25))
@@ -52,6 +62,33 @@ def test_default_counts_match_the_paper(full):
     assert on_disk["config"]["data"]["amplitudes"]["limit"] == 20.0
 
 
+def test_default_families_are_counted_per_family(full, paper):
+    """Ours: the paper's steps plus every family of conf/data, counted in the manifest."""
+    out, manifest = full
+    cfg = compose_cfg()
+    per_traj = 200 - 3 + 1
+    expected = {"steps": 25 * 64}
+    expected.update({k: 25 * int(v["count"]) for k, v in cfg.data.families.items()})
+    got = {k: v["n_trajectories"] for k, v in manifest["families"].items()}
+    assert got == expected
+    assert all(
+        v["n_demonstrations"] == v["n_trajectories"] * per_traj
+        for v in manifest["families"].values()
+    )
+    assert manifest["n_demonstrations"] == sum(expected.values()) * per_traj
+    # the step family is the paper's dataset, trajectory for trajectory
+    demos, _ = load_demos(out)
+    steps, _ = load_demos(paper[0])
+    keep = demos.family == "steps"
+    np.testing.assert_array_equal(demos.x[keep], steps.x)
+    np.testing.assert_array_equal(demos.u[keep], steps.u)
+    # random initial states: half of the staircases start away from rest, all holds do
+    moving = np.abs(demos.x[:, 0]).max(axis=1) > 0
+    assert moving[demos.family == "hold"].all()
+    assert moving[demos.family == "staircase"].mean() == pytest.approx(0.5)
+    assert not moving[keep].any()
+
+
 def test_loaded_windows_match_manifest_and_expert(full):
     out, manifest = full
     demos, _ = load_demos(out)
@@ -63,9 +100,10 @@ def test_loaded_windows_match_manifest_and_expert(full):
         )
         assert np.all(demos.order[demos.plant == name] == m["order"])
     assert np.all(w.state[w.mask == 0] == 0)
-    # every LQI demonstration settles to its step by the end of the horizon
-    rel = np.abs(demos.y[:, -1] - demos.r[:, -1]) / np.abs(demos.r[:, -1])
-    assert rel.max() < 0.02, demos.plant[rel.argmax()]
+    # every LQI step demonstration settles to its step by the end of the horizon
+    steps = demos.family == "steps"
+    rel = np.abs(demos.y[steps, -1] - demos.r[steps, -1]) / np.abs(demos.r[steps, -1])
+    assert rel.max() < 0.02, demos.plant[steps][rel.argmax()]
 
 
 def test_same_config_same_hash_byte_for_byte(full, tmp_path):
@@ -165,7 +203,10 @@ def test_cli_entry_point_quiet_when_not_a_tty(tmp_path):
     )
     assert proc.returncode == 0, proc.stderr
     assert "generate:" not in proc.stderr and "it/s" not in proc.stderr  # no progress bar
-    assert json.loads((out / "manifest.json").read_text())["n_trajectories"] == 7 * 64
+    n_families = sum(int(v["count"]) for v in compose_cfg().data.families.values())
+    assert json.loads((out / "manifest.json").read_text())["n_trajectories"] == 7 * (
+        64 + n_families
+    )
     bad = subprocess.run(
         [
             sys.executable,

@@ -5,6 +5,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from generalist_control.plants.catalog import load_plant
+from generalist_control.simulation.references import FAMILIES, state_envelope
 from generalist_control.simulation.scenarios import ScenarioError, perturbation, references
 from generalist_control.simulation.simulate import Perturbation
 
@@ -62,7 +63,9 @@ def test_default_scenarios_are_valid():
     specs = OmegaConf.to_container(OmegaConf.load(conf_dir() / "evaluation/default.yaml"))
     scenarios = specs["scenarios"]
     kinds = {spec["kind"] for spec in scenarios.values()}
-    assert kinds == {"step", "random_steps", "sine", "ramp", "composite"}
+    assert kinds == {
+        "step", "random_steps", "sine", "ramp", "composite", "staircase", "sweep", "hold"
+    }  # fmt: skip
     default_plants = ("cstr", "two_mass_spring", "magnetic_levitation")  # orders 2, 4, 3
     assert {load_plant(n).amplitude_scale for n in default_plants} == {1.0, 0.1}
     for name, spec in scenarios.items():
@@ -70,7 +73,8 @@ def test_default_scenarios_are_valid():
             p = load_plant(plant_name)
             r, x0 = references(name, spec, p)
             n_steps = round(spec["duration"] / p.dt)
-            rows = spec.get("count", 8) if spec["kind"] == "random_steps" else 1
+            rows = spec.get("count", 8 if spec["kind"] != "sweep" else 1)
+            rows = rows if spec["kind"] in ("random_steps", *FAMILIES) else 1
             where = f"{name} on {plant_name}"
             assert r.shape == (rows, n_steps), where
             assert np.all(np.isfinite(r)), where
@@ -94,6 +98,8 @@ def test_default_scenarios_are_valid():
             elif spec["kind"] == "ramp":
                 want = spec["slope"] * s * t
                 np.testing.assert_allclose(r[0], want, rtol=1e-12, atol=0, err_msg=where)
+            elif spec["kind"] in FAMILIES:
+                _check_family(spec, p, r, x0, t, where)
             else:  # composite: step to A for a third, ramp to 3 A, then a sine about 3 A
                 third = t[-1] / 3
                 first, middle = t < third, (t >= third) & (t <= 2 * third)
@@ -104,16 +110,51 @@ def test_default_scenarios_are_valid():
                 )
                 sine = 3 * amp + amp * np.sin(spec["omega"] * (t[last] - 2 * third))
                 np.testing.assert_allclose(r[0, last], sine, rtol=1e-12, atol=1e-12 * amp)
-            if spec["kind"] != "sine":
+            if spec["kind"] not in ("sine", *FAMILIES):
                 assert x0 is None, where  # from rest
-            pert = perturbation(name, spec)
+            pert = perturbation(name, spec, p)
             if "perturbation" not in spec:
                 assert pert is None, where
                 continue
             assert isinstance(pert, Perturbation), where
             given = spec["perturbation"]
             defaults = Perturbation()
+            if "noise_rel" in given:  # relative to the plant's unit-step state envelope
+                want_std = given["noise_rel"] * state_envelope(p, 1.0)
+                np.testing.assert_allclose(pert.noise_std, want_std, rtol=1e-12)
+                given = {k: v for k, v in given.items() if k != "noise_rel"}
+                given["noise_std"] = pert.noise_std
             for f in fields(Perturbation):
                 want = given.get(f.name, getattr(defaults, f.name))
                 want = tuple(want) if isinstance(want, list) else want
                 assert getattr(pert, f.name) == want, (where, f.name)
+
+
+def _check_family(spec, p, r, x0, t, where):
+    """A randomised family's documented shape (simulation/references.py), from its spec."""
+    s = p.amplitude_scale
+    count = r.shape[0]
+    assert x0.shape == (count, p.order), where
+    env = state_envelope(p, spec.get("x0_amplitude", 3.0)) * spec.get("x0_scale", 1.0)
+    share = spec.get("x0_fraction", 1.0 if spec["kind"] == "hold" else 0.0)
+    n_random = round(share * count)
+    assert np.all(np.abs(x0) <= env + 1e-12), where
+    assert np.all(np.abs(x0[:n_random]).max(axis=1) > 0), where
+    assert np.all(x0[n_random:] == 0), where
+    if spec["kind"] == "staircase":
+        n = spec["levels"]
+        for row in r:
+            segments = np.array_split(row, n)
+            assert all(np.all(seg == seg[0]) for seg in segments), where
+            assert len({seg[0] for seg in segments}) == n, where
+        assert np.all(np.abs(r) <= spec["limit"] * s), where
+    elif spec["kind"] == "sweep":
+        w0, w1 = spec["omega"]
+        angle = w0 * t + 0.5 * (w1 - w0) * t**2 / t[-1]
+        want = spec.get("amplitude", 1.0) * s * np.sin(angle)
+        np.testing.assert_allclose(r[0], want, rtol=0, atol=1e-12, err_msg=where)
+    elif spec["kind"] == "hold":
+        assert np.all(r == r[:, :1]) and np.all(np.abs(r) <= spec["limit"] * s), where
+    again, x0_again = references("again", spec, p)
+    np.testing.assert_array_equal(again, r, err_msg=where)  # seeded
+    np.testing.assert_array_equal(x0_again, x0, err_msg=where)

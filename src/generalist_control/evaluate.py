@@ -45,7 +45,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     scen = as_dict(cfg.evaluation.scenarios)
     cf = as_dict(cfg.evaluation.get("crazyflie") or {})
     df, trajs = evaluate(runtime, plants, scen, cf)
-    summary = write_reports(df, trajs, out_dir, bool(cfg.evaluation.get("plots", True)))
+    plots = bool(cfg.evaluation.get("plots", True))
+    bar = as_dict(cfg.evaluation.get("quality_bar") or {})
+    summary = write_reports(df, trajs, out_dir, plots, bar)
     log_to_mlflow(cfg, runtime.meta, summary, out_dir)
     log.info("evaluation written to %s: %s", out_dir, json.dumps(summary["quality_bar"]))
     return summary

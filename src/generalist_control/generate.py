@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.data.demos import check_data_dir, write_demos
 from generalist_control.data.generation import build_manifest, generate_demos
-from generalist_control.plants.catalog import plants_from_config
+from generalist_control.plants.catalog import check_tags, plants_from_config
 
 __all__ = ["main", "run"]
 
@@ -24,11 +24,16 @@ log = logging.getLogger(__name__)
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    """Validate the config, generate the demonstrations and write them; return the manifest."""
+    """Validate the config, generate the demonstrations and write them; return the manifest.
+
+    Every plant's tag must be one the policy takes, ``0..model.n_tags-1``: a dataset with
+    another would only fail at training time.
+    """
     plants = plants_from_config(cfg.systems)
+    check_tags(plants, cfg.model.n_tags)
     out_dir = Path(cfg.paths.data_dir)
     check_data_dir(out_dir)  # refuse a folder of someone else's files before any work
-    data = OmegaConf.to_container(cfg.data, resolve=True)
+    data = cast(dict[str, Any], OmegaConf.to_container(cfg.data, resolve=True))
     config = {"systems": OmegaConf.to_container(cfg.systems, resolve=True), "data": data}
     demos = generate_demos(plants, data)
     manifest = build_manifest(plants, demos, data, config)

@@ -45,7 +45,7 @@ __all__ = [
 
 TRAJECTORIES = "trajectories.parquet"
 MANIFEST = "manifest.json"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: a family per trajectory
 
 
 #: What a dataset folder holds: the only entries that may be replaced by a new dataset.
@@ -72,8 +72,10 @@ class DemoSet:
     tag, order : ndarray of int, shape (B,)
     plant : ndarray of str, shape (B,)
     amplitude : ndarray, shape (B,)
-        Step amplitude of each trajectory (after the plant's amplitude scale).
+        The reference's final value (a step's amplitude, after the plant's amplitude scale).
     dt : float
+    family : ndarray of str, shape (B,)
+        The demonstration family of each trajectory (``steps``, ``staircase``, ...).
     """
 
     x: np.ndarray
@@ -85,6 +87,7 @@ class DemoSet:
     plant: np.ndarray
     amplitude: np.ndarray
     dt: float
+    family: np.ndarray
 
     def windows(self, history: int, horizon: int, integral: bool = False) -> Windows:
         """All training windows of the set.
@@ -104,6 +107,7 @@ def content_hash(demos: DemoSet, config: dict[str, Any]) -> str:
     for a in (demos.tag, demos.order):
         h.update(np.ascontiguousarray(a, dtype="<i8").tobytes())
     h.update("\0".join(demos.plant.tolist()).encode())
+    h.update("\0".join(demos.family.tolist()).encode())
     h.update(json.dumps(config, sort_keys=True, separators=(",", ":")).encode())
     return "sha256:" + h.hexdigest()
 
@@ -114,6 +118,7 @@ def _to_table(demos: DemoSet) -> pa.Table:
     cols: dict[str, Any] = {
         "traj": rep(np.arange(B, dtype=np.int32)),
         "plant": pa.array(rep(demos.plant)).dictionary_encode(),
+        "family": pa.array(rep(demos.family)).dictionary_encode(),
         "tag": rep(demos.tag.astype(np.int16)),
         "order": rep(demos.order.astype(np.int8)),
         "amplitude": rep(demos.amplitude),
@@ -215,6 +220,7 @@ def load_demos(data_dir: str | Path, verify: bool = True) -> tuple[DemoSet, dict
         plant=np.asarray(tbl.column("plant").to_pylist())[first],
         amplitude=col("amplitude")[first],
         dt=float(manifest["dt"]),
+        family=np.asarray(tbl.column("family").to_pylist())[first],
     )
     if verify:
         computed = content_hash(demos, manifest.get("config", {}))

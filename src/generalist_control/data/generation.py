@@ -1,4 +1,10 @@
-"""The demonstrations: every plant's LQI expert on every step of the amplitude grid.
+"""The demonstrations: every plant's LQI expert on the step grid and on richer families.
+
+The paper's demonstrations are steps from rest on a non-uniform amplitude grid (family
+``steps``). Ours add the families of ``data.families`` (each a switch): staircases between
+non-zero levels, sines and frequency sweeps, ramps, and constant references from random
+initial states (:mod:`generalist_control.simulation.references`); ``experiment=paper``
+turns them off.
 
 The ``generate`` stage (:mod:`generalist_control.generate`) calls :func:`generate_demos`
 and :func:`build_manifest`; every input is validated before anything is simulated.
@@ -18,9 +24,20 @@ from generalist_control.data.demos import FORMAT_VERSION, DemoSet, content_hash
 from generalist_control.data.windows import windows_per_trajectory
 from generalist_control.plants.plant import MAX_ORDER, Plant, pad_states
 from generalist_control.simulation.lqi import LQIController, design_lqi
+from generalist_control.simulation.references import FAMILIES, family_references
 from generalist_control.simulation.simulate import simulate
 
-__all__ = ["DataConfigError", "amplitude_grid", "build_manifest", "generate_demos"]
+__all__ = [
+    "STEPS",
+    "DataConfigError",
+    "amplitude_grid",
+    "build_manifest",
+    "enabled_families",
+    "generate_demos",
+]
+
+#: The family of the paper's steps from rest on the amplitude grid.
+STEPS = "steps"
 
 
 class DataConfigError(ValueError):
@@ -94,52 +111,97 @@ def _steps(data: Mapping[str, Any], plants: Sequence[Plant]) -> tuple[float, int
     return dt, steps
 
 
+def enabled_families(data: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """The enabled demonstration families of ``data.families`` (name -> family spec).
+
+    Raises
+    ------
+    DataConfigError
+        A family without a known ``kind``.
+    """
+    out = {}
+    for name, spec in (data.get("families") or {}).items():
+        spec = dict(spec or {})
+        if not spec.pop("enabled", True):
+            continue
+        if spec.get("kind") not in FAMILIES:
+            raise DataConfigError(
+                f"data.families.{name}.kind = {spec.get('kind')!r} is not one of "
+                f"{', '.join(FAMILIES)}"
+            )
+        out[str(name)] = spec
+    return out
+
+
+def _plant_runs(
+    plant: Plant, grid: np.ndarray, families: Mapping[str, Mapping[str, Any]], steps: int
+) -> list[tuple[str, np.ndarray, np.ndarray | None]]:
+    """``(family, references, initial states)`` of every trajectory of one plant."""
+    amp = grid * plant.amplitude_scale
+    runs: list[tuple[str, np.ndarray, np.ndarray | None]] = [
+        (STEPS, np.repeat(amp[:, None], steps, axis=1), None)
+    ]
+    for name, spec in families.items():
+        try:
+            r, x0 = family_references(plant, spec, steps)
+        except ValueError as exc:
+            raise DataConfigError(f"data.families.{name}: {exc}") from exc
+        runs.append((name, r, x0))
+    return runs
+
+
 def generate_demos(
     plants: Sequence[Plant], data: Mapping[str, Any], progress: bool | None = None
 ) -> DemoSet:
-    """Simulate every plant's LQI expert on every step of the amplitude grid.
+    """Simulate every plant's LQI expert on the amplitude grid and on every family.
 
     Parameters
     ----------
     plants : sequence of Plant
     data : mapping
-        The ``data`` config (``duration``, ``history``, ``horizon``, ``amplitudes``).
+        The ``data`` config (``duration``, ``history``, ``horizon``, ``amplitudes``,
+        ``families``).
     progress : bool, optional
         Show a progress bar; by default only on a terminal.
     """
     grid = amplitude_grid(data["amplitudes"])
+    families = enabled_families(data)
     dt, steps = _steps(data, plants)
     controllers = [LQIController(p, design_lqi(p)) for p in plants]  # validates all first
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("x", "r", "u", "y", "amp")}
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("x", "r", "u", "y", "fam", "plant")}
     disable = None if progress is None else not progress
-    for plant, ctrl in tqdm(
+    pairs = tqdm(
         list(zip(plants, controllers, strict=True)),
-        desc="generate",
-        unit="plant",
-        disable=disable,
-        file=sys.stderr,
-    ):
-        amp = grid * plant.amplitude_scale
-        r = np.repeat(amp[:, None], steps, axis=1)
-        traj = simulate(plant, ctrl, r)
-        if traj.diverged.any():
-            raise RuntimeError(f"plant '{plant.name}': LQI closed loop diverged in the data stage")
-        parts["x"].append(pad_states(traj.x[:, :steps]))
-        parts["r"].append(traj.r)
-        parts["u"].append(traj.u)
-        parts["y"].append(traj.y[:, :steps])
-        parts["amp"].append(amp)
-    n = len(grid)
+        desc="generate", unit="plant", disable=disable, file=sys.stderr,
+    )  # fmt: skip
+    for plant, ctrl in pairs:
+        for family, r, x0 in _plant_runs(plant, grid, families, steps):
+            traj = simulate(plant, ctrl, r, x0)
+            if traj.diverged.any():
+                raise RuntimeError(
+                    f"plant '{plant.name}': LQI closed loop diverged in the data stage "
+                    f"(family '{family}')"
+                )
+            parts["x"].append(pad_states(traj.x[:, :steps]))
+            parts["r"].append(traj.r)
+            parts["u"].append(traj.u)
+            parts["y"].append(traj.y[:, :steps])
+            parts["fam"].append(np.full(len(r), family))
+            parts["plant"].append(np.full(len(r), plant.tag))
+    tags = np.concatenate(parts["plant"]).astype(np.int64)
+    by_tag = {p.tag: p for p in plants}
+    r_all = np.concatenate(parts["r"])
     return DemoSet(
         x=np.concatenate(parts["x"]),
-        r=np.concatenate(parts["r"]),
+        r=r_all,
         u=np.concatenate(parts["u"]),
         y=np.concatenate(parts["y"]),
-        tag=np.repeat([p.tag for p in plants], n).astype(np.int64),
-        order=np.repeat([p.order for p in plants], n).astype(np.int64),
-        plant=np.repeat([p.name for p in plants], n),
-        amplitude=np.concatenate(parts["amp"]),
+        tag=tags,
+        order=np.array([by_tag[t].order for t in tags], dtype=np.int64),
+        plant=np.array([by_tag[t].name for t in tags]),
+        amplitude=r_all[:, -1].copy(),
         dt=dt,
+        family=np.concatenate(parts["fam"]),
     )
 
 
@@ -151,6 +213,7 @@ def build_manifest(
     steps = demos.r.shape[1]
     per_traj = windows_per_trajectory(steps, horizon)
     n_traj = {p.name: int(np.sum(demos.plant == p.name)) for p in plants}
+    fams = {str(f): int(np.sum(demos.family == f)) for f in dict.fromkeys(demos.family.tolist())}
     return {
         "format_version": FORMAT_VERSION,
         "generator": f"generalist_control {__version__}",
@@ -172,6 +235,9 @@ def build_manifest(
                 "n_demonstrations": n_traj[p.name] * per_traj,
             }
             for p in plants
+        },
+        "families": {
+            f: {"n_trajectories": n, "n_demonstrations": n * per_traj} for f, n in fams.items()
         },
         "config": config,
         "content_hash": content_hash(demos, config),

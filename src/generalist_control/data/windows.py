@@ -146,6 +146,12 @@ class HistoryBuffer:
     from the whole trajectory so far (the first sample repeated in front until the history
     is full), without rebuilding it: the deployment path of the one window builder.
 
+    :meth:`push` appends a sample. :meth:`stage` builds the window that pushing would give
+    without changing the buffer, and :meth:`commit` then makes it the newest, so a caller
+    can check the window (and what the policy makes of it) and drop it on failure. Both
+    write into preallocated arrays (two of each, swapped on commit): no allocation per
+    sample.
+
     Parameters
     ----------
     order : ndarray of int, shape (B,)
@@ -162,8 +168,42 @@ class HistoryBuffer:
         )
         self.state = np.zeros(self.mask.shape, np.float32)
         self.ref = np.zeros((len(order), history), np.float32)
-        self._row = np.zeros((len(order), valid.shape[1]), np.float32)
-        self._empty = True
+        self._next_state, self._next_ref = np.zeros_like(self.state), np.zeros_like(self.ref)
+        self._empty, self._staged = True, False
+
+    def stage(
+        self, x: np.ndarray, r: np.ndarray, z: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The window :meth:`push` would return, leaving the buffer as it is.
+
+        Valid until the next :meth:`stage` or :meth:`push`; :meth:`commit` makes it the
+        buffer's newest window.
+        """
+        if self.integral and z is None:
+            raise ValueError("this buffer keeps the error integral: push(x, r, z)")
+        state, ref = self._next_state, self._next_ref
+        row = state[:, -1]  # a view: written in place, this runs once per sample
+        row[:, : x.shape[1]] = x
+        if z is not None and self.integral:
+            row[:, -1] = z
+        np.multiply(row, self.mask[:, 0], out=row)
+        if self._empty:
+            state[:, :-1] = row[:, None, :]
+            ref[:] = r[:, None]
+        else:
+            state[:, :-1] = self.state[:, 1:]
+            ref[:, :-1] = self.ref[:, 1:]
+            ref[:, -1] = r
+        self._staged = True
+        return state, self.mask, ref
+
+    def commit(self) -> None:
+        """Make the window of the last :meth:`stage` the newest (swaps arrays, copies none)."""
+        if not self._staged:
+            raise RuntimeError("nothing staged: call stage(x, r) before commit()")
+        self.state, self._next_state = self._next_state, self.state
+        self.ref, self._next_ref = self._next_ref, self.ref
+        self._empty = self._staged = False
 
     def push(
         self, x: np.ndarray, r: np.ndarray, z: np.ndarray | None = None
@@ -174,22 +214,17 @@ class HistoryBuffer:
         Returns the newest window ``(state, mask, ref)``: float32 (B, history, width),
         (B, history, width) and (B, history); the state is masked.
         """
-        row = self._row
-        row[:, : x.shape[1]] = x  # written in place: this runs once per sample in deployment
-        if self.integral:
-            if z is None:
-                raise ValueError("this buffer keeps the error integral: push(x, r, z)")
-            row[:, -1] = z
-        np.multiply(row, self.mask[:, 0], out=row)
-        if self._empty:
-            self.state[:] = row[:, None, :]
-            self.ref[:] = r[:, None]
-            self._empty = False
-        else:
-            self.state[:, :-1] = self.state[:, 1:]
-            self.ref[:, :-1] = self.ref[:, 1:]
-            self.state[:, -1], self.ref[:, -1] = row, r
+        self.stage(x, r, z)
+        self.commit()
         return self.state, self.mask, self.ref
+
+    def select(self, rows: np.ndarray) -> None:
+        """Keep only ``rows`` (indices, in the order given) of the batch, their history kept."""
+        rows = np.asarray(rows, dtype=np.int64)
+        self.mask = np.ascontiguousarray(self.mask[rows])
+        self.state, self.ref = self.state[rows], self.ref[rows]
+        self._next_state, self._next_ref = np.zeros_like(self.state), np.zeros_like(self.ref)
+        self._staged = False
 
 
 def build_windows(

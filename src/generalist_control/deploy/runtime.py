@@ -21,6 +21,10 @@ does. Many plants can be stepped at once (``reset([...names])`` and ``step`` on
 ``(B, MAX_ORDER)`` zero-padded states), which is how evaluation batches all plants through
 one network call per sample.
 
+**Input range.** A step whose inputs (or controls, or error integral) are not finite or exceed
+``input_limit`` times their training RMS is refused with :class:`RejectedStep`, naming plant,
+input, value and allowed range, and changes nothing (see :class:`PolicyRuntime`).
+
 Backends: ``"torch"`` (eager), ``"torchscript"`` and ``"onnx"`` (ONNX Runtime); see
 :mod:`generalist_control.deploy.export`. In a simulated loop the runtime is driven through
 :class:`~generalist_control.deploy.adapter.RuntimeAdapter`.
@@ -28,7 +32,7 @@ Backends: ``"torch"`` (eager), ``"torchscript"`` and ``"onnx"`` (ONNX Runtime); 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -44,11 +48,48 @@ from generalist_control.simulation.antiwindup import conditional_increment
 from generalist_control.simulation.lqi import design_lqi
 from generalist_control.simulation.simulate import Perturbation
 
-__all__ = ["PolicyRuntime", "integral_facts"]
+__all__ = ["INPUT_LIMIT", "PolicyRuntime", "RejectedStep", "integral_facts"]
+
+#: Default input range of a runtime: each signal at most this many times its training RMS.
+INPUT_LIMIT = 1e3
+
+_ADVICE = {
+    "input": "Check the measurement, its units and that it is a deviation from the operating "
+    "point; a plant really this far out is beyond the policy's training: hand over to a "
+    "fallback controller and reset().",
+    "error integral": "The error integral would wind up beyond its range: declare actuator "
+    "limits (set_actuator_limits) for anti-windup, check the measured output, or reset().",
+    "network output": "The policy's command is unusable (a corrupt policy file, e.g. NaN "
+    "weights, or inputs unlike its training data): hand over to a fallback controller.",
+}
+_LABELS = {
+    "state": "state entry {}",
+    "reference": "reference r",
+    "output": "measured output y",
+    "error integral": "error integral z after this sample",
+    "network output": "control u[k+{}]",
+}
+
+
+class RejectedStep(ValueError):
+    """A step the runtime refused, its state unchanged; ``rows``: the batch rows at fault."""
+
+    def __init__(self, message: str, rows: Iterable[int]) -> None:
+        super().__init__(message)
+        self.rows = tuple(int(i) for i in rows)
 
 
 class PolicyRuntime:
     """A trained policy stepping one or many plants in a sampled loop.
+
+    Inputs outside the documented range are refused (:class:`RejectedStep`, the runtime
+    unchanged). For the plant of each row, with ``s`` the policy normaliser's per-tag RMS
+    scales and ``L = input_limit``:
+
+    * state entry ``i`` (padding beyond the plant's order included): ``|x_i| <= L s_x[i]``;
+    * reference and measured output: ``|r|, |y| <= L s_r``;
+    * error integral after the sample (``model.integral``): ``|z| <= L s_x[z]``;
+    * every predicted control (the network's output): ``|u| <= L s_u``; NaN and inf never.
 
     Parameters
     ----------
@@ -57,9 +98,20 @@ class PolicyRuntime:
         The policy's metadata: ``tags`` (plant -> tag), ``orders`` (plant -> order),
         ``history``, ``horizon``, ``dt``.
     backend : {"torch", "torchscript", "onnx"}
+    input_limit : float
+        ``L`` above, a positive number: how many training RMS a signal may reach.
     """
 
-    def __init__(self, policy: Policy, meta: dict[str, Any], backend: str = "torch") -> None:
+    def __init__(
+        self,
+        policy: Policy,
+        meta: dict[str, Any],
+        backend: str = "torch",
+        input_limit: float = INPUT_LIMIT,
+    ) -> None:
+        if not 0.0 < float(input_limit) < np.inf:
+            raise ValueError(f"input_limit must be a positive number; got {input_limit!r}")
+        self.input_limit = float(input_limit)
         self.policy, self.meta = policy.eval(), meta
         self.tags: dict[str, int] = {str(k): int(v) for k, v in meta["tags"].items()}
         self.orders: dict[str, int] = {str(k): int(v) for k, v in meta["orders"].items()}
@@ -82,10 +134,12 @@ class PolicyRuntime:
         self.plan = np.zeros((0, self.horizon), np.float32)
 
     @classmethod
-    def load(cls, source: str | Path, backend: str = "torch") -> PolicyRuntime:
+    def load(
+        cls, source: str | Path, backend: str = "torch", input_limit: float = INPUT_LIMIT
+    ) -> PolicyRuntime:
         """Load from a policy/checkpoint file or an MLflow URI (see :func:`resolve`)."""
         policy, meta = load_policy(resolve(source))
-        return cls(policy, meta, backend)
+        return cls(policy, meta, backend, input_limit)
 
     @property
     def systems(self) -> list[str]:
@@ -94,23 +148,17 @@ class PolicyRuntime:
 
     def reset(self, system: str | Sequence[str]) -> None:
         """Start a new run on ``system`` (a name) or a batch of runs (a list of names)."""
-        self._single = isinstance(system, str)
-        names = [system] if self._single else [str(s) for s in system]
+        single = isinstance(system, str)
+        names = [str(system)] if single else [str(s) for s in system]
+        if not names:
+            raise ValueError("reset needs at least one plant name")
         for name in names:
             if name not in self.tags:
                 raise KeyError(
                     f"unknown plant '{name}' for this policy; it was trained on: "
                     f"{', '.join(self.systems)}"
                 )
-        self._systems = names
-        self._tag = np.array([self.tags[s] for s in names], dtype=np.int64)
-        self._order = np.array([self.orders[s] for s in names], dtype=np.int64)
-        self._buffer = HistoryBuffer(self._order, self.history, self.integral)
-        self._padded = np.zeros((len(names), MAX_ORDER), np.float32)
-        self.z = np.zeros(len(names))
-        self._u_prev = np.zeros(len(names))
-        self._direction: np.ndarray | None = None
-        self._C: np.ndarray | None = None
+        direction = None
         if self.limits is not None and self.integral:
             self._from_catalogue(names)
             unknown = sorted(set(names) - set(self.directions))
@@ -119,19 +167,93 @@ class PolicyRuntime:
                     f"anti-windup needs the direction of each plant's integral action; none "
                     f"for {', '.join(unknown)} (not in the policy's meta nor the catalogue)"
                 )
-            self._direction = np.array([self.directions[n] for n in names])
+            direction = np.array([self.directions[n] for n in names])
+        self._single, self._systems, self._direction = single, names, direction
+        self._tag = np.array([self.tags[s] for s in names], dtype=np.int64)
+        self._order = np.array([self.orders[s] for s in names], dtype=np.int64)
+        self._buffer = HistoryBuffer(self._order, self.history, self.integral)
+        self._padded = np.zeros((len(names), MAX_ORDER), np.float32)
+        self.z = np.zeros(len(names))
+        self._u_prev = np.zeros(len(names))
+        self._C: np.ndarray | None = None
+        self._set_limits()
+
+    def _set_limits(self) -> None:
+        """Per row, the largest magnitude of each input and control (the class docstring)."""
+        n, L = self.policy.normaliser, self.input_limit
+        scales = (n.state_scale, n.ref_scale, n.control_scale)
+        sx, sr, su = (s.detach().cpu().double().numpy()[self._tag] for s in scales)
+        self._lim = {"state": L * sx[:, :MAX_ORDER], "error integral": L * sx[:, -1]}
+        self._lim["reference"] = self._lim["output"] = L * sr  # y is measured in r's units
+        self._lim["network output"] = L * su[:, None]
+
+    def select(self, rows: Sequence[int] | np.ndarray) -> None:
+        """Go on with only ``rows`` of the batch (in that order), their histories kept.
+
+        E.g. to drop the rows a :class:`RejectedStep` names while the others go on.
+        """
+        idx = np.asarray(rows, dtype=np.int64).reshape(-1)
+        if idx.size == 0 or idx.min() < 0 or idx.max() >= len(self._systems):
+            raise ValueError(f"rows must be 1 or more of 0..{len(self._systems) - 1}")
+        self._systems = [self._systems[i] for i in idx]
+        self._tag, self._order = self._tag[idx], self._order[idx]
+        self._buffer.select(idx)
+        self._padded = np.zeros((idx.size, MAX_ORDER), np.float32)
+        self.z, self._u_prev = self.z[idx], self._u_prev[idx]
+        if self._direction is not None:
+            self._direction = self._direction[idx]
+        if self._C is not None:
+            self._C = self._C[idx]
+        self.plan = self.plan[idx] if len(self.plan) else self.plan
+        self._single = self._single and idx.size == 1
+        self._set_limits()
+
+    def _screen(self, kind: str, values: np.ndarray, limit: np.ndarray) -> None:
+        """Refuse the step unless every ``|value| <= limit`` (NaN and inf never are)."""
+        ok = np.abs(values) <= limit
+        if not ok.all():
+            raise self._rejection(kind, values, limit, ok)
+
+    def _rejection(
+        self, kind: str, values: np.ndarray, limit: np.ndarray, ok: np.ndarray
+    ) -> RejectedStep:
+        """The error for the entries of ``values`` (B,) or (B, n) that are not ``ok``."""
+        B = len(values)
+        v, lim = values.reshape(B, -1), np.broadcast_to(limit, values.shape).reshape(B, -1)
+        bad_rows = np.flatnonzero(~ok.reshape(B, -1).all(axis=1))
+        items = []
+        for i in bad_rows[:4]:
+            j = int(np.flatnonzero(~ok.reshape(B, -1)[i])[0])
+            label = _LABELS[kind].format(j)
+            if kind == "state" and j >= self._order[i]:
+                label += f" (padding beyond the plant's order {self._order[i]}: keep it zero)"
+            where = f"plant '{self._systems[i]}'"
+            where = where if self._single else f"row {i} ({where})"
+            if np.isfinite(v[i, j]):
+                L = self.input_limit
+                problem = (
+                    f"is outside the allowed range |value| <= {lim[i, j]:.4g} "
+                    f"(= {L:g} x the training RMS {lim[i, j] / L:.4g})"
+                )
+            else:
+                problem = f"is not finite ({kind} contains NaN or inf)"
+            items.append(f"{where}: {label} = {v[i, j]:.6g} {problem}")
+        more = f" (and {len(bad_rows) - 4} more rows)" if len(bad_rows) > 4 else ""
+        text = f"{'; '.join(items)}{more}. {_ADVICE.get(kind, _ADVICE['input'])}"
+        return RejectedStep(f"step refused, the runtime's state is unchanged: {text}", bad_rows)
 
     def _check(self, x: Any, r: Any) -> tuple[np.ndarray, np.ndarray]:
         if not self._systems:
             raise RuntimeError("call reset(system) before step(x, r)")
-        x = np.asarray(x, dtype=np.float64)
-        r = np.asarray(r, dtype=np.float64)
+        x, r = np.asarray(x, dtype=np.float64), np.asarray(r, dtype=np.float64)
         if self._single:
             n = int(self._order[0])
             if x.shape != (n,):
                 raise ValueError(
                     f"state has shape {x.shape}; plant '{self._systems[0]}' has {n} states"
                 )
+            if r.size != 1:
+                raise ValueError(f"reference has shape {r.shape}; expected a scalar")
             x, r = x[None, :], r.reshape(1)
         else:
             B = len(self._systems)
@@ -141,8 +263,8 @@ class PolicyRuntime:
                 )
             if r.shape != (B,):
                 raise ValueError(f"reference batch has shape {r.shape}; expected ({B},)")
-        if not (np.isfinite(x).all() and np.isfinite(r).all()):
-            raise ValueError("state or reference contains NaN or inf")
+        self._screen("state", x, self._lim["state"][:, : x.shape[1]])
+        self._screen("reference", r, self._lim["reference"])
         self._padded[:, : x.shape[1]] = x
         return self._padded, r
 
@@ -206,21 +328,29 @@ class PolicyRuntime:
         y = np.asarray(y, dtype=np.float64).reshape(-1)
         if y.shape != (len(self._systems),):
             raise ValueError(f"output has shape {y.shape}; expected ({len(self._systems)},)")
-        if not np.isfinite(y).all():
-            raise ValueError("output contains NaN or inf")
+        self._screen("output", y, self._lim["output"])
         return y
 
-    def _integrate(self, u: np.ndarray, r: np.ndarray, y: np.ndarray) -> None:
-        """Advance the error integral after control ``u``, conditionally under known limits."""
+    def _next_integral(
+        self, u: np.ndarray, r: np.ndarray, y: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Error integral after control ``u`` and the actuator's control; nothing kept."""
         dz = self.dt * (r - y)
+        u_prev = self._u_prev
         if self._direction is not None and self.limits is not None:
-            u_act = self.limits.actuate(u, self._u_prev, self.dt)
-            dz = conditional_increment(dz, u, u_act, self._direction)
-            self._u_prev = u_act
-        self.z = self.z + dz
+            u_prev = self.limits.actuate(u, self._u_prev, self.dt)
+            dz = conditional_increment(dz, u, u_prev, self._direction)
+        return self.z + dz, u_prev
 
     def step(self, x: Any, r: Any, y: Any = None) -> float | np.ndarray:
         """Control for the current sample (the first of the predicted sequence).
+
+        Every input, padded state entries included, must be finite and within
+        ``input_limit`` times its training RMS for the row's plant (class docstring), as must
+        every predicted control and the error integral after the sample. Otherwise
+        :class:`RejectedStep` (a ``ValueError``) names rows, plants, inputs, values and
+        allowed ranges, and nothing changes (history, integral, anti-windup memory,
+        :attr:`plan`); a batch is refused whole if any row is at fault.
 
         Parameters
         ----------
@@ -235,13 +365,20 @@ class PolicyRuntime:
         x, r = self._check(x, r)
         if self.integral:
             y = self._output(y, x)  # checked before anything changes
-            state, mask, ref = self._buffer.push(x, r, self.z)
+            state, mask, ref = self._buffer.stage(x, r, self.z)
         else:
-            state, mask, ref = self._buffer.push(x, r)
-        self.plan = self._run(state, mask, ref, self._tag)
-        u = self.plan[:, 0].astype(np.float64)
+            state, mask, ref = self._buffer.stage(x, r)
+        plan = np.asarray(self._run(state, mask, ref, self._tag))
+        if plan.shape != (len(self._systems), self.horizon):
+            raise RuntimeError(f"the backend returned controls of shape {plan.shape}")
+        self._screen("network output", plan, self._lim["network output"])
+        u = plan[:, 0].astype(np.float64)
         if self.integral:
-            self._integrate(u, r, y)
+            z, u_prev = self._next_integral(u, r, y)
+            self._screen("error integral", z, self._lim["error integral"])
+            self.z, self._u_prev = z, u_prev
+        self._buffer.commit()
+        self.plan = plan
         return float(u[0]) if self._single else u
 
 

@@ -97,6 +97,27 @@ def _crazyflie(
     return rows
 
 
+def _scenario(
+    runtime: PolicyRuntime,
+    plants: Sequence[Plant],
+    name: str,
+    spec: Mapping[str, Any],
+    trajs: dict[str, dict[str, Trajectory]],
+) -> list[tuple[str, str, str, int, str, float]]:
+    """Every controller on one scenario's runs; fills ``trajs[controller][system]``."""
+    runs = [Run(p, *references(name, spec, p), perturbation(name, spec, p)) for p in plants]
+    pert = runs[0].perturbation  # actuator limits are the same for every plant
+    limited = pert is not None and (pert.u_limit is not None or pert.rate_limit is not None)
+    extra = (GC_ANTI_WINDUP,) if limited and runtime.integral else ()
+    rows = []
+    for ctrl in (*CONTROLLERS, *extra):
+        results = simulate_many(runs, _controller(ctrl, runtime, pert))
+        trajs[ctrl] = {p.name: tr for p, tr in zip(plants, results, strict=True)}
+        for p, tr in zip(plants, results, strict=True):
+            rows += _rows(p.name, name, ctrl, spec["kind"], tr)
+    return rows
+
+
 def evaluate(
     runtime: PolicyRuntime,
     plants: Sequence[Plant],
@@ -123,21 +144,9 @@ def evaluate(
     for name, spec in scenarios.items():
         only = spec.get("plants")
         chosen = [p for p in plants if only is None or p.name in only]
-        if not chosen:
-            continue
-        pert = perturbation(name, spec)
-        runs = []
-        for p in chosen:
-            r, x0 = references(name, spec, p)
-            runs.append(Run(p, r, x0, pert))
-        trajs[name] = {}
-        limited = pert is not None and (pert.u_limit is not None or pert.rate_limit is not None)
-        extra = (GC_ANTI_WINDUP,) if limited and runtime.integral else ()
-        for ctrl in (*CONTROLLERS, *extra):
-            results = simulate_many(runs, _controller(ctrl, runtime, pert))
-            trajs[name][ctrl] = {p.name: tr for p, tr in zip(chosen, results, strict=True)}
-            for p, tr in zip(chosen, results, strict=True):
-                rows += _rows(p.name, name, ctrl, spec["kind"], tr)
+        if chosen:
+            trajs[name] = {}
+            rows += _scenario(runtime, chosen, name, spec, trajs[name])
     if crazyflie and any(p.name == "crazyflie_altitude" for p in plants):
         plant = next(p for p in plants if p.name == "crazyflie_altitude")
         rows += _crazyflie(runtime, plant, crazyflie, trajs)

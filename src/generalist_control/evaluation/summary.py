@@ -1,15 +1,38 @@
-"""The quality-bar figures of an evaluation: divergences and worst GC/LQI ratios."""
+"""The quality-bar figures of an evaluation: divergences and worst GC/LQI ratios.
+
+Every scenario counts. Step scenarios (those with step metrics) give the worst GC/LQI
+ratios of the mean ISE and ITAE and the worst relative steady-state error of GC; tracking
+scenarios give the worst GC/LQI ratio of the tracking RMSE. The quality bar
+(:data:`DEFAULT_BAR`, ``evaluation.quality_bar``) is then judged on:
+
+- ``stable_everywhere``: no run of a learned controller (GC, GC-AW) diverged in any scenario;
+- ``ISE_ratio_le_<x>``, ``ITAE_ratio_le_<x>``: the unit step (scenario ``step``);
+- ``ess_within_<x>``: the relative steady-state error of GC on ``step`` and ``random_steps``;
+- ``RMSE_ratio_le_<x>``: every tracking scenario (references other than steps);
+- ``GC_AW_no_worse_than_LQI_AW``: in the ``anti_windup`` scenarios, GC-AW's mean ISE is at
+  most LQI-AW's on every plant.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
 import pandas as pd
 
-from generalist_control.evaluation.runner import CONTROLLERS, STEP_KINDS
+from generalist_control.evaluation.runner import CONTROLLERS, GC_ANTI_WINDUP, STEP_KINDS
 
-__all__ = ["summarise"]
+__all__ = ["DEFAULT_BAR", "summarise"]
+
+#: The thresholds of the quality bar (issue 11's): GC against LQI.
+DEFAULT_BAR: dict[str, Any] = {
+    "ISE_ratio": 1.05,
+    "ITAE_ratio": 1.25,
+    "relative_ess": 0.005,
+    "RMSE_ratio": 1.1,
+    "anti_windup": ["saturation_0.25"],
+}
+LEARNED = ("GC", GC_ANTI_WINDUP)
 
 
 def _worst(values: pd.Series, key: str, system_key: str | None = None) -> dict[str, Any]:
@@ -20,38 +43,86 @@ def _worst(values: pd.Series, key: str, system_key: str | None = None) -> dict[s
     return {f"worst_{key}": float(values.max()), system_key: str(values.idxmax())}
 
 
-def summarise(df: pd.DataFrame) -> dict[str, Any]:
-    """Quality-bar figures: divergences, worst ISE/ITAE ratios GC/LQI, worst relative e_ss."""
-    mean = df.groupby(["scenario", "controller", "system", "metric"])["value"].mean()
-    out: dict[str, Any] = {"diverged": {}, "ratios": {}}
+def _ratio(
+    means: pd.Series, scen: str, metric: str, num: str = "GC", den: str = "LQI"
+) -> pd.Series:
+    """Per system, ``num``'s mean metric over ``den``'s (systems where both are finite)."""
+    a = means[scen][num].xs(metric, level="metric")
+    b = means[scen][den].xs(metric, level="metric")
+    return (a / b).dropna()
+
+
+def _divergences(df: pd.DataFrame) -> dict[str, dict[str, int]]:
+    out = {}
     for ctrl in [*CONTROLLERS, *sorted(set(df.controller) - set(CONTROLLERS))]:
         d = df[(df.controller == ctrl) & (df.metric == "diverged")]
-        out["diverged"][ctrl] = {
-            s: int(v) for s, v in d.groupby("scenario")["value"].sum().items() if v > 0
-        }
-    for scen in ("step", "random_steps"):
-        if scen not in mean.index.get_level_values(0):
+        out[ctrl] = {s: int(v) for s, v in d.groupby("scenario")["value"].sum().items() if v > 0}
+    return out
+
+
+def _scenario_figures(df: pd.DataFrame, means: pd.Series) -> tuple[dict, dict]:
+    """Worst ratios per step scenario, and worst RMSE ratio per tracking scenario."""
+    steps, tracking = {}, {}
+    for scen in dict.fromkeys(df.scenario):
+        metrics = set(df[df.scenario == scen].metric)
+        ctrls = set(df[df.scenario == scen].controller)
+        if not {"GC", "LQI"} <= ctrls:
             continue
-        gc, lqi = mean[scen]["GC"], mean[scen]["LQI"]
-        ratio = {
-            k: (gc.xs(k, level="metric") / lqi.xs(k, level="metric")).dropna()
-            for k in ("ISE", "ITAE")
-        }
-        ess = gc.xs("relative_steady_state_error", level="metric").dropna()
-        out["ratios"][scen] = {
-            **_worst(ratio["ISE"], "ISE_ratio"),
-            **_worst(ratio["ITAE"], "ITAE_ratio"),
-            **_worst(ess, "relative_ess_GC", "worst_relative_ess_system"),
-            "n_systems": int(len(ratio["ISE"])),
-        }
-    step = out["ratios"].get("step", {})
-    out["quality_bar"] = {
-        "stable_everywhere": not any(out["diverged"]["GC"].get(s) for s in STEP_KINDS),
-        "ess_within_1pct": all(
-            out["ratios"].get(s, {}).get("worst_relative_ess_GC", np.inf) <= 0.01
-            for s in STEP_KINDS
+        if "ISE" in metrics and "rise_time" in metrics:
+            ise, itae = _ratio(means, scen, "ISE"), _ratio(means, scen, "ITAE")
+            ess = means[scen]["GC"].xs("relative_steady_state_error", level="metric").dropna()
+            steps[scen] = {
+                **_worst(ise, "ISE_ratio"),
+                **_worst(itae, "ITAE_ratio"),
+                **_worst(ess, "relative_ess_GC", "worst_relative_ess_system"),
+                "n_systems": int(len(ise)),
+            }
+        elif "RMSE" in metrics:
+            rmse = _ratio(means, scen, "RMSE")
+            tracking[scen] = {**_worst(rmse, "RMSE_ratio"), "n_systems": int(len(rmse))}
+    return steps, tracking
+
+
+def _anti_windup(means: pd.Series, scenarios: list[str]) -> dict[str, Any]:
+    """Per anti-windup scenario: the worst GC-AW/LQI-AW ISE ratio over its plants."""
+    out = {}
+    for scen in scenarios:
+        if scen in means.index.get_level_values(0) and GC_ANTI_WINDUP in means[scen]:
+            out[scen] = _worst(_ratio(means, scen, "ISE", GC_ANTI_WINDUP, "LQI-AW"), "ISE_ratio")
+    return out
+
+
+def _at_most(values: list[float], limit: float) -> bool | None:
+    """All ``values`` at most ``limit``; None when nothing was measured."""
+    return None if not values else bool(max(values) <= limit)
+
+
+def _quality_bar(out: Mapping[str, Any], bar: Mapping[str, Any]) -> dict[str, bool | None]:
+    """The bar's verdicts (None: not measured by this evaluation's scenarios)."""
+    ratios, step = out["ratios"], out["ratios"].get("step")
+    ess = [ratios[s]["worst_relative_ess_GC"] for s in STEP_KINDS if s in ratios]
+    rmse = [v["worst_RMSE_ratio"] for v in out["tracking"].values()]
+    aw = [v["worst_ISE_ratio"] for v in out["anti_windup"].values()]
+    return {
+        "stable_everywhere": not any(out["diverged"].get(c) for c in LEARNED),
+        f"ess_within_{100 * bar['relative_ess']:g}pct": _at_most(ess, bar["relative_ess"]),
+        f"ISE_ratio_le_{bar['ISE_ratio']:g}": _at_most(
+            [step["worst_ISE_ratio"]] if step else [], bar["ISE_ratio"]
         ),
-        "ISE_ratio_le_1.15": step.get("worst_ISE_ratio", np.inf) <= 1.15,
-        "ITAE_ratio_le_2.0": step.get("worst_ITAE_ratio", np.inf) <= 2.0,
+        f"ITAE_ratio_le_{bar['ITAE_ratio']:g}": _at_most(
+            [step["worst_ITAE_ratio"]] if step else [], bar["ITAE_ratio"]
+        ),
+        f"RMSE_ratio_le_{bar['RMSE_ratio']:g}": _at_most(rmse, bar["RMSE_ratio"]),
+        "GC_AW_no_worse_than_LQI_AW": _at_most(aw, 1.0),
     }
+
+
+def summarise(df: pd.DataFrame, bar: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Quality-bar figures: divergences, worst GC/LQI ratios per scenario, the bar itself."""
+    bar = {**DEFAULT_BAR, **(bar or {})}
+    means = df.groupby(["scenario", "controller", "system", "metric"])["value"].mean()
+    out: dict[str, Any] = {"diverged": _divergences(df)}
+    out["ratios"], out["tracking"] = _scenario_figures(df, means)
+    out["anti_windup"] = _anti_windup(means, list(bar["anti_windup"]))
+    out["quality_bar"] = _quality_bar(out, bar)
     return out

@@ -48,8 +48,12 @@ def write_reports(
     trajs: Mapping[str, Mapping[str, Mapping[str, Trajectory]]],
     out_dir: str | Path,
     plots: bool = True,
+    bar: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write the CSV, tables, summary and plots atomically to ``out_dir``; return the summary.
+
+    ``bar`` overrides thresholds of the quality bar
+    (:data:`~generalist_control.evaluation.summary.DEFAULT_BAR`).
 
     Raises
     ------
@@ -59,7 +63,7 @@ def write_reports(
     check_reports_dir(out_dir)
     with staging_directory(out_dir) as staging:
         df.to_csv(staging / "metrics.csv", index=False)
-        summary = summarise(df)
+        summary = summarise(df, bar)
         (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
         (staging / "table2.md").write_text(tables.table2_markdown(df))
         (staging / "table_all.md").write_text(tables.table_all_markdown(df))

@@ -32,6 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from generalist_control.common.schema import require_int, require_switch
 from generalist_control.plants.plant import MAX_ORDER
 
 __all__ = [
@@ -73,6 +74,9 @@ MODEL_DEFAULTS: dict[str, int] = {
 #: Keys that are switches (0 or 1) rather than sizes.
 _SWITCHES = ("window_scale", "linear_head", "integral")
 
+#: Where a network key is set in the training config, when not at ``model.<key>``.
+_CONFIG_KEYS = {"experts": "experts", "history": "data.history", "horizon": "data.horizon"}
+
 
 def input_width(config: dict[str, int]) -> int:
     """Width of the state input per time step: ``state_dim``, plus one with ``integral``."""
@@ -82,23 +86,28 @@ def input_width(config: dict[str, int]) -> int:
 def network_config(**kwargs: Any) -> dict[str, int]:
     """Complete and check a network config; a plain ``dict`` (checkpoints store it as is).
 
+    Values are taken as they are, never rounded: a size must be an integer (a float, even
+    ``32.0``, a boolean or a string is refused), a switch a boolean or 0 or 1.
+
     Raises
     ------
     ValueError
-        If a key is unknown, a value is not a positive integer, or ``hidden`` is odd.
+        If a key is unknown, a size is not a positive integer (``linear_samples``: not
+        negative), a switch is not 0 or 1, or ``hidden`` is odd; the message names the
+        config key (``model.hidden``, ``experts``, ``data.history``), the value and its type.
     """
     unknown = set(kwargs) - set(MODEL_DEFAULTS)
     if unknown:
         raise ValueError(
             f"unknown model config keys {sorted(unknown)}; known: {sorted(MODEL_DEFAULTS)}"
         )
-    cfg = {k: int(kwargs.get(k, v)) for k, v in MODEL_DEFAULTS.items()}
-    for key, value in cfg.items():
+    cfg: dict[str, int] = {}
+    for key, default in MODEL_DEFAULTS.items():
+        value, name = kwargs.get(key, default), _CONFIG_KEYS.get(key, f"model.{key}")
         if key in _SWITCHES:
-            if value not in (0, 1):
-                raise ValueError(f"model.{key} must be 0 or 1 (false/true), got {value}")
-        elif value < (0 if key == "linear_samples" else 1):
-            raise ValueError(f"model.{key} must be a positive integer, got {value}")
+            cfg[key] = require_switch(name, value)
+        else:
+            cfg[key] = require_int(name, value, minimum=0 if key == "linear_samples" else 1)
     if cfg["linear_samples"] > cfg["history"]:
         raise ValueError(
             f"model.linear_samples ({cfg['linear_samples']}) exceeds the history "

@@ -8,15 +8,22 @@ validated :class:`~generalist_control.plants.Plant` objects.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import Any, cast
 
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.paths import conf_dir
+from generalist_control.common.schema import require_int
 from generalist_control.plants.config import plant_from_config
 from generalist_control.plants.plant import Plant, PlantConfigError
 
-__all__ = ["UnknownPlantError", "available_plants", "load_plant", "plants_from_config"]
+__all__ = [
+    "UnknownPlantError",
+    "available_plants",
+    "check_tags",
+    "load_plant",
+    "plants_from_config",
+]
 
 
 class UnknownPlantError(KeyError):
@@ -49,7 +56,7 @@ def load_plant(name: str) -> Plant:
     path = conf_dir() / "plants" / f"{name}.yaml"
     if not path.is_file():
         raise _unknown(name, available_plants())
-    cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    cfg = cast(dict[str, Any], OmegaConf.to_container(OmegaConf.load(path), resolve=True))
     return plant_from_config(name, cfg)
 
 
@@ -66,7 +73,7 @@ def plants_from_config(systems: DictConfig | Mapping[str, Any]) -> list[Plant]:
         If a plant is invalid or two plants share a tag.
     """
     if isinstance(systems, DictConfig):
-        systems = OmegaConf.to_container(systems, resolve=True)
+        systems = cast(dict[str, Any], OmegaConf.to_container(systems, resolve=True))
     entries: Mapping[str, Any] = systems.get("plants") or {}
     if not entries:
         raise PlantConfigError(f"systems set '{systems.get('name', '?')}' lists no plants")
@@ -85,3 +92,38 @@ def plants_from_config(systems: DictConfig | Mapping[str, Any]) -> list[Plant]:
             )
         seen[p.tag] = p.name
     return plants
+
+
+def check_tags(plants: Iterable[Plant], n_tags: Any) -> None:
+    """Refuse plants whose tag the policy cannot take: tags must lie in ``0..n_tags-1``.
+
+    ``n_tags`` is ``model.n_tags``, the size of the policy's one-hot tag input.
+
+    Raises
+    ------
+    PlantConfigError
+        Naming every such plant, its tag, the allowed range and the fixes, e.g. "plant
+        'cstr' (tag 10) is outside the policy's tags 0..9 (model.n_tags=10); raise
+        model.n_tags to at least 11 (...) or give it a free tag in 0..9 (...)".
+    ValueError
+        If ``n_tags`` is not a positive integer.
+    """
+    n = require_int("model.n_tags", n_tags)
+    bad = [p for p in plants if not 0 <= p.tag < n]
+    if not bad:
+        return
+    which = ", ".join(f"'{p.name}' (tag {p.tag})" for p in bad)
+    one = len(bad) == 1
+    fixes = [f"give {'it a free tag' if one else 'them free tags'} in 0..{n - 1}"]
+    top = max(p.tag for p in bad)
+    if top >= n:
+        fixes.insert(
+            0,
+            f"raise model.n_tags to at least {top + 1} (conf/model/, the same for generate "
+            "and train)",
+        )
+    raise PlantConfigError(
+        f"{'plant' if one else 'plants'} {which} {'is' if one else 'are'} outside the "
+        f"policy's tags 0..{n - 1} (model.n_tags={n}); {' or '.join(fixes)} "
+        "(conf/plants/<name>.yaml, field 'tag')"
+    )

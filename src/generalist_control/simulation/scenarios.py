@@ -2,13 +2,17 @@
 
 A scenario is a mapping from ``conf/evaluation/*.yaml``::
 
-    kind: step | random_steps | sine | ramp | composite
+    kind: step | random_steps | sine | ramp | composite   # or a family of references.py
     duration: 15.0               # seconds
     plants: [two_mass_spring]    # optional: only these plants (default: every evaluated plant)
     perturbation: {u_limit: 0.5} # optional: fields of simulate.Perturbation
 
-plus the parameters of its kind (see :func:`references`). Amplitudes are multiplied by each
-plant's ``amplitude_scale`` (the same factor the data stage applies to its grid).
+plus the parameters of its kind (see :func:`references`; the randomised families
+``staircase``, ``sines``, ``sweep``, ``ramps`` and ``hold``, with random initial states, are
+those of :mod:`generalist_control.simulation.references`, shared with the data stage).
+Amplitudes are multiplied by each plant's ``amplitude_scale`` (the same factor the data
+stage applies to its grid). ``perturbation.noise_rel`` gives measurement noise relative to
+each plant's state envelope (:func:`~generalist_control.simulation.references.state_envelope`).
 """
 
 from __future__ import annotations
@@ -19,11 +23,16 @@ from typing import Any
 import numpy as np
 
 from generalist_control.plants.plant import Plant
+from generalist_control.simulation.references import (
+    FAMILIES,
+    family_references,
+    state_envelope,
+)
 from generalist_control.simulation.simulate import Perturbation
 
 __all__ = ["KINDS", "ScenarioError", "perturbation", "references"]
 
-KINDS = ("step", "random_steps", "sine", "ramp", "composite")
+KINDS = ("step", "random_steps", "sine", "ramp", "composite", *FAMILIES)
 
 
 class ScenarioError(ValueError):
@@ -49,7 +58,9 @@ def references(
     - ``sine``: ``amplitude * sin(omega t)`` from an initial state with output ``y0``;
     - ``ramp``: ``slope * t`` from rest;
     - ``composite``: a step to ``amplitude`` for the first third, a ramp to
-      ``3 * amplitude`` over the second, then a sine of amplitude ``amplitude`` about it.
+      ``3 * amplitude`` over the second, then a sine of amplitude ``amplitude`` about it;
+    - a family of :mod:`~generalist_control.simulation.references` (random references and
+      initial states).
     """
     kind = spec.get("kind")
     if kind not in KINDS:
@@ -58,6 +69,11 @@ def references(
     steps = int(round(duration / plant.dt))
     if steps < 2:
         raise ScenarioError(f"scenario '{name}': duration {duration} s is too short")
+    if kind in FAMILIES:
+        try:
+            return family_references(plant, spec, steps)
+        except ValueError as exc:
+            raise ScenarioError(f"scenario '{name}': {exc}") from exc
     t = np.arange(steps) * plant.dt
     scale = plant.amplitude_scale
     amp = float(spec.get("amplitude", 1.0)) * scale
@@ -85,11 +101,22 @@ def references(
     return r, x0
 
 
-def perturbation(name: str, spec: Mapping[str, Any]) -> Perturbation | None:
-    """The scenario's :class:`~generalist_control.simulate.Perturbation`, if it has one."""
-    fields = spec.get("perturbation")
+def perturbation(
+    name: str, spec: Mapping[str, Any], plant: Plant | None = None
+) -> Perturbation | None:
+    """The scenario's :class:`~generalist_control.simulation.simulate.Perturbation`, if any.
+
+    ``noise_rel`` (with ``plant``) sets ``noise_std`` to that fraction of the plant's state
+    envelope for unit steps, so one scenario means the same on plants of any scale.
+    """
+    fields = dict(spec.get("perturbation") or {})
     if not fields:
         return None
+    rel = fields.pop("noise_rel", None)
+    if rel is not None:
+        if plant is None:
+            raise ScenarioError(f"scenario '{name}': noise_rel needs the plant")
+        fields["noise_std"] = tuple(float(rel) * state_envelope(plant, 1.0))
     kwargs: dict[str, Any] = {
         k: (tuple(v) if isinstance(v, list) else v) for k, v in fields.items()
     }

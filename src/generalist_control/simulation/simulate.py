@@ -61,6 +61,9 @@ class Perturbation:
         from ``noise_start`` seconds on.
     disturbance : float
         Constant input disturbance added to the applied control from ``disturbance_start``.
+    actuator_gain : float
+        The plant receives ``actuator_gain`` times the delivered control (an actuator whose
+        gain is off, e.g. 0.8 or 1.2); the recorded ``u`` is the delivered control.
     seed : int
         Seed of the noise generator (same seed, same noise).
     """
@@ -71,6 +74,7 @@ class Perturbation:
     noise_start: float = 0.0
     disturbance: float = 0.0
     disturbance_start: float = 0.0
+    actuator_gain: float = 1.0
     seed: int = 0
 
     def actuate(self, u_cmd: np.ndarray, u_prev: np.ndarray, dt: float) -> np.ndarray:
@@ -191,6 +195,8 @@ class _Group:
             uk = pert.actuate(uk, self.u_prev, self.plant.dt)
             self.u_prev = uk
         self.u[:, k] = uk
+        if pert is not None and pert.actuator_gain != 1.0:
+            uk = uk * pert.actuator_gain
         if pert is not None and pert.disturbance and k * self.plant.dt >= pert.disturbance_start:
             uk = uk + pert.disturbance
         nxt = self._advance(self.x[:, k], uk)

@@ -28,12 +28,12 @@ training; :func:`aggregate` is one round.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from generalist_control.data.windows import Windows, build_windows
-from generalist_control.deploy.adapter import stacked_output
+from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.plants.plant import Plant, pad_states
 from generalist_control.simulation.lqi import LQIController, design_lqi
@@ -73,12 +73,10 @@ class MixedController:
             ctrl = LQIController(plant)
             ctrl.reset(count)
             self._parts.append((ctrl, plant.order, rows))
-        self._output = None
+        self._policy = None
         if self.runtime is not None and self.beta < 1.0:
-            names = [p.name for p, c in zip(plants, counts, strict=True) for _ in range(c)]
-            self.runtime.reset(names)
-            if self.runtime.integral:
-                self._output = stacked_output(plants, counts)
+            self._policy = RuntimeAdapter(self.runtime)
+            self._policy.reset(plants, counts)
         self._z: list[np.ndarray] = []
 
     def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -88,12 +86,10 @@ class MixedController:
             z[rows] = ctrl.z
             u_e[rows] = ctrl.step(x[rows, :n], r[rows])
         self._z.append(z)
-        if self.runtime is None or self.beta >= 1.0:
+        if self._policy is None:
             return u_e
-        if self._output is None:
-            u_p = self.runtime.step(x, r)
-        else:
-            u_p = self.runtime.step(x, r, self._output(x))
+        u_p = self._policy.step(x, r)  # NaN: a run the runtime refused (outside its range)
+        u_p = np.where(np.isnan(u_p), u_e, u_p)  # the expert takes that run over
         return self.beta * u_e + (1.0 - self.beta) * u_p
 
     @property
@@ -180,6 +176,15 @@ def _in_range(x: np.ndarray, bound: np.ndarray) -> np.ndarray:
     return np.cumprod(ok, axis=1).astype(bool)
 
 
+def _references(
+    spec: np.ndarray | tuple[np.ndarray, np.ndarray | None], steps: int
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """References (B, steps) and initial states of one plant's rollouts."""
+    if isinstance(spec, tuple):
+        return spec
+    return np.repeat(np.asarray(spec, dtype=float)[:, None], steps, axis=1), None
+
+
 def _labelled_windows(
     p: Plant,
     tr: Trajectory,
@@ -214,8 +219,8 @@ def aggregate(
     plants: Sequence[Plant],
     runtime: PolicyRuntime | None,
     beta: float,
-    amplitudes: dict[str, np.ndarray],
-    bounds: dict[str, np.ndarray],
+    amplitudes: Mapping[str, np.ndarray | tuple[np.ndarray, np.ndarray | None]],
+    bounds: Mapping[str, np.ndarray],
     steps: int,
     history: int,
     horizon: int,
@@ -226,7 +231,8 @@ def aggregate(
 
     ``runtime`` is the current policy (None with ``beta = 1``: pure expert rollouts) and
     ``beta`` the expert's weight in the executed control. ``amplitudes`` gives, per plant
-    name, the step amplitudes (one rollout from rest each) and ``bounds`` the largest state
+    name, the step amplitudes (one rollout from rest each), or the rollouts' references
+    (B, steps) and initial states (B, n) (the data's families), and ``bounds`` the largest state
     magnitude (n,) a rollout may reach (windows past the first sample outside are dropped).
     ``takeover`` is the integrator the expert takes over with: ``"bumpless"`` sets it so
     that the expert's law reproduces the control applied one sample earlier
@@ -246,7 +252,7 @@ def aggregate(
             "a policy that sees the error integral is labelled from that integrator: "
             "use dagger.takeover=tracked (or auto)"
         )
-    runs = [Run(p, np.repeat(amplitudes[p.name][:, None], steps, axis=1)) for p in plants]
+    runs = [Run(p, *_references(amplitudes[p.name], steps)) for p in plants]
     ctrl = MixedController(runtime, beta)
     trajs = simulate_many(runs, ctrl)
     z_all = ctrl.z

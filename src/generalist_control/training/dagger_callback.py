@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, cast
 
 import lightning as L
@@ -13,6 +13,7 @@ import torch
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
 from generalist_control.plants.plant import Plant
+from generalist_control.simulation.references import family_references
 from generalist_control.training.dagger import aggregate
 
 __all__ = ["DAggerCallback"]
@@ -45,6 +46,12 @@ class DAggerCallback(L.Callback):
         Rollouts are cut where a state exceeds ``bound_factor`` times the largest magnitude
         that state reaches in the training demonstrations.
     seed : int
+    families : mapping, optional
+        The data's demonstration families (``data.families``, enabled ones): each round
+        also rolls out ``family_count`` references of each family per plant, drawn with a
+        seed of its own (:func:`~generalist_control.simulation.references.family_references`),
+        from the family's random initial states.
+    family_count : int
     """
 
     def __init__(
@@ -61,6 +68,8 @@ class DAggerCallback(L.Callback):
         bound_factor: float = 3.0,
         takeover: str = "auto",
         seed: int = 0,
+        families: Mapping[str, Mapping[str, Any]] | None = None,
+        family_count: int = 2,
     ) -> None:
         self.plants = list(plants)
         self.limit, self.start_epoch, self.every = float(limit), int(start_epoch), int(every)
@@ -72,8 +81,26 @@ class DAggerCallback(L.Callback):
                 f"dagger.takeover must be 'auto', 'bumpless' or 'tracked', got {takeover!r}"
             )
         self.takeover = takeover
+        self.families = {k: dict(v) for k, v in (families or {}).items()}
+        self.family_count = int(family_count)
         self.done = 0
         self.history: list[dict[str, Any]] = []
+
+    def _rollouts(self, steps: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Per plant, the round's rollouts: references and initial states (steps, families)."""
+        rng = np.random.default_rng(self.seed + self.done)
+        out = {}
+        for p in self.plants:
+            amps = rng.uniform(-self.limit, self.limit, self.rollouts) * p.amplitude_scale
+            rs, x0s = [np.repeat(amps[:, None], steps, axis=1)], [np.zeros((len(amps), p.order))]
+            for i, spec in enumerate(self.families.values()):
+                seed = int(spec.get("seed", 0)) + 7919 * (self.done + 1) + 31 * i + self.seed
+                own = {**spec, "count": self.family_count, "seed": seed}
+                r, x0 = family_references(p, own, steps)
+                rs.append(r)
+                x0s.append(x0)
+            out[p.name] = (np.concatenate(rs), np.concatenate(x0s))
+        return out
 
     def _due(self, epochs_done: int) -> bool:
         if self.done >= self.rounds or epochs_done < self.start_epoch:
@@ -94,12 +121,8 @@ class DAggerCallback(L.Callback):
         if not self._due(trainer.current_epoch + 1):
             return
         dm = cast(Any, trainer).datamodule
-        rng = np.random.default_rng(self.seed + self.done)
-        amps = {
-            p.name: rng.uniform(-self.limit, self.limit, self.rollouts) * p.amplitude_scale
-            for p in self.plants
-        }
         steps = int(round(self.duration / self.plants[0].dt))
+        amps = self._rollouts(steps)
         beta = self.beta * self.beta_decay**self.done
         policy = cast(Policy, pl_module.policy)
         was_training = policy.training

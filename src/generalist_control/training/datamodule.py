@@ -16,7 +16,7 @@ processes, which would only copy the tensors around.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -26,10 +26,17 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from generalist_control.data.demos import load_demos
+from generalist_control.common.schema import require_fraction, require_int
+from generalist_control.data.demos import MissingDataError, load_demos
 from generalist_control.data.windows import Windows
 
-__all__ = ["BatchIndexSampler", "DemoDataModule", "WindowTensors", "split_by_trajectory"]
+__all__ = [
+    "BatchIndexSampler",
+    "DemoDataModule",
+    "MissingPlantError",
+    "WindowTensors",
+    "split_by_trajectory",
+]
 
 FIELDS = ("state", "mask", "ref", "tag", "target")
 
@@ -61,6 +68,10 @@ def split_by_trajectory(plant: np.ndarray, val_fraction: float, seed: int) -> np
         n_val = min(len(idx) - 1, max(1, round(val_fraction * len(idx))))
         is_val[rng.permutation(idx)[:n_val]] = True
     return is_val
+
+
+class MissingPlantError(MissingDataError):
+    """A plant asked for (``systems.include``) that the dataset does not hold."""
 
 
 class WindowTensors(Dataset):
@@ -127,6 +138,17 @@ class DemoDataModule(L.LightningDataModule):
     integral : bool
         Windows carry the tracking-error integral as the last state channel
         (``model.integral``; see :func:`~generalist_control.windows.integral_of_error`).
+    plants : sequence of str, optional
+        Train and validate on these plants only (``systems.include``); None or empty: all
+        the dataset holds. The split is made over the whole dataset first, so a plant kept
+        has the same training and validation trajectories as without ``plants``.
+
+    Raises
+    ------
+    ValueError
+        If a size is not a positive integer (``10.5`` is refused, not truncated) or
+        ``val_fraction`` is not a number in ``[0, 1)``; the message names the
+        ``loader.*`` or ``data.*`` key, the value and its type.
 
     Attributes
     ----------
@@ -147,14 +169,18 @@ class DemoDataModule(L.LightningDataModule):
         val_batch_size: int = 8192,
         seed: int = 0,
         integral: bool = False,
+        plants: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
         self.data_dir = Path(data_dir)
         self.integral = bool(integral)
-        self.history, self.horizon = int(history), int(horizon)
-        self.val_fraction = float(val_fraction)
-        self.batch_size, self.val_batch_size = int(batch_size), int(val_batch_size)
+        self.history = require_int("data.history", history)
+        self.horizon = require_int("data.horizon", horizon)
+        self.val_fraction = require_fraction("loader.val_fraction", val_fraction)
+        self.batch_size = require_int("loader.batch_size", batch_size)
+        self.val_batch_size = require_int("loader.val_batch_size", val_batch_size)
         self.seed = int(seed)
+        self.plants = [str(p) for p in plants] if plants else None
         self.manifest: dict[str, Any] = {}
         self.tags: dict[str, int] = {}
         self.orders: dict[str, int] = {}
@@ -169,17 +195,42 @@ class DemoDataModule(L.LightningDataModule):
         ------
         generalist_control.demos.MissingDataError
             If ``data_dir`` holds no dataset; the message gives the command that creates it.
+        MissingPlantError
+            If ``plants`` names a plant the dataset does not hold (with the command).
         """
         if self.train_set is not None:
             return
         demos, self.manifest = load_demos(self.data_dir)
+        kept_traj = self._kept(demos.plant)
         windows = demos.windows(self.history, self.horizon, self.integral)
         is_val = split_by_trajectory(demos.plant, self.val_fraction, self.seed)[windows.traj]
-        self.train_set = WindowTensors(windows, ~is_val)
-        self.val_set = WindowTensors(windows, is_val)
-        self.tags = {str(p): int(t) for p, t in zip(demos.plant, demos.tag, strict=True)}
-        self.orders = {str(p): int(n) for p, n in zip(demos.plant, demos.order, strict=True)}
+        kept = kept_traj[windows.traj]
+        self.train_set = WindowTensors(windows, kept & ~is_val)
+        self.val_set = WindowTensors(windows, kept & is_val)
+        rows = zip(demos.plant.tolist(), demos.tag, demos.order, strict=True)
+        kept_rows = [(str(p), int(t), int(n)) for p, t, n in rows if self._wanted(str(p))]
+        self.tags = {p: t for p, t, _ in kept_rows}
+        self.orders = {p: n for p, _, n in kept_rows}
         self.dt = float(demos.dt)
+
+    def _wanted(self, plant: str) -> bool:
+        return self.plants is None or plant in self.plants
+
+    def _kept(self, plant: np.ndarray) -> np.ndarray:
+        """Trajectories of :attr:`plants` (all without), after checking the data has them."""
+        if self.plants is None:
+            return np.ones(len(plant), dtype=bool)
+        held = sorted(set(plant.tolist()))
+        missing = [p for p in self.plants if p not in held]
+        if missing:
+            raise MissingPlantError(
+                f"systems.include names {missing}, but the dataset at {self.data_dir} holds "
+                f"only {held}; generate one that holds them, e.g. "
+                "python -m generalist_control.generate "
+                f"systems.include=[{','.join(sorted(set(held) | set(self.plants)))}] "
+                f"paths.data_dir={self.data_dir}"
+            )
+        return np.isin(plant, self.plants)
 
     def meta(self) -> dict[str, Any]:
         """Plain-typed facts a trained policy needs to be traced and deployed."""
@@ -195,12 +246,19 @@ class DemoDataModule(L.LightningDataModule):
             "n_val": len(self.val_set or ()),
         }
 
+    def _loaded(self, windows: WindowTensors | None) -> WindowTensors:
+        if windows is None:
+            raise RuntimeError("DemoDataModule: call setup() before asking for a dataloader")
+        return windows
+
     def train_dataloader(self) -> DataLoader:
         """Shuffled index batches over the training windows."""
-        sampler = BatchIndexSampler(len(self.train_set), self.batch_size, True, self.seed)
-        return DataLoader(self.train_set, sampler=sampler, batch_size=None)
+        train_set = self._loaded(self.train_set)
+        sampler = BatchIndexSampler(len(train_set), self.batch_size, True, self.seed)
+        return DataLoader(train_set, sampler=sampler, batch_size=None)
 
     def val_dataloader(self) -> DataLoader:
         """Validation windows in order."""
-        sampler = BatchIndexSampler(len(self.val_set), self.val_batch_size, False)
-        return DataLoader(self.val_set, sampler=sampler, batch_size=None)
+        val_set = self._loaded(self.val_set)
+        sampler = BatchIndexSampler(len(val_set), self.val_batch_size, False)
+        return DataLoader(val_set, sampler=sampler, batch_size=None)

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import hydra
 import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from generalist_control.common.configs import as_dict
+from generalist_control.data.generation import enabled_families
 from generalist_control.model.network import MODEL_DEFAULTS, network_config
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.plants.plant import Plant
@@ -21,6 +23,7 @@ __all__ = [
     "closed_loop_validation",
     "config_callbacks",
     "dagger_callback",
+    "included_plants",
     "model_config",
     "training_plants",
 ]
@@ -31,6 +34,12 @@ def model_config(cfg: DictConfig) -> dict[str, int]:
 
     ``experts`` is a top-level key (``experts=5`` works as typed); ``history`` and ``horizon``
     come from the data config, so the network always matches the windows it is fed.
+
+    Raises
+    ------
+    ValueError
+        If a value is not of its type (``model.hidden=32.9``, ``experts=2.5``: nothing is
+        rounded) or out of range; see :func:`~generalist_control.model.network.network_config`.
     """
     keys = set(MODEL_DEFAULTS) - {"experts", "state_dim", "history", "horizon"}
     return network_config(
@@ -39,6 +48,22 @@ def model_config(cfg: DictConfig) -> dict[str, int]:
         history=cfg.data.history,
         horizon=cfg.data.horizon,
     )
+
+
+def included_plants(cfg: DictConfig) -> list[str] | None:
+    """The plants ``systems.include`` keeps (checked against the set); None without it.
+
+    The data module then trains and validates on these plants only, so the include list
+    means the same with DAgger and the closed-loop check off as with them on.
+
+    Raises
+    ------
+    generalist_control.plants.catalog.UnknownPlantError
+        If ``include`` names a plant that is not in the set.
+    """
+    if not cfg.systems.get("include"):
+        return None
+    return [p.name for p in plants_from_config(cfg.systems)]
 
 
 def training_plants(cfg: DictConfig, meta: dict[str, Any]) -> list[Plant]:
@@ -51,10 +76,12 @@ def dagger_callback(cfg: DictConfig, plants: list[Plant]) -> L.Callback | None:
     spec = cfg.get("dagger")
     if not spec or not spec.get("enabled", False):
         return None
-    kwargs = dict(OmegaConf.to_container(spec, resolve=True))
+    kwargs = cast(dict[str, Any], OmegaConf.to_container(spec, resolve=True))
     kwargs.pop("enabled")
     kwargs.setdefault("limit", float(cfg.data.amplitudes.limit))
     kwargs.setdefault("seed", int(cfg.seed or 0))
+    families = kwargs.pop("families", False)
+    kwargs["families"] = enabled_families(as_dict(cfg.data)) if families else None
     if cfg.model.get("integral", False) and kwargs.get("takeover") == "bumpless":
         raise ValueError(
             "model.integral=true: DAgger must label from the integrator the policy sees; "

@@ -1,0 +1,155 @@
+"""Randomised reference families and random initial states, for data, DAgger and evaluation.
+
+One implementation serves three users: the data stage's demonstration families
+(``conf/data``), DAgger's rollouts (the same families, other seeds) and the evaluation's
+scenarios (other levels, frequencies and seeds). Every draw comes from
+``numpy.random.default_rng(seed + 1000 * plant.tag)``, so a family is reproducible per plant.
+All amplitudes, levels and slopes are multiplied by the plant's ``amplitude_scale``.
+
+Families (``kind``) and their parameters (defaults in brackets):
+
+- ``staircase``: ``count`` [8] references of ``levels`` [[2, 4]] equal-length levels,
+  each uniform in ``+-limit`` [10];
+- ``sines``: ``count`` [8] sines ``c + A sin(omega t + phi)`` with ``A`` uniform in
+  ``amplitude`` [[0.2, 3]], ``omega`` log-uniform in ``omega`` [[0.2, 3]] rad/s, ``phi``
+  uniform, offset ``c`` uniform in ``+-offset`` [2];
+- ``sweep``: ``count`` [1] linear chirps of amplitude ``amplitude`` [1] (a range draws it)
+  whose frequency runs from ``omega[0]`` to ``omega[1]`` [[0.1, 2]] rad/s, random phase
+  when ``count > 1``, offset as for ``sines`` [0];
+- ``ramps``: ``count`` [6] ramps ``c + s t`` with ``|s|`` uniform in ``slope`` [[0.05, 1]]
+  per second, random sign, offset ``c`` uniform in ``+-offset`` [2];
+- ``hold``: ``count`` [8] constant references uniform in ``+-limit`` [5], every run from a
+  random initial state.
+
+Random initial states: a share ``x0_fraction`` of the runs ([1] for ``hold``, [0] otherwise)
+starts at ``x0 = u * x0_scale * envelope`` with ``u`` uniform in ``[-1, 1]`` per state
+entry and ``envelope`` the largest magnitude each state reaches when the plant's LQI expert
+tracks steps of ``+-x0_amplitude`` [3] (:func:`state_envelope`): a state the plant visits
+in operation, never an arbitrary one.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from generalist_control.plants.plant import Plant
+from generalist_control.simulation.lqi import LQIController
+from generalist_control.simulation.simulate import simulate
+
+__all__ = ["FAMILIES", "family_references", "random_initial_states", "state_envelope"]
+
+
+def _range(spec: Mapping[str, Any], key: str, default: tuple[float, float]) -> tuple[float, float]:
+    value = spec.get(key, default)
+    if isinstance(value, int | float):
+        return float(value), float(value)
+    lo, hi = (float(v) for v in value)
+    if hi < lo:
+        raise ValueError(f"'{key}' must be [low, high] with low <= high, got {list(value)}")
+    return lo, hi
+
+
+def _staircase(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    count, limit = int(spec.get("count", 8)), float(spec.get("limit", 10.0))
+    lo, hi = _range(spec, "levels", (2, 4))
+    r = np.empty((count, len(t)))
+    for b in range(count):
+        n = int(rng.integers(int(lo), int(hi) + 1))
+        levels = rng.uniform(-limit, limit, size=n)
+        r[b] = levels[np.minimum((np.arange(len(t)) * n) // len(t), n - 1)]
+    return r
+
+
+def _sines(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    count, offset = int(spec.get("count", 8)), float(spec.get("offset", 2.0))
+    amp = rng.uniform(*_range(spec, "amplitude", (0.2, 3.0)), size=(count, 1))
+    w_lo, w_hi = _range(spec, "omega", (0.2, 3.0))
+    omega = np.exp(rng.uniform(np.log(w_lo), np.log(w_hi), size=(count, 1)))
+    phase = rng.uniform(0.0, 2 * np.pi, size=(count, 1))
+    c = rng.uniform(-offset, offset, size=(count, 1))
+    return c + amp * np.sin(omega * t[None, :] + phase)
+
+
+def _sweep(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    count, offset = int(spec.get("count", 1)), float(spec.get("offset", 0.0))
+    amp = rng.uniform(*_range(spec, "amplitude", (1.0, 1.0)), size=(count, 1))
+    w0, w1 = _range(spec, "omega", (0.1, 2.0))
+    phase = rng.uniform(0.0, 2 * np.pi, size=(count, 1)) if count > 1 else np.zeros((1, 1))
+    c = rng.uniform(-offset, offset, size=(count, 1))
+    span = max(float(t[-1]), 1e-12)
+    angle = w0 * t + 0.5 * (w1 - w0) * t**2 / span  # instantaneous frequency w0 -> w1
+    return c + amp * np.sin(angle[None, :] + phase)
+
+
+def _ramps(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    count, offset = int(spec.get("count", 6)), float(spec.get("offset", 2.0))
+    slope = rng.uniform(*_range(spec, "slope", (0.05, 1.0)), size=(count, 1))
+    slope *= rng.choice([-1.0, 1.0], size=(count, 1))
+    c = rng.uniform(-offset, offset, size=(count, 1))
+    return c + slope * t[None, :]
+
+
+def _hold(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    count, limit = int(spec.get("count", 8)), float(spec.get("limit", 5.0))
+    return np.repeat(rng.uniform(-limit, limit, size=(count, 1)), len(t), axis=1)
+
+
+Family = Callable[[Mapping[str, Any], np.ndarray, np.random.Generator], np.ndarray]
+
+#: The families: ``kind`` -> reference generator (unscaled; see the module docstring).
+FAMILIES: dict[str, Family] = {
+    "staircase": _staircase,
+    "sines": _sines,
+    "sweep": _sweep,
+    "ramps": _ramps,
+    "hold": _hold,
+}
+
+
+@functools.lru_cache(maxsize=256)
+def state_envelope(plant: Plant, amplitude: float = 3.0, duration: float = 10.0) -> np.ndarray:
+    """Largest ``|x_i|`` along the LQI expert's responses to steps of ``+-amplitude``.
+
+    ``amplitude`` is multiplied by the plant's ``amplitude_scale``; the result has shape
+    ``(n,)`` and bounds the states the plant visits in such operation.
+    """
+    steps = int(round(duration / plant.dt))
+    a = float(amplitude) * plant.amplitude_scale
+    tr = simulate(plant, LQIController(plant), np.array([[a] * steps, [-a] * steps]))
+    return np.abs(tr.x).max(axis=(0, 1))
+
+
+def random_initial_states(
+    plant: Plant, spec: Mapping[str, Any], count: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Initial states (count, n): a share ``x0_fraction`` random within the envelope."""
+    default = 1.0 if spec.get("kind") == "hold" else 0.0
+    fraction = float(spec.get("x0_fraction", default))
+    env = state_envelope(plant, float(spec.get("x0_amplitude", 3.0)))
+    x0 = rng.uniform(-1.0, 1.0, size=(count, plant.order)) * float(spec.get("x0_scale", 1.0))
+    x0 *= env
+    x0[int(round(fraction * count)) :] = 0.0
+    return x0
+
+
+def family_references(
+    plant: Plant, spec: Mapping[str, Any], steps: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """References (B, steps) and initial states (B, n) of one family for ``plant``.
+
+    Raises
+    ------
+    ValueError
+        An unknown ``kind`` or a malformed range.
+    """
+    kind = spec.get("kind")
+    if kind not in FAMILIES:
+        raise ValueError(f"family kind '{kind}' is not one of {', '.join(FAMILIES)}")
+    rng = np.random.default_rng(int(spec.get("seed", 0)) + 1000 * plant.tag)
+    t = np.arange(steps) * plant.dt
+    r = FAMILIES[kind](spec, t, rng) * plant.amplitude_scale
+    return r, random_initial_states(plant, spec, r.shape[0], rng)

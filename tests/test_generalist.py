@@ -1,0 +1,69 @@
+"""The default recipe is a learned generalist: the plant reaches the network only through the
+learned tag embedding (issue 11). The per-tag LQI head is a named hybrid beside it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from generalist_control.model.network import GeneralistNetwork
+from generalist_control.model.policy import Policy, load_policy
+from generalist_control.training.setup import model_config
+from helpers import compose_cfg
+
+REPO = Path(__file__).resolve().parents[1]
+#: The one trainable parameter a plant may index: the paper's learned tag embedding.
+TAG_EMBEDDING = "net.tag_embedding.weight"
+
+
+def _indexed_by_plant(policy: Policy) -> set[str]:
+    """Trainable parameters with an axis of length n_tags (a block per plant)."""
+    n_tags = policy.config["n_tags"]
+    return {name for name, p in policy.named_parameters() if p.requires_grad and n_tags in p.shape}
+
+
+def _tag_only_through_embedding(net: GeneralistNetwork) -> bool:
+    """Two tags whose embedding rows are equal give equal outputs on equal inputs."""
+    torch.manual_seed(0)
+    with torch.no_grad():
+        net.tag_embedding.weight[1] = net.tag_embedding.weight[0]
+        for p in net.parameters():  # non-zero everywhere, so every path is live
+            if p.abs().sum() == 0:
+                p.normal_(0.0, 0.1)
+        net.tag_embedding.weight[1] = net.tag_embedding.weight[0]
+    c = net.config
+    width = c["state_dim"] + c["integral"]
+    state = torch.randn(6, c["history"], width)
+    mask = torch.ones_like(state)
+    ref = torch.randn(6, c["history"])
+    u0, g0 = net(state, mask, ref, torch.zeros(6, dtype=torch.long))
+    u1, g1 = net(state, mask, ref, torch.ones(6, dtype=torch.long))
+    return torch.equal(u0, u1) and torch.equal(g0, g1)
+
+
+def test_the_default_recipe_indexes_nothing_by_plant_but_the_tag_embedding():
+    cfg = compose_cfg()
+    assert not cfg.model.linear_head and cfg.model.linear_init == "zero"
+    policy = Policy(model_config(cfg))
+    assert _indexed_by_plant(policy) == {TAG_EMBEDDING}
+    assert _tag_only_through_embedding(policy.net)
+
+
+def test_the_hybrid_carries_a_per_plant_gain_table_and_the_check_sees_it():
+    cfg = compose_cfg("experiment=lqi_head")
+    assert cfg.model.linear_head and cfg.model.linear_init == "lstsq"
+    policy = Policy(model_config(cfg))
+    assert _indexed_by_plant(policy) == {TAG_EMBEDDING, "net.linear.weight"}
+    assert not _tag_only_through_embedding(policy.net)
+
+
+@pytest.mark.skipif(
+    not (REPO / "models/policy.ckpt").is_file(),
+    reason="no trained default policy here (dvc repro train, or dvc pull, makes one)",
+)
+def test_the_pipelines_policy_indexes_nothing_by_plant_but_the_tag_embedding():
+    policy, _ = load_policy(REPO / "models/policy.ckpt")
+    assert _indexed_by_plant(policy) == {TAG_EMBEDDING}
+    assert _tag_only_through_embedding(policy.net)
