@@ -1,4 +1,4 @@
-"""Print the quality-bar figures of several evaluations side by side (markdown).
+"""Print several evaluations side by side (markdown): every scenario, then every plant.
 
 Run: ``python scripts/compare_recipes.py paper=<dir>/metrics.csv ours=reports/eval/metrics.csv``
 (each argument ``label=path`` of a ``metrics.csv`` written by
@@ -11,7 +11,7 @@ import sys
 
 import pandas as pd
 
-from generalist_control.evaluation.tables import recipes_markdown
+from generalist_control.evaluation.tables import recipes_markdown, scenarios_markdown
 
 
 def main(argv: list[str]) -> None:
@@ -21,6 +21,7 @@ def main(argv: list[str]) -> None:
     for arg in argv:
         label, _, path = arg.partition("=")
         results[label] = pd.read_csv(path)
+    print(scenarios_markdown(results))
     print(recipes_markdown(results), end="")
 
 

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 DVC = [sys.executable, "-m", "dvc"]
@@ -50,7 +51,8 @@ def test_repro_skip_rerun_push_pull(repo, tmp_path):
     out = sh([*DVC, "repro", "generate"], work, env)
     assert "Running stage 'generate'" in out
     manifest = json.loads((work / "data/demos/manifest.json").read_text())
-    assert manifest["n_trajectories"] == 25 * 64
+    families = yaml.safe_load((work / "conf/data/demos.yaml").read_text())["families"]
+    assert manifest["n_trajectories"] == 25 * (64 + sum(f["count"] for f in families.values()))
     assert "didn't change, skipping" in sh([*DVC, "repro", "generate"], work, env)
 
     # changing the amplitude grid re-runs the stage

@@ -208,3 +208,26 @@ def test_closed_loop_score_is_zero_for_the_expert_and_one_for_divergence():
     }
     half = closed_loop_score(RuntimeAdapter(LQIRuntime(PLANTS, gain=0.5)), plants, duration=4.0)
     assert all(0.0 < v < 1.0 for v in half.values())
+
+
+def test_the_bar_counts_every_scenario_and_says_what_it_did_not_measure():
+    """A GC divergence in a tracking scenario alone makes stable_everywhere false."""
+    rows = []
+    for ctrl in ("GC", "LQI"):
+        for system in ("a", "b"):
+            for metric, value in (("ISE", 1.0), ("ITAE", 1.0), ("rise_time", 1.0),
+                                  ("relative_steady_state_error", 0.0)):  # fmt: skip
+                rows.append((system, "step", ctrl, 0, metric, value))
+            rows.append((system, "step", ctrl, 0, "diverged", 0.0))
+            bad = ctrl == "GC" and system == "b"
+            rows.append((system, "sine", ctrl, 0, "diverged", float(bad)))
+            for metric in ("ISE", "ITAE", "RMSE"):
+                rows.append((system, "sine", ctrl, 0, metric, np.nan if bad else 2.0))
+    df = pd.DataFrame(rows, columns=["system", "scenario", "controller", "run", "metric", "value"])
+    summary = summarise(df)
+    assert summary["diverged"]["GC"] == {"sine": 1}
+    bar = summary["quality_bar"]
+    assert bar["stable_everywhere"] is False
+    assert bar["ISE_ratio_le_1.05"] is True and bar["RMSE_ratio_le_1.1"] is True
+    assert summary["tracking"]["sine"]["n_systems"] == 1  # the diverged plant has no ratio
+    assert bar["GC_AW_no_worse_than_LQI_AW"] is None  # no anti-windup scenario ran

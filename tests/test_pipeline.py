@@ -37,7 +37,19 @@ TINY = [
     "conf/trainer/default.yaml:enable_model_summary=false",
     "conf/evaluation/default.yaml:scenarios.step.duration=3.0",
     *(f"conf/evaluation/default.yaml:~scenarios.{s}" for s in ("random_steps", "sine", "ramp")),
-    "conf/evaluation/default.yaml:~scenarios.composite",  # the rest apply to other plants
+    "conf/evaluation/default.yaml:~scenarios.composite",
+    *(
+        f"conf/evaluation/default.yaml:~scenarios.{s}"
+        for s in (
+            "staircase",
+            "frequency_sweep",
+            "random_initial",
+            "actuator_gain_120pct",
+            "actuator_gain_80pct",
+            "state_noise",
+        )
+    ),  # fmt: skip  (the rest apply to other plants)
+    "conf/data/demos.yaml:~families",  # the paper's steps only: two plants x four steps
     "conf/report/default.yaml:gate.duration=3.0",
     # the primary config and the model config are edited the same way (no interpolations)
     "conf/model/generalist.yaml:hidden=16",

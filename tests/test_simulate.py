@@ -186,3 +186,23 @@ def test_simulate_many_equals_separate_runs():
         simulate_many(
             [runs[0], Run(plants[1], np.ones((1, 50)))], PerPlantController(LQIController)
         )
+
+
+def test_actuator_gain_scales_what_the_plant_receives_not_what_is_recorded():
+    from generalist_control.simulation.simulate import Perturbation, simulate
+
+    p = load_plant("two_mass_spring")
+
+    class Constant:
+        def reset(self, batch_size):
+            pass
+
+        def step(self, x, r):
+            return np.full(x.shape[0], 0.3)
+
+    r = np.zeros((1, 40))
+    nominal = simulate(p, Constant(), r)
+    strong = simulate(p, Constant(), r, perturbation=Perturbation(actuator_gain=1.2))
+    np.testing.assert_array_equal(strong.u, nominal.u)  # the delivered command is recorded
+    # a linear plant from rest: the response to 1.2 u is 1.2 times the response to u
+    np.testing.assert_allclose(strong.x, 1.2 * nominal.x, rtol=1e-12, atol=1e-15)

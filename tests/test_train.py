@@ -133,10 +133,16 @@ def test_default_recipe_config_and_its_bad_combinations_are_refused(tiny_data_di
 
     cfg = _cfg([])
     m = model_config(cfg)
-    assert m["integral"] == 1 and m["linear_head"] == 1 and m["linear_samples"] == 1
-    assert cfg.model.linear_init == "lstsq" and cfg.dagger.takeover == "auto"
+    # the learned generalist: the integral channel and window scaling, no per-plant head
+    assert m["integral"] == 1 and m["window_scale"] == 1 and m["linear_head"] == 0
+    assert cfg.model.linear_init == "zero" and cfg.dagger.takeover == "auto"
+    assert cfg.dagger.families and set(cfg.data.families) >= {"staircase", "sines", "hold"}
+    hybrid = model_config(_cfg(["experiment=lqi_head"]))
+    assert hybrid["linear_head"] == 1 and hybrid["linear_samples"] == 1
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    bad = _cfg(_overrides(tiny_data_dir, tmp_path, uri, "model.linear_init=magic"))
+    bad = _cfg(
+        _overrides(tiny_data_dir, tmp_path, uri, "experiment=lqi_head", "model.linear_init=magic")
+    )
     with pytest.raises(ValueError, match="model.linear_init must be 'zero' or 'lstsq'"):
         train(bad)
     bad = _cfg(_overrides(tiny_data_dir, tmp_path, uri, "dagger.takeover=bumpless"))

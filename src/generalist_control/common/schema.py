@@ -65,6 +65,7 @@ class ModelSchema:
     integral: bool = MISSING
     linear_samples: int = MISSING
     linear_init: str = MISSING
+    linear_skip: bool = MISSING
     optimizer: dict[str, Any] = MISSING
     scheduler: dict[str, Any] | None = None
 

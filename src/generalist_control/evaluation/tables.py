@@ -4,15 +4,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from generalist_control.evaluation.paper import TABLE2, TABLE2_COLUMNS, TABLE2_METRICS
+from generalist_control.evaluation.summary import summarise
 from generalist_control.simulation.simulate import Trajectory
 
 __all__ = [
     "recipes_markdown",
+    "scenarios_markdown",
     "responses_csv",
     "table2_markdown",
     "table_all_markdown",
@@ -170,3 +173,45 @@ def responses_csv(trajs: Mapping[str, Mapping[str, Mapping[str, Trajectory]]]) -
                 )
             )
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def _scenario_cell(summary: Mapping[str, Any], scen: str) -> str:
+    """``ratio (system)`` of one scenario: ISE for step scenarios, RMSE for tracking ones."""
+    div = sum(summary["diverged"].get(c, {}).get(scen, 0) for c in ("GC", "GC-AW"))
+    if scen in summary["ratios"]:
+        v, s = (
+            summary["ratios"][scen]["worst_ISE_ratio"],
+            summary["ratios"][scen]["worst_ISE_system"],
+        )
+    elif scen in summary["tracking"]:
+        v = summary["tracking"][scen]["worst_RMSE_ratio"]
+        s = summary["tracking"][scen]["worst_RMSE_system"]
+    else:
+        return "n/a"
+    cell = f"{v:.4g} ({s})" if s else "n/a"
+    return cell + (f", **{div} diverged**" if div else "")
+
+
+def scenarios_markdown(results: Mapping[str, pd.DataFrame]) -> str:
+    """Per scenario, each evaluation's worst GC/LQI ratio and its GC divergences.
+
+    Step scenarios give the ISE ratio, tracking scenarios the RMSE ratio (mean over a
+    plant's runs, worst plant); ``results`` maps a label to an evaluation's ``metrics.csv``.
+    """
+    summaries = {label: summarise(df) for label, df in results.items()}
+    scenarios = list(dict.fromkeys(s for df in results.values() for s in df.scenario))
+    labels = list(results)
+    lines = [
+        "| scenario | measure | " + " | ".join(labels) + " |",
+        "| --- | --- | " + " | ".join("---" for _ in labels) + " |",
+    ]
+    for scen in scenarios:
+        tracking = any(scen in s["tracking"] for s in summaries.values())
+        measure = "worst RMSE ratio" if tracking else "worst ISE ratio"
+        cells = [_scenario_cell(summaries[label], scen) for label in labels]
+        lines.append(f"| `{scen}` | {measure} | " + " | ".join(cells) + " |")
+    bars = list(dict.fromkeys(k for s in summaries.values() for k in s["quality_bar"]))
+    for key in bars:
+        cells = [str(summaries[label]["quality_bar"].get(key)) for label in labels]
+        lines.append(f"| quality bar | `{key}` | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"

@@ -55,7 +55,9 @@ __all__ = [
 #: tracking error that the LQI expert itself integrates; 0 is the paper's),
 #: ``linear_samples`` (how many of the newest samples the linear head sees; 0, the default, is
 #: the whole window; 1 with ``integral``, where the LQI law is linear in the newest
-#: augmented state alone).
+#: augmented state alone), ``linear_skip`` (0 or 1: a linear map of those samples added to
+#: the output, its gains computed from the learned tag embedding by one shared linear
+#: layer: the plant enters only through the embedding; 0 is the paper's).
 MODEL_DEFAULTS: dict[str, int] = {
     "hidden": 32,
     "heads": 3,
@@ -69,10 +71,11 @@ MODEL_DEFAULTS: dict[str, int] = {
     "linear_head": 0,
     "integral": 0,
     "linear_samples": 0,
+    "linear_skip": 0,
 }
 
 #: Keys that are switches (0 or 1) rather than sizes.
-_SWITCHES = ("window_scale", "linear_head", "integral")
+_SWITCHES = ("window_scale", "linear_head", "integral", "linear_skip")
 
 #: Where a network key is set in the training config, when not at ``model.<key>``.
 _CONFIG_KEYS = {"experts": "experts", "history": "data.history", "horizon": "data.horizon"}
@@ -222,6 +225,17 @@ class GeneralistNetwork(nn.Module):
             n_in = (c["linear_samples"] or c["history"]) * (width + 1)
             self.linear = nn.Embedding(c["n_tags"], c["horizon"] * n_in)
             nn.init.zeros_(self.linear.weight)
+        # Ours (model.linear_skip): a linear path whose gains the network computes from the
+        # learned tag embedding, W(e_tag) = A e_tag + b with A, b shared by every plant
+        # (zero at initialisation). The LQI law is linear in the newest augmented state, so
+        # this path can carry the feedback precisely, yet nothing in it is indexed by plant:
+        # plants differ only through the embedding the rest of the network learns too.
+        self.skip: nn.Linear | None = None
+        if c["linear_skip"]:
+            n_in = (c["linear_samples"] or c["history"]) * (width + 1)
+            self.skip = nn.Linear(d, c["horizon"] * n_in)
+            nn.init.zeros_(self.skip.weight)
+            nn.init.zeros_(self.skip.bias)
         # the slow LSTM sees samples ..., t - 2 tau, t - tau, t (always the newest one)
         self.slow_start = (c["history"] - 1) % c["stride"]
 
@@ -266,11 +280,21 @@ class GeneralistNetwork(nn.Module):
         gates = torch.softmax(self.gate(z_att), dim=-1)
         u_experts = torch.stack([expert(z_att) for expert in self.experts], dim=1)
         u = torch.einsum("bm,bmk->bk", gates, u_experts)
-        if self.linear is not None:
-            window = self.linear_features(state, mask, ref)
-            weights = self.linear(tag).view(-1, self.config["horizon"], window.shape[1])
-            u = u + torch.einsum("bkf,bf->bk", weights, window)
+        if self.linear is not None or self.skip is not None:
+            u = u + self._linear_paths(state, mask, ref, tag)
         return u, gates
+
+    def _linear_paths(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor) -> Tensor:
+        """The per-tag head and the embedding-conditioned skip path, on the newest samples."""
+        window = self.linear_features(state, mask, ref)
+        shape = (-1, self.config["horizon"], window.shape[1])
+        u = window.new_zeros(window.shape[0], self.config["horizon"])
+        if self.linear is not None:
+            u = u + torch.einsum("bkf,bf->bk", self.linear(tag).view(shape), window)
+        if self.skip is not None:
+            gains = self.skip(self.tag_embedding(tag)).view(shape)
+            u = u + torch.einsum("bkf,bf->bk", gains, window)
+        return u
 
     def linear_features(self, state: Tensor, mask: Tensor, ref: Tensor) -> Tensor:
         """What the linear head sees: the newest ``linear_samples`` of state and reference."""

@@ -9,15 +9,25 @@ Each training run records the resolved config flattened into params, the data's 
 hash as the tag ``data.content_hash`` (and DVC's hash of the data directory, when
 ``dvc.lock`` has it), per-epoch metrics through :class:`MLflowEpochLogger`, and artifacts
 logged by :mod:`generalist_control.train`.
+
+Safety: a fresh SQLite store is initialised under a file lock beside the database
+(:func:`store_lock`), so trainings started together do not race on its schema; every param
+is passed through :func:`generalist_control.common.secrets.redact`; and each training run is
+tagged with its process (``gc.host``, ``gc.pid``, a heartbeat), so that the next training on
+the same host ends a run whose process died without ending it (:func:`end_stale_runs`).
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
+import logging
 import os
+import socket
 import time
 from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -27,19 +37,28 @@ import torch
 import yaml
 from mlflow.exceptions import MlflowException
 
+from generalist_control.common.secrets import redact
+
 __all__ = [
     "PARENT_RUN_ENV",
     "SWEEP_ENV",
     "MLflowEpochLogger",
     "dvc_data_version",
+    "end_stale_runs",
     "experiment_id",
     "flatten_params",
+    "init_store",
     "log_params_once",
     "mlflow_run",
     "parent_run_tags",
+    "process_tags",
     "run_id_from_checkpoint",
+    "set_tracking",
+    "store_lock",
     "tracking_uri",
 ]
+
+log = logging.getLogger(__name__)
 
 #: Config subtrees left out of the params: the plant models (fixed by the data hash, and in
 #: the logged manifest) and Hydra's own settings.
@@ -51,6 +70,9 @@ _MAX_VALUE = 6000  # MLflow's limit on a param value
 PARENT_RUN_ENV = "GC_PARENT_RUN_ID"
 SWEEP_ENV = "GC_SWEEP_NAME"
 
+#: Run tags naming the process that runs a training, and its last sign of life.
+HOST_TAG, PID_TAG, START_TAG, HEARTBEAT_TAG = "gc.host", "gc.pid", "gc.pid_start", "gc.heartbeat"
+
 
 def tracking_uri(logger: Mapping[str, Any]) -> str:
     """The tracking URI from ``logger.tracking_uri`` (default: the embedded SQLite store)."""
@@ -58,10 +80,57 @@ def tracking_uri(logger: Mapping[str, Any]) -> str:
 
 
 def set_tracking(logger: Mapping[str, Any]) -> str:
-    """Point MLflow at the ``logger`` config's tracking URI; return it."""
+    """Point MLflow at the ``logger`` config's tracking URI, its store initialised; return it."""
     uri = tracking_uri(logger)
     mlflow.set_tracking_uri(uri)
+    init_store(uri)
     return uri
+
+
+def _sqlite_file(uri: str) -> Path | None:
+    """The database file of an ``sqlite:///<path>`` URI (None for other stores, memory)."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    path = uri[len("sqlite:///") :].split("?", 1)[0]
+    return Path(path) if path and path != ":memory:" and not path.startswith("file:") else None
+
+
+def store_lock(uri: str) -> AbstractContextManager[None]:
+    """An exclusive lock on an SQLite store (``<db>.lock`` beside it); a no-op for others.
+
+    Held while a store is first initialised (MLflow creates or migrates the schema of a new
+    database on first use, which two processes must not do at once) and while the
+    experiment is looked up or created.
+    """
+    db = _sqlite_file(uri)
+    if db is None or not db.parent.is_dir():
+        return nullcontext()
+    return _flock(db.with_name(db.name + ".lock"))
+
+
+@contextmanager
+def _flock(path: Path) -> Iterator[None]:
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+_INITIALISED: set[str] = set()
+
+
+def init_store(uri: str) -> None:
+    """Create (or migrate) the schema of a local SQLite store once, under :func:`store_lock`.
+
+    Other stores are left to their server; a store is initialised once per process.
+    """
+    if uri in _INITIALISED or _sqlite_file(uri) is None:
+        return
+    with store_lock(uri):
+        mlflow.MlflowClient(uri).search_experiments(max_results=1)
+    _INITIALISED.add(uri)
 
 
 def _is_local(uri: str) -> bool:
@@ -70,6 +139,8 @@ def _is_local(uri: str) -> bool:
 
 def flatten_params(cfg: Mapping[str, Any], exclude: tuple[str, ...] = EXCLUDED) -> dict[str, str]:
     """Flatten a (resolved) config into ``{"a.b.c": "value"}``; lists become JSON.
+
+    Passwords in URLs are masked (:func:`generalist_control.common.secrets.redact`).
 
     Examples
     --------
@@ -86,7 +157,7 @@ def flatten_params(cfg: Mapping[str, Any], exclude: tuple[str, ...] = EXCLUDED) 
                 walk(value, f"{prefix}.{key}" if prefix else str(key))
         else:
             text = json.dumps(node) if isinstance(node, list | tuple) else str(node)
-            out[prefix] = text[:_MAX_VALUE]
+            out[prefix] = redact(text)[:_MAX_VALUE]
 
     walk(cfg, "")
     return out
@@ -130,9 +201,12 @@ def mlflow_run(
     Notes
     -----
     Inside a sweep or an Optuna study, a new run is nested under the parent run given by
-    the environment (:func:`parent_run_tags`).
+    the environment (:func:`parent_run_tags`). Before the run opens, runs of this host whose
+    process is gone are ended (:func:`end_stale_runs`); the run is tagged with this
+    process (:func:`process_tags`).
     """
     exp_id = experiment_id(logger)
+    end_stale_runs(exp_id)
     run_id = None
     if resume_run_id:
         try:
@@ -145,6 +219,7 @@ def mlflow_run(
         run_name=None if run_id else logger.get("run_name"),
         tags=None if run_id else parent_run_tags() or None,
     ) as run:
+        mlflow.set_tags(process_tags())
         yield run
 
 
@@ -152,19 +227,88 @@ def experiment_id(logger: Mapping[str, Any]) -> str:
     """Point MLflow at ``logger``'s store; the id of its experiment, created if missing."""
     uri = set_tracking(logger)
     name = str(logger.get("experiment_name") or "generalist-control")
-    experiment = mlflow.get_experiment_by_name(name)
-    if experiment is not None:
-        return experiment.experiment_id
-    location = logger.get("artifact_location")
-    if location and _is_local(uri) and "://" not in str(location):
-        location = Path(location).resolve().as_uri()
+    with store_lock(uri):
+        experiment = mlflow.get_experiment_by_name(name)
+        if experiment is not None:
+            return experiment.experiment_id
+        location = logger.get("artifact_location")
+        if location and _is_local(uri) and "://" not in str(location):
+            location = Path(location).resolve().as_uri()
+        try:
+            return mlflow.create_experiment(name, artifact_location=location or None)
+        except MlflowException:
+            experiment = mlflow.get_experiment_by_name(name)  # another worker created it first
+            if experiment is None:
+                raise
+            return experiment.experiment_id
+
+
+def _proc_stat(pid: int) -> list[str] | None:
+    """Fields 3.. of ``/proc/<pid>/stat`` (state, ..., start time at [19]); None if absent."""
     try:
-        return mlflow.create_experiment(name, artifact_location=location or None)
-    except MlflowException:
-        experiment = mlflow.get_experiment_by_name(name)  # another worker created it first
-        if experiment is None:
-            raise
-        return experiment.experiment_id
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return text.rsplit(")", 1)[1].split()
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def process_tags() -> dict[str, str]:
+    """``gc.host``, ``gc.pid``, ``gc.pid_start`` (the kernel's start time) and a heartbeat."""
+    stat = _proc_stat(os.getpid())
+    tags = {HOST_TAG: socket.gethostname(), PID_TAG: str(os.getpid()), HEARTBEAT_TAG: _now()}
+    if stat is not None:
+        tags[START_TAG] = stat[19]
+    return tags
+
+
+def _alive(pid: int, start: str | None) -> bool:
+    """Whether process ``pid`` (started at ``start``, if known) still runs on this host."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # it exists, under another user
+    stat = _proc_stat(pid)
+    if stat is None:
+        return True  # no /proc: trust the signal
+    return stat[0] != "Z" and (not start or stat[19] == start)  # a zombie, a reused pid
+
+
+def end_stale_runs(exp_id: str) -> list[str]:
+    """Set ``KILLED`` the ``RUNNING`` runs of ``exp_id`` whose process on this host is gone.
+
+    A training killed outright (SIGKILL, out of memory) cannot end its run; its ``gc.host``
+    and ``gc.pid`` tags say which process ran it. Only runs of this host are judged (a pid
+    means nothing elsewhere); each ended run gets the tag ``gc.killed_reason``. Returns
+    their ids.
+    """
+    host = socket.gethostname()
+    client = mlflow.MlflowClient()
+    runs = client.search_runs(
+        [exp_id],
+        filter_string=f"attributes.status = 'RUNNING' and tags.`{HOST_TAG}` = '{host}'",
+        max_results=1000,
+    )
+    ended = []
+    for run in runs:
+        tags = run.data.tags
+        pid = int(tags.get(PID_TAG, "0") or 0)
+        if pid <= 0 or _alive(pid, tags.get(START_TAG)):
+            continue
+        reason = (
+            f"process {host}:{pid} is gone (last heartbeat {tags.get(HEARTBEAT_TAG, '?')}); "
+            f"ended by {host}:{os.getpid()} at {_now()}"
+        )
+        client.set_tag(run.info.run_id, "gc.killed_reason", reason)
+        client.set_terminated(run.info.run_id, "KILLED")
+        log.warning("MLflow run %s was left RUNNING: %s; set KILLED", run.info.run_id, reason)
+        ended.append(run.info.run_id)
+    return ended
 
 
 def parent_run_tags() -> dict[str, str]:
@@ -200,8 +344,9 @@ def log_params_once(params: Mapping[str, str]) -> dict[str, tuple[str, str]]:
 class MLflowEpochLogger(L.Callback):
     """Log the epoch's ``train/*`` and ``val/*`` metrics and the learning rate to MLflow.
 
-    The run id is part of the callback's checkpoint state, so a resumed training finds its
-    run again (:func:`run_id_from_checkpoint`).
+    Each epoch also renews the run's heartbeat tag ``gc.heartbeat`` (UTC time). The run id
+    is part of the callback's checkpoint state, so a resumed training finds its run again
+    (:func:`run_id_from_checkpoint`).
     """
 
     def __init__(self, run_id: str | None = None) -> None:
@@ -226,6 +371,7 @@ class MLflowEpochLogger(L.Callback):
         metrics["lr"] = self._lr
         metrics["time/epoch_s"] = time.perf_counter() - self._t0
         mlflow.log_metrics(metrics, step=trainer.current_epoch, run_id=self.run_id)
+        mlflow.MlflowClient().set_tag(self.run_id, HEARTBEAT_TAG, _now())
 
     def state_dict(self) -> dict[str, Any]:
         """Checkpoint state: the run id."""

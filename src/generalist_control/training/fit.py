@@ -3,10 +3,12 @@
 :func:`train` does the work for the ``train`` stage (:mod:`generalist_control.train`, run
 as ``python train.py``) and for every sweep job and Optuna trial. Outputs:
 
-* ``<run_dir>/checkpoints/``: Lightning checkpoints (best on ``monitor``, and ``last.ckpt``
-  to resume with ``ckpt_path=<run_dir>/checkpoints/last.ckpt``);
-* ``<paths.models_dir>/policy.ckpt`` (the best policy, loadable with
-  :func:`generalist_control.model.policy.load_policy`) and ``metrics.json``;
+* ``<run_dir>/checkpoints/``: Lightning checkpoints (best on ``monitor``, and ``last.ckpt``,
+  the last finished epoch, to resume with ``ckpt_path=<run_dir>/checkpoints/last.ckpt``);
+* ``policy.ckpt`` (the best policy, loadable with
+  :func:`generalist_control.model.policy.load_policy`) and ``metrics.json``, in
+  ``<run_dir>/models``, or in ``paths.published_dir`` (``models/``) when the run publishes
+  (``publish=true``: the DVC stage); see :func:`.outputs.job_models_dir`;
 * one MLflow run (see :mod:`generalist_control.tracking.mlflow_utils`).
 """
 
@@ -25,18 +27,20 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.jsonsafe import write_json
+from generalist_control.common.secrets import redact
 from generalist_control.deploy.runtime import integral_facts
 from generalist_control.model.network import count_parameters
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy, save_policy
 from generalist_control.tracking import mlflow_utils
 from generalist_control.training import outputs
-from generalist_control.training.datamodule import DemoDataModule
+from generalist_control.training.datamodule import DemoDataModule, WindowTensors
 from generalist_control.training.lit_module import ImitationModule
 from generalist_control.training.setup import (
     check_resume,
     closed_loop_validation,
     config_callbacks,
     dagger_callback,
+    included_plants,
     model_config,
     training_plants,
 )
@@ -49,17 +53,33 @@ METRICS_FILE = "metrics.json"
 
 
 def _data(cfg: DictConfig) -> tuple[DemoDataModule, dict[str, Any]]:
-    """The loaded, split data and the meta a policy trained on it carries."""
+    """The loaded, split data (``systems.include``'s plants only) and the policy's meta."""
     dm = DemoDataModule(
         cfg.paths.data_dir,
         cfg.data.history,
         cfg.data.horizon,
         seed=int(cfg.seed or 0),
         integral=bool(cfg.model.get("integral", False)),
+        plants=included_plants(cfg),
         **cfg.loader,
     )
     dm.setup("fit")
     return dm, {**dm.meta(), **integral_facts(list(dm.tags))}
+
+
+def _plain(node: Any) -> dict[str, Any]:
+    """A config node as a plain, resolved dict."""
+    out = OmegaConf.to_container(node, resolve=True)
+    if not isinstance(out, dict):
+        raise TypeError(f"expected a mapping, got {node!r}")
+    return {str(k): v for k, v in out.items()}
+
+
+def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
+    """The tensors of a split of the set-up data module."""
+    if split is None:
+        raise RuntimeError("the data module is not set up")
+    return split.tensors
 
 
 def _module(cfg: DictConfig, dm: DemoDataModule, meta: dict[str, Any]) -> ImitationModule:
@@ -70,16 +90,19 @@ def _module(cfg: DictConfig, dm: DemoDataModule, meta: dict[str, Any]) -> Imitat
         scheduler = OmegaConf.merge(scheduler, {"T_max": int(cfg.trainer.max_epochs)})
     lit = ImitationModule(
         model=model_cfg,
-        optimizer=OmegaConf.to_container(cfg.model.optimizer, resolve=True),
-        scheduler=OmegaConf.to_container(scheduler, resolve=True) if scheduler else None,
+        optimizer=_plain(cfg.model.optimizer),
+        scheduler=_plain(scheduler) if scheduler else None,
         meta=meta,
     )
-    lit.policy.normaliser.fit(**dm.train_set.tensors)
+    lit.policy.normaliser.fit(**_tensors(dm.train_set))
     linear_init = cfg.model.get("linear_init", "zero")
     if linear_init not in ("zero", "lstsq"):
         raise ValueError(f"model.linear_init must be 'zero' or 'lstsq', got {linear_init!r}")
     if linear_init == "lstsq" and model_cfg["linear_head"] and not cfg.get("ckpt_path"):
-        residuals = lit.policy.fit_linear_head(**dm.train_set.tensors)
+        t = _tensors(dm.train_set)
+        residuals = lit.policy.fit_linear_head(
+            t["state"], t["mask"], t["ref"], t["tag"], t["target"]
+        )
         names = {t: n for n, t in dm.tags.items()}
         worst = max(residuals, key=residuals.__getitem__)
         log.info(
@@ -142,12 +165,42 @@ def _fit(
     return best, metrics
 
 
+def _check_fits(cfg: DictConfig, ckpt_path: str, lit: ImitationModule) -> None:
+    """Refuse, before any run is touched, a checkpoint whose weights do not fit ``lit``."""
+    blob = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    saved, own = blob.get("state_dict", {}), lit.state_dict()
+    bad = sorted(set(saved) ^ set(own))
+    bad += [k for k in own if k in saved and tuple(saved[k].shape) != tuple(own[k].shape)]
+    if not bad:
+        return
+    old = blob.get("hyper_parameters", {}).get("model", {})
+    names = {"experts": "experts", "history": "data.history", "horizon": "data.horizon"}
+    diff = {
+        names.get(k, f"model.{k}"): (old[k], v)
+        for k, v in model_config(cfg).items()
+        if k in old and old[k] != v
+    }
+    settings = "; ".join(f"{k}: checkpoint {a}, config {b}" for k, (a, b) in diff.items())
+    fix = " ".join(f"{k}={a}" for k, (a, _) in diff.items()) or "the checkpoint's model config"
+    raise ValueError(
+        f"checkpoint {ckpt_path} does not fit the model this config builds"
+        f" ({settings or 'same model config'}); parameters that differ: {', '.join(bad[:6])}"
+        f"{' ...' if len(bad) > 6 else ''}. Resume with the checkpoint's settings ({fix}), "
+        "or drop ckpt_path to start a new run"
+    )
+
+
 def _publish(
-    cfg: DictConfig, best: str, metrics: dict[str, Any], meta: dict[str, Any], run_id: str
+    cfg: DictConfig,
+    best: str,
+    metrics: dict[str, Any],
+    meta: dict[str, Any],
+    run_id: str,
+    run_dir: Path,
 ) -> tuple[Policy, Path]:
     """Save the best policy and its metrics, log them to the run, add closed-loop scores."""
     policy, _ = load_policy(best)
-    models_dir = outputs.job_models_dir(cfg)
+    models_dir = outputs.job_models_dir(cfg, run_dir)
     mlflow.set_tag("policy_dir", str(models_dir.resolve()))
     policy_meta = {**meta, "metrics": metrics, "mlflow_run_id": run_id}
     policy_path = save_policy(models_dir / POLICY_FILE, policy, policy_meta)
@@ -184,7 +237,10 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     ------
     generalist_control.data.demos.MissingDataError
         Before anything is logged, if there is no dataset at ``paths.data_dir``.
+    ValueError
+        Before any run is opened, if ``ckpt_path`` holds other data or another model.
     """
+    outputs.scrub_hydra_files()
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     if cfg.get("seed") is not None:
@@ -194,6 +250,8 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if ckpt_path:
         check_resume(ckpt_path, meta)
     lit = _module(cfg, dm, meta)
+    if ckpt_path:
+        _check_fits(cfg, ckpt_path, lit)
     n_params = count_parameters(lit.policy)
     run_dir = outputs.run_dir(cfg)
     trainer, ckpt_cb, epoch_logger = _trainer(cfg, run_dir, meta)
@@ -201,11 +259,13 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     with mlflow_utils.mlflow_run(cfg.logger, resume_run_id=resume_id) as run:
         run_id = epoch_logger.run_id = run.info.run_id
         outputs.log_inputs(cfg, dm, n_params, run_dir)
-        log.info("MLflow run %s (%s); %d parameters", run_id, mlflow.get_tracking_uri(), n_params)
+        uri = redact(mlflow.get_tracking_uri())
+        log.info("MLflow run %s (%s); %d parameters", run_id, uri, n_params)
         best, metrics = _fit(trainer, lit, dm, ckpt_path, ckpt_cb)
-        policy, policy_path = _publish(cfg, best, metrics, meta, run_id)
+        policy, policy_path = _publish(cfg, best, metrics, meta, run_id, run_dir)
         if cfg.logger.get("log_model", True):
-            outputs.log_model(policy, dm.val_set.tensors)
+            outputs.log_model(policy, _tensors(dm.val_set))
+    log.info("policy written to %s; MLflow run %s (%s)", policy_path, run_id, uri)
     objects = {
         "trainer": trainer,
         "model": lit,

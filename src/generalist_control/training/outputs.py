@@ -15,6 +15,7 @@ from hydra.types import RunMode
 from mlflow.models import infer_signature
 from omegaconf import DictConfig, OmegaConf
 
+from generalist_control.common.secrets import redact
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.flat import FlatPolicy, flat_columns
@@ -31,6 +32,7 @@ __all__ = [
     "log_inputs",
     "log_model",
     "run_dir",
+    "scrub_hydra_files",
 ]
 
 
@@ -43,19 +45,48 @@ def run_dir(cfg: DictConfig) -> Path:
     return Path("outputs/train") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
 
 
-def job_models_dir(cfg: DictConfig) -> Path:
-    """Where this run writes ``policy.ckpt``: ``paths.models_dir``, except in a multirun.
+def job_models_dir(cfg: DictConfig, run_dir: Path) -> Path:
+    """Where this run writes ``policy.ckpt`` and ``metrics.json``.
 
-    Each job of a Hydra multirun (a sweep) writes to ``<its output dir>/models`` so that
-    the jobs overwrite neither each other's model nor the DVC output ``models/``; a
-    ``paths.models_dir=...`` on the command line still wins.
+    ``paths.published_dir`` (``models/``, the DVC stage's output and evaluate's default) is
+    written only by a run that publishes (``publish=true``: ``dvc repro train``). Any other
+    run writes to ``paths.models_dir`` when that is another directory (e.g. an Optuna
+    trial's own), else to ``<run_dir>/models``: ``python train.py``, ``debug=fast`` and
+    every job of a sweep keep their model to themselves.
     """
-    if HydraConfig.initialized():
-        hc = HydraConfig.get()
-        given = any(o.startswith("paths.models_dir=") for o in hc.overrides.task)
-        if hc.mode == RunMode.MULTIRUN and not given:
-            return Path(hc.runtime.output_dir) / "models"
-    return Path(cfg.paths.models_dir)
+    published = cfg.paths.get("published_dir")
+    if cfg.get("publish"):
+        return Path(published or cfg.paths.models_dir)
+    models_dir = Path(cfg.paths.models_dir)
+    if published is None or models_dir.resolve() != Path(published).resolve():
+        return models_dir
+    return run_dir / "models"
+
+
+def _hydra_files() -> list[Path]:
+    """The config files Hydra saved for this job (and its multirun), if it runs under Hydra."""
+    if not HydraConfig.initialized():
+        return []
+    hc = HydraConfig.get()
+    files = []
+    if hc.output_subdir is not None:
+        files += sorted((Path(hc.runtime.output_dir) / hc.output_subdir).glob("*.yaml"))
+    if hc.mode == RunMode.MULTIRUN:
+        files.append(Path(hc.sweep.dir) / "multirun.yaml")
+    return [f for f in files if f.is_file()]
+
+
+def scrub_hydra_files() -> None:
+    """Rewrite Hydra's saved configs with passwords in URLs masked (``.hydra/*.yaml``).
+
+    Hydra saves the command's overrides and config before the job starts, so a tracking
+    or storage URL typed with its password would stay on disk in plain text.
+    """
+    for path in _hydra_files():
+        text = path.read_text()
+        clean = redact(text)
+        if clean != text:
+            path.write_text(clean)
 
 
 def closed_loop_scores(cfg: DictConfig, policy: Policy, meta: dict[str, Any]) -> dict[str, float]:
@@ -116,8 +147,8 @@ def log_model(policy: Policy, windows: dict[str, torch.Tensor]) -> None:
 
 
 def log_inputs(cfg: DictConfig, dm: DemoDataModule, n_params: int, run_dir: Path) -> None:
-    """Params, tags and input artifacts of the active MLflow run."""
-    resolved = OmegaConf.to_container(cfg, resolve=True)
+    """Params, tags and input artifacts of the active MLflow run; no password in any of them."""
+    resolved = redact(OmegaConf.to_container(cfg, resolve=True))
     params = {**mlflow_utils.flatten_params(resolved), "n_parameters": str(n_params)}
     mlflow_utils.log_params_once(params)
     meta = dm.meta()
@@ -134,7 +165,7 @@ def log_inputs(cfg: DictConfig, dm: DemoDataModule, n_params: int, run_dir: Path
     if cfg.get("ckpt_path"):
         tags["resumed_from"] = str(cfg.ckpt_path)
     mlflow.set_tags(tags)
-    mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config/resolved.yaml")
-    if (run_dir / ".hydra").is_dir():
-        mlflow.log_artifacts(str(run_dir / ".hydra"), "config/hydra")
+    mlflow.log_text(OmegaConf.to_yaml(OmegaConf.create(resolved)), "config/resolved.yaml")
+    for path in sorted((run_dir / ".hydra").glob("*.yaml")):
+        mlflow.log_text(redact(path.read_text()), f"config/hydra/{path.name}")
     mlflow.log_dict(dm.manifest, "data/manifest.json")
