@@ -69,7 +69,7 @@ def repo(tmp_path: Path) -> tuple[Path, dict[str, str]]:
     """The project's pipeline files, committed in a fresh git + DVC repository."""
     work = tmp_path / "repo"
     work.mkdir()
-    for item in ("src", "conf", "dvc.yaml", ".gitignore"):
+    for item in ("src", "conf", "dvc.yaml", ".gitignore", "ablation"):
         src = ROOT / item
         if src.is_dir():
             ignore = shutil.ignore_patterns("__pycache__", "*.egg-info")
@@ -122,4 +122,20 @@ def test_tiny_pipeline_runs_once_then_skips(repo):
     again = sh([*DVC, "repro"], work, env)
     for stage in STAGES:
         assert f"Stage '{stage}' didn't change, skipping" in again, again
-    assert "Running stage" not in again
+    assert "Running stage" not in again  # the ablation pipeline is not part of `dvc repro`
+
+    # the capacity ablation: one command, five trainings on the pipeline's data, the report
+    out = sh([*DVC, "repro", "ablation/dvc.yaml"], work, env)
+    points = ("d16", "d32", "d64", "m1", "m5")
+    for point in points:
+        assert f"Running stage 'ablation/dvc.yaml:train@{point}'" in out, out[-3000:]
+        assert (work / f"ablation/models/{point}/policy.ckpt").is_file()
+    report = work / "ablation/report"
+    runs = pd.read_csv(report / "runs.csv").set_index("label")
+    assert (runs["status"] == "ok").all(), runs  # every point of both sweeps has its run
+    assert runs.loc["M=5", "experts"] == 5 and runs.loc["d=64", "hidden"] == 64
+    gates = pd.read_csv(report / "gate_weights.csv", index_col=0)
+    assert list(gates.columns) == [f"expert_{i}" for i in range(1, 6)] and len(gates) == 2
+    mse = pd.read_csv(report / "mse_hidden.csv")
+    mse = mse[mse["plant"].isin(["double_integrator", "mass_spring_damper"])]  # trained on
+    assert len(mse) == 6 and (mse["status"] == "ok").all() and (mse["mse"] >= 0).all()

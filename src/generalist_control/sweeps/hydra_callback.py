@@ -33,6 +33,7 @@ from hydra.experimental.callback import Callback
 from mlflow.entities import RunStatus
 from omegaconf import DictConfig
 
+from generalist_control.common.secrets import redact
 from generalist_control.tracking import mlflow_utils
 from generalist_control.tracking.parents import create_parent_run, summarise_children
 
@@ -88,7 +89,8 @@ class MLflowSweepCallback(Callback):
         if not self._active(config):
             return
         overrides = [str(o) for o in config.hydra.overrides.task]
-        swept = sweep_overrides(overrides)
+        swept = [redact(o) for o in sweep_overrides(overrides)]
+        overrides = [redact(o) for o in overrides]  # no password reaches the parent run
         name = self.name or "sweep:" + " ".join(swept or overrides or ["(no overrides)"])
         tags = {
             "sweep.overrides": json.dumps(overrides)[:5000],

@@ -1,0 +1,103 @@
+"""Where a training's time goes besides its epochs: closed-loop validation and DAgger rounds.
+
+    python benchmarks/bench_training_parts.py [--policy models/policy.ckpt] [--repeats 3]
+
+With the trained default policy on all 25 plants, times (median of ``--repeats``):
+
+* ``closed_loop_val``: one ``val/closed_loop`` score (``closed_loop_val`` of the config:
+  steps of each amplitude from rest, every training plant), run after every validation;
+* ``dagger_round``: one DAgger round as the default config runs it (``dagger.rollouts``
+  steps and ``dagger.family_count`` references of each family per plant, labelled by the
+  experts), at the last round's beta.
+
+The epochs are the rest of the training's wall time (MLflow's ``time/epoch_s``). Figures are
+printed and written to ``benchmarks/results/training_parts.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from hydra import compose, initialize_config_dir
+
+from generalist_control.common.configs import as_dict
+from generalist_control.common.paths import conf_dir
+from generalist_control.data.generation import enabled_families
+from generalist_control.deploy.adapter import RuntimeAdapter
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.model.policy import load_policy
+from generalist_control.plants.catalog import plants_from_config
+from generalist_control.simulation.comparison import closed_loop_score
+from generalist_control.training.dagger import aggregate
+from generalist_control.training.dagger_callback import DAggerCallback
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def _median_time(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--policy", default="models/policy.ckpt")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        cfg = compose("config")
+    policy, meta = load_policy(args.policy)
+    plants = [p for p in plants_from_config(cfg.systems) if p.name in meta["tags"]]
+    runtime = PolicyRuntime(policy, meta)
+    spec = cfg.closed_loop_val
+    with torch.inference_mode():
+        t_val = _median_time(
+            lambda: closed_loop_score(
+                RuntimeAdapter(runtime), plants, list(spec.amplitudes), float(spec.duration)
+            ),
+            args.repeats,
+        )
+    d = cfg.dagger
+    cb = DAggerCallback(
+        plants, limit=float(cfg.data.amplitudes.limit), rollouts=int(d.rollouts),
+        duration=float(d.duration), families=enabled_families(as_dict(cfg.data)),
+        family_count=int(d.family_count),
+    )  # fmt: skip
+    steps = int(round(float(d.duration) / plants[0].dt))
+    rollouts = cb._rollouts(steps)
+    bounds = {p.name: np.full(p.order, np.inf) for p in plants}
+    beta = float(d.beta) * float(d.beta_decay) ** (int(d.rounds) - 1)
+
+    def one_round() -> None:
+        with torch.inference_mode():
+            aggregate(plants, runtime, beta, rollouts, bounds, steps, int(meta["history"]),
+                      int(meta["horizon"]), "tracked", True)  # fmt: skip
+
+    t_dagger = _median_time(one_round, args.repeats)
+    out = {
+        "closed_loop_val_s": t_val,
+        "dagger_round_s": t_dagger,
+        "plants": len(plants),
+        "dagger_rollouts_per_plant": len(next(iter(rollouts.values()))[0]),
+        "repeats": args.repeats,
+    }
+    print(f"closed-loop validation: {t_val:.2f} s per validation ({len(plants)} plants)")
+    print(f"DAgger round: {t_dagger:.2f} s ({out['dagger_rollouts_per_plant']} rollouts/plant)")
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "training_parts.json").write_text(json.dumps(out, indent=2) + "\n")
+    print(f"wrote {RESULTS / 'training_parts.json'}")
+
+
+if __name__ == "__main__":
+    main()
