@@ -49,3 +49,18 @@ def quick_overrides(data_dir, out, uri: str, *extra: str) -> list[str]:
         if not o.startswith(("paths.models_dir", "run_dir"))
     ]
     return ["debug=fast", *keep, *TINY_CLOSED_LOOP, *extra]
+
+
+def policy_meta(names, history: int = 8, horizon: int = 3) -> dict:
+    """The meta a policy trained on the catalogue plants ``names`` carries (see training)."""
+    from generalist_control.plants.catalog import load_plant
+
+    plants = [load_plant(n) for n in names]
+    return {
+        "tags": {p.name: p.tag for p in plants},
+        "orders": {p.name: p.order for p in plants},
+        "dt": 0.05,
+        "history": history,
+        "horizon": horizon,
+        "outputs": {p.name: p.C[0].tolist() for p in plants},
+    }

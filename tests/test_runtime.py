@@ -17,6 +17,7 @@ from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.plant import MAX_ORDER, pad_states
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import Run, simulate, simulate_many
+from helpers import policy_meta
 
 PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
 
@@ -189,14 +190,7 @@ def _lqi_law_policy(names) -> tuple[Policy, dict]:
             row[newest + MAX_ORDER] = -gains.Ki * float(sx[MAX_ORDER]) / su
             pol.net.linear.weight[plant.tag] = torch.tensor(np.tile(row, K))
     names = list(names)
-    meta = {
-        "tags": {n: load_plant(n).tag for n in names},
-        "orders": {n: load_plant(n).order for n in names},
-        "dt": 0.05,
-        "history": T,
-        "horizon": K,
-        "outputs": {n: load_plant(n).C[0].tolist() for n in names},
-    }
+    meta = policy_meta(names, T, K)
     return pol.eval(), meta
 
 

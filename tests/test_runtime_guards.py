@@ -25,6 +25,7 @@ from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.plant import MAX_ORDER, pad_states
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import Run, simulate, simulate_many
+from helpers import policy_meta
 
 PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
 T, K = 8, 3
@@ -60,14 +61,7 @@ def trained(demo) -> tuple[Policy, dict]:
     tensors = {k: torch.from_numpy(v) for k, v in demo.items()}
     policy.normaliser.fit(**tensors)
     policy.fit_linear_head(**tensors)
-    meta = {
-        "tags": {n: load_plant(n).tag for n in PLANTS},
-        "orders": {n: load_plant(n).order for n in PLANTS},
-        "dt": 0.05,
-        "history": T,
-        "horizon": K,
-        "outputs": {n: load_plant(n).C[0].tolist() for n in PLANTS},
-    }
+    meta = policy_meta(PLANTS, T, K)
     return policy.eval(), meta
 
 
