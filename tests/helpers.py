@@ -64,3 +64,44 @@ def policy_meta(names, history: int = 8, horizon: int = 3) -> dict:
         "horizon": horizon,
         "outputs": {p.name: p.C[0].tolist() for p in plants},
     }
+
+
+def lqi_law_policy(names, gains_of, linear_samples: int = 0):
+    """A real integrating policy whose linear head is the law ``-Kx x - Ki z``, and its meta.
+
+    ``gains_of(plant)`` gives each plant's gains (e.g. ``design_lqi``). The experts' last
+    layers are zero, so the output is the head alone; the head's weights on the newest sample
+    are the gains in the normaliser's units (non-trivial scales, seeded), the same on every
+    step of the horizon. ``linear_samples``: what the head sees (0: the whole window).
+    """
+    import numpy as np
+    import torch
+
+    from generalist_control.model.policy import Policy
+    from generalist_control.plants.catalog import load_plant
+    from generalist_control.plants.plant import MAX_ORDER
+
+    torch.manual_seed(0)
+    config = {"hidden": 16, "experts": 2, "window_scale": 1, "linear_head": 1, "integral": 1}
+    pol = Policy({**config, "linear_samples": linear_samples})
+    g = torch.Generator().manual_seed(3)
+    width, T, K = MAX_ORDER + 1, pol.config["history"], pol.config["horizon"]
+    n = linear_samples or T
+    with torch.no_grad():
+        for expert in pol.net.experts:
+            expert[-1].weight.zero_()
+            expert[-1].bias.zero_()
+        pol.normaliser.state_scale.uniform_(0.5, 3.0, generator=g)
+        pol.normaliser.control_scale.uniform_(0.5, 3.0, generator=g)
+        pol.net.linear.weight.zero_()
+        for name in names:
+            plant = load_plant(name)
+            gains = gains_of(plant)
+            sx = pol.normaliser.state_scale[plant.tag].double().numpy()
+            su = float(pol.normaliser.control_scale[plant.tag])
+            row = np.zeros(n * width + n)  # newest n samples: [x (padded), z] each, then r
+            newest = (n - 1) * width
+            row[newest : newest + plant.order] = -gains.Kx * sx[: plant.order] / su
+            row[newest + MAX_ORDER] = -gains.Ki * sx[MAX_ORDER] / su
+            pol.net.linear.weight[plant.tag] = torch.tensor(np.tile(row, K))
+    return pol.eval(), policy_meta(list(names), T, K)

@@ -11,14 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.summary import summarise
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
-from generalist_control.plants.plant import MAX_ORDER
 from generalist_control.simulation.lqi import (
     LQIController,
     LQIGains,
@@ -27,6 +25,7 @@ from generalist_control.simulation.lqi import (
 )
 from generalist_control.simulation.scenarios import references
 from generalist_control.simulation.simulate import simulate
+from helpers import lqi_law_policy
 
 #: Half-gain LQI on these two: worst step ISE ratio 1.166 (hydraulic_actuator), above the
 #: 1.15 bar; worst ITAE ratio 1.39 (cstr), below the 2.0 bar.
@@ -51,36 +50,7 @@ def _half_gains(plant) -> LQIGains:
 
 def _half_lqi_policy(names) -> tuple[Policy, dict]:
     """An integrating policy (newest-sample head) whose law is ``-(Kx x + Ki z) / 2``."""
-    torch.manual_seed(0)
-    config = {"hidden": 16, "experts": 2, "window_scale": 1, "linear_head": 1, "integral": 1}
-    pol = Policy({**config, "linear_samples": 1})
-    g = torch.Generator().manual_seed(3)
-    horizon = pol.config["horizon"]
-    with torch.no_grad():
-        for expert in pol.net.experts:  # the output is the head alone
-            expert[-1].weight.zero_()
-            expert[-1].bias.zero_()
-        pol.normaliser.state_scale.uniform_(0.5, 3.0, generator=g)
-        pol.normaliser.control_scale.uniform_(0.5, 3.0, generator=g)
-        pol.net.linear.weight.zero_()
-        for name in names:
-            plant = load_plant(name)
-            gains = _half_gains(plant)
-            sx = pol.normaliser.state_scale[plant.tag].double().numpy()
-            su = float(pol.normaliser.control_scale[plant.tag])
-            row = np.zeros(MAX_ORDER + 2)  # newest sample: [x (padded), z, r]
-            row[: plant.order] = -gains.Kx * sx[: plant.order] / su
-            row[MAX_ORDER] = -gains.Ki * sx[MAX_ORDER] / su
-            pol.net.linear.weight[plant.tag] = torch.tensor(np.tile(row, horizon))
-    meta = {
-        "tags": {n: load_plant(n).tag for n in names},
-        "orders": {n: load_plant(n).order for n in names},
-        "dt": 0.05,
-        "history": pol.config["history"],
-        "horizon": horizon,
-        "outputs": {n: load_plant(n).C[0].tolist() for n in names},
-    }
-    return pol.eval(), meta
+    return lqi_law_policy(names, _half_gains, linear_samples=1)
 
 
 def _hand_errors(plant, gains, r) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -15,9 +15,9 @@ from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy, load_policy, save_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.plant import MAX_ORDER, pad_states
-from generalist_control.simulation.lqi import LQIController
+from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.simulate import Run, simulate, simulate_many
-from helpers import policy_meta
+from helpers import lqi_law_policy
 
 PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
 
@@ -159,39 +159,12 @@ def test_loading_is_weights_only(policy, tmp_path):
 
 
 def _lqi_law_policy(names) -> tuple[Policy, dict]:
-    """A real integrating policy whose linear head *is* the LQI law ``-Kx x - Ki z``.
+    """A real integrating policy whose whole-window linear head *is* the LQI law.
 
-    The experts' last layers are zero, so the policy's output is the head alone; the head's
-    weights on the newest sample are the LQI gains in the normaliser's units (non-trivial
-    scales), the same on every step of the horizon. Through window scaling (the head is
-    linear) and the runtime's own integrator, it must reproduce LQI exactly.
+    Through window scaling (the head is linear) and the runtime's own integrator, it must
+    reproduce LQI exactly (:func:`helpers.lqi_law_policy`).
     """
-    from generalist_control.simulation.lqi import design_lqi
-
-    torch.manual_seed(0)
-    pol = Policy({"hidden": 16, "experts": 2, "window_scale": 1, "linear_head": 1, "integral": 1})
-    g = torch.Generator().manual_seed(3)
-    width, T, K = MAX_ORDER + 1, 8, 3
-    with torch.no_grad():
-        for expert in pol.net.experts:
-            expert[-1].weight.zero_()
-            expert[-1].bias.zero_()
-        pol.normaliser.state_scale.uniform_(0.5, 3.0, generator=g)
-        pol.normaliser.control_scale.uniform_(0.5, 3.0, generator=g)
-        pol.net.linear.weight.zero_()
-        for name in names:
-            plant = load_plant(name)
-            gains = design_lqi(plant)
-            sx = pol.normaliser.state_scale[plant.tag].double()
-            su = float(pol.normaliser.control_scale[plant.tag])
-            row = np.zeros(T * width + T)
-            newest = (T - 1) * width
-            row[newest : newest + plant.order] = -gains.Kx * sx[: plant.order].numpy() / su
-            row[newest + MAX_ORDER] = -gains.Ki * float(sx[MAX_ORDER]) / su
-            pol.net.linear.weight[plant.tag] = torch.tensor(np.tile(row, K))
-    names = list(names)
-    meta = policy_meta(names, T, K)
-    return pol.eval(), meta
+    return lqi_law_policy(names, design_lqi)
 
 
 def test_an_integrating_policy_built_as_the_lqi_law_reproduces_lqi_in_closed_loop():
