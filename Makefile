@@ -4,7 +4,7 @@ export DVC_NO_ANALYTICS := 1
 # DVC runs each stage's `python -m ...` through the shell: the venv's python must come first.
 export PATH := $(CURDIR)/.venv/bin:$(PATH)
 
-.PHONY: setup pipeline data test test-fast lint typecheck format bench clean
+.PHONY: setup pipeline exp-show data test test-fast lint typecheck format bench clean
 
 setup:
 	bash scripts/setup.sh
@@ -12,6 +12,11 @@ setup:
 ## The main job: the DVC pipeline on the embedded defaults (no server needed).
 pipeline: setup
 	$(VENV)/dvc repro
+
+## The DVC experiments and what they changed, without the file-dep hash columns (one full
+## MD5 each: docs/pipeline.md, "DVC views").
+exp-show:
+	$(VENV)/dvc exp show --only-changed --drop '^(conf|data|models|reports|src)/[^:]*$$'
 
 ## Only the data stage.
 data: setup

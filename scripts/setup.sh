@@ -1,21 +1,80 @@
 #!/usr/bin/env bash
-# Set up a fresh machine: a virtual environment in .venv with the CPU build of torch first
-# (torch==2.13.0 is a CPU wheel that pip finds on local disk; a plain `pip install torch`
-# would fetch a multi-GB CUDA build), then the package in editable mode with its dev extras.
+# Set up a machine: a virtual environment in .venv with the CPU build of torch first, then the
+# package in editable mode with its dev extras (which include the notebooks extra: JupyterLab
+# and the notebook runner).
+#
+# torch is always the CPU build, asked for by name (torch==2.13.0+cpu): on Linux a plain
+# `pip install torch` fetches the CUDA build and several GB of NVIDIA libraries. Where pip's
+# configured sources hold that wheel (a find-links folder or a mirror, as on this project's
+# machines) it comes from there, offline; elsewhere (an ordinary Linux machine) from PyTorch's
+# CPU index, $TORCH_CPU_INDEX. macOS: PyPI's torch has no CUDA, so plain torch==2.13.0.
+#
+# GC_SETUP_DRY_RUN=1 prints the install commands instead of running them. Sourced
+# (`. scripts/setup.sh`), it defines its functions and runs nothing (tests/test_setup_script.py).
 set -euo pipefail
-cd "$(dirname "$0")/.."
-PYTHON=${PYTHON:-python3}
-if [ ! -x .venv/bin/python ]; then
-  "$PYTHON" -m venv .venv
+
+TORCH_VERSION=2.13.0
+TORCH_CPU_INDEX=${TORCH_CPU_INDEX:-https://download.pytorch.org/whl/cpu}
+
+# Run a command with a time limit where coreutils' timeout exists (not on stock macOS).
+with_timeout() {
+  local seconds=$1
+  shift
+  if command -v timeout >/dev/null; then timeout "$seconds" "$@"; else "$@"; fi
+}
+
+# Succeed when pip's configured sources hold the requirement $1: a resolution that installs
+# nothing (--dry-run), bounded so that an unreachable index cannot hang the set-up.
+torch_findable() {
+  with_timeout "${GC_PROBE_TIMEOUT:-120}" python -m pip install --dry-run --no-deps \
+    --ignore-installed --quiet --retries 0 --timeout 20 "$1" >/dev/null 2>&1
+}
+
+# The arguments of `pip install` that install the CPU build of torch, one a line.
+# $1: the operating system (default: uname -s).
+torch_install_args() {
+  local os=${1:-$(uname -s)}
+  if [ "$os" != Linux ]; then
+    echo "torch==$TORCH_VERSION"
+  elif torch_findable "torch==$TORCH_VERSION+cpu"; then
+    echo "torch==$TORCH_VERSION+cpu"
+  else
+    # the CPU index holds nothing else: any local label (+cpu on x86_64) is a CPU build
+    printf '%s\n' --index-url "$TORCH_CPU_INDEX" --timeout 60 "torch==$TORCH_VERSION"
+  fi
+}
+
+# Run "$@", or print it under GC_SETUP_DRY_RUN=1.
+run() {
+  if [ "${GC_SETUP_DRY_RUN:-0}" = 1 ]; then echo "+ $*"; else "$@"; fi
+}
+
+main() {
+  cd "$(dirname "${BASH_SOURCE[0]}")/.."
+  local python=${PYTHON:-python3}
+  if [ ! -x .venv/bin/python ]; then
+    run "$python" -m venv .venv
+  fi
+  if [ -x .venv/bin/python ]; then
+    . .venv/bin/activate
+  fi
+  if ! python -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '$TORCH_VERSION')" 2>/dev/null; then
+    local args
+    mapfile -t args < <(torch_install_args)
+    run python -m pip install -q "${args[@]}"
+  fi
+  run python -m pip install -q -e '.[dev]'
+  if [ "${GC_SETUP_DRY_RUN:-0}" = 1 ]; then
+    return
+  fi
+  # PostgreSQL's server programs, for the multi-worker Optuna tests (tests/pg.py starts a
+  # throw-away cluster); a no-op when installed. Without them those tests fail and say why.
+  bash scripts/postgres.sh || echo "warning: PostgreSQL is missing; the PostgreSQL tests will fail" >&2
+  # A Compose client, for the test that validates docker/compose.yaml (no engine needed).
+  bash scripts/compose.sh || echo "warning: no Compose client; tests/test_docker.py will fail" >&2
+  echo "setup done: $(python -c 'import torch; print("torch", torch.__version__)')"
+}
+
+if [ "${BASH_SOURCE[0]}" = "$0" ]; then
+  main "$@"
 fi
-. .venv/bin/activate
-if ! python -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '2.13.0')" 2>/dev/null; then
-  python -m pip install -q torch==2.13.0
-fi
-python -m pip install -q -e '.[dev]'
-# PostgreSQL's server programs, for the multi-worker Optuna tests (tests/pg.py starts a
-# throw-away cluster); a no-op when installed. Without them those tests fail and say why.
-bash scripts/postgres.sh || echo "warning: PostgreSQL is missing; the PostgreSQL tests will fail" >&2
-# A Compose client, for the test that validates docker/compose.yaml (no engine needed).
-bash scripts/compose.sh || echo "warning: no Compose client; tests/test_docker.py will fail" >&2
-echo "setup done: $(python -c 'import torch; print("torch", torch.__version__)')"

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import mlflow
 
@@ -31,17 +33,36 @@ def policy_meta() -> dict:
     }
 
 
-def log_runs(uri: str, experiment: str, tmp: Path) -> dict[tuple[int, int], str]:
-    """One finished training-like run per configuration, as train.py logs them."""
+def log_runs(
+    uri: str,
+    experiment: str,
+    tmp: Path,
+    params: Mapping[tuple[int, int], Mapping[str, Any]] | None = None,
+    parent: str | None = None,
+    configs: Mapping[tuple[int, int], Any] | None = None,
+) -> dict[tuple[int, int], str]:
+    """One finished training-like run per configuration, as train.py logs them.
+
+    ``params``: further params per configuration (e.g. ``trainer.max_epochs``); ``parent``:
+    the parent run (a sweep) the runs are nested under; ``configs``: a subset of CONFIGS.
+    The experiment is created if missing.
+    """
     mlflow.set_tracking_uri(uri)
-    exp_id = mlflow.create_experiment(experiment, artifact_location=(tmp / "art").as_uri())
+    found = mlflow.get_experiment_by_name(experiment)
+    exp_id = (
+        found.experiment_id
+        if found
+        else mlflow.create_experiment(experiment, artifact_location=(tmp / "art").as_uri())
+    )
     ids = {}
-    for (d, m), (loss, mse) in CONFIGS.items():
+    tags = {"mlflow.parentRunId": parent} if parent else None
+    for (d, m), (loss, mse) in (configs or CONFIGS).items():
         policy = Policy({"hidden": d, "experts": m, "heads": 2})
-        with mlflow.start_run(experiment_id=exp_id, run_name=f"d{d}-M{m}") as r:
+        with mlflow.start_run(experiment_id=exp_id, run_name=f"d{d}-M{m}", tags=tags) as r:
             mlflow.log_params(
                 {"model.hidden": d, "experts": m, "n_parameters": count_parameters(policy)}
             )
+            mlflow.log_params({k: str(v) for k, v in ((params or {}).get((d, m)) or {}).items()})
             for epoch, factor in enumerate((4.0, 2.0, 1.0)):
                 mlflow.log_metric("train/loss", loss * factor, step=epoch)
             mlflow.log_metrics({f"closed_loop/mse/{k}": v for k, v in mse.items()})

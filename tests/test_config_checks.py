@@ -39,8 +39,15 @@ from generalist_control.training.fit import train
 from helpers import compose_cfg, tiny_train_overrides
 
 REPO = Path(__file__).resolve().parents[1]
-#: Network keys set in the ``model`` group (the others come from ``experts`` and ``data``).
-MODEL_GROUP_KEYS = set(MODEL_DEFAULTS) - {"experts", "state_dim", "history", "horizon"}
+#: Network keys set in the ``model`` group (the others come from ``experts`` and ``data``;
+#: ``unknown_tag`` follows from ``model.tag_dropout``).
+MODEL_GROUP_KEYS = set(MODEL_DEFAULTS) - {
+    "experts",
+    "state_dim",
+    "history",
+    "horizon",
+    "unknown_tag",
+}
 
 
 def _env() -> dict[str, str]:

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 from hydra import compose, initialize_config_dir
 
-from ablation_runs import PLANTS, log_runs, policy_meta
+from ablation_runs import CONFIGS, PLANTS, log_runs, policy_meta
 from generalist_control.common.paths import conf_dir
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
@@ -23,15 +23,21 @@ from generalist_control.reports.runs import (
     RunPoint,
     select_sweeps,
 )
+from generalist_control.reports.selection import MixedRunsError
 
 
-def _cfg(uri: str, experiment: str, out: Path, *extra: str):
+def _cfg(uri: str, experiment: str | None, out: Path, *extra: str):
+    """The report's config; ``experiment`` None: the scheme, with prefix ``out.name``."""
+    if experiment is None:
+        where = ["logger.experiment_name=null", f"++logger.experiment_prefix={out.name}"]
+    else:
+        where = [f"logger.experiment_name={experiment}"]
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
         return compose(
             "config",
             overrides=[
                 f"logger.tracking_uri={uri}",
-                f"logger.experiment_name={experiment}",
+                *where,
                 f"logger.artifact_location={out / 'mlruns'}",
                 f"report.out_dir={out / 'ablation'}",
                 f"paths.reports_dir={out / 'eval'}",
@@ -156,3 +162,92 @@ def test_study_trials_and_parents_are_left_out(tmp_path, mlflow_uri):
         assert parent.info.run_id
     points = runs_from_mlflow(tmp_path.name, client=mlflow.MlflowClient(mlflow_uri))
     assert [p.run_id for p in points] == [kept["sweep"]]
+
+
+# ------------------------------------------------------------ runs of different budgets
+#: One budget for every point, but the M=5 run trained twice as long.
+TWO_BUDGETS = {
+    **{point: {"trainer.max_epochs": 1, "run_dir": f"/runs/{point}"} for point in CONFIGS},
+    (32, 5): {"trainer.max_epochs": 2, "run_dir": "/runs/other"},
+}
+
+
+def test_report_refuses_runs_of_two_budgets_naming_them(tmp_path, mlflow_uri):
+    ids = log_runs(mlflow_uri, tmp_path.name, tmp_path, params=TWO_BUDGETS)
+    with pytest.raises(MixedRunsError) as err:
+        run(_cfg(mlflow_uri, tmp_path.name, tmp_path))
+    text = str(err.value)
+    assert "trainer.max_epochs:" in text
+    assert f"'2' in d32-M5 ({ids[(32, 5)]})" in text
+    for d, m in [(32, 3), (64, 3), (32, 1)]:
+        assert f"d{d}-M{m} ({ids[(d, m)]})" in text
+    assert "'1' in" in text
+    assert "run_dir" not in text  # an identity key may differ
+    assert "report.parent_run=" in text and "report.allow_mixed=true" in text
+    assert "params.`trainer.max_epochs` = '1'" in text  # a filter_string that would do
+    assert not (tmp_path / "ablation").exists()  # nothing written
+
+    # the filter the message suggests gives a report of the 1-epoch runs only
+    good = "report.filter_string=\"params.`trainer.max_epochs` = '1'\""
+    summary = run(_cfg(mlflow_uri, tmp_path.name, tmp_path, good, "report.log_mlflow=false"))
+    assert summary["points"]["experts"]["M=5"] is None and "mixed" not in summary
+
+
+def test_a_param_logged_by_one_run_only_is_a_difference(tmp_path, mlflow_uri):
+    extra = {(32, 5): {"dagger.enabled": "false"}}
+    ids = log_runs(mlflow_uri, tmp_path.name, tmp_path, params=extra)
+    with pytest.raises(MixedRunsError, match=r"dagger\.enabled: '\(not logged\)' in") as err:
+        run(_cfg(mlflow_uri, tmp_path.name, tmp_path, "report.log_mlflow=false"))
+    assert f"'false' in d32-M5 ({ids[(32, 5)]})" in str(err.value)
+
+
+def test_allow_mixed_reports_with_a_warning_naming_the_runs(tmp_path, mlflow_uri, caplog):
+    ids = log_runs(mlflow_uri, tmp_path.name, tmp_path, params=TWO_BUDGETS)
+    with caplog.at_level("WARNING", logger="generalist_control.reports.selection"):
+        summary = run(_cfg(mlflow_uri, tmp_path.name, tmp_path, "report.allow_mixed=true"))
+    warned = "\n".join(r.getMessage() for r in caplog.records if r.levelname == "WARNING")
+    assert "MIXED RUNS" in warned and "trainer.max_epochs" in warned
+    assert f"d32-M5 ({ids[(32, 5)]})" in warned and f"d32-M3 ({ids[(32, 3)]})" in warned
+    assert summary["mixed"]["trainer.max_epochs"]["2"] == [ids[(32, 5)]]
+    assert summary["points"]["experts"]["M=5"] == ids[(32, 5)]
+    report = mlflow.MlflowClient(mlflow_uri).get_run(summary["report_run_id"])
+    assert ids[(32, 5)] in report.data.tags["report.mixed_params"]
+
+
+def test_parent_run_selects_one_sweep(tmp_path, mlflow_uri):
+    """A 1-epoch sweep and, outside it, a newer 2-epoch run of M=5: the sweep is reported."""
+    mlflow.set_tracking_uri(mlflow_uri)
+    exp_id = mlflow.create_experiment(tmp_path.name)
+    client = mlflow.MlflowClient(mlflow_uri)
+    sweep = client.create_run(exp_id, run_name="sweep:experts=1,3,5", tags={"gc.role": "sweep"})
+    parent_id = sweep.info.run_id
+    one_epoch = {point: {"trainer.max_epochs": 1} for point in CONFIGS}
+    ids = log_runs(mlflow_uri, tmp_path.name, tmp_path, params=one_epoch, parent=parent_id)
+    client.set_terminated(parent_id)
+    adhoc = log_runs(
+        mlflow_uri,
+        tmp_path.name,
+        tmp_path,
+        params={(32, 5): {"trainer.max_epochs": 2}},
+        configs={(32, 5): CONFIGS[(32, 5)]},
+    )
+    with pytest.raises(MixedRunsError, match=parent_id):  # the fix names the sweep
+        run(_cfg(mlflow_uri, tmp_path.name, tmp_path, "report.log_mlflow=false"))
+    for chosen in (parent_id, "sweep:experts=1,3,5"):
+        extra = (f"report.parent_run='{chosen}'", "report.log_mlflow=false")
+        summary = run(_cfg(mlflow_uri, tmp_path.name, tmp_path, *extra))
+        assert summary["points"]["experts"]["M=5"] == ids[(32, 5)] != adhoc[(32, 5)]
+    with pytest.raises(LookupError, match=r"'sweep:nothing' is no sweep.*" + parent_id):
+        run(_cfg(mlflow_uri, tmp_path.name, tmp_path, "report.parent_run='sweep:nothing'"))
+
+
+def test_report_reads_the_sweep_experiment_and_logs_to_the_report_one(tmp_path, mlflow_uri):
+    prefix = tmp_path.name
+    ids = log_runs(mlflow_uri, f"{prefix}/sweep", tmp_path)
+    log_runs(mlflow_uri, f"{prefix}/train", tmp_path, params=TWO_BUDGETS)  # not read
+    summary = run(_cfg(mlflow_uri, None, tmp_path))
+    assert summary["points"]["experts"]["M=5"] == ids[(32, 5)]
+    client = mlflow.MlflowClient(mlflow_uri)
+    report = client.get_run(summary["report_run_id"])
+    assert client.get_experiment(report.info.experiment_id).name == f"{prefix}/report"
+    assert report.data.tags["report.source_experiment"] == f"{prefix}/sweep"

@@ -28,7 +28,10 @@ def _env() -> dict[str, str]:
 
 @pytest.mark.slow
 def test_multirun_makes_one_parent_with_a_child_per_point(tiny_data_dir, tmp_path, mlflow_uri):
-    """`python train.py -m model.hidden=8,16` (tiny data, one epoch): 2 children, 1 parent."""
+    """`python train.py -m model.hidden=8,16` (tiny data, one epoch): 2 children, 1 parent.
+
+    All in the experiment of kind sweep (``<prefix>/sweep``), none in train's.
+    """
     sweep_dir = tmp_path / "multirun"
     cmd = [
         sys.executable,
@@ -36,13 +39,16 @@ def test_multirun_makes_one_parent_with_a_child_per_point(tiny_data_dir, tmp_pat
         "-m",
         "model.hidden=8,16",
         *quick_overrides(tiny_data_dir, tmp_path, mlflow_uri),
+        "logger.experiment_name=null",
+        f"++logger.experiment_prefix={tmp_path.name}",
         f"hydra.sweep.dir={sweep_dir}",
     ]
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=_env(), timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
 
     mlflow.set_tracking_uri(mlflow_uri)
-    runs = mlflow.search_runs(experiment_names=[tmp_path.name], output_format="list")
+    assert mlflow.get_experiment_by_name(f"{tmp_path.name}/train") is None
+    runs = mlflow.search_runs(experiment_names=[f"{tmp_path.name}/sweep"], output_format="list")
     parents = [r for r in runs if r.data.tags.get("gc.role") == "sweep"]
     children = [r for r in runs if r not in parents]
     (parent,) = parents
@@ -75,7 +81,11 @@ def _sweep_config(tmp_path: Path, uri: str, job: str = "train"):
                 "sweep": {"dir": str(tmp_path / "multirun")},
                 "sweeper": {"params": None},
             },
-            "logger": {"tracking_uri": uri, "experiment_name": tmp_path.name},
+            "logger": {
+                "tracking_uri": uri,
+                "experiment_name": None,
+                "experiment_prefix": tmp_path.name,
+            },
             "optimized_metric": "val/loss",
         }
     )
@@ -91,14 +101,17 @@ def test_sweep_callback_parents_runs_and_ends_failed_on_a_failed_job(
     callback.on_multirun_start(cfg)
     parent_id = callback.run_id
     assert os.environ[mlflow_utils.PARENT_RUN_ENV] == parent_id
-    with mlflow_utils.mlflow_run(cfg.logger) as run:  # what train() does in each job
-        mlflow.log_metric("best/val/loss", 0.5)
-        child_id = run.info.run_id
+    client = mlflow.MlflowClient()
+    exp_id = client.get_run(parent_id).info.experiment_id
+    assert client.get_experiment(exp_id).name == f"{tmp_path.name}/sweep"
+    # a job's training run: in its parent's experiment, tagged from the environment
+    child_id = client.create_run(exp_id, tags=mlflow_utils.parent_run_tags()).info.run_id
+    client.log_metric(child_id, "best/val/loss", 0.5)
+    client.set_terminated(child_id)
     callback.on_job_end(cfg, JobReturn(status=JobStatus.COMPLETED))
     callback.on_job_end(cfg, JobReturn(status=JobStatus.FAILED))
     callback.on_multirun_end(cfg)
 
-    client = mlflow.MlflowClient()
     parent, child = client.get_run(parent_id), client.get_run(child_id)
     assert child.data.tags["mlflow.parentRunId"] == parent_id
     assert child.data.tags["sweep"] == "sweep:experts=1,3"
@@ -106,8 +119,7 @@ def test_sweep_callback_parents_runs_and_ends_failed_on_a_failed_job(
     assert parent.data.tags["sweep.best_run_id"] == child_id
     assert parent.data.metrics["sweep/best/val/loss"] == pytest.approx(0.5)
     assert mlflow_utils.PARENT_RUN_ENV not in os.environ  # restored after the sweep
-    with mlflow_utils.mlflow_run(cfg.logger) as run:  # a later plain run has no parent
-        assert "mlflow.parentRunId" not in client.get_run(run.info.run_id).data.tags
+    assert mlflow_utils.parent_run_tags() == {}  # a later plain run has no parent
 
 
 def test_sweep_callback_ignores_other_entry_points(tmp_path, mlflow_uri):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -14,7 +15,9 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from generalist_control.common.paths import conf_dir
-from generalist_control.data.demos import MissingDataError
+from generalist_control.data.demos import MissingDataError, content_hash, load_demos
+from generalist_control.deploy.resolve import resolve
+from generalist_control.model.flat import FlatPolicy
 from generalist_control.model.policy import load_policy
 from generalist_control.training.fit import train
 from helpers import tiny_train_overrides
@@ -51,8 +54,21 @@ def test_exact_command_logs_an_mlflow_run(tiny_data_dir, tmp_path, mlflow_uri):
     assert params["model.hidden"] == "64"
     assert params["experts"] == "5"
     assert int(params["n_parameters"]) > 0
+    # what shaped the training, not evaluation/report/paths/logger/Hydra settings
+    assert 20 < len(params) < 60, sorted(params)
+    assert not [k for k in params if k.startswith(("evaluation.", "report.", "paths."))]
+    assert not [k for k in params if k.startswith(("logger.", "hydra.", "_"))]
+    assert {"seed", "loader.batch_size", "trainer.max_epochs", "dagger.enabled"} <= set(params)
     manifest = json.loads((tiny_data_dir / "manifest.json").read_text())
     assert run.data.tags["data.content_hash"] == manifest["content_hash"]
+    assert params["data.content_hash"] == manifest["content_hash"]
+    # the dataset input: its digest is the content hash computed afresh from the data
+    fresh = content_hash(*load_demos(tiny_data_dir, verify=False)[:1], manifest["config"])
+    (data_input,) = run.inputs.dataset_inputs
+    assert data_input.dataset.digest == fresh.removeprefix("sha256:")[:36]
+    input_tags = {t.key: t.value for t in data_input.tags}
+    assert input_tags == {"mlflow.data.context": "training", "content_hash": fresh}
+    assert str(tiny_data_dir.resolve()) in data_input.dataset.source
     metrics = run.data.metrics
     assert {"train/loss", "val/loss", "val/mse/cstr", "val/mse/hydraulic_actuator"} <= set(metrics)
     artifacts = {a.path for a in mlflow.MlflowClient().list_artifacts(run.info.run_id)}
@@ -68,7 +84,39 @@ def test_exact_command_logs_an_mlflow_run(tiny_data_dir, tmp_path, mlflow_uri):
     assert meta["content_hash"] == manifest["content_hash"]
     assert meta["mlflow_run_id"] == run.info.run_id
     saved = json.loads((tmp_path / "models" / "metrics.json").read_text())
-    assert saved["val/loss"] == pytest.approx(metrics["best/val/loss"])
+    assert saved["val/loss"] == pytest.approx(metrics["best/val/loss"], rel=1e-6)
+    mse_mean = metrics["closed_loop/mse_mean"]
+    assert saved["closed_loop/log10_mse_mean"] == pytest.approx(math.log10(mse_mean), abs=1e-6)
+    _check_registered(run, policy, meta["tags"], proc.stdout + proc.stderr, mlflow_uri)
+
+
+def _check_registered(run, policy, tags: dict, log: str, uri: str) -> None:
+    """The run's registered version: tagged with the run, loads, controls as the policy."""
+    client = mlflow.MlflowClient()
+    (version,) = [
+        v
+        for v in client.search_model_versions("name = 'generalist-control-policy'")
+        if v.run_id == run.info.run_id
+    ]
+    assert version.tags["run_id"] == run.info.run_id
+    assert version.tags["data.content_hash"] == run.data.tags["data.content_hash"]
+    uri_v = f"models:/generalist-control-policy/{version.version}"
+    registered, _ = load_policy(resolve(uri_v))
+    flat = FlatPolicy(policy).eval()
+    info = mlflow.models.get_model_info(uri_v)
+    assert info.signature is not None and info.saved_input_example_info is not None
+    x = torch.randn(16, int(info.signature.inputs.to_dict()[0]["tensor-spec"]["shape"][1]))
+    x[:, -1] = torch.tensor(sorted(tags.values()), dtype=x.dtype).repeat(8)  # the two plants
+    with torch.no_grad():
+        expected, got = flat(x), FlatPolicy(registered).eval()(x)
+    assert torch.equal(expected, got)
+    pyfunc = mlflow.pyfunc.load_model(uri_v)
+    assert torch.allclose(torch.as_tensor(pyfunc.predict(x.numpy())), expected, atol=1e-6)
+    # the end message names the policy, the run, its experiment, the version and the UI
+    line = next(ln for ln in log.splitlines() if "policy written to" in ln)
+    for part in (run.info.run_id, "experiment '", f"version {version.version}", "mlflow ui"):
+        assert part in line, line
+    assert uri in line
 
 
 @pytest.mark.slow

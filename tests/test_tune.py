@@ -15,6 +15,7 @@ import pytest
 import sqlalchemy
 from optuna.trial import TrialState
 
+from generalist_control.sweeps.fixed import CHANGES_ATTR, FIXED_ATTR, StudyConfigChangedError
 from generalist_control.sweeps.space import parse_space
 from generalist_control.sweeps.storage import open_storage
 from generalist_control.sweeps.study import PARENT_ATTR
@@ -109,25 +110,77 @@ def test_no_search_configured():
         run(compose_cfg())
 
 
+# ------------------------------------------------------------- one fixed config per study
+def test_resuming_a_study_under_another_budget_refuses(tmp_path, mlflow_uri):
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    common = _tune_overrides(
+        tmp_path / "data", tmp_path, mlflow_uri, storage, "hparams_search.n_trials=0"
+    )
+    first = run(_cfg(*common))  # a 1-epoch study (no trial needed to record its config)
+    fixed = first.user_attrs[FIXED_ATTR]
+    assert fixed["trainer.max_epochs"] == "1" and fixed["hparams_search.metric"] == "val/loss"
+    assert fixed["model.heads"] == "3"  # not searched: fixed
+    searched_or_identity = ("model.hidden", "experts", "logger.tracking_uri", "paths.data_dir")
+    assert not set(searched_or_identity) & set(fixed)
+    n_runs = len(_runs(mlflow_uri, tmp_path.name))
+
+    with pytest.raises(StudyConfigChangedError) as err:
+        run(_cfg(*common, "trainer.max_epochs=60"))
+    text = str(err.value)
+    assert "trainer.max_epochs: 1 -> 60" in text and "'tiny'" in text
+    assert "hparams_search.study_name=<new name>" in text
+    assert "hparams_search.allow_config_change=true" in text
+    assert len(_runs(mlflow_uri, tmp_path.name)) == n_runs  # refused before MLflow was touched
+
+    # the same fixed config resumes, whatever the search settings, paths and tracking
+    same = (
+        "hparams_search.pruner=null",
+        "hparams_search.sampler.seed=7",
+        f"logger.artifact_location={tmp_path / 'elsewhere'}",
+        f"paths.data_dir={tmp_path / 'data2'}",
+        "hparams_search.params.model.hidden.choices=[8,32]",
+    )
+    again = run(_cfg(*common, *same))
+    assert again._study_id == first._study_id
+    assert again.user_attrs[FIXED_ATTR] == fixed
+
+    allowed = run(
+        _cfg(*common, "trainer.max_epochs=60", "hparams_search.allow_config_change=true")
+    )
+    assert allowed.user_attrs[FIXED_ATTR]["trainer.max_epochs"] == "60"
+    (change,) = allowed.user_attrs[CHANGES_ATTR]
+    assert change["changed"] == {"trainer.max_epochs": ["1", "60"]}
+    assert run(_cfg(*common, "trainer.max_epochs=60"))._study_id == first._study_id
+
+
 # ------------------------------------------------------------------- pruning and resuming
 @pytest.mark.slow
 def test_lightning_callback_prunes_and_rerun_continues_the_study(
-    tiny_data_dir, tmp_path, mlflow_uri
+    tiny_data_dir, tmp_path, mlflow_uri, caplog
 ):
     storage = f"sqlite:///{tmp_path / 'optuna.db'}"
-    common = _tune_overrides(tiny_data_dir, tmp_path, mlflow_uri, storage)
+    scheme = ("logger.experiment_name=null", f"++logger.experiment_prefix={tmp_path.name}")
+    common = _tune_overrides(tiny_data_dir, tmp_path, mlflow_uri, storage, *scheme)
     # every val/loss is above 0: the pruner prunes each trial at its first report
     prune_all = [
         "hparams_search.n_trials=2",
         "~hparams_search.pruner",  # replace the median pruner (a `=` would merge into it)
         "+hparams_search.pruner={_target_:optuna.pruners.ThresholdPruner,upper:0.0}",
     ]
-    first = run(_cfg(*common, *prune_all))
+    with caplog.at_level("INFO", logger="generalist_control.sweeps.study"):
+        first = run(_cfg(*common, *prune_all))
     assert [t.state for t in first.trials] == [TrialState.PRUNED] * 2
+    progress = [r.getMessage() for r in caplog.records if "of this run" in r.getMessage()]
+    assert len(progress) == 2
+    for k, line in enumerate(progress):  # a pruned trial's value: its last report
+        value = first.trials[k].intermediate_values[0]
+        assert line == (
+            f"study 'tiny': trial {k} ({k + 1}/2 of this run) PRUNED value={value:.6g}; "
+            "best so far: none yet"
+        )
     for trial in first.trials:
-        # reported and pruned by OptunaPruning from inside trainer.fit, after epoch 0
+        # reported and pruned by the pruning callback from inside trainer.fit, after epoch 0
         assert list(trial.intermediate_values) == [0]
-        assert trial.user_attrs["pruned_by"] == "OptunaPruning"
         assert trial.user_attrs["pruned_at_epoch"] == 0
         assert not (Path(trial.user_attrs["trial_dir"]) / "models").exists()
 
@@ -139,7 +192,10 @@ def test_lightning_callback_prunes_and_rerun_continues_the_study(
     assert done.state == TrialState.COMPLETE
     assert Path(done.user_attrs["trial_dir"], "models", "policy.ckpt").is_file()
 
-    runs = {r.info.run_id: r for r in _runs(mlflow_uri, tmp_path.name)}
+    # the study and its trials are in the experiment of kind tune, nothing in train's
+    mlflow.set_tracking_uri(mlflow_uri)
+    assert mlflow.get_experiment_by_name(f"{tmp_path.name}/train") is None
+    runs = {r.info.run_id: r for r in _runs(mlflow_uri, f"{tmp_path.name}/tune")}
     parent_id = second.user_attrs[PARENT_ATTR]
     parent = runs.pop(parent_id)
     assert parent.data.tags["gc.role"] == "study"
@@ -152,6 +208,8 @@ def test_lightning_callback_prunes_and_rerun_continues_the_study(
         assert mlrun.data.tags["mlflow.parentRunId"] == parent_id
         assert mlrun.data.tags["optuna.study"] == "tiny"
         assert mlrun.info.run_id == second.trials[number].user_attrs["mlflow_run_id"]
+        values = second.trials[number].params  # the run is named after the trial's values
+        assert mlrun.info.run_name == f"d{values['model.hidden']}-M{values['experts']}"
     assert [by_trial[n].info.status for n in (0, 1)] == ["KILLED", "KILLED"]
     assert by_trial[0].data.tags["optuna.state"] == "PRUNED"
     assert by_trial[2].info.status == "FINISHED"
@@ -222,7 +280,9 @@ def test_killed_workers_trial_fails_and_the_study_goes_on(tiny_data_dir, tmp_pat
     )
     time.sleep(4)  # > grace period (SQLite's clock has whole seconds)
 
-    study = run(_cfg(*common, "hparams_search.n_trials=1"))
+    # a short training this time: another fixed config than the killed one's, allowed
+    again = ("hparams_search.n_trials=1", "hparams_search.allow_config_change=true")
+    study = run(_cfg(*common, *again))
     states = [t.state for t in study.trials]
     assert states == [TrialState.FAIL, TrialState.COMPLETE]
     killed = mlflow.MlflowClient().get_run(trial.user_attrs["mlflow_run_id"])
@@ -255,3 +315,32 @@ def test_writes_to_the_shared_parent_run_retry_a_clash_between_workers():
     with pytest.raises(MlflowException, match="run not found"):
         _shared_write(broken, "x")
     assert calls == ["broken"]  # anything but a clash is raised at once
+
+
+def test_fit_pruning_reports_during_the_fit_only():
+    """The library's pruning callback, but not in the validate after the fit; no silent typo."""
+    from types import SimpleNamespace
+
+    import torch
+    from lightning.pytorch.trainer.states import TrainerFn
+
+    from generalist_control.sweeps.pruning import FitPruning
+
+    study = optuna.create_study(pruner=optuna.pruners.ThresholdPruner(upper=0.5))
+    trial = study.ask()
+    callback = FitPruning(trial, "val/loss")
+    trainer = SimpleNamespace(
+        sanity_checking=False,
+        state=SimpleNamespace(fn=TrainerFn.VALIDATING),
+        callback_metrics={"val/loss": torch.tensor(1.0)},
+    )
+    module = SimpleNamespace(current_epoch=0)
+    callback.on_validation_end(trainer, module)  # train()'s validate of the best checkpoint
+    assert study.trials[0].intermediate_values == {}
+    trainer.state.fn = TrainerFn.FITTING
+    with pytest.raises(optuna.TrialPruned, match="epoch 0"):
+        callback.on_validation_end(trainer, module)  # 1.0 > 0.5: pruned
+    assert study.trials[0].intermediate_values == {0: 1.0}
+    trainer.callback_metrics = {"val/los": torch.tensor(1.0)}
+    with pytest.raises(KeyError, match=r"'val/loss' \(hparams_search\.monitor\); logged: val/los"):
+        callback.on_validation_end(trainer, module)

@@ -21,11 +21,14 @@ from omegaconf import DictConfig
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
+from generalist_control.deploy.resolve import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.mlflow_log import log_to_mlflow
 from generalist_control.evaluation.runner import evaluate
+from generalist_control.evaluation.tag_free import check_tag_free_dir, write_tag_free_report
+from generalist_control.evaluation.variants import check_variants_dir, run_variants
 from generalist_control.evaluation.writer import check_reports_dir, write_reports
-from generalist_control.model.policy import POLICY_FILE
+from generalist_control.model.policy import POLICY_FILE, load_policy
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.tracking import mlflow_utils
 
@@ -34,21 +37,55 @@ __all__ = ["main", "run"]
 log = logging.getLogger(__name__)
 
 
+def _runtime(source: str, cfg: DictConfig) -> PolicyRuntime:
+    """The policy's runtime; with ``evaluation.withhold_tag`` its network never gets the tag.
+
+    Raises
+    ------
+    ValueError
+        If the tag is to be withheld from a policy trained with its tag always given.
+    """
+    policy, meta = load_policy(resolve(source))
+    if cfg.evaluation.get("withhold_tag", False):
+        if not (policy.config["tag_free"] or policy.config["unknown_tag"]):
+            raise ValueError(
+                f"evaluation.withhold_tag=true, but the policy {source} was trained with its "
+                "tag always given; train it with model.tag_dropout > 0 or model.tag_free=true "
+                "(experiment=tag_free)"
+            )
+        policy.withhold_tag = True
+    return PolicyRuntime(policy, meta, backend=cfg.evaluation.get("backend", "torch"))
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Load the policy, evaluate it on ``cfg.systems`` and write (and log) the reports."""
     out_dir = Path(cfg.paths.reports_dir)
-    check_reports_dir(out_dir)  # refuse a folder of someone else's files before any work
+    variants = bool((cfg.evaluation.get("variants") or {}).get("enabled", False))
+    # refuse a folder of someone else's files before any work
+    (check_variants_dir if variants else check_reports_dir)(out_dir)
+    tag_free_dir = cfg.evaluation.get("tag_free_report")
+    if tag_free_dir:
+        check_tag_free_dir(tag_free_dir)
     source = cfg.get("policy") or str(Path(cfg.paths.models_dir) / POLICY_FILE)
     mlflow_utils.set_tracking(cfg.logger)  # for runs:/ and models:/ policy URIs
-    runtime = PolicyRuntime.load(source, backend=cfg.evaluation.get("backend", "torch"))
+    runtime = _runtime(source, cfg)
     plants = plants_from_config(cfg.systems)
+    if variants:  # unseen plant variants instead (evaluation.variants, experiment=variants)
+        summary = run_variants(cfg, runtime, plants)
+        log_to_mlflow(cfg, runtime.meta, summary, out_dir)
+        log.info("variants evaluation written to %s: pass=%s", out_dir, summary["pass"])
+        return summary
     scen = as_dict(cfg.evaluation.scenarios)
     cf = as_dict(cfg.evaluation.get("crazyflie") or {})
     df, trajs = evaluate(runtime, plants, scen, cf)
     plots = bool(cfg.evaluation.get("plots", True))
     bar = as_dict(cfg.evaluation.get("quality_bar") or {})
     summary = write_reports(df, trajs, out_dir, plots, bar)
-    log_to_mlflow(cfg, runtime.meta, summary, out_dir)
+    if tag_free_dir:
+        verdict = write_tag_free_report(df, runtime.policy, plants, tag_free_dir)
+        log.info("tag-free bar written to %s: met=%s", tag_free_dir, verdict["met"])
+    extra = {"tag_free_bar": Path(tag_free_dir)} if tag_free_dir else None
+    log_to_mlflow(cfg, runtime.meta, summary, out_dir, extra)
     log.info("evaluation written to %s: %s", out_dir, json.dumps(summary["quality_bar"]))
     return summary
 

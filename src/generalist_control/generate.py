@@ -7,6 +7,7 @@ or ``dvc repro generate``. Every input is validated before anything is simulated
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any, cast
 
@@ -31,6 +32,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     """
     plants = plants_from_config(cfg.systems)
     check_tags(plants, cfg.model.n_tags)
+    if "OPENBLAS_CORETYPE" not in os.environ:
+        log.warning(
+            "numerics not pinned: the data's last bits depend on this CPU's BLAS kernels, so "
+            "DVC may see them as changed; `dvc repro generate` pins them (docs/pipeline.md)"
+        )
     out_dir = Path(cfg.paths.data_dir)
     check_data_dir(out_dir)  # refuse a folder of someone else's files before any work
     data = cast(dict[str, Any], OmegaConf.to_container(cfg.data, resolve=True))

@@ -66,6 +66,9 @@ class ModelSchema:
     linear_samples: int = MISSING
     linear_init: str = MISSING
     linear_skip: bool = MISSING
+    tag_free: bool = MISSING
+    tag_dropout: float = MISSING
+    history_context: bool = MISSING
     optimizer: dict[str, Any] = MISSING
     scheduler: dict[str, Any] | None = None
 

@@ -76,6 +76,9 @@ class DemoSet:
     dt : float
     family : ndarray of str, shape (B,)
         The demonstration family of each trajectory (``steps``, ``staircase``, ...).
+    variant : ndarray of int, shape (B,), optional
+        With ``data.variants``: 0 for the nominal plant, ``i`` for its ``i``-th variant
+        (:mod:`generalist_control.data.variants`); None (no column) otherwise.
     """
 
     x: np.ndarray
@@ -88,6 +91,7 @@ class DemoSet:
     amplitude: np.ndarray
     dt: float
     family: np.ndarray
+    variant: np.ndarray | None = None
 
     def windows(self, history: int, horizon: int, integral: bool = False) -> Windows:
         """All training windows of the set.
@@ -108,6 +112,8 @@ def content_hash(demos: DemoSet, config: dict[str, Any]) -> str:
         h.update(np.ascontiguousarray(a, dtype="<i8").tobytes())
     h.update("\0".join(demos.plant.tolist()).encode())
     h.update("\0".join(demos.family.tolist()).encode())
+    if demos.variant is not None:  # only with data.variants: the default's hash is unchanged
+        h.update(np.ascontiguousarray(demos.variant, dtype="<i8").tobytes())
     h.update(json.dumps(config, sort_keys=True, separators=(",", ":")).encode())
     return "sha256:" + h.hexdigest()
 
@@ -128,6 +134,8 @@ def _to_table(demos: DemoSet) -> pa.Table:
     for i in range(MAX_ORDER):
         cols[f"x{i}"] = demos.x[:, :, i].ravel()
     cols.update(r=demos.r.ravel(), u=demos.u.ravel(), y=demos.y.ravel())
+    if demos.variant is not None:
+        cols["variant"] = rep(demos.variant.astype(np.int16))
     return pa.table(cols)
 
 
@@ -221,6 +229,7 @@ def load_demos(data_dir: str | Path, verify: bool = True) -> tuple[DemoSet, dict
         amplitude=col("amplitude")[first],
         dt=float(manifest["dt"]),
         family=np.asarray(tbl.column("family").to_pylist())[first],
+        variant=col("variant")[first].astype(np.int64) if "variant" in tbl.column_names else None,
     )
     if verify:
         computed = content_hash(demos, manifest.get("config", {}))
@@ -229,4 +238,5 @@ def load_demos(data_dir: str | Path, verify: bool = True) -> tuple[DemoSet, dict
                 data_dir,
                 f"content hash {computed}, the manifest says {manifest.get('content_hash')}",
             )
+        manifest["content_hash"] = computed  # what the arrays give, not what was read back
     return demos, manifest

@@ -21,11 +21,18 @@ from tqdm.auto import tqdm
 
 from generalist_control import __version__
 from generalist_control.data.demos import FORMAT_VERSION, DemoSet, content_hash
+from generalist_control.data.variants import (
+    hashed_config,
+    simulate_assigned,
+    training_variants,
+    variants_config,
+)
 from generalist_control.data.windows import windows_per_trajectory
 from generalist_control.plants.plant import MAX_ORDER, Plant, pad_states
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.references import FAMILIES, family_references
-from generalist_control.simulation.simulate import simulate
+from generalist_control.simulation.simulate import Trajectory, simulate
+from generalist_control.simulation.variants import VariantDraw
 
 __all__ = [
     "STEPS",
@@ -150,6 +157,29 @@ def _plant_runs(
     return runs
 
 
+def _run(
+    plant: Plant,
+    ctrl: LQIController,
+    draw: VariantDraw | None,
+    family: str,
+    r: np.ndarray,
+    x0: np.ndarray | None,
+    done: int,
+) -> tuple[Trajectory, np.ndarray]:
+    """One family's runs of a plant (dealt to its variants, if any) and each run's slot."""
+    if draw is None:
+        traj, slots = simulate(plant, ctrl, r, x0), np.zeros(len(r), dtype=np.int64)
+    else:
+        traj, slots = simulate_assigned(draw, ctrl, r, x0, done)
+    if traj.diverged.any():
+        which = sorted({int(v) for v in slots[traj.diverged]})
+        raise RuntimeError(
+            f"plant '{plant.name}': LQI closed loop diverged in the data stage "
+            f"(family '{family}'" + (f", variants {which})" if draw else ")")
+        )
+    return traj, slots
+
+
 def generate_demos(
     plants: Sequence[Plant], data: Mapping[str, Any], progress: bool | None = None
 ) -> DemoSet:
@@ -163,25 +193,30 @@ def generate_demos(
         ``families``).
     progress : bool, optional
         Show a progress bar; by default only on a terminal.
+
+    With ``data.variants`` enabled, trajectories are dealt to the plant and its variants
+    (:mod:`generalist_control.data.variants`) and the set has a ``variant`` column.
     """
     grid = amplitude_grid(data["amplitudes"])
     families = enabled_families(data)
     dt, steps = _steps(data, plants)
     controllers = [LQIController(p, design_lqi(p)) for p in plants]  # validates all first
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("x", "r", "u", "y", "fam", "plant")}
+    vcfg = variants_config(data)
+    draws = training_variants(plants, vcfg, grid, steps) if vcfg else None
+    keys = ("x", "r", "u", "y", "fam", "plant", "variant")
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     disable = None if progress is None else not progress
     pairs = tqdm(
         list(zip(plants, controllers, strict=True)),
         desc="generate", unit="plant", disable=disable, file=sys.stderr,
     )  # fmt: skip
     for plant, ctrl in pairs:
+        done = 0
         for family, r, x0 in _plant_runs(plant, grid, families, steps):
-            traj = simulate(plant, ctrl, r, x0)
-            if traj.diverged.any():
-                raise RuntimeError(
-                    f"plant '{plant.name}': LQI closed loop diverged in the data stage "
-                    f"(family '{family}')"
-                )
+            draw = None if draws is None else draws[plant.name]
+            traj, slots = _run(plant, ctrl, draw, family, r, x0, done)
+            parts["variant"].append(slots)
+            done += len(r)
             parts["x"].append(pad_states(traj.x[:, :steps]))
             parts["r"].append(traj.r)
             parts["u"].append(traj.u)
@@ -202,19 +237,31 @@ def generate_demos(
         amplitude=r_all[:, -1].copy(),
         dt=dt,
         family=np.concatenate(parts["fam"]),
+        variant=np.concatenate(parts["variant"]).astype(np.int64) if draws else None,
     )
 
 
 def build_manifest(
     plants: Sequence[Plant], demos: DemoSet, data: Mapping[str, Any], config: dict[str, Any]
 ) -> dict[str, Any]:
-    """The manifest: window counts, per-plant facts, the resolved config and content hash."""
+    """The manifest: window counts, per-plant facts, the resolved config and content hash.
+
+    With ``data.variants`` enabled it also records each plant's variants (parameters,
+    factors, rejected candidates with their reasons; drawn again, deterministically).
+    """
+    config = hashed_config(config)
     history, horizon = int(data["history"]), int(data["horizon"])
     steps = demos.r.shape[1]
     per_traj = windows_per_trajectory(steps, horizon)
     n_traj = {p.name: int(np.sum(demos.plant == p.name)) for p in plants}
     fams = {str(f): int(np.sum(demos.family == f)) for f in dict.fromkeys(demos.family.tolist())}
+    vcfg = variants_config(data)
+    extra = {}
+    if vcfg is not None:
+        draws = training_variants(plants, vcfg, amplitude_grid(data["amplitudes"]), steps)
+        extra = {"variants": {name: d.record() for name, d in draws.items()}}
     return {
+        **extra,
         "format_version": FORMAT_VERSION,
         "generator": f"generalist_control {__version__}",
         "n_demonstrations": per_traj * len(demos.r),

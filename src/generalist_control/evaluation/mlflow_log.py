@@ -15,17 +15,29 @@ __all__ = ["log_to_mlflow"]
 
 
 def log_to_mlflow(
-    cfg: Any, meta: Mapping[str, Any], summary: Mapping[str, Any], out_dir: Path
+    cfg: Any,
+    meta: Mapping[str, Any],
+    summary: Mapping[str, Any],
+    out_dir: Path,
+    extra: Mapping[str, Path] | None = None,
 ) -> str | None:
-    """Log the summary figures and the report folder to the evaluated model's MLflow run."""
+    """Log the summary figures and the report folder to the evaluated model's MLflow run.
+
+    Names start with ``evaluation.mlflow_prefix`` (default ``eval``), so that two
+    evaluations of one policy (e.g. with and without its tag) keep apart in its run;
+    ``extra`` maps artifact sub-folders to further folders to log (the tag-free bar).
+    """
+    prefix = str(cfg.evaluation.get("mlflow_prefix") or "eval")
     flat: dict[str, float] = {}
     for scen, vals in summary.get("ratios", {}).items():
         for k, v in vals.items():
             if isinstance(v, (int, float)) and math.isfinite(v):
-                flat[f"eval/{scen}/{k}"] = float(v)
+                flat[f"{prefix}/{scen}/{k}"] = float(v)
     for ctrl, by_scen in summary.get("diverged", {}).items():
-        flat[f"eval/diverged/{ctrl}"] = float(sum(by_scen.values()))
+        flat[f"{prefix}/diverged/{ctrl}"] = float(sum(by_scen.values()))
     with mlflow_run(cfg.logger, resume_run_id=meta.get("mlflow_run_id")) as run:
         mlflow.log_metrics(flat)
-        mlflow.log_artifacts(str(out_dir), "eval")
+        mlflow.log_artifacts(str(out_dir), prefix)
+        for name, folder in (extra or {}).items():
+            mlflow.log_artifacts(str(folder), f"{prefix}/{name}")
         return run.info.run_id

@@ -16,11 +16,14 @@ The ``evaluate`` stage (:mod:`generalist_control.evaluate`) writes the results w
 
 from __future__ import annotations
 
+import logging
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 import pandas as pd
+from tqdm.auto import tqdm
 
 from generalist_control.deploy.adapter import RuntimeAdapter, SinglePlantAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
@@ -45,6 +48,8 @@ CONTROLLERS = ("GC", "LQI", "LQI-AW")
 #: Run as well where a scenario limits the actuator and the policy integrates.
 GC_ANTI_WINDUP = "GC-AW"
 STEP_KINDS = ("step", "random_steps")
+
+log = logging.getLogger(__name__)
 
 
 def _controller(name: str, runtime: PolicyRuntime, pert: Perturbation | None) -> BatchController:
@@ -118,13 +123,28 @@ def _scenario(
     return rows
 
 
+def _plants_per_scenario(
+    plants: Sequence[Plant], scenarios: Mapping[str, Mapping[str, Any]]
+) -> dict[str, list[Plant]]:
+    """The plants each scenario runs on (its ``plants``, else all); none: left out."""
+    todo = {
+        n: [p for p in plants if s.get("plants") is None or p.name in s["plants"]]
+        for n, s in scenarios.items()
+    }
+    return {n: chosen for n, chosen in todo.items() if chosen}
+
+
 def evaluate(
     runtime: PolicyRuntime,
     plants: Sequence[Plant],
     scenarios: Mapping[str, Mapping[str, Any]],
     crazyflie: Mapping[str, Any] | None = None,
+    progress: bool | None = None,
 ) -> tuple[pd.DataFrame, dict[str, dict[str, dict[str, Trajectory]]]]:
     """Run every scenario for every controller; return long-form metrics and trajectories.
+
+    Progress: a bar over the scenarios (``progress``; by default only on a terminal) and
+    one log line (INFO) per scenario with its counts and time.
 
     Returns
     -------
@@ -141,14 +161,29 @@ def evaluate(
         )
     rows: list[tuple] = []
     trajs: dict[str, dict[str, dict[str, Trajectory]]] = {}
-    for name, spec in scenarios.items():
-        only = spec.get("plants")
-        chosen = [p for p in plants if only is None or p.name in only]
-        if chosen:
-            trajs[name] = {}
-            rows += _scenario(runtime, chosen, name, spec, trajs[name])
+    todo = _plants_per_scenario(plants, scenarios)
+    bar = tqdm(
+        todo.items(),
+        desc="evaluate",
+        unit="scenario",
+        disable=None if progress is None else not progress,
+    )
+    for i, (name, chosen) in enumerate(bar, 1):
+        bar.set_postfix_str(name)
+        start, trajs[name] = time.perf_counter(), {}
+        rows += _scenario(runtime, chosen, name, scenarios[name], trajs[name])
+        log.info(
+            "scenario %d/%d %s: %d plants, %d controllers, %.1f s",
+            i,
+            len(todo),
+            name,
+            len(chosen),
+            len(trajs[name]),
+            time.perf_counter() - start,
+        )
     if crazyflie and any(p.name == "crazyflie_altitude" for p in plants):
         plant = next(p for p in plants if p.name == "crazyflie_altitude")
         rows += _crazyflie(runtime, plant, crazyflie, trajs)
+        log.info("crazyflie_sim2real: %d controllers", len(trajs["crazyflie_sim2real"]))
     df = pd.DataFrame(rows, columns=["system", "scenario", "controller", "run", "metric", "value"])
     return df, trajs

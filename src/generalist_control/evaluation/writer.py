@@ -3,6 +3,10 @@
 The folder (``paths.reports_dir``, default ``reports/eval``) is replaced as a whole
 (:func:`~generalist_control.common.atomic.publish_directory`), and only if it holds nothing
 but an evaluation's own outputs (:data:`OWNED`).
+
+``summary.json`` holds the quality-bar figures in full; ``scores.json`` (the DVC metric of the
+``evaluate`` stage) a handful of headline numbers in units that read well at
+``dvc metrics show``'s default rounding to 5 decimals (:func:`headline_scores`).
 """
 
 from __future__ import annotations
@@ -22,20 +26,49 @@ from generalist_control.common.atomic import (
 from generalist_control.common.jsonsafe import strict
 from generalist_control.evaluation import plots as plotting
 from generalist_control.evaluation import tables
+from generalist_control.evaluation.runner import STEP_KINDS
 from generalist_control.evaluation.summary import summarise
 from generalist_control.simulation.simulate import Trajectory
 
-__all__ = ["OWNED", "check_reports_dir", "write_reports"]
+__all__ = ["OWNED", "check_reports_dir", "headline_scores", "write_reports"]
 
 #: What an evaluation folder holds: the only entries an evaluation may replace.
 OWNED: dict[str, str | None] = {
     "metrics.csv": None,
     "summary.json": None,
+    "scores.json": None,
     "table2.md": None,
     "table_all.md": None,
     "responses.csv": None,
     "plots": "*.png",
 }
+
+
+def headline_scores(summary: Mapping[str, Any]) -> dict[str, Any]:
+    """The headline figures of a :func:`~generalist_control.evaluation.summary.summarise` result.
+
+    ``diverged``: runs of a learned controller (GC, GC-AW) that diverged, all scenarios;
+    ``bar_passed`` / ``bar_checked``: verdicts of the quality bar passed / measured;
+    ``ISE_ratio``, ``ITAE_ratio``: worst GC/LQI ratio on the unit step; ``RMSE_ratio``: worst
+    over the tracking scenarios; ``ess_ppm``: the worst relative steady-state error of GC on
+    the step scenarios in parts per million (1e-6), so that errors down to 1e-11 do not round
+    to 0.0. A figure that was not measured is ``None`` (``null``).
+    """
+    ratios, tracking = summary.get("ratios", {}), summary.get("tracking", {})
+    step = ratios.get("step", {})
+    ess = [ratios[s]["worst_relative_ess_GC"] for s in STEP_KINDS if s in ratios]
+    rmse = [v["worst_RMSE_ratio"] for v in tracking.values()]
+    verdicts = [v for v in summary.get("quality_bar", {}).values() if v is not None]
+    diverged = summary.get("diverged", {})
+    return {
+        "diverged": sum(sum(diverged.get(c, {}).values()) for c in ("GC", "GC-AW")),
+        "bar_passed": sum(bool(v) for v in verdicts),
+        "bar_checked": len(verdicts),
+        "ISE_ratio": step.get("worst_ISE_ratio"),
+        "ITAE_ratio": step.get("worst_ITAE_ratio"),
+        "RMSE_ratio": max(rmse) if rmse else None,
+        "ess_ppm": 1e6 * max(ess) if ess else None,
+    }
 
 
 def check_reports_dir(out_dir: str | Path) -> None:
@@ -65,6 +98,8 @@ def write_reports(
         df.to_csv(staging / "metrics.csv", index=False)
         summary = summarise(df, bar)
         (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
+        scores = strict(headline_scores(summary))
+        (staging / "scores.json").write_text(json.dumps(scores, indent=2) + "\n")
         (staging / "table2.md").write_text(tables.table2_markdown(df))
         (staging / "table_all.md").write_text(tables.table_all_markdown(df))
         tables.responses_csv(trajs).to_csv(staging / "responses.csv", index=False)

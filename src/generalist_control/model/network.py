@@ -57,7 +57,13 @@ __all__ = [
 #: the whole window; 1 with ``integral``, where the LQI law is linear in the newest
 #: augmented state alone), ``linear_skip`` (0 or 1: a linear map of those samples added to
 #: the output, its gains computed from the learned tag embedding by one shared linear
-#: layer: the plant enters only through the embedding; 0 is the paper's).
+#: layer: the plant enters only through the embedding; 0 is the paper's), ``tag_free`` (0 or
+#: 1: the network never receives the plant's identity, one shared embedding row replaces
+#: the tag), ``unknown_tag`` (0 or 1: the embedding has one more row, index ``n_tags``, the
+#: "tag withheld" that tag dropout trains; see :class:`~generalist_control.model.policy.Policy`)
+#: and ``history_context`` (0 or 1: the skip path's gains are computed from the embedding
+#: plus a learned projection of the window's summary, so the plant can be inferred from its
+#: history; 0 is the default recipe).
 MODEL_DEFAULTS: dict[str, int] = {
     "hidden": 32,
     "heads": 3,
@@ -72,10 +78,21 @@ MODEL_DEFAULTS: dict[str, int] = {
     "integral": 0,
     "linear_samples": 0,
     "linear_skip": 0,
+    "tag_free": 0,
+    "unknown_tag": 0,
+    "history_context": 0,
 }
 
 #: Keys that are switches (0 or 1) rather than sizes.
-_SWITCHES = ("window_scale", "linear_head", "integral", "linear_skip")
+_SWITCHES = (
+    "window_scale",
+    "linear_head",
+    "integral",
+    "linear_skip",
+    "tag_free",
+    "unknown_tag",
+    "history_context",
+)
 
 #: Where a network key is set in the training config, when not at ``model.<key>``.
 _CONFIG_KEYS = {"experts": "experts", "history": "data.history", "horizon": "data.horizon"}
@@ -115,6 +132,11 @@ def network_config(**kwargs: Any) -> dict[str, int]:
         raise ValueError(
             f"model.linear_samples ({cfg['linear_samples']}) exceeds the history "
             f"({cfg['history']})"
+        )
+    if cfg["tag_free"] and cfg["linear_head"]:
+        raise ValueError(
+            "model.linear_head is a table of gains per tag and model.tag_free withholds the "
+            "tag: turn one of them off"
         )
     if cfg["hidden"] % 2:
         raise ValueError(f"model.hidden must be even (encoders give hidden // 2), got {cfg}")
@@ -203,8 +225,11 @@ class GeneralistNetwork(nn.Module):
         self.state_encoder_1 = _mlp(width, d, e)
         self.state_encoder_2 = _mlp(width, d, e)
         self.ref_encoder = _mlp(1, d, e)
-        # one-hot tag -> W_1 onehot + b_1 is a row lookup: an embedding of size d
-        self.tag_embedding = nn.Embedding(c["n_tags"], d)
+        # one-hot tag -> W_1 onehot + b_1 is a row lookup: an embedding of size d. Tag-free:
+        # one shared row (the network never learns who is who); with unknown_tag one more
+        # row, index n_tags, for a withheld tag (trained by tag dropout).
+        rows = 1 if c["tag_free"] else c["n_tags"] + c["unknown_tag"]
+        self.tag_embedding = nn.Embedding(rows, d)
         self.tag_encoder = nn.Sequential(nn.ReLU(), nn.Linear(d, e))
         self.lstm_fast = nn.LSTM(4 * e, d, batch_first=True)
         self.lstm_slow = nn.LSTM(4 * e, d, batch_first=True)
@@ -223,7 +248,7 @@ class GeneralistNetwork(nn.Module):
         self.linear: nn.Embedding | None = None
         if c["linear_head"]:
             n_in = (c["linear_samples"] or c["history"]) * (width + 1)
-            self.linear = nn.Embedding(c["n_tags"], c["horizon"] * n_in)
+            self.linear = nn.Embedding(c["n_tags"] + c["unknown_tag"], c["horizon"] * n_in)
             nn.init.zeros_(self.linear.weight)
         # Ours (model.linear_skip): a linear path whose gains the network computes from the
         # learned tag embedding, W(e_tag) = A e_tag + b with A, b shared by every plant
@@ -236,13 +261,19 @@ class GeneralistNetwork(nn.Module):
             self.skip = nn.Linear(d, c["horizon"] * n_in)
             nn.init.zeros_(self.skip.weight)
             nn.init.zeros_(self.skip.bias)
+        # Ours (model.history_context, with the skip path): the skip gains are computed from
+        # the embedding plus a projection of the window's summary z, so that a policy without
+        # its tag can still give each plant its own gains, inferred from the history.
+        self.context: nn.Linear | None = None
+        if c["history_context"] and self.skip is not None:
+            self.context = nn.Linear(2 * d, d)
         # the slow LSTM sees samples ..., t - 2 tau, t - tau, t (always the newest one)
         self.slow_start = (c["history"] - 1) % c["stride"]
 
     def features(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor) -> Tensor:
         """Per-step features ``f_k`` (B, history, 2 * hidden) of the encoders."""
         x = state * mask  # the paper's X ⊙ M: padded entries never reach the network
-        f_tag = self.tag_encoder(self.tag_embedding(tag))  # the same at every step
+        f_tag = self.tag_encoder(self.tag_embedding(self.tag_index(tag)))  # same at every step
         return torch.cat(
             [
                 self.state_encoder_1(x),
@@ -281,10 +312,21 @@ class GeneralistNetwork(nn.Module):
         u_experts = torch.stack([expert(z_att) for expert in self.experts], dim=1)
         u = torch.einsum("bm,bmk->bk", gates, u_experts)
         if self.linear is not None or self.skip is not None:
-            u = u + self._linear_paths(state, mask, ref, tag)
+            u = u + self._linear_paths(state, mask, ref, tag, z_att)
         return u, gates
 
-    def _linear_paths(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor) -> Tensor:
+    def tag_index(self, tag: Tensor) -> Tensor:
+        """The embedding row of each tag: row 0 for every plant when ``tag_free``.
+
+        The withheld tag is ``n_tags`` (a row only with ``unknown_tag``);
+        :meth:`~generalist_control.model.policy.Policy.network_tags` refuses to withhold it
+        from a network without that row.
+        """
+        return torch.zeros_like(tag) if self.config["tag_free"] else tag
+
+    def _linear_paths(
+        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor, summary: Tensor
+    ) -> Tensor:
         """The per-tag head and the embedding-conditioned skip path, on the newest samples."""
         window = self.linear_features(state, mask, ref)
         shape = (-1, self.config["horizon"], window.shape[1])
@@ -292,7 +334,10 @@ class GeneralistNetwork(nn.Module):
         if self.linear is not None:
             u = u + torch.einsum("bkf,bf->bk", self.linear(tag).view(shape), window)
         if self.skip is not None:
-            gains = self.skip(self.tag_embedding(tag)).view(shape)
+            code = self.tag_embedding(self.tag_index(tag))
+            if self.context is not None:
+                code = code + self.context(summary)
+            gains = self.skip(code).view(shape)
             u = u + torch.einsum("bkf,bf->bk", gains, window)
         return u
 

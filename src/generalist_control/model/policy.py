@@ -59,9 +59,45 @@ class Policy(nn.Module):
         self.config = network_config(**model)
         self.normaliser = Normaliser(self.config["n_tags"], input_width(self.config))
         self.net = GeneralistNetwork(**self.config)
+        #: Run with the tag withheld (evaluation.withhold_tag): the network gets the
+        #: "unknown" row instead of the plant's tag; the per-plant data scales still apply.
+        self.withhold_tag = False
+
+    def network_tags(self, tag: Tensor, withheld: Tensor | None = None) -> Tensor:
+        """The tags the network receives: ``n_tags`` (withheld) where ``withheld`` is true.
+
+        Parameters
+        ----------
+        tag : Tensor of int, shape (B,)
+        withheld : Tensor of bool, shape (B,), optional
+            Which samples go without their tag (tag dropout in training); None: all of them
+            when :attr:`withhold_tag` is set, none otherwise.
+
+        Raises
+        ------
+        ValueError
+            If a tag is withheld from a network trained with its tag always given.
+        """
+        if withheld is None:
+            if not self.withhold_tag:
+                return tag
+            withheld = torch.ones_like(tag, dtype=torch.bool)
+        if self.config["tag_free"]:
+            return tag  # the network ignores it anyway
+        if not self.config["unknown_tag"]:
+            raise ValueError(
+                "cannot withhold the tag: this policy was trained with its tag always given; "
+                "train with model.tag_dropout > 0 (or model.tag_free=true)"
+            )
+        return torch.where(withheld, torch.full_like(tag, self.config["n_tags"]), tag)
 
     def scaled(
-        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
+        self,
+        state: Tensor,
+        mask: Tensor,
+        ref: Tensor,
+        tag: Tensor,
+        withheld: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Network output in window-scaled units, gate weights and the window scales (B, 1).
 
@@ -71,9 +107,10 @@ class Policy(nn.Module):
         from rest are exactly proportional to the step: scaled windows of every amplitude
         coincide, the network learns one shape per plant, and its error is relative to the
         signal, as precise for a unit step as for a step of 20. With it off, ``s = 1``.
+        The data scales use the plant's tag; the network gets :meth:`network_tags`.
         """
         state, mask, ref, tag, s = self.network_inputs(state, mask, ref, tag)
-        u, gates = self.net(state, mask, ref, tag)
+        u, gates = self.net(state, mask, ref, self.network_tags(tag, withheld))
         return u, gates, s
 
     def network_inputs(

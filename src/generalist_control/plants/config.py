@@ -21,6 +21,7 @@ from generalist_control.plants.plant import (
     Signal,
     linearise,
 )
+from generalist_control.plants.variants import register_spec
 
 __all__ = ["plant_from_config"]
 
@@ -165,7 +166,8 @@ def plant_from_config(name: str, cfg: Mapping[str, Any]) -> Plant:
     Raises
     ------
     PlantConfigError
-        If a field is missing, has the wrong shape, or the weights are not (semi)definite.
+        If a field is missing, has the wrong shape, the weights are not (semi)definite, or
+        the ``variants`` block is malformed (:func:`~.variants.register_spec`).
         Fitness for LQI (stabilisability, zero at s = 0) is checked by
         :func:`generalist_control.simulation.lqi.design_lqi`.
     """
@@ -183,7 +185,7 @@ def plant_from_config(name: str, cfg: Mapping[str, Any]) -> Plant:
     settings = _settings(name, cfg)
     model = _model(name, cfg, n)
     Q, R = _lqi_weights(name, cfg["lqi"], n)
-    return Plant(
+    plant = Plant(
         name=name,
         tag=int(cfg["tag"]),
         description=str(cfg["description"]),
@@ -196,3 +198,5 @@ def plant_from_config(name: str, cfg: Mapping[str, Any]) -> Plant:
         **settings,
         **model,
     )
+    register_spec(plant, cfg.get("variants"))  # the optional 'variants' block, validated
+    return plant

@@ -2,16 +2,20 @@
 
 Run ``python -m generalist_control.report`` (Hydra; settings in ``conf/report``) or
 ``dvc repro report``. Nothing is trained here: the report reads the finished training runs
-of one MLflow experiment, each of which carries ``model.hidden`` and ``experts`` (params),
-``n_parameters``, the per-epoch ``train/loss`` history and ``closed_loop/mse/<plant>``, the
-GC-vs-LQI unit-step output MSE on the ablation set. The two sweeps are
+of one MLflow experiment (kind ``sweep`` by default, optionally only the children of
+``report.parent_run``; :mod:`generalist_control.reports.selection`), each of which carries
+``model.hidden`` and ``experts`` (params), ``n_parameters``, the per-epoch ``train/loss``
+history and ``closed_loop/mse/<plant>``, the GC-vs-LQI unit-step output MSE on the ablation
+set. The two sweeps are
 
 * the hidden dimension ``d`` in ``report.hidden`` at ``M = report.baseline.experts``
   (created by ``python train.py -m model.hidden=16,32,64``), and
 * the expert count ``M`` in ``report.experts`` at ``d = report.baseline.hidden``
   (``python train.py -m experts=1,3,5``);
 
-when several runs share a configuration the newest one is used. A configuration without a
+when several runs share a configuration the newest one is used. Runs that differ in more
+than ``d`` and ``M`` (e.g. ``trainer.max_epochs``) are refused by name, or with
+``report.allow_mixed=true`` reported under a loud warning. A configuration without a
 run is drawn and tabulated as "no run"; an experiment without any finished training run is
 an error (:class:`NoAblationRunsError`) that names the commands above.
 
@@ -32,7 +36,8 @@ The data come from :mod:`generalist_control.reports.runs` and
 :mod:`generalist_control.reports.gates`, the drawing from
 :mod:`generalist_control.reports.figures`, the paper comparison from
 :mod:`generalist_control.reports.comparison`. Everything is logged to a ``report`` run of the
-same experiment (tag ``gc.run_type = report``), which the run search leaves out.
+experiment of kind ``report`` (tag ``gc.run_type = report``, which the run search leaves
+out should it share the sweeps' experiment).
 The drawing functions take a Matplotlib
 ``Axes`` and data frames, so notebooks reuse them (``notebooks/02_mlflow_comparison.ipynb``).
 """
@@ -72,17 +77,15 @@ from generalist_control.reports.runs import (
     RUN_TYPE_TAG,
     SWEEP_COMMANDS,
     SWEEPS,
-    NoAblationRunsError,
     RunPoint,
     loss_frame,
     mlflow_client,
     mse_frame,
     params_frame,
     point_label,
-    runs_from_mlflow,
-    select_sweeps,
     unique_points,
 )
+from generalist_control.reports.selection import select_runs
 from generalist_control.tracking import mlflow_utils
 
 __all__ = ["OWNED", "build_report", "runs_table", "write_report"]
@@ -298,19 +301,23 @@ def write_report(
 def _log_to_mlflow(
     cfg: DictConfig, experiment: str, out_dir: Path, summary: Mapping[str, Any]
 ) -> str:
-    """Log the report as a ``report`` run of the experiment; return its run id."""
+    """Log the report as a run of the experiment of kind ``report``; return its run id.
+
+    The run is tagged with the experiment it read (``report.source_experiment``) and, when
+    ``report.allow_mixed`` let differing runs through, with the differences
+    (``report.mixed_params``).
+    """
     rcfg = cfg.report
-    logger = {
-        **as_dict(cfg.logger),
-        "experiment_name": experiment,
-        "run_name": rcfg.get("run_name") or "ablation-report",
-    }
-    with mlflow_utils.mlflow_run(logger) as active:
+    exp_id = mlflow_utils.experiment_id(as_dict(cfg.logger), kind="report")
+    run_name = rcfg.get("run_name") or "ablation-report"
+    with mlflow.start_run(experiment_id=exp_id, run_name=run_name) as active:
         mlflow.set_tags(
             {
                 RUN_TYPE_TAG: "report",
                 "report.kind": "ablation",
                 "report.missing": ", ".join(summary["missing"]) or "none",
+                "report.source_experiment": experiment,
+                "report.mixed_params": json.dumps(summary.get("mixed") or {})[:5000],
             }
         )
         flat = mlflow_utils.flatten_params({"report": OmegaConf.to_container(rcfg, resolve=True)})
@@ -338,22 +345,16 @@ def build_report(cfg: DictConfig) -> dict[str, Any]:
     ------
     NoAblationRunsError
         If the experiment holds no finished training run at all; nothing is written.
+    MixedRunsError
+        If the runs differ in more than the swept keys and ``report.allow_mixed`` is false
+        (:func:`~generalist_control.reports.selection.check_comparable`); nothing is written.
     """
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     rcfg = cfg.report
-    experiment = rcfg.get("experiment_name") or cfg.logger.experiment_name
-    uri = mlflow_utils.set_tracking(cfg.logger)
-    client = mlflow_client(uri)
-    points = runs_from_mlflow(experiment, rcfg.get("filter_string") or "", client)
+    client = mlflow_client(mlflow_utils.set_tracking(cfg.logger))
+    experiment, sweeps, mixed = select_runs(cfg, client)
     baseline = as_dict(rcfg.baseline)
-    sweeps = select_sweeps(points, list(rcfg.hidden), list(rcfg.experts), baseline)
-    if not points:
-        raise NoAblationRunsError(
-            f"no finished training run in MLflow experiment '{experiment}' at {uri} "
-            f"(filter: {rcfg.get('filter_string')!r}). Create the ablation runs with:\n  "
-            + "\n  ".join(SWEEP_COMMANDS)
-        )
     plants = rcfg.get("plants")
     if plants is None:
         plants = (cfg.get("closed_loop") or {}).get("systems")
@@ -373,6 +374,8 @@ def build_report(cfg: DictConfig) -> dict[str, Any]:
             ", ".join(summary["missing"]),
             " and ".join(SWEEP_COMMANDS),
         )
+    if mixed:
+        summary["mixed"] = mixed
     if rcfg.get("log_mlflow", True):
         summary["report_run_id"] = _log_to_mlflow(cfg, experiment, out_dir, summary)
     log.info("ablation report written to %s", out_dir)

@@ -76,6 +76,10 @@ class RunPoint:
         ``closed_loop/diverged``: plants whose GC closed loop diverged (no score logged).
     start_time : int
         Milliseconds since the epoch.
+    params : dict
+        Every logged param (what :mod:`generalist_control.reports.selection` compares).
+    parent_id : str or None
+        The sweep's or study's parent run (tag ``mlflow.parentRunId``).
     """
 
     run_id: str
@@ -87,6 +91,8 @@ class RunPoint:
     mse: dict[str, float] = field(default_factory=dict)
     diverged: int = 0
     start_time: int = 0
+    params: Mapping[str, str] = field(default_factory=dict, compare=False, repr=False)
+    parent_id: str | None = None
 
     @property
     def label(self) -> str:
@@ -125,7 +131,28 @@ def _point(run: Any) -> RunPoint | None:
         mse=mse,
         diverged=int(metrics.get("closed_loop/diverged", 0) or 0),
         start_time=int(run.info.start_time or 0),
+        params=dict(params),
+        parent_id=tags.get("mlflow.parentRunId"),
     )
+
+
+class _ParentRoles:
+    """The ``gc.role`` tag of a run's parent run (None: no parent, or a deleted one)."""
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+        self.roles: dict[str, str | None] = {}  # parent run id -> its gc.role tag
+
+    def __call__(self, run: Any) -> str | None:
+        parent = run.data.tags.get("mlflow.parentRunId")
+        if not parent:
+            return None
+        if parent not in self.roles:
+            try:
+                self.roles[parent] = self.client.get_run(parent).data.tags.get(ROLE_TAG)
+            except Exception:  # noqa: BLE001 (a deleted parent: keep the run)
+                self.roles[parent] = None
+        return self.roles[parent]
 
 
 def mlflow_client(tracking_uri: str | None = None) -> Any:
@@ -137,6 +164,7 @@ def runs_from_mlflow(
     experiment_name: str,
     filter_string: str = "",
     client: Any | None = None,
+    parents: Sequence[str] | None = None,
 ) -> list[RunPoint]:
     """Training runs of an MLflow experiment, newest first.
 
@@ -147,33 +175,23 @@ def runs_from_mlflow(
         An MLflow search filter, e.g. ``"attributes.status = 'FINISHED'"``.
     client : mlflow.tracking.MlflowClient, optional
         Default: a client on the current tracking URI.
+    parents : sequence of str, optional
+        Keep only the children of these parent runs (sweeps or studies).
 
     Returns
     -------
     list of RunPoint
         Runs with ``model.hidden`` and ``experts`` params. Left out: report runs, the parent
-        runs of sweeps and studies (tag ``gc.role``) and the trials of Optuna studies (their
-        hyperparameters are not the baseline's); the jobs of a multirun sweep are kept. An
-        unknown experiment gives an empty list.
+        runs of sweeps and studies (tag ``gc.role``) and, unless ``parents`` names their
+        study, the trials of Optuna studies (their hyperparameters are not the baseline's);
+        the jobs of a multirun sweep are kept. An unknown experiment gives an empty list.
     """
     client = client or mlflow_client()
     experiment = client.get_experiment_by_name(experiment_name)
     if experiment is None:
         return []
     points, token = [], None
-    roles: dict[str, str | None] = {}  # parent run id -> its gc.role tag
-
-    def parent_role(run: Any) -> str | None:
-        parent = run.data.tags.get("mlflow.parentRunId")
-        if not parent:
-            return None
-        if parent not in roles:
-            try:
-                roles[parent] = client.get_run(parent).data.tags.get(ROLE_TAG)
-            except Exception:  # noqa: BLE001 (a deleted parent: keep the run)
-                roles[parent] = None
-        return roles[parent]
-
+    parent_role = _ParentRoles(client)
     while True:
         page = client.search_runs(
             [experiment.experiment_id],
@@ -183,8 +201,13 @@ def runs_from_mlflow(
             page_token=token,
         )
         for run in page:
-            if run.data.tags.get(ROLE_TAG) or parent_role(run) == "study":
-                continue  # a sweep/study parent, or a trial of an Optuna study
+            if run.data.tags.get(ROLE_TAG):
+                continue  # a sweep/study parent
+            if parents is not None:
+                if run.data.tags.get("mlflow.parentRunId") not in parents:
+                    continue
+            elif parent_role(run) == "study":
+                continue  # a trial of an Optuna study
             point = _point(run)
             if point is not None:
                 points.append(point)

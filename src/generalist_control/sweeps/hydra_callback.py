@@ -2,13 +2,14 @@
 
 ``python train.py -m model.hidden=16,32,64`` (or ``experts=1,3,5``, or both: the product)
 runs one training per point. :class:`MLflowSweepCallback`, registered under
-``hydra.callbacks`` in ``conf/config.yaml``, opens a *parent* run in the training's MLflow
-experiment before the first job and exports its id in ``GC_PARENT_RUN_ID`` (and the sweep's
-name in ``GC_SWEEP_NAME``); :func:`generalist_control.tracking.mlflow_utils.mlflow_run` then tags
-every job's run with ``mlflow.parentRunId`` and ``sweep``, so the MLflow UI shows the points
-as children of one row and compares them side by side. After the last job the parent gets a
-summary (``sweep/n_runs``, ``sweep/best/<metric>``, tag ``sweep.best_run_id``) and ends
-``FINISHED``, or ``FAILED`` if a job failed.
+``hydra.callbacks`` in ``conf/config.yaml``, opens a *parent* run in the MLflow experiment of
+kind ``sweep`` (``<logger.experiment_prefix>/sweep``, unless ``logger.experiment_name`` is
+set; :mod:`generalist_control.tracking.experiments`) before the first job and exports its id
+in ``GC_PARENT_RUN_ID`` (and the sweep's name in ``GC_SWEEP_NAME``); the training then files
+every job's run in that experiment and tags it with ``mlflow.parentRunId`` and ``sweep``, so
+the MLflow UI shows the points as children of one row and compares them side by side.
+After the last job the parent gets a summary (``sweep/n_runs``, ``sweep/best/<metric>``,
+tag ``sweep.best_run_id``) and ends ``FINISHED``, or ``FAILED`` if a job failed.
 
 Hydra's basic launcher runs the jobs one after another in this process; a launcher that
 starts worker processes inherits the environment, so the jobs still find their parent.
@@ -33,8 +34,10 @@ from hydra.experimental.callback import Callback
 from mlflow.entities import RunStatus
 from omegaconf import DictConfig
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.secrets import redact
 from generalist_control.tracking import mlflow_utils
+from generalist_control.tracking.experiments import experiment_name
 from generalist_control.tracking.parents import create_parent_run, summarise_children
 
 __all__ = ["MLflowSweepCallback", "sweep_overrides"]
@@ -97,7 +100,9 @@ class MLflowSweepCallback(Callback):
             "sweep.swept": json.dumps(swept)[:5000],
             "sweep.dir": str(config.hydra.sweep.dir),
         }
-        self.run_id = create_parent_run(config.logger, name, "sweep", tags)
+        logger = as_dict(config.logger)
+        logger["experiment_name"] = experiment_name(logger, "sweep")  # the jobs follow it
+        self.run_id = create_parent_run(logger, name, "sweep", tags)
         self._tracking_uri = mlflow.get_tracking_uri()
         self._failed = 0
         keys = (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV)

@@ -1,25 +1,41 @@
-"""Pruning a trial from inside its training: a Lightning callback that reports to Optuna."""
+"""Pruning a trial from inside its training, and linking the trial with its MLflow run.
+
+The pruning itself is optuna-integration's
+:class:`optuna_integration.PyTorchLightningPruningCallback`. ``train(cfg)`` builds its
+callbacks from the config (``hydra.utils.instantiate``), which cannot carry the live trial,
+so the config names the factories :func:`trial_pruning` and :func:`trial_run_link`, which
+take the trial that :func:`active_trial` set.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 import lightning as L
 import mlflow
 import optuna
+from lightning.pytorch.loggers import MLFlowLogger
 from lightning.pytorch.trainer.states import TrainerFn
+from optuna_integration import PyTorchLightningPruningCallback
 
-__all__ = ["OptunaPruning", "active_trial"]
+__all__ = [
+    "FitPruning",
+    "TrialRunLink",
+    "active_trial",
+    "current_trial",
+    "trial_pruning",
+    "trial_run_link",
+]
 
-#: The trial being evaluated (set around ``train(cfg)``; read by :class:`OptunaPruning`,
-#: which ``train`` instantiates from the config and so cannot receive the trial itself).
+#: The trial being evaluated (set around ``train(cfg)``).
 _ACTIVE_TRIAL: list[optuna.Trial] = []
 
 
 @contextmanager
 def active_trial(trial: optuna.Trial) -> Iterator[None]:
-    """Within the block, :class:`OptunaPruning` reports to ``trial``."""
+    """Within the block, :func:`trial_pruning` and :func:`trial_run_link` use ``trial``."""
     _ACTIVE_TRIAL.append(trial)
     try:
         yield
@@ -27,52 +43,70 @@ def active_trial(trial: optuna.Trial) -> Iterator[None]:
         _ACTIVE_TRIAL.remove(trial)
 
 
-class OptunaPruning(L.Callback):
-    """Lightning callback: report ``monitor`` to the Optuna trial, prune when told to.
+def current_trial() -> optuna.Trial:
+    """The trial :func:`active_trial` set; a clear error outside a study."""
+    if not _ACTIVE_TRIAL:
+        raise RuntimeError("trial callbacks are only used inside an Optuna trial (tune.py)")
+    return _ACTIVE_TRIAL[-1]
 
-    After each validation of the fit (not the sanity check, not a later
-    ``trainer.validate``) the value is reported with the epoch as the step; if the study's
-    pruner then prunes the trial, the user attributes ``pruned_at_epoch`` and ``pruned_by``
-    are set and :class:`optuna.TrialPruned` is raised, which ends ``trainer.fit`` and the
-    trial (state ``PRUNED``). At the start of the fit the trial gets the MLflow run id (user
-    attribute ``mlflow_run_id``) and the run the tags ``optuna.study`` and ``optuna.trial``.
 
-    Parameters
-    ----------
-    monitor : str
-        Logged metric to report, e.g. ``val/loss``.
-    trial : optuna.Trial, optional
-        Default: the trial :func:`run` is evaluating.
+class FitPruning(PyTorchLightningPruningCallback):
+    """optuna-integration's pruning callback, limited to the validations of ``trainer.fit``.
+
+    Own code, because the library's callback (optuna-integration 5.0) also reports during a
+    later ``trainer.validate`` (``train`` validates the best checkpoint after the fit), which
+    would report the epoch twice and could prune a trial that has finished; and it only
+    warns when ``monitor`` is never logged, which silently turns pruning off.
     """
 
-    def __init__(self, monitor: str = "val/loss", trial: optuna.Trial | None = None) -> None:
-        if trial is None:
-            if not _ACTIVE_TRIAL:
-                raise RuntimeError("OptunaPruning is only used inside an Optuna trial (tune.py)")
-            trial = _ACTIVE_TRIAL[-1]
-        self.trial = trial
-        self.monitor = monitor
-
-    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        """Link the trial and the active MLflow run both ways."""
-        run = mlflow.active_run()
-        if run is None:
-            return
-        self.trial.set_user_attr("mlflow_run_id", run.info.run_id)
-        mlflow.set_tags(
-            {"optuna.study": self.trial.study.study_name, "optuna.trial": self.trial.number}
-        )
-
     def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        """Report the epoch's value; raise :class:`optuna.TrialPruned` if pruned."""
+        """Report and prune as the library does, during the fit only."""
         if trainer.sanity_checking or trainer.state.fn != TrainerFn.FITTING:
             return
-        logged = trainer.callback_metrics.get(self.monitor)
-        if logged is None:
-            raise KeyError(f"OptunaPruning: no logged metric {self.monitor!r} to report")
-        value, epoch = float(logged), int(trainer.current_epoch)
-        self.trial.report(value, step=epoch)
-        if self.trial.should_prune():
-            self.trial.set_user_attr("pruned_at_epoch", epoch)
-            self.trial.set_user_attr("pruned_by", type(self).__name__)
-            raise optuna.TrialPruned(f"pruned at epoch {epoch}: {self.monitor} = {value:.6g}")
+        if self.monitor not in trainer.callback_metrics:
+            logged = ", ".join(sorted(trainer.callback_metrics)) or "none"
+            raise KeyError(
+                f"pruning: no logged metric {self.monitor!r} (hparams_search.monitor); "
+                f"logged: {logged}"
+            )
+        super().on_validation_end(trainer, pl_module)
+
+
+def trial_pruning(monitor: str = "val/loss") -> FitPruning:
+    """The pruning callback of the active trial, reporting ``monitor`` after each epoch."""
+    return FitPruning(current_trial(), monitor)
+
+
+def _training_run(trainer: L.Trainer) -> tuple[Any, str | None]:
+    """The training's MLflow client and run: the trainer's MLflow logger's, else the active run."""
+    for logger in trainer.loggers:
+        if isinstance(logger, MLFlowLogger) and logger.run_id:
+            return logger.experiment, str(logger.run_id)  # its MlflowClient, its store
+    run = mlflow.active_run()
+    return mlflow.MlflowClient(), (run.info.run_id if run else None)
+
+
+class TrialRunLink(L.Callback):
+    """Link the trial and its MLflow training run both ways, at the start of the fit.
+
+    The trial gets the user attribute ``mlflow_run_id``; the run the tags ``optuna.study``
+    and ``optuna.trial``. Own code: optuna-integration's ``MLflowCallback`` opens a run of
+    its own per trial after the trial ends, while each trial here *is* a training run.
+    """
+
+    def __init__(self, trial: optuna.Trial) -> None:
+        self.trial = trial
+
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """Set the trial's ``mlflow_run_id`` and the run's Optuna tags."""
+        client, run_id = _training_run(trainer)
+        if run_id is None:
+            return
+        self.trial.set_user_attr("mlflow_run_id", run_id)
+        client.set_tag(run_id, "optuna.study", self.trial.study.study_name)
+        client.set_tag(run_id, "optuna.trial", str(self.trial.number))
+
+
+def trial_run_link() -> TrialRunLink:
+    """The run-linking callback of the active trial."""
+    return TrialRunLink(current_trial())

@@ -20,9 +20,6 @@ _SPEC_KEYS = {
     "float": {"type", "low", "high", "step", "log"},
 }
 
-#: The trial being evaluated (set around ``train(cfg)``; read by :class:`OptunaPruning`,
-#: which ``train`` instantiates from the config and so cannot receive the trial itself).
-
 
 @dataclass(frozen=True)
 class Param:

@@ -10,14 +10,23 @@ that the tree ``hparams_search.params`` leads to, e.g. ``model.hidden``) and tra
 * **Resuming and several workers.** The study is loaded if it exists, so re-running the
   command (on any machine that reaches the storage) adds ``n_trials`` more trials to it;
   ``max_trials`` caps the study's finished trials over all workers and runs.
-* **Pruning.** :class:`~generalist_control.sweeps.pruning.OptunaPruning`, a Lightning
-  callback added to each trial's trainer, reports ``val/loss`` after every epoch's
-  validation and raises :class:`optuna.TrialPruned` when the pruner says so.
+* **One fixed config per study.** The part of the config that shapes a trial apart from
+  the searched keys is recorded when the study is created; resuming it under another one
+  (e.g. ``trainer.max_epochs=60`` after a 1-epoch study) is refused, naming the changed
+  keys (:mod:`~generalist_control.sweeps.fixed`).
+* **Pruning.** optuna-integration's ``PyTorchLightningPruningCallback``
+  (:class:`~generalist_control.sweeps.pruning.FitPruning`), added to each trial's trainer,
+  reports ``val/loss`` after every epoch's validation and raises
+  :class:`optuna.TrialPruned` when the pruner says so.
+* **Progress.** One log line per finished trial: its state and value, the best so far
+  (``hparams_search.progress_bar=true`` adds Optuna's progress bar).
 * **Killed workers.** The storage records a heartbeat of every running trial
   (``hparams_search.heartbeat``); a trial whose heartbeat is older than the grace period
   is set to ``FAIL`` by the next worker (on start and before each trial), and its MLflow
   run to ``FAILED``; the study goes on.
-* **MLflow.** Each trial is one MLflow training run, tagged ``optuna.study`` and
+* **MLflow.** The study and its trials go to the experiment of kind ``tune``
+  (``<logger.experiment_prefix>/tune``, :mod:`generalist_control.tracking.experiments`).
+  Each trial is one MLflow training run, tagged ``optuna.study`` and
   ``optuna.trial`` and nested under the study's parent run (its id is kept in the study's
   user attribute ``mlflow_parent_run_id``); pruned trials' runs end ``KILLED``. Each trial
   writes its checkpoints and model under ``<trials_dir>/trial_<n>``, never to the DVC
@@ -44,13 +53,15 @@ from optuna.trial import TrialState
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.secrets import redact
-from generalist_control.sweeps.space import parse_space
+from generalist_control.sweeps.fixed import check_fixed_config, fixed_config
+from generalist_control.sweeps.space import Param, parse_space
 from generalist_control.sweeps.storage import StaleTrialHandler, fail_stale_trials, open_storage
 from generalist_control.sweeps.trials import Objective
 from generalist_control.tracking import mlflow_utils
+from generalist_control.tracking.experiments import experiment_name
 from generalist_control.tracking.parents import ROLE_TAG, create_parent_run
 
-__all__ = ["PARENT_ATTR", "run"]
+__all__ = ["PARENT_ATTR", "TrialProgress", "run", "tune_logger"]
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +100,38 @@ def _trials_dir(search: DictConfig) -> Path:
     return base / str(search.study_name)
 
 
+def tune_logger(logger: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``logger`` config with the experiment of kind ``tune`` named explicitly.
+
+    The study's parent run and its trials' training runs all go there.
+    """
+    plain = as_dict(logger)
+    return {**plain, "experiment_name": experiment_name(plain, "tune")}
+
+
+class TrialProgress:
+    """Optuna callback: one log line per finished trial, with the best value so far."""
+
+    def __init__(self, n_trials: int) -> None:
+        self.n_trials = n_trials
+        self.done = 0
+
+    def __call__(self, study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
+        """Log ``trial <n> (<k>/<n_trials> of this run) <state> value=...; best ...``."""
+        self.done += 1
+        value = "" if trial.value is None else f" value={trial.value:.6g}"
+        complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+        best = "none yet"
+        if complete:
+            top = study.best_trial
+            best = f"{top.value:.6g} (trial {top.number}, {top.params})"
+        log.info(
+            "study %r: trial %d (%d/%d of this run) %s%s; best so far: %s",
+            study.study_name, trial.number, self.done, self.n_trials,
+            trial.state.name, value, best,
+        )  # fmt: skip
+
+
 def _study_parent(study: optuna.Study, logger: Mapping[str, Any], storage: str) -> str:
     """The study's MLflow parent run, reopened as ``RUNNING``; created on first use.
 
@@ -97,7 +140,7 @@ def _study_parent(study: optuna.Study, logger: Mapping[str, Any], storage: str) 
     and both create one agree on the older, and the other is deleted. Its id is also kept
     in the study's user attribute ``mlflow_parent_run_id``.
     """
-    exp_id = mlflow_utils.experiment_id(logger)
+    exp_id = mlflow_utils.experiment_id(logger, kind="tune")
     client = mlflow.MlflowClient()
     query = f"tags.`{ROLE_TAG}` = 'study' and tags.`optuna.study` = '{study.study_name}'"
 
@@ -213,6 +256,14 @@ def _open_study(cfg: DictConfig, search: DictConfig) -> optuna.Study:
     return study
 
 
+def _open_checked(cfg: DictConfig, search: DictConfig, space: list[Param]) -> optuna.Study:
+    """:func:`_open_study`, then its fixed config recorded or checked (``sweeps.fixed``)."""
+    fixed = fixed_config(cfg, [p.key for p in space], list(search.get("identity_keys") or []))
+    study = _open_study(cfg, search)
+    check_fixed_config(study, fixed, bool(search.get("allow_config_change")))
+    return study
+
+
 def _trials_to_add(study: optuna.Study, search: DictConfig) -> int:
     """``n_trials``, capped so the study ends with at most ``max_trials`` finished trials."""
     n_trials, max_trials = int(search.n_trials), search.get("max_trials")
@@ -240,12 +291,15 @@ def run(cfg: DictConfig) -> optuna.Study:
     ------
     ValueError, KeyError
         No or a malformed search configuration (checked before anything is written).
+    StudyConfigChangedError
+        The study exists with another fixed config (:mod:`~generalist_control.sweeps.fixed`)
+        and ``hparams_search.allow_config_change`` is false; no trial is run.
     ConnectionError
         The storage cannot be opened.
     """
     search = _checked_search(cfg)
     space = parse_space(search.get("params") or {}, cfg)
-    study = _open_study(cfg, search)
+    study = _open_checked(cfg, search, space)
     n_trials = _trials_to_add(study, search)
     url = redact(str(search.storage))
     n_existing = len(study.get_trials(deepcopy=False))
@@ -253,10 +307,12 @@ def run(cfg: DictConfig) -> optuna.Study:
         "study %r in %s: %d trials so far, adding up to %d",
         study.study_name, url, n_existing, n_trials,
     )  # fmt: skip
-    parent_id = _study_parent(study, cfg.logger, url)
-    objective = Objective(cfg, space, search, _trials_dir(search), parent_id)
+    logger = tune_logger(cfg.logger)
+    parent_id = _study_parent(study, logger, url)
+    trials_dir = _trials_dir(search)
+    objective = Objective(cfg, space, search, trials_dir, parent_id, logger["experiment_name"])
     max_trials = search.get("max_trials")
-    callbacks = []
+    callbacks: list[Any] = [TrialProgress(n_trials)]
     if max_trials is not None:
         callbacks.append(optuna.study.MaxTrialsCallback(int(max_trials), states=_FINISHED))
     status = "FAILED"
@@ -268,10 +324,11 @@ def run(cfg: DictConfig) -> optuna.Study:
                 timeout=search.get("timeout"),
                 callbacks=callbacks,
                 gc_after_trial=True,
+                show_progress_bar=bool(search.get("progress_bar")),
             )
         status = "FINISHED"
     finally:
-        mlflow_utils.set_tracking(cfg.logger)
+        mlflow_utils.set_tracking(logger)
         summary = _summarise(study, parent_id, status)
         log.info("study %r: %s", study.study_name, summary)
     return study

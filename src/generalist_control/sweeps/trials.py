@@ -16,7 +16,7 @@ import optuna
 from mlflow.exceptions import MlflowException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from generalist_control.sweeps.pruning import OptunaPruning, active_trial
+from generalist_control.sweeps.pruning import active_trial, trial_pruning, trial_run_link
 from generalist_control.sweeps.space import Param
 from generalist_control.tracking.parents import parent_run
 from generalist_control.training.fit import train
@@ -27,13 +27,19 @@ log = logging.getLogger(__name__)
 
 
 def trial_config(
-    cfg: DictConfig, values: Mapping[str, Any], trial_dir: Path, monitor: str = "val/loss"
+    cfg: DictConfig,
+    values: Mapping[str, Any],
+    trial_dir: Path,
+    monitor: str = "val/loss",
+    experiment: str | None = None,
 ) -> DictConfig:
     """The training config of one trial: ``cfg`` with ``values`` set, outputs in ``trial_dir``.
 
     The search's own section (``hparams_search``) is dropped, the checkpoints go to
-    ``<trial_dir>/run`` and the model to ``<trial_dir>/models``, and :class:`OptunaPruning`
-    is added to the callbacks.
+    ``<trial_dir>/run`` and the model to ``<trial_dir>/models``, ``experiment`` (the study's,
+    of kind ``tune``) becomes ``logger.experiment_name`` if given, and the callbacks get the
+    pruning (:func:`~generalist_control.sweeps.pruning.trial_pruning`) and the trial-run link
+    (:func:`~generalist_control.sweeps.pruning.trial_run_link`).
     """
     tcfg = copy.deepcopy(cfg)
     with open_dict(tcfg):
@@ -42,11 +48,16 @@ def trial_config(
             OmegaConf.update(tcfg, key, value, merge=False)
         tcfg.run_dir = str(trial_dir / "run")
         tcfg.paths.models_dir = str(trial_dir / "models")
+        if experiment is not None:
+            tcfg.logger.experiment_name = experiment
         if tcfg.get("callbacks") is None:
             tcfg.callbacks = {}
         tcfg.callbacks.optuna_pruning = {
-            "_target_": f"{OptunaPruning.__module__}.OptunaPruning",
+            "_target_": f"{trial_pruning.__module__}.{trial_pruning.__name__}",
             "monitor": monitor,
+        }
+        tcfg.callbacks.optuna_run_link = {
+            "_target_": f"{trial_run_link.__module__}.{trial_run_link.__name__}",
         }
     return tcfg
 
@@ -61,8 +72,10 @@ class Objective:
         search: DictConfig,
         trials_dir: Path,
         parent_id: str,
+        experiment: str | None = None,
     ) -> None:
         self.cfg = cfg
+        self.experiment = experiment
         self.space = space
         self.metric = str(search.metric)
         self.monitor = str(search.get("monitor") or "val/loss")
@@ -73,7 +86,7 @@ class Objective:
         """Train the trial's config; return its metric (``hparams_search.metric``)."""
         values = {p.key: p.suggest(trial) for p in self.space}
         trial_dir = self.trials_dir / f"trial_{trial.number:04d}"
-        tcfg = trial_config(self.cfg, values, trial_dir, self.monitor)
+        tcfg = trial_config(self.cfg, values, trial_dir, self.monitor, self.experiment)
         trial.set_user_attr("trial_dir", str(trial_dir))
         trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
         name = f"study:{trial.study.study_name}"
@@ -81,6 +94,8 @@ class Objective:
             with active_trial(trial), parent_run(self.parent_id, name):
                 metrics, _ = train(tcfg)
         except optuna.TrialPruned:
+            steps = trial.storage.get_trial(trial._trial_id).intermediate_values
+            trial.set_user_attr("pruned_at_epoch", max(steps) if steps else None)
             self._end_run(trial, "PRUNED", "KILLED")
             raise
         except BaseException:

@@ -1,14 +1,17 @@
-"""MLflow, one mechanism: the fluent API on one run opened by :func:`mlflow_run`.
+"""MLflow: the store, its experiments, the params of a training, and safety.
 
 By default runs go to an embedded store in the working directory, an SQLite database
 (``sqlite:///mlflow.db``) plus an artifact folder (``mlruns/``), which ``mlflow ui`` run in
 the repository shows. ``logger.tracking_uri`` (or ``MLFLOW_TRACKING_URI``) points it at a
 server instead; the server then decides where artifacts go.
 
-Each training run records the resolved config flattened into params, the data's content
-hash as the tag ``data.content_hash`` (and DVC's hash of the data directory, when
-``dvc.lock`` has it), per-epoch metrics through :class:`MLflowEpochLogger`, and artifacts
-logged by :mod:`generalist_control.train`.
+A training's run is opened by Lightning's ``MLFlowLogger``
+(:mod:`~generalist_control.tracking.training_run`); it records the config keys that shaped
+the training as params (:func:`training_params`), the data's content hash, per-epoch
+metrics, and artifacts logged by :mod:`generalist_control.training.outputs`. Runs of other
+work (an evaluation logging into its model's run, a report) are opened by
+:func:`mlflow_run`. Experiments are named per kind of work
+(:func:`~generalist_control.tracking.experiments.experiment_name`).
 
 Safety: a fresh SQLite store is initialised under a file lock beside the database
 (:func:`store_lock`), so trainings started together do not race on its schema; every param
@@ -24,25 +27,22 @@ import json
 import logging
 import os
 import socket
-import time
 from collections.abc import Iterator, Mapping
 from contextlib import AbstractContextManager, contextmanager, nullcontext
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-import lightning as L
 import mlflow
-import torch
 import yaml
 from mlflow.exceptions import MlflowException
 
 from generalist_control.common.secrets import redact
+from generalist_control.tracking.experiments import experiment_name
 
 __all__ = [
     "PARENT_RUN_ENV",
     "SWEEP_ENV",
-    "MLflowEpochLogger",
     "dvc_data_version",
     "end_stale_runs",
     "experiment_id",
@@ -50,9 +50,9 @@ __all__ = [
     "init_store",
     "log_params_once",
     "mlflow_run",
+    "now",
     "parent_run_tags",
     "process_tags",
-    "run_id_from_checkpoint",
     "set_tracking",
     "store_lock",
     "tracking_uri",
@@ -177,18 +177,15 @@ def dvc_data_version(data_dir: str | Path, lock: str | Path = "dvc.lock") -> str
     return None
 
 
-def run_id_from_checkpoint(ckpt_path: str | Path) -> str | None:
-    """The MLflow run id saved by :class:`MLflowEpochLogger` in a Lightning checkpoint."""
-    blob = torch.load(ckpt_path, map_location="cpu", weights_only=True)
-    state = blob.get("callbacks", {}).get(MLflowEpochLogger.__qualname__, {})
-    return state.get("run_id")
-
-
 @contextmanager
 def mlflow_run(
-    logger: Mapping[str, Any], resume_run_id: str | None = None
+    logger: Mapping[str, Any], resume_run_id: str | None = None, kind: str = "train"
 ) -> Iterator[mlflow.ActiveRun]:
-    """Open the training's run: the one ``resume_run_id`` names, if it exists, else a new one.
+    """Open a run with the fluent API: ``resume_run_id``'s, if it exists, else a new one.
+
+    For work other than training (a training's run is Lightning's, see
+    :mod:`~generalist_control.tracking.training_run`): an evaluation logging into the
+    model's run, a report.
 
     Parameters
     ----------
@@ -196,7 +193,10 @@ def mlflow_run(
         The ``logger`` config: ``tracking_uri``, ``experiment_name``, ``artifact_location``
         (used when creating the experiment in a local store), ``run_name``.
     resume_run_id : str, optional
-        Run to continue (a resumed training keeps logging into its run).
+        Run to continue (e.g. the evaluated model's).
+    kind : str
+        The kind of work, which names the experiment of a new run
+        (:func:`~generalist_control.tracking.experiments.experiment_name`).
 
     Notes
     -----
@@ -205,7 +205,7 @@ def mlflow_run(
     process is gone are ended (:func:`end_stale_runs`); the run is tagged with this
     process (:func:`process_tags`).
     """
-    exp_id = experiment_id(logger)
+    exp_id = experiment_id(logger, kind=kind)
     end_stale_runs(exp_id)
     run_id = None
     if resume_run_id:
@@ -223,10 +223,15 @@ def mlflow_run(
         yield run
 
 
-def experiment_id(logger: Mapping[str, Any]) -> str:
-    """Point MLflow at ``logger``'s store; the id of its experiment, created if missing."""
+def experiment_id(logger: Mapping[str, Any], kind: str = "train") -> str:
+    """Point MLflow at ``logger``'s store; the id of the experiment of ``kind``, made if missing.
+
+    The name comes from :func:`~generalist_control.tracking.experiments.experiment_name`
+    (``<logger.experiment_prefix>/<kind>``, or ``logger.experiment_name`` when set). Lookup
+    and creation hold :func:`store_lock`.
+    """
     uri = set_tracking(logger)
-    name = str(logger.get("experiment_name") or "generalist-control")
+    name = experiment_name(logger, kind)
     with store_lock(uri):
         experiment = mlflow.get_experiment_by_name(name)
         if experiment is not None:
@@ -252,14 +257,15 @@ def _proc_stat(pid: int) -> list[str] | None:
     return text.rsplit(")", 1)[1].split()
 
 
-def _now() -> str:
+def now() -> str:
+    """The current UTC time, ISO 8601 to the second."""
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
 def process_tags() -> dict[str, str]:
     """``gc.host``, ``gc.pid``, ``gc.pid_start`` (the kernel's start time) and a heartbeat."""
     stat = _proc_stat(os.getpid())
-    tags = {HOST_TAG: socket.gethostname(), PID_TAG: str(os.getpid()), HEARTBEAT_TAG: _now()}
+    tags = {HOST_TAG: socket.gethostname(), PID_TAG: str(os.getpid()), HEARTBEAT_TAG: now()}
     if stat is not None:
         tags[START_TAG] = stat[19]
     return tags
@@ -302,7 +308,7 @@ def end_stale_runs(exp_id: str) -> list[str]:
             continue
         reason = (
             f"process {host}:{pid} is gone (last heartbeat {tags.get(HEARTBEAT_TAG, '?')}); "
-            f"ended by {host}:{os.getpid()} at {_now()}"
+            f"ended by {host}:{os.getpid()} at {now()}"
         )
         client.set_tag(run.info.run_id, "gc.killed_reason", reason)
         client.set_terminated(run.info.run_id, "KILLED")
@@ -339,43 +345,3 @@ def log_params_once(params: Mapping[str, str]) -> dict[str, tuple[str, str]]:
     if changed:
         mlflow.set_tag("resume.changed_params", json.dumps(changed)[:_MAX_VALUE])
     return changed
-
-
-class MLflowEpochLogger(L.Callback):
-    """Log the epoch's ``train/*`` and ``val/*`` metrics and the learning rate to MLflow.
-
-    Each epoch also renews the run's heartbeat tag ``gc.heartbeat`` (UTC time). The run id
-    is part of the callback's checkpoint state, so a resumed training finds its run again
-    (:func:`run_id_from_checkpoint`).
-    """
-
-    def __init__(self, run_id: str | None = None) -> None:
-        self.run_id = run_id
-        self._t0 = time.perf_counter()
-        self._lr = float("nan")
-
-    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        """Start the epoch's clock and note the learning rate it trains with."""
-        self._t0 = time.perf_counter()
-        self._lr = float(trainer.optimizers[0].param_groups[0]["lr"])
-
-    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        """Log after the epoch's validation, with the epoch number as the step."""
-        if trainer.sanity_checking or self.run_id is None:
-            return
-        metrics = {
-            k: float(v)
-            for k, v in trainer.callback_metrics.items()
-            if k.startswith(("train/", "val/"))
-        }
-        metrics["lr"] = self._lr
-        metrics["time/epoch_s"] = time.perf_counter() - self._t0
-        mlflow.log_metrics(metrics, step=trainer.current_epoch, run_id=self.run_id)
-        mlflow.MlflowClient().set_tag(self.run_id, HEARTBEAT_TAG, _now())
-
-    def state_dict(self) -> dict[str, Any]:
-        """Checkpoint state: the run id."""
-        return {"run_id": self.run_id}
-
-    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        """Keep the current run id (the resumed run is opened before fitting)."""

@@ -24,6 +24,8 @@ class ClosedLoopValidation(L.Callback):
     Open-loop validation MSE says little about the closed loop (a small error in the
     feedback of an unstable plant diverges), so with DAgger the best checkpoint is chosen
     on this score (``monitor: val/closed_loop``). Per plant: ``val/closed_loop/<plant>``.
+    The mean is shown in the progress bar too (3 significant digits, see
+    :meth:`~generalist_control.training.lit_module.ImitationModule.setup`).
     """
 
     def __init__(
@@ -46,6 +48,7 @@ class ClosedLoopValidation(L.Callback):
                 RuntimeAdapter(runtime), self.plants, self.amplitudes, self.duration
             )
         policy.train(was_training)
-        pl_module.log("val/closed_loop", float(np.mean(list(scores.values()))), logger=False)
+        score = float(np.mean(list(scores.values())))
+        pl_module.log("val/closed_loop", score, prog_bar=True, logger=False)
         for name, v in scores.items():
             pl_module.log(f"val/closed_loop/{name}", v, logger=False)

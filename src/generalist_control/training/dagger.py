@@ -256,13 +256,14 @@ def aggregate(
     ctrl = MixedController(runtime, beta)
     trajs = simulate_many(runs, ctrl)
     z_all = ctrl.z
-    parts, counts = [], {}
+    parts: list[tuple[Windows, np.ndarray]] = []
+    counts: dict[str, int] = {}
     for p, tr, rows in zip(plants, trajs, row_slices([len(r.r) for r in runs]), strict=True):
         w, keep = _labelled_windows(
             p, tr, z_all[rows], bounds[p.name], history, horizon, takeover, integral
         )
         parts.append((w, keep))
-        counts[p.name] = int(keep.sum())
+        counts[p.name] = counts.get(p.name, 0) + int(keep.sum())  # variants share a name
     windows = Windows(
         **{
             k: np.concatenate([getattr(w, k)[keep] for w, keep in parts])

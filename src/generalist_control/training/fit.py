@@ -6,10 +6,13 @@ as ``python train.py``) and for every sweep job and Optuna trial. Outputs:
 * ``<run_dir>/checkpoints/``: Lightning checkpoints (best on ``monitor``, and ``last.ckpt``,
   the last finished epoch, to resume with ``ckpt_path=<run_dir>/checkpoints/last.ckpt``);
 * ``policy.ckpt`` (the best policy, loadable with
-  :func:`generalist_control.model.policy.load_policy`) and ``metrics.json``, in
-  ``<run_dir>/models``, or in ``paths.published_dir`` (``models/``) when the run publishes
-  (``publish=true``: the DVC stage); see :func:`.outputs.job_models_dir`;
-* one MLflow run (see :mod:`generalist_control.tracking.mlflow_utils`).
+  :func:`generalist_control.model.policy.load_policy`) and ``metrics.json`` (headline
+  numbers, :func:`.outputs.dvc_metrics`), in ``<run_dir>/models``, or in
+  ``paths.published_dir`` (``models/``) when the run publishes (``publish=true``: the DVC
+  stage); see :func:`.outputs.job_models_dir`;
+* one MLflow run, opened by Lightning's ``MLFlowLogger``
+  (:mod:`generalist_control.tracking.training_run`), and a new version of the registered
+  model ``logger.registered_model_name``.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import lightning as L
 import mlflow
 import numpy as np
 import torch
+from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.jsonsafe import write_json
@@ -31,8 +35,9 @@ from generalist_control.common.secrets import redact
 from generalist_control.deploy.runtime import integral_facts
 from generalist_control.model.network import count_parameters
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy, save_policy
-from generalist_control.tracking import mlflow_utils
+from generalist_control.tracking import training_run
 from generalist_control.training import outputs
+from generalist_control.training.dagger_callback import DAggerCallback
 from generalist_control.training.datamodule import DemoDataModule, WindowTensors
 from generalist_control.training.lit_module import ImitationModule
 from generalist_control.training.setup import (
@@ -40,8 +45,10 @@ from generalist_control.training.setup import (
     closed_loop_validation,
     config_callbacks,
     dagger_callback,
+    dagger_plants,
     included_plants,
     model_config,
+    tag_dropout,
     training_plants,
 )
 
@@ -93,6 +100,7 @@ def _module(cfg: DictConfig, dm: DemoDataModule, meta: dict[str, Any]) -> Imitat
         optimizer=_plain(cfg.model.optimizer),
         scheduler=_plain(scheduler) if scheduler else None,
         meta=meta,
+        tag_dropout=tag_dropout(cfg),
     )
     lit.policy.normaliser.fit(**_tensors(dm.train_set))
     linear_init = cfg.model.get("linear_init", "zero")
@@ -113,25 +121,32 @@ def _module(cfg: DictConfig, dm: DemoDataModule, meta: dict[str, Any]) -> Imitat
     return lit
 
 
-def _trainer(
+def _callbacks(
     cfg: DictConfig, run_dir: Path, meta: dict[str, Any]
-) -> tuple[L.Trainer, L.pytorch.callbacks.ModelCheckpoint, mlflow_utils.MLflowEpochLogger]:
-    """The Lightning trainer with the config's callbacks, DAgger and closed-loop validation."""
+) -> tuple[list[L.Callback], L.pytorch.callbacks.ModelCheckpoint]:
+    """The config's callbacks, DAgger and closed-loop validation (checked before any run)."""
     callbacks = config_callbacks(cfg, run_dir)
     ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
-    epoch_logger = mlflow_utils.MLflowEpochLogger()
     plants = training_plants(cfg, meta)
-    dagger = dagger_callback(cfg, plants)
+    own = [dagger_callback(cfg, dagger_plants(cfg, plants)), closed_loop_validation(cfg, plants)]
+    return [*callbacks, *(c for c in own if c is not None)], ckpt_cb
+
+
+def _trainer(
+    cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback], mlf: MLFlowLogger
+) -> L.Trainer:
+    """The Lightning trainer with ``callbacks``, logging to ``mlf``'s run."""
+    recorder = training_run.RunRecorder(str(mlf.run_id))
+    dagger = any(isinstance(c, DAggerCallback) for c in callbacks)
     extra = {"reload_dataloaders_every_n_epochs": 1} if dagger else {}
-    own = [c for c in (dagger, closed_loop_validation(cfg, plants)) if c is not None]
     trainer: L.Trainer = hydra.utils.instantiate(
         cfg.trainer,
-        callbacks=[*callbacks, *own, epoch_logger],
-        logger=False,
+        callbacks=[*callbacks, recorder],
+        logger=mlf,
         default_root_dir=str(run_dir),
         **extra,
     )
-    return trainer, ckpt_cb, epoch_logger
+    return trainer
 
 
 def _fit(
@@ -204,16 +219,32 @@ def _publish(
     mlflow.set_tag("policy_dir", str(models_dir.resolve()))
     policy_meta = {**meta, "metrics": metrics, "mlflow_run_id": run_id}
     policy_path = save_policy(models_dir / POLICY_FILE, policy, policy_meta)
-    metrics_path = write_json(models_dir / METRICS_FILE, metrics, sort_keys=True)
     mlflow.log_artifact(best, "checkpoints")
     mlflow.log_artifact(str(policy_path), "policy")
-    mlflow.log_artifact(str(metrics_path), "policy")
     scores = outputs.closed_loop_scores(cfg, policy, policy_meta)
     if scores:
         mlflow.log_metrics({k: v for k, v in scores.items() if np.isfinite(v)})
         metrics.update(scores)
-        write_json(metrics_path, metrics, sort_keys=True)
+    metrics_path = write_json(models_dir / METRICS_FILE, outputs.dvc_metrics(metrics))
+    mlflow.log_artifact(str(metrics_path), "policy")
     return policy, policy_path
+
+
+def _prepare(cfg: DictConfig) -> tuple[DemoDataModule, dict[str, Any], ImitationModule]:
+    """Threads and seed set, data loaded, module built; a resume checked before any run."""
+    outputs.scrub_hydra_files()
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    if cfg.get("seed") is not None:
+        L.seed_everything(int(cfg.seed), workers=True)
+    dm, meta = _data(cfg)
+    ckpt_path = cfg.get("ckpt_path")
+    if ckpt_path:
+        check_resume(ckpt_path, meta)
+    lit = _module(cfg, dm, meta)
+    if ckpt_path:
+        _check_fits(cfg, ckpt_path, lit)
+    return dm, meta, lit
 
 
 def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -231,7 +262,8 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         last epoch, ``n_parameters``, ``epochs``, ``global_step``.
     objects : dict
         ``trainer``, ``model`` (the LightningModule), ``datamodule``, ``policy`` (the best),
-        ``run_id`` (MLflow), ``best_checkpoint``, ``policy_path``.
+        ``run_id`` and ``experiment`` (MLflow), ``registered_version`` (None when not
+        registered), ``best_checkpoint``, ``policy_path``.
 
     Raises
     ------
@@ -240,39 +272,27 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     ValueError
         Before any run is opened, if ``ckpt_path`` holds other data or another model.
     """
-    outputs.scrub_hydra_files()
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    if cfg.get("seed") is not None:
-        L.seed_everything(int(cfg.seed), workers=True)
-    dm, meta = _data(cfg)
+    dm, meta, lit = _prepare(cfg)
     ckpt_path = cfg.get("ckpt_path")
-    if ckpt_path:
-        check_resume(ckpt_path, meta)
-    lit = _module(cfg, dm, meta)
-    if ckpt_path:
-        _check_fits(cfg, ckpt_path, lit)
     n_params = count_parameters(lit.policy)
     run_dir = outputs.run_dir(cfg)
-    trainer, ckpt_cb, epoch_logger = _trainer(cfg, run_dir, meta)
-    resume_id = mlflow_utils.run_id_from_checkpoint(ckpt_path) if ckpt_path else None
-    with mlflow_utils.mlflow_run(cfg.logger, resume_run_id=resume_id) as run:
-        run_id = epoch_logger.run_id = run.info.run_id
+    resume_id = training_run.run_id_from_checkpoint(ckpt_path) if ckpt_path else None
+    callbacks, ckpt_cb = _callbacks(cfg, run_dir, meta)
+    mlf = training_run.training_logger(cfg.logger, resume_run_id=resume_id)
+    trainer = _trainer(cfg, run_dir, callbacks, mlf)
+    with mlflow.start_run(run_id=mlf.run_id) as run:  # the fluent API on the logger's run
+        run_id = run.info.run_id
         outputs.log_inputs(cfg, dm, n_params, run_dir)
-        uri = redact(mlflow.get_tracking_uri())
-        log.info("MLflow run %s (%s); %d parameters", run_id, uri, n_params)
+        uri = mlflow.get_tracking_uri()
+        log.info("MLflow run %s (%s); %d parameters", run_id, redact(uri), n_params)
         best, metrics = _fit(trainer, lit, dm, ckpt_path, ckpt_cb)
         policy, policy_path = _publish(cfg, best, metrics, meta, run_id, run_dir)
+        name = cfg.logger.get("registered_model_name")
+        version = None
         if cfg.logger.get("log_model", True):
-            outputs.log_model(policy, _tensors(dm.val_set))
-    log.info("policy written to %s; MLflow run %s (%s)", policy_path, run_id, uri)
-    objects = {
-        "trainer": trainer,
-        "model": lit,
-        "datamodule": dm,
-        "policy": policy,
-        "run_id": run_id,
-        "best_checkpoint": best,
-        "policy_path": policy_path,
-    }
-    return metrics, objects
+            version = outputs.log_model(policy, _tensors(dm.val_set), name)
+    experiment = mlflow.MlflowClient().get_experiment(run.info.experiment_id).name
+    log.info(outputs.end_message(policy_path, run_id, experiment, uri, version, str(name)))
+    objects = dict(trainer=trainer, model=lit, datamodule=dm, policy=policy, run_id=run_id)
+    objects.update(experiment=experiment, registered_version=version, best_checkpoint=best)
+    return metrics, {**objects, "policy_path": policy_path}

@@ -8,16 +8,21 @@ the per-tag normalised units of the policy's :class:`~generalist_control.normali
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import lightning as L
 import torch
 from hydra.utils import instantiate
+from lightning.pytorch.callbacks import RichProgressBar
 from torch import Tensor
 
 from generalist_control.model.policy import Policy
 
-__all__ = ["ImitationModule"]
+__all__ = ["METRICS_FORMAT", "ImitationModule"]
+
+#: How the progress bar prints a metric: 3 significant digits (1.23e-09, 0.0457, 12.3).
+METRICS_FORMAT = ".3g"
 
 
 class ImitationModule(L.LightningModule):
@@ -34,6 +39,9 @@ class ImitationModule(L.LightningModule):
     meta : dict, optional
         Plain-typed data facts (``tags`` plant -> tag, ``dt``, ``content_hash``, ...),
         stored in every checkpoint with the hyper-parameters.
+    tag_dropout : float
+        In training steps, each window goes without its tag with this probability
+        (``model.tag_dropout``; the network needs ``unknown_tag``). Validation keeps tags.
 
     Notes
     -----
@@ -47,10 +55,13 @@ class ImitationModule(L.LightningModule):
         optimizer: dict[str, Any],
         scheduler: dict[str, Any] | None = None,
         meta: dict[str, Any] | None = None,
+        tag_dropout: float = 0.0,
     ) -> None:
         super().__init__()
-        self.save_hyperparameters()
+        # in checkpoints only: the run's params are chosen (logger.params), not the hparams
+        self.save_hyperparameters(logger=False)
         self.policy = Policy(model)
+        self.tag_dropout = float(tag_dropout)
         tags = (meta or {}).get("tags", {})
         self.tag_names = {int(t): str(name) for name, t in tags.items()}
         n_tags = self.policy.config["n_tags"]
@@ -68,7 +79,11 @@ class ImitationModule(L.LightningModule):
 
         Without ``window_scale`` the scale is one: the paper's MSE in normalised units.
         """
-        u, _, s = self.policy.scaled(batch["state"], batch["mask"], batch["ref"], batch["tag"])
+        tag = batch["tag"]
+        withheld = None
+        if self.training and self.tag_dropout > 0:
+            withheld = torch.rand(tag.shape, device=tag.device) < self.tag_dropout
+        u, _, s = self.policy.scaled(batch["state"], batch["mask"], batch["ref"], tag, withheld)
         target = self.policy.normaliser.normalise_controls(batch["target"], batch["tag"])
         return (u - target / s) ** 2
 
@@ -107,6 +122,19 @@ class ImitationModule(L.LightningModule):
             name = self.tag_names.get(tag, f"tag{tag}")
             mse = self._val_sse[tag] / self._val_count[tag]
             self.log(f"val/mse/{name}", mse.float(), logger=False)
+
+    def setup(self, stage: str) -> None:
+        """Show the progress bar's metrics in 3 significant digits.
+
+        Lightning's default bar, when ``rich`` is installed, prints metrics with the theme's
+        ``metrics_format`` (``.3f``), so a loss of 1e-4 and a closed-loop error of 1e-9 both
+        read ``0.000``; its tqdm bar already prints ``.3g``. Set here, on the bar the trainer
+        made, since ``enable_progress_bar=false`` refuses a bar passed in ``callbacks``.
+        """
+        bar = self.trainer.progress_bar_callback
+        if isinstance(bar, RichProgressBar):
+            # a copy: the bar's default theme is one instance shared by every bar
+            bar.theme = dataclasses.replace(bar.theme, metrics_format=METRICS_FORMAT)
 
     def configure_optimizers(self) -> Any:
         """The optimiser (and epoch-wise scheduler) from the Hydra partials in the hparams."""

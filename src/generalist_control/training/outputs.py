@@ -1,8 +1,16 @@
-"""What a training run leaves behind: the policy file, metrics, and its MLflow record."""
+"""What a training run leaves behind: the policy file, metrics, and its MLflow record.
+
+``metrics.json`` (the DVC metric of the stage ``train``; :func:`dvc_metrics`) holds a few
+headline numbers in a form that ``dvc metrics show`` (five decimals) does not round to 0:
+the closed-loop errors, 1e-12 .. 1e-5, as their base-10 logarithms (``log10_`` in the key,
+-7.5 is 3.2e-8). MLflow keeps every metric under its own name and unit.
+"""
 
 from __future__ import annotations
 
+import math
 import warnings
+from collections.abc import Mapping
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -12,6 +20,7 @@ import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
+from mlflow.data.numpy_dataset import from_numpy
 from mlflow.models import infer_signature
 from omegaconf import DictConfig, OmegaConf
 
@@ -23,17 +32,32 @@ from generalist_control.model.network import input_width
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.simulation.comparison import output_mse
-from generalist_control.tracking import mlflow_utils
+from generalist_control.tracking import mlflow_utils, training_run
 from generalist_control.training.datamodule import DemoDataModule
 
 __all__ = [
+    "DVC_METRICS",
     "closed_loop_scores",
+    "dvc_metrics",
+    "end_message",
     "job_models_dir",
+    "log_dataset",
     "log_inputs",
     "log_model",
     "run_dir",
     "scrub_hydra_files",
 ]
+
+#: ``metrics.json``: its key -> (the training's metric, whether stored as log10).
+DVC_METRICS: dict[str, tuple[str, bool]] = {
+    "val/loss": ("val/loss", False),
+    "train/loss": ("train/loss", False),
+    "val/log10_closed_loop": ("val/closed_loop", True),
+    "closed_loop/log10_mse_mean": ("closed_loop/mse_mean", True),
+    "closed_loop/diverged": ("closed_loop/diverged", False),
+    "epochs": ("epochs", False),
+    "n_parameters": ("n_parameters", False),
+}
 
 
 def run_dir(cfg: DictConfig) -> Path:
@@ -112,11 +136,28 @@ def closed_loop_scores(cfg: DictConfig, policy: Policy, meta: dict[str, Any]) ->
     return scores
 
 
-def log_model(policy: Policy, windows: dict[str, torch.Tensor]) -> None:
+def log_model(
+    policy: Policy, windows: dict[str, torch.Tensor], registered_name: str | None = None
+) -> str | None:
     """Log the best policy as an MLflow PyTorch model (``torch.export``, one flat input).
 
     The input is float32 (B, F) with the columns of :func:`flat_columns`, which are also
-    stored in the model's metadata; the output is the control sequence (B, horizon).
+    stored in the model's metadata; the output is the control sequence (B, horizon). The
+    signature is inferred from eight validation windows, which are also the input example.
+
+    Parameters
+    ----------
+    policy : Policy
+    windows : dict of Tensor
+        Validation windows (``state``, ``mask``, ``ref``, ``tag``).
+    registered_name : str, optional
+        Register the model under this name in the model registry: a new version, tagged
+        with the run (``run_id``, ``run_name``, ``data.content_hash``).
+
+    Returns
+    -------
+    str or None
+        The registered version, if registered.
     """
     flat = FlatPolicy(policy).eval()
     n = min(8, windows["tag"].shape[0])
@@ -135,7 +176,7 @@ def log_model(policy: Policy, windows: dict[str, torch.Tensor]) -> None:
     with warnings.catch_warnings():
         # torch.export notes that nn.LSTM re-assigns its flat weight list while tracing
         warnings.filterwarnings("ignore", message=".*were assigned during export.*")
-        mlflow.pytorch.log_model(
+        info = mlflow.pytorch.log_model(
             flat,
             name="policy",
             signature=infer_signature(x, y),
@@ -143,15 +184,41 @@ def log_model(policy: Policy, windows: dict[str, torch.Tensor]) -> None:
             serialization_format="pt2",  # a traced graph: loading runs no pickled code
             metadata={"columns": flat_columns(c["history"], input_width(c))},
             pip_requirements=[f"torch=={torch.__version__.split('+')[0]}", "numpy"],
+            registered_model_name=registered_name or None,
         )
+    version = info.registered_model_version
+    if not registered_name or version is None:
+        return None
+    _tag_version(registered_name, str(version))
+    return str(version)
+
+
+def _tag_version(name: str, version: str) -> None:
+    """Tag a registered version with the active run: ``run_id``, ``run_name``, data hash."""
+    run = mlflow.active_run()
+    if run is None:
+        return
+    client = mlflow.MlflowClient()
+    tags = client.get_run(run.info.run_id).data.tags
+    for key, value in (
+        ("run_id", run.info.run_id),
+        ("run_name", tags.get("mlflow.runName", "")),
+        ("data.content_hash", tags.get("data.content_hash", "")),
+    ):
+        client.set_model_version_tag(name, version, key, value)
 
 
 def log_inputs(cfg: DictConfig, dm: DemoDataModule, n_params: int, run_dir: Path) -> None:
     """Params, tags and input artifacts of the active MLflow run; no password in any of them."""
     resolved = redact(OmegaConf.to_container(cfg, resolve=True))
-    params = {**mlflow_utils.flatten_params(resolved), "n_parameters": str(n_params)}
-    mlflow_utils.log_params_once(params)
     meta = dm.meta()
+    keys = list(cfg.logger.get("params") or [])
+    params = {
+        **training_run.training_params(resolved, keys),
+        "data.content_hash": meta["content_hash"],
+        "n_parameters": str(n_params),
+    }
+    mlflow_utils.log_params_once(params)
     tags = {
         "data.content_hash": meta["content_hash"],
         "data.dir": meta["data_dir"],
@@ -169,3 +236,65 @@ def log_inputs(cfg: DictConfig, dm: DemoDataModule, n_params: int, run_dir: Path
     for path in sorted((run_dir / ".hydra").glob("*.yaml")):
         mlflow.log_text(redact(path.read_text()), f"config/hydra/{path.name}")
     mlflow.log_dict(dm.manifest, "data/manifest.json")
+    log_dataset(dm)
+
+
+def log_dataset(dm: DemoDataModule) -> None:
+    """Log the training windows as the run's dataset input (context ``training``).
+
+    The digest is the content hash computed when the data module loaded the data
+    (:func:`generalist_control.data.demos.load_demos` recomputes it from the arrays and
+    refuses data that disagree with the manifest), cut to MLflow's 36 characters: the
+    first 36 hex digits of its SHA-256; the input's tag ``content_hash`` holds it whole.
+    The source is the data directory; MLflow stores the schema and shapes, not the data.
+    """
+    meta = dm.meta()
+    if dm.train_set is None:
+        raise RuntimeError("the data module is not set up")
+    t = dm.train_set.tensors
+    features = {k: t[k].numpy() for k in ("state", "mask", "ref", "tag")}
+    source = str(Path(meta["data_dir"]).resolve())
+    digest = meta["content_hash"].removeprefix("sha256:")[:36]
+    with warnings.catch_warnings():
+        # a local path matches two artifact-source classes of MLflow's registry alike
+        warnings.filterwarnings("ignore", message=".*can be interpreted in multiple ways.*")
+        dataset = from_numpy(
+            features, source=source, targets=t["target"].numpy(), name="demos", digest=digest
+        )
+    mlflow.log_input(dataset, context="training", tags={"content_hash": meta["content_hash"]})
+
+
+def dvc_metrics(metrics: Mapping[str, float]) -> dict[str, float]:
+    """The headline numbers for ``metrics.json`` (:data:`DVC_METRICS`), rounded to 6 digits.
+
+    Closed-loop errors as ``log10``; a non-finite value (a diverged mean, a perfect 0) is
+    written as ``null`` (:func:`~generalist_control.common.jsonsafe.write_json`). A metric
+    the run does not have is left out.
+
+    Examples
+    --------
+    >>> dvc_metrics({"val/loss": 0.0035093, "closed_loop/mse_mean": 1.82e-06, "epochs": 30})
+    {'val/loss': 0.0035093, 'closed_loop/log10_mse_mean': -5.739929, 'epochs': 30}
+    """
+    out: dict[str, float] = {}
+    for key, (name, log10) in DVC_METRICS.items():
+        if name not in metrics:
+            continue
+        value = metrics[name]
+        if log10:
+            value = math.log10(value) if value > 0 else -math.inf
+        out[key] = value if isinstance(value, int) else float(f"{value:.7g}")
+    return out
+
+
+def end_message(
+    policy_path: Path, run_id: str, experiment: str, uri: str, version: str | None, name: str
+) -> str:
+    """The line a training ends with: the policy, the run, the registered model, the UI."""
+    where = f"MLflow run {run_id} in experiment '{experiment}' ({redact(uri)})"
+    registered = f"registered model {name} version {version}" if version else "not registered"
+    if uri.startswith(("http://", "https://")):
+        ui = f"open {redact(uri)}"
+    else:
+        ui = f"run: mlflow ui --backend-store-uri {redact(uri)}"
+    return f"policy written to {policy_path}; {where}; {registered}; to browse it {ui}"

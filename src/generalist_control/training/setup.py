@@ -11,7 +11,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.configs import as_dict
-from generalist_control.data.generation import enabled_families
+from generalist_control.common.schema import require_fraction
+from generalist_control.data.generation import amplitude_grid, enabled_families
+from generalist_control.data.variants import training_variants, variants_config
 from generalist_control.model.network import MODEL_DEFAULTS, network_config
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.plants.plant import Plant
@@ -41,13 +43,31 @@ def model_config(cfg: DictConfig) -> dict[str, int]:
         If a value is not of its type (``model.hidden=32.9``, ``experts=2.5``: nothing is
         rounded) or out of range; see :func:`~generalist_control.model.network.network_config`.
     """
-    keys = set(MODEL_DEFAULTS) - {"experts", "state_dim", "history", "horizon"}
+    keys = set(MODEL_DEFAULTS) - {"experts", "state_dim", "history", "horizon", "unknown_tag"}
     return network_config(
         **{k: v for k, v in cfg.model.items() if k in keys},
+        unknown_tag=tag_dropout(cfg) > 0,
         experts=cfg.experts,
         history=cfg.data.history,
         horizon=cfg.data.horizon,
     )
+
+
+def tag_dropout(cfg: DictConfig) -> float:
+    """``model.tag_dropout``, checked: the share of training windows without their tag.
+
+    Raises
+    ------
+    ValueError
+        If it is not a number in [0, 1), or is set together with ``model.tag_free`` (a
+        tag-free network has no tag to drop).
+    """
+    p = require_fraction("model.tag_dropout", cfg.model.get("tag_dropout", 0.0))
+    if p > 0 and cfg.model.get("tag_free", False):
+        raise ValueError(
+            "model.tag_dropout drops a tag that model.tag_free never gives: set one of them"
+        )
+    return p
 
 
 def included_plants(cfg: DictConfig) -> list[str] | None:
@@ -69,6 +89,25 @@ def included_plants(cfg: DictConfig) -> list[str] | None:
 def training_plants(cfg: DictConfig, meta: dict[str, Any]) -> list[Plant]:
     """The plants of ``cfg.systems`` that the data holds (``meta["tags"]``)."""
     return [p for p in plants_from_config(cfg.systems) if p.name in meta["tags"]]
+
+
+def dagger_plants(cfg: DictConfig, plants: list[Plant]) -> list[Plant]:
+    """The plants DAgger rolls out on: ``plants`` and, with ``data.variants``, their variants.
+
+    With variant data the policy must also recover on the variants it imitates, so each
+    training plant's kept variants (drawn again from ``data.variants``' seed, exactly as the
+    data stage drew them, :func:`~generalist_control.data.variants.training_variants`) join
+    the rollouts; each is labelled by its own LQI expert. ``dagger.rollouts`` is per plant,
+    variants included.
+    """
+    vcfg = variants_config(cfg.data)
+    if vcfg is None:
+        return plants
+    data = as_dict(cfg.data)
+    grid = amplitude_grid(data["amplitudes"])
+    steps = int(round(float(data["duration"]) / plants[0].dt))
+    draws = training_variants(plants, vcfg, grid, steps)
+    return [q for p in plants for q in (p, *(v.plant for v in draws[p.name].kept))]
 
 
 def dagger_callback(cfg: DictConfig, plants: list[Plant]) -> L.Callback | None:
@@ -99,13 +138,17 @@ def closed_loop_validation(cfg: DictConfig, plants: list[Plant]) -> L.Callback |
 
 
 def config_callbacks(cfg: DictConfig, run_dir: Path) -> list[L.Callback]:
-    """The callbacks named in ``cfg.callbacks`` (checkpoints go to ``<run_dir>/checkpoints``)."""
+    """The callbacks named in ``cfg.callbacks`` (checkpoints go to ``<run_dir>/checkpoints``).
+
+    A callback with ``dirpath: null`` (both checkpoint callbacks) gets that directory:
+    Lightning would otherwise put it under the logger's run (``<exp_id>/<run_id>``).
+    """
     callbacks = []
-    for name, node in (cfg.get("callbacks") or {}).items():
+    for node in (cfg.get("callbacks") or {}).values():
         if node is None or "_target_" not in node:
             continue
         kwargs = {}
-        if name == "model_checkpoint" and node.get("dirpath") is None:
+        if "dirpath" in node and node.get("dirpath") is None:
             kwargs["dirpath"] = str(run_dir / "checkpoints")
         callbacks.append(hydra.utils.instantiate(node, **kwargs))
     return callbacks

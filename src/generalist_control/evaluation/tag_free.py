@@ -1,0 +1,146 @@
+"""The tag-free bar (issue 13) and its report: what the policy without its tag achieves.
+
+From the long-form metrics of an evaluation run with the tag withheld
+(``evaluation.withhold_tag=true``), :func:`tag_free_bar` checks
+
+* no divergence of GC on any plant in any scenario;
+* the unit-step ISE ratio GC/LQI at most ``ise_ratio`` (1.25) on at least ``min_plants``
+  (20) of the plants;
+
+and, for the plants that miss, :func:`write_tag_free_report` adds how soon the history tells
+each plant apart (:func:`~generalist_control.evaluation.separation.separation_table`) and a
+figure of the first samples the network sees for the plant and its nearest neighbour.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from generalist_control.common.atomic import (  # noqa: E402
+    check_replaceable,
+    publish_directory,
+    staging_directory,
+)
+from generalist_control.common.jsonsafe import write_json  # noqa: E402
+from generalist_control.evaluation.separation import (  # noqa: E402
+    network_views,
+    separation_table,
+)
+from generalist_control.model.policy import Policy  # noqa: E402
+from generalist_control.plants.plant import Plant  # noqa: E402
+
+__all__ = ["OWNED", "check_tag_free_dir", "tag_free_bar", "write_tag_free_report"]
+
+#: What a tag-free report folder holds (the only entries a new report may replace).
+OWNED: dict[str, str | None] = {
+    "bar.json": None,
+    "separation.csv": None,
+    "plots": "*.png",
+}
+
+
+def check_tag_free_dir(out_dir: str | Path) -> None:
+    """Refuse (before any work) a report folder that holds other files."""
+    check_replaceable(out_dir, OWNED, "evaluation.tag_free_report")
+
+
+def _values(df: pd.DataFrame, scenario: str | None, controller: str, metric: str) -> pd.Series:
+    """Per system, the mean of ``metric`` for ``controller`` (in ``scenario`` if given)."""
+    sel = (df.controller == controller) & (df.metric == metric)
+    if scenario is not None:
+        sel &= df.scenario == scenario
+    return df[sel].groupby("system")["value"].mean()
+
+
+def tag_free_bar(
+    df: pd.DataFrame, ise_ratio: float = 1.25, min_plants: int = 20
+) -> dict[str, Any]:
+    """The tag-free bar from an evaluation's long-form metrics (tag withheld).
+
+    Returns
+    -------
+    dict
+        ``diverged`` (``system/scenario`` pairs where GC diverged), ``step_ise_ratio`` per
+        plant, ``missing`` (plants above ``ise_ratio``), ``passed`` (plants at or below) and
+        the verdicts ``no_divergence``, ``step_ise_ratio`` and ``met`` (both).
+    """
+    gc = df[(df.controller == "GC") & (df.metric == "diverged") & (df.value > 0)]
+    diverged = sorted({f"{s}/{c}" for s, c in zip(gc.system, gc.scenario, strict=True)})
+    ratio = (_values(df, "step", "GC", "ISE") / _values(df, "step", "LQI", "ISE")).dropna()
+    missing = sorted(ratio[~(ratio <= ise_ratio)].index)
+    passed = len(ratio) - len(missing)
+    return {
+        "diverged": diverged,
+        "step_ise_ratio": {k: float(v) for k, v in sorted(ratio.items())},
+        "ise_ratio_bar": ise_ratio,
+        "min_plants": min_plants,
+        "missing": missing,
+        "passed": passed,
+        "plants": int(len(ratio)),
+        "no_divergence": not diverged,
+        "step_ise_ratio_met": passed >= min(min_plants, len(ratio)),
+        "met": not diverged and passed >= min(min_plants, len(ratio)),
+    }
+
+
+def _figure(
+    policy: Policy, plants: Sequence[Plant], pairs: list[tuple[str, str]], path: Path
+) -> None:
+    """First samples of what the network sees (input norm) and must answer, plant by pair."""
+    if not pairs:
+        return
+    index = {p.name: i for i, p in enumerate(plants)}
+    inputs, controls = network_views(policy, plants, duration=2.0)
+    t = np.arange(inputs.shape[1]) * plants[0].dt
+    fig, axes = plt.subplots(len(pairs), 2, figsize=(10, 2.6 * len(pairs)), squeeze=False)
+    for row, (a, b) in enumerate(pairs):
+        for name, style in ((a, "-"), (b, "--")):
+            i = index[name]
+            axes[row, 0].plot(t, np.linalg.norm(inputs[i], axis=1), style, label=name)
+            axes[row, 1].plot(t, controls[i], style, label=name)
+        axes[row, 0].set_ylabel("|network input|")
+        axes[row, 1].set_ylabel("expert control (learned units)")
+        axes[row, 0].legend(fontsize=8)
+    for ax in axes[-1]:
+        ax.set_xlabel("time after a unit step from rest (s)")
+    fig.suptitle("Without the tag: missed plants and the plant they look like at first")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def write_tag_free_report(
+    df: pd.DataFrame,
+    policy: Policy,
+    plants: Sequence[Plant],
+    out_dir: str | Path,
+    bar: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Write ``bar.json``, ``separation.csv`` and ``plots/`` to ``out_dir``; return the bar.
+
+    ``bar`` overrides ``ise_ratio`` and ``min_plants`` of :func:`tag_free_bar`.
+    """
+    check_tag_free_dir(out_dir)
+    verdict = tag_free_bar(df, **(bar or {}))
+    table = separation_table(policy, plants)
+    ratio = verdict["step_ise_ratio"]
+    table["step_ise_ratio"] = table.system.map(ratio)
+    missing = table[table.system.isin(verdict["missing"])]
+    verdict["why_missed"] = missing.to_dict(orient="records")
+    pairs = list(zip(missing.system, missing.nearest, strict=True))
+    with staging_directory(out_dir) as staging:
+        table.to_csv(staging / "separation.csv", index=False)
+        write_json(staging / "bar.json", verdict, sort_keys=True)
+        (staging / "plots").mkdir()
+        _figure(policy, plants, pairs, staging / "plots" / "tag_free_missed.png")
+        publish_directory(staging, out_dir, OWNED, "evaluation.tag_free_report")
+    return verdict

@@ -1,0 +1,242 @@
+"""Evaluation on unseen plant variants (``evaluation.variants``, ``experiment=variants``).
+
+For each plant, ``count`` variants are drawn with the evaluation's own seed
+(:func:`generalist_control.simulation.variants.sample_variants`); none may equal a training
+variant: their factor vectors are compared with every variant the policy's data recorded in
+its manifest (``paths.data_dir``), or, without such a manifest, with the draws of the data
+config's seed stream, and the evaluation's seed must differ from the data's. On every
+variant and scenario (``evaluation.variants.scenarios``, names of ``evaluation.scenarios``)
+three controllers run in lockstep with the evaluation's simulator: ``GC`` (the policy, told
+the nominal plant's tag), ``LQI`` (the variant's own LQI, the oracle) and ``LQI-nominal``
+(the nominal plant's LQI gains on the variant, what a user has without redesign).
+
+Outputs (``paths.reports_dir``): ``metrics.csv`` (system, variant, scenario, controller, run,
+metric, value), ``summary.json`` (the issue's bars, each with its verdict;
+:mod:`~generalist_control.evaluation.variant_summary`), ``variants.csv`` (each variant's
+parameters and factors) and plots.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from generalist_control.common.atomic import (
+    check_replaceable,
+    publish_directory,
+    staging_directory,
+)
+from generalist_control.common.configs import as_dict
+from generalist_control.common.jsonsafe import strict
+from generalist_control.data.variants import variants_config
+from generalist_control.deploy.adapter import RuntimeAdapter
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.evaluation.variant_summary import plot_variants, summarise_variants
+from generalist_control.plants.plant import Plant
+from generalist_control.plants.variants import DEFAULT_RANGE, draw_factors, parameter_ranges
+from generalist_control.simulation.lqi import LQIController, design_lqi
+from generalist_control.simulation.metrics import step_metrics, tracking_metrics
+from generalist_control.simulation.scenarios import perturbation, references
+from generalist_control.simulation.simulate import (
+    BatchController,
+    PerPlantController,
+    Run,
+    simulate_many,
+)
+from generalist_control.simulation.variants import Variant, VariantDraw, sample_variants
+
+__all__ = [
+    "CONTROLLERS",
+    "OWNED",
+    "check_disjoint",
+    "check_variants_dir",
+    "draw_eval_variants",
+    "evaluate_variants",
+    "run_variants",
+]
+
+CONTROLLERS = ("GC", "LQI", "LQI-nominal")
+COLUMNS = ["system", "variant", "scenario", "controller", "run", "metric", "value"]
+STEP_KINDS = ("step", "random_steps")
+
+#: What a variants report folder holds: the only entries its evaluation may replace.
+OWNED: dict[str, str | None] = {
+    "metrics.csv": None,
+    "summary.json": None,
+    "variants.csv": None,
+    "plots": "*.png",
+}
+
+
+def check_variants_dir(out_dir: str | Path) -> None:
+    """Refuse (before any work) a ``paths.reports_dir`` that holds other files."""
+    check_replaceable(out_dir, OWNED, "paths.reports_dir")
+
+
+def draw_eval_variants(
+    plants: Sequence[Plant], ecfg: Mapping[str, Any], steps: int
+) -> dict[str, VariantDraw]:
+    """``ecfg.count`` (at least 5) variants per plant from the evaluation's seed."""
+    count = int(ecfg.get("count", 6))
+    if count < 5:
+        raise ValueError(f"evaluation.variants.count = {count}: the bar needs at least 5")
+    rng = float(ecfg.get("range") or DEFAULT_RANGE)
+    seed, tries = int(ecfg["seed"]), int(ecfg.get("max_tries", 10))
+    return {
+        p.name: sample_variants(p, count, seed, rng, (1.0, -1.0), steps, tries) for p in plants
+    }
+
+
+def _training_factors(
+    plants: Sequence[Plant], data: Mapping[str, Any], data_dir: Path
+) -> tuple[str, dict[str, list[dict[str, float]]]]:
+    """The training variants' factors, from the data's manifest or its config's seed stream."""
+    manifest = data_dir / "manifest.json"
+    if manifest.is_file():
+        recorded = json.loads(manifest.read_text()).get("variants")
+        if recorded:
+            return f"manifest {manifest}", {
+                name: [v["factors"] for v in rec["kept"]] for name, rec in recorded.items()
+            }
+    vcfg = variants_config({**data, "variants": {**(data.get("variants") or {}), "enabled": 1}})
+    assert vcfg is not None
+    out: dict[str, list[dict[str, float]]] = {}
+    for p in plants:  # every candidate the data stage may have drawn, kept or not
+        rng = np.random.default_rng([vcfg["seed"], p.tag])
+        ranges = parameter_ranges(p, vcfg["range"])
+        out[p.name] = [draw_factors(ranges, rng) for _ in range(vcfg["count"] * vcfg["max_tries"])]
+    return f"seed stream data.variants.seed={vcfg['seed']}", out
+
+
+def check_disjoint(
+    draws: Mapping[str, VariantDraw],
+    plants: Sequence[Plant],
+    data: Mapping[str, Any],
+    data_dir: Path,
+    seed: int,
+) -> dict[str, Any]:
+    """Refuse evaluation variants equal to a training variant; return what was checked.
+
+    Raises
+    ------
+    ValueError
+        The evaluation's seed is the data's, or a drawn factor vector equals a training one.
+    """
+    if seed == int((data.get("variants") or {}).get("seed", -1)):
+        raise ValueError(
+            f"evaluation.variants.seed = {seed} is data.variants.seed: choose another, so the "
+            "evaluation's variants are not the training's"
+        )
+    source, train = _training_factors(plants, data, data_dir)
+    gap = np.inf
+    for name, draw in draws.items():
+        for v in draw.kept:
+            for f in train.get(name, []):
+                d = max(abs(v.factors[k] - f.get(k, 1.0)) for k in v.factors)
+                if d < 1e-9:
+                    raise ValueError(
+                        f"plant '{name}': evaluation variant {v.index} equals a training "
+                        f"variant ({source}); change evaluation.variants.seed"
+                    )
+                gap = min(gap, d)
+    return {"checked_against": source, "min_factor_distance": float(gap)}
+
+
+def _rows(
+    v: Variant, scenario: str, ctrl: str, kind: str, tr: Any
+) -> list[tuple[str, int, str, str, int, str, float]]:
+    if kind in STEP_KINDS:
+        m = step_metrics(tr.t[:-1], tr.y[:, :-1], tr.u, tr.r)
+    else:
+        m = tracking_metrics(tr.t[:-1], tr.y[:, :-1], tr.r)
+    out = []
+    for i in range(tr.r.shape[0]):
+        bad = bool(tr.diverged[i])
+        out.append((v.plant.name, v.index, scenario, ctrl, i, "diverged", float(bad)))
+        for key, values in m.items():
+            value = np.nan if bad else float(values[i])
+            out.append((v.plant.name, v.index, scenario, ctrl, i, key, value))
+    return out
+
+
+def _controller(
+    name: str, runtime: PolicyRuntime, nominal: Mapping[str, Plant]
+) -> BatchController:
+    if name == "GC":
+        return RuntimeAdapter(runtime)
+    if name == "LQI":
+        return PerPlantController(LQIController)  # each variant's own design
+    return PerPlantController(lambda p: LQIController(p, design_lqi(nominal[p.name])))
+
+
+def evaluate_variants(
+    runtime: PolicyRuntime,
+    draws: Mapping[str, VariantDraw],
+    scenarios: Mapping[str, Mapping[str, Any]],
+) -> pd.DataFrame:
+    """Every controller on every variant and scenario; long-form metrics (:data:`COLUMNS`)."""
+    variants = [v for d in draws.values() for v in d.kept]
+    nominal = {name: d.nominal for name, d in draws.items()}
+    rows: list[tuple] = []
+    for name, spec in scenarios.items():
+        chosen = [
+            v
+            for v in variants
+            if spec.get("plants") in (None, []) or v.plant.name in spec["plants"]
+        ]
+        runs = [
+            Run(v.plant, *references(name, spec, v.plant), perturbation(name, spec, v.plant))
+            for v in chosen
+        ]
+        for ctrl in CONTROLLERS:
+            results = simulate_many(runs, _controller(ctrl, runtime, nominal))
+            for v, tr in zip(chosen, results, strict=True):
+                rows += _rows(v, name, ctrl, spec["kind"], tr)
+    return pd.DataFrame(rows, columns=COLUMNS)
+
+
+def _variants_table(draws: Mapping[str, VariantDraw]) -> pd.DataFrame:
+    rows = []
+    for name, d in draws.items():
+        for v in d.kept:
+            rec = v.record()
+            for key, value in rec["parameters"].items():  # type: ignore[attr-defined]
+                factor = v.factors.get(key, 1.0)
+                rows.append((name, v.index, key, value, factor))
+    return pd.DataFrame(rows, columns=["system", "variant", "parameter", "value", "factor"])
+
+
+def run_variants(cfg: Any, runtime: PolicyRuntime, plants: Sequence[Plant]) -> dict[str, Any]:
+    """Draw, check, evaluate and write the variants report to ``paths.reports_dir``."""
+    out_dir = Path(cfg.paths.reports_dir)
+    check_variants_dir(out_dir)
+    ecfg = as_dict(cfg.evaluation.variants)
+    all_scen = as_dict(cfg.evaluation.scenarios)
+    names = list(ecfg.get("scenarios") or ["step"])
+    missing = [n for n in names if n not in all_scen]
+    if missing:
+        raise KeyError(
+            f"evaluation.variants.scenarios names {missing}, not in evaluation.scenarios"
+        )
+    scen = {n: all_scen[n] for n in names}
+    steps = int(round(float(scen[names[0]].get("duration", 15.0)) / plants[0].dt))
+    draws = draw_eval_variants(plants, ecfg, steps)
+    data = as_dict(cfg.data)
+    disjoint = check_disjoint(draws, plants, data, Path(cfg.paths.data_dir), int(ecfg["seed"]))
+    df = evaluate_variants(runtime, draws, scen)
+    summary = summarise_variants(df, names[0], as_dict(ecfg.get("bar") or {}))
+    summary["disjoint"] = disjoint
+    summary["rejected"] = {n: d.rejected for n, d in draws.items() if d.rejected}
+    with staging_directory(out_dir) as staging:
+        df.to_csv(staging / "metrics.csv", index=False)
+        _variants_table(draws).to_csv(staging / "variants.csv", index=False)
+        (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
+        if bool(cfg.evaluation.get("plots", True)):
+            plot_variants(df, names[0], staging / "plots")
+        publish_directory(staging, out_dir, OWNED, "paths.reports_dir")
+    return summary

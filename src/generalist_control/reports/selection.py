@@ -1,0 +1,242 @@
+"""Which runs the ablation report compares, and the check that they are comparable.
+
+The report reads the experiment of kind ``sweep`` (``<logger.experiment_prefix>/sweep``,
+:mod:`generalist_control.tracking.experiments`) unless ``report.experiment_name`` names
+another; ``report.parent_run`` narrows it to the children of one or more sweeps (or studies),
+given by run id or run name (e.g. ``sweep:model.hidden=16,32,64``).
+
+The runs it is about to compare must differ only in the swept keys (:data:`SWEPT_KEYS`) and
+in keys that name or place a run (``report.identity_keys``: run names, paths, tracking,
+seeds, ...): a 1-epoch ``M=1`` beside a 60-epoch ``M=5`` says nothing about ``M``.
+:func:`check_comparable` compares their logged params (a param logged by one run and not the
+other counts as a difference) and refuses with :class:`MixedRunsError`, naming the runs, the
+keys and their values and the fixes, or, with ``report.allow_mixed=true``, logs the same
+as a warning.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import logging
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from omegaconf import DictConfig
+
+from generalist_control.common.configs import as_dict
+from generalist_control.common.secrets import redact
+from generalist_control.reports.runs import (
+    SWEEP_COMMANDS,
+    NoAblationRunsError,
+    RunPoint,
+    runs_from_mlflow,
+    select_sweeps,
+    unique_points,
+)
+from generalist_control.tracking.experiments import experiment_name
+from generalist_control.tracking.parents import ROLE_TAG
+
+__all__ = [
+    "SWEPT_KEYS",
+    "MixedRunsError",
+    "check_comparable",
+    "differing_params",
+    "report_experiment",
+    "parents_hint",
+    "resolve_parents",
+    "select_runs",
+]
+
+log = logging.getLogger(__name__)
+
+#: The report's axes: the params its runs may differ in.
+SWEPT_KEYS = ("model.hidden", "experts")
+_ABSENT = "(not logged)"
+
+
+class MixedRunsError(ValueError):
+    """The runs the report would compare differ in more than the swept keys."""
+
+
+def report_experiment(cfg: DictConfig) -> str:
+    """The experiment the report reads: ``report.experiment_name`` or the kind ``sweep``."""
+    return str(cfg.report.get("experiment_name") or experiment_name(as_dict(cfg.logger), "sweep"))
+
+
+def _parents_in(client: Any, exp_id: str, limit: int = 1000) -> list[Any]:
+    """The parent runs (sweeps and studies) of an experiment, newest first."""
+    runs = client.search_runs(
+        [exp_id],
+        filter_string=f"tags.`{ROLE_TAG}` != ''",
+        order_by=["attributes.start_time DESC"],
+        max_results=limit,
+    )
+    return [r for r in runs if r.data.tags.get(ROLE_TAG)]
+
+
+def parents_hint(client: Any, exp_id: str, limit: int = 5) -> str:
+    """The newest parent runs of the experiment, ``<id> '<name>'``, for messages."""
+    found = _parents_in(client, exp_id)[:limit]
+    if not found:
+        return "none"
+    return ", ".join(f"{r.info.run_id} {r.info.run_name!r}" for r in found)
+
+
+def resolve_parents(client: Any, exp_id: str, parent_run: Any) -> list[str] | None:
+    """The parent run ids ``report.parent_run`` names (ids or names); None when unset.
+
+    A name matches the parent runs (tag ``gc.role``) of the experiment with that run name;
+    the newest one is taken.
+
+    Raises
+    ------
+    LookupError
+        A name or id that is no parent run of the experiment (the message lists some).
+    """
+    if parent_run is None or parent_run == "":
+        return None
+    wanted = (
+        [str(parent_run)] if isinstance(parent_run, str | int) else [str(p) for p in parent_run]
+    )
+    parents = _parents_in(client, exp_id)
+    ids = []
+    for item in wanted:
+        match = next(
+            (r for r in parents if item in (r.info.run_id, r.info.run_name)), None
+        )  # newest first: the newest of a name
+        if match is None:
+            raise LookupError(
+                f"report.parent_run: {item!r} is no sweep or study parent run of the "
+                f"experiment {exp_id}; its newest parent runs: {parents_hint(client, exp_id)}"
+            )
+        ids.append(match.info.run_id)
+    return ids
+
+
+def _identity(key: str, patterns: Sequence[str]) -> bool:
+    return key in SWEPT_KEYS or any(fnmatch.fnmatchcase(key, p) for p in patterns)
+
+
+def differing_params(
+    points: Sequence[RunPoint], identity: Sequence[str]
+) -> dict[str, dict[str, list[RunPoint]]]:
+    """The params (other than swept and identity keys) on which the runs disagree.
+
+    Returns
+    -------
+    dict
+        ``{key: {value: [runs with it]}}`` for each key with more than one value among the
+        runs; a run that did not log the key has the value ``(not logged)``.
+    """
+    keys = sorted({k for p in points for k in p.params if not _identity(k, identity)})
+    out: dict[str, dict[str, list[RunPoint]]] = {}
+    for key in keys:
+        groups: dict[str, list[RunPoint]] = {}
+        for p in points:
+            groups.setdefault(str(p.params.get(key, _ABSENT)), []).append(p)
+        if len(groups) > 1:
+            out[key] = groups
+    return out
+
+
+def _describe(diff: Mapping[str, Mapping[str, Sequence[RunPoint]]]) -> str:
+    lines = []
+    for key, groups in diff.items():
+        parts = [
+            f"{value!r} in " + ", ".join(f"{p.run_name} ({p.run_id})" for p in runs)
+            for value, runs in groups.items()
+        ]
+        lines.append(f"  {key}: " + "; ".join(parts))
+    return "\n".join(lines)
+
+
+def check_comparable(
+    points: Sequence[RunPoint],
+    identity: Sequence[str],
+    allow_mixed: bool = False,
+    parents: str = "none",
+) -> dict[str, dict[str, list[str]]]:
+    """Refuse (or warn) when the runs to compare differ in more than the swept keys.
+
+    Parameters
+    ----------
+    points : sequence of RunPoint
+        The runs the report is about to compare.
+    identity : sequence of str
+        ``report.identity_keys``: glob patterns of params that may differ.
+    allow_mixed : bool
+        ``report.allow_mixed``: warn instead of refusing.
+    parents : str
+        The experiment's parent runs, quoted in the fix (:func:`parents_hint`).
+
+    Returns
+    -------
+    dict
+        ``{key: {value: [run ids]}}`` of the differences let through (empty when none).
+
+    Raises
+    ------
+    MixedRunsError
+        On a difference, unless ``allow_mixed``.
+    """
+    diff = differing_params(points, identity)
+    if not diff:
+        return {}
+    head = (
+        f"the {len(points)} runs the report would compare differ in more than the swept "
+        f"keys ({', '.join(SWEPT_KEYS)}):\n{_describe(diff)}\n"
+    )
+    key, value = next(
+        ((k, v) for k, g in diff.items() for v in g if v != _ABSENT), ("trainer.max_epochs", "30")
+    )
+    fixes = (
+        f"Compare runs of one configuration: choose the sweeps with report.parent_run=<id or "
+        f"name> or a list of them (newest parent runs: {parents}), or narrow the runs with "
+        f"report.filter_string, e.g. \"attributes.status = 'FINISHED' and "
+        f"params.`{key}` = '{value}'\""
+    )
+    if not allow_mixed:
+        raise MixedRunsError(f"{head}{fixes}; or report them anyway with report.allow_mixed=true.")
+    log.warning("MIXED RUNS (report.allow_mixed=true): %s%s.", head, fixes)
+    return {k: {v: [p.run_id for p in runs] for v, runs in g.items()} for k, g in diff.items()}
+
+
+def select_runs(
+    cfg: DictConfig, client: Any
+) -> tuple[str, dict[str, dict[int, RunPoint | None]], dict[str, dict[str, list[str]]]]:
+    """The report's experiment, its sweep points, and the differences let through.
+
+    Reads ``report.experiment_name``, ``parent_run``, ``filter_string``, ``hidden``,
+    ``experts``, ``baseline``, ``identity_keys`` and ``allow_mixed``.
+
+    Raises
+    ------
+    NoAblationRunsError
+        No training run in the experiment (or under the parents) passes the filter.
+    LookupError
+        ``report.parent_run`` names no parent run of the experiment.
+    MixedRunsError
+        See :func:`check_comparable`.
+    """
+    rcfg = cfg.report
+    experiment = report_experiment(cfg)
+    found = client.get_experiment_by_name(experiment)
+    exp_id = found.experiment_id if found is not None else None
+    parents = resolve_parents(client, exp_id, rcfg.get("parent_run")) if exp_id else None
+    filter_string = str(rcfg.get("filter_string") or "")
+    points = runs_from_mlflow(experiment, filter_string, client, parents)
+    if not points:
+        where = f" under the parent runs {parents}" if parents else ""
+        raise NoAblationRunsError(
+            f"no finished training run in MLflow experiment '{experiment}'{where} at "
+            f"{redact(str(client.tracking_uri))} (filter: {filter_string!r}). "
+            "Create the ablation runs with:\n  " + "\n  ".join(SWEEP_COMMANDS)
+        )
+    sweeps = select_sweeps(points, list(rcfg.hidden), list(rcfg.experts), as_dict(rcfg.baseline))
+    mixed = check_comparable(
+        unique_points(sweeps),
+        [str(k) for k in rcfg.get("identity_keys") or []],
+        bool(rcfg.get("allow_mixed")),
+        parents_hint(client, exp_id) if exp_id else "none",
+    )
+    return experiment, sweeps, mixed

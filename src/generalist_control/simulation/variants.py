@@ -1,0 +1,148 @@
+"""Sampling plant variants that are fit for LQI, with the reason for every one refused.
+
+A candidate (:func:`generalist_control.plants.variants.make_variant`) is kept only if
+
+1. it has an equilibrium at the nominal operating state (nonlinear plants);
+2. :func:`~generalist_control.simulation.lqi.design_lqi` accepts it with the plant's own
+   ``Q`` and ``R`` (no zero at s = 0, stabilisable, a stable loop sampled at ``dt``);
+3. its LQI expert does not diverge on steps of the given amplitudes from rest (the
+   nonlinear plant, not only its linearisation).
+
+Otherwise it is recorded as rejected with that reason and another is drawn, up to
+``max_tries`` draws per variant wanted; a plant that cannot get enough is an error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from generalist_control.plants.plant import Plant, PlantConfigError
+from generalist_control.plants.variants import (
+    VariantError,
+    draw_factors,
+    make_variant,
+    nominal_parameters,
+    parameter_ranges,
+)
+from generalist_control.simulation.lqi import LQIController, design_lqi
+from generalist_control.simulation.simulate import simulate
+
+__all__ = ["Variant", "VariantDraw", "check_variant", "sample_variants"]
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A kept variant: its index (1, 2, ...; 0 is the nominal plant), plant and factors."""
+
+    index: int
+    plant: Plant
+    factors: dict[str, float]
+
+    def record(self) -> dict[str, object]:
+        """Index, factors vs nominal, the parameter values (and u_op if nonlinear)."""
+        out: dict[str, object] = {
+            "index": self.index,
+            "factors": self.factors,
+            "parameters": nominal_parameters(self.plant),
+        }
+        if not self.plant.is_linear:
+            out["u_op"] = self.plant.u_op
+        return out
+
+
+@dataclass(frozen=True)
+class VariantDraw:
+    """One plant's kept variants and every rejected candidate with its reason."""
+
+    nominal: Plant
+    kept: list[Variant]
+    rejected: list[dict[str, object]] = field(default_factory=list)
+
+    def record(self) -> dict[str, object]:
+        """The manifest's entry for the plant."""
+        return {
+            "nominal": nominal_parameters(self.nominal),
+            "kept": [v.record() for v in self.kept],
+            "rejected": self.rejected,
+        }
+
+
+def check_variant(variant: Plant, amplitudes: Sequence[float], steps: int) -> None:
+    """Refuse a variant unfit for LQI (see the module docstring) with the reason.
+
+    Raises
+    ------
+    VariantError
+    """
+    try:
+        gains = design_lqi(variant)
+    except PlantConfigError as exc:
+        raise VariantError(f"LQI design refused it: {exc}") from exc
+    amps = np.asarray(amplitudes, dtype=float) * variant.amplitude_scale
+    if amps.size:
+        tr = simulate(variant, LQIController(variant, gains), np.repeat(amps[:, None], steps, 1))
+        if tr.diverged.any():
+            bad = amps[tr.diverged].tolist()
+            raise VariantError(f"its LQI loop diverges on steps of {bad} from rest")
+
+
+def sample_variants(
+    plant: Plant,
+    count: int,
+    seed: int,
+    default_range: float,
+    amplitudes: Sequence[float] = (1.0,),
+    steps: int = 200,
+    max_tries: int = 10,
+) -> VariantDraw:
+    """``count`` variants of ``plant`` fit for LQI, drawn from ``seed`` (and the plant's tag).
+
+    Parameters
+    ----------
+    plant : Plant
+        The nominal plant (its ``variants`` block sets the ranges, :func:`parameter_ranges`).
+    count, seed : int
+    default_range : float
+        The range of parameters the plant file does not set.
+    amplitudes, steps
+        The LQI expert of each candidate must not diverge on these steps (times the plant's
+        amplitude scale) over ``steps`` samples.
+    max_tries : int
+        Draws allowed per variant wanted.
+
+    Raises
+    ------
+    VariantError
+        If fewer than ``count`` fit within ``max_tries * count`` draws, with the reasons.
+    """
+    ranges = parameter_ranges(plant, default_range)
+    if not ranges:
+        raise VariantError(
+            f"plant '{plant.name}' has no perturbable parameter (all fixed by its ranges); "
+            "give it a 'variants.range' > 0 in conf/plants/" + plant.name + ".yaml"
+        )
+    rng = np.random.default_rng([int(seed), plant.tag])
+    kept: list[Variant] = []
+    rejected: list[dict[str, object]] = []
+    for _ in range(max(1, int(max_tries)) * count):
+        if len(kept) == count:
+            break
+        factors = draw_factors(ranges, rng)
+        try:
+            candidate = make_variant(plant, factors)
+            check_variant(candidate, amplitudes, steps)
+        except VariantError as exc:
+            rejected.append({"factors": factors, "reason": str(exc)})
+            continue
+        kept.append(Variant(len(kept) + 1, candidate, factors))
+    if len(kept) < count:
+        reasons = sorted({str(r["reason"]) for r in rejected})
+        raise VariantError(
+            f"plant '{plant.name}': only {len(kept)} of {count} variants are fit for LQI after "
+            f"{len(kept) + len(rejected)} draws; reasons: {'; '.join(reasons[:3])}. Narrow its "
+            f"range ('variants' in conf/plants/{plant.name}.yaml) or ask for fewer"
+        )
+    return VariantDraw(plant, kept, rejected)

@@ -1,0 +1,166 @@
+"""The fixed part of a study's config: recorded when the study is created, checked on resume.
+
+A study compares its trials by one score, which only means something when everything that
+shapes a trial apart from the searched keys stays the same: a study created with
+``trainer.max_epochs=1`` and resumed with ``trainer.max_epochs=60`` would rank 1-epoch
+trials against 60-epoch ones. :func:`fixed_config` is that part (the flattened, resolved
+config less the searched keys and the keys ``hparams_search.identity_keys`` matches: run
+names, paths, tracking, progress display, ...); :func:`check_fixed_config` records it as the
+study's user attribute ``fixed_config`` and refuses a resume under another one unless
+``hparams_search.allow_config_change=true``.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import logging
+from collections.abc import Iterable, Mapping, Sequence
+from datetime import datetime, timezone
+from typing import Any
+
+import optuna
+from omegaconf import DictConfig
+
+from generalist_control.common.configs import as_dict
+from generalist_control.tracking import mlflow_utils
+
+__all__ = [
+    "CHANGES_ATTR",
+    "FIXED_ATTR",
+    "StudyConfigChangedError",
+    "check_fixed_config",
+    "config_diff",
+    "fixed_config",
+]
+
+log = logging.getLogger(__name__)
+
+#: Study user attribute: ``{dotted key: value}`` of the fixed config.
+FIXED_ATTR = "fixed_config"
+#: Study user attribute: the accepted changes (``allow_config_change``), oldest first.
+CHANGES_ATTR = "fixed_config_changes"
+_ABSENT = "(absent or searched)"
+
+
+class StudyConfigChangedError(ValueError):
+    """A study is resumed under a fixed config other than the one it was created with."""
+
+
+def fixed_config(cfg: DictConfig, searched: Iterable[str], identity: Sequence[str]) -> dict:
+    """What shapes a trial apart from the searched keys, as ``{dotted key: text}``.
+
+    Parameters
+    ----------
+    cfg : DictConfig
+        The composed config of ``tune.py``.
+    searched : iterable of str
+        The searched keys (``model.hidden``, ...): left out.
+    identity : sequence of str
+        Glob patterns (:mod:`fnmatch`) of keys that name or place a run or do not shape it
+        (``logger.*``, ``paths.*``, ...): left out.
+
+    Returns
+    -------
+    dict
+        Of the search section only ``hparams_search.metric`` (the score) is kept: the
+        sampler, pruner, trial counts and storage may change between runs of a study.
+    """
+    tree = as_dict(cfg)
+    search = tree.pop("hparams_search", None) or {}
+    flat = mlflow_utils.flatten_params(tree, exclude=("hydra",))
+    flat["hparams_search.metric"] = str(search.get("metric"))
+    skip = set(searched)
+    return {
+        key: value
+        for key, value in sorted(flat.items())
+        if key not in skip and not any(fnmatch.fnmatchcase(key, p) for p in identity)
+    }
+
+
+def config_diff(old: Mapping[str, Any], new: Mapping[str, Any]) -> dict[str, tuple[str, str]]:
+    """``{key: (old, new)}`` of the keys whose value differs (absent on one side counts).
+
+    Examples
+    --------
+    >>> config_diff({"a": "1", "b": "2"}, {"a": "1", "b": "3", "c": "4"})
+    {'b': ('2', '3'), 'c': ('(absent or searched)', '4')}
+    """
+    keys = sorted(set(old) | set(new))
+    return {
+        k: (str(old.get(k, _ABSENT)), str(new.get(k, _ABSENT)))
+        for k in keys
+        if old.get(k, _ABSENT) != new.get(k, _ABSENT)
+    }
+
+
+def check_fixed_config(
+    study: optuna.Study, fixed: Mapping[str, str], allow_change: bool = False
+) -> dict[str, tuple[str, str]]:
+    """Record ``fixed`` on a new study; on a resumed one, compare it with the recorded one.
+
+    Parameters
+    ----------
+    study : optuna.Study
+        Just created or loaded.
+    fixed : mapping
+        From :func:`fixed_config`.
+    allow_change : bool
+        Continue under a changed fixed config (``hparams_search.allow_config_change``):
+        warn, append the change to the user attribute ``fixed_config_changes`` and record
+        the new fixed config.
+
+    Returns
+    -------
+    dict
+        The differences ``{key: (old, new)}`` accepted (empty when none).
+
+    Raises
+    ------
+    StudyConfigChangedError
+        The fixed config differs and ``allow_change`` is false; nothing was written.
+    """
+    old = study.user_attrs.get(FIXED_ATTR)
+    n_trials = len(study.get_trials(deepcopy=False))
+    if old is None:
+        if n_trials:
+            log.warning(
+                "study %r has %d trials but no recorded fixed config (created before it was "
+                "recorded); recording the current one",
+                study.study_name,
+                n_trials,
+            )
+        study.set_user_attr(FIXED_ATTR, dict(fixed))
+        return {}
+    diff = config_diff(old, fixed)
+    if not diff:
+        return {}
+    lines = "\n".join(f"  {key}: {a} -> {b}" for key, (a, b) in diff.items())
+    head = (
+        f"study {study.study_name!r} ({n_trials} trials) was created with another fixed "
+        f"config (what shapes a trial apart from the searched keys); its old and new trials "
+        f"would not be comparable. Changed (old -> new):\n{lines}\n"
+    )
+    if not allow_change:
+        raise StudyConfigChangedError(
+            head + "Start a new study with hparams_search.study_name=<new name>, or continue "
+            "this one anyway with hparams_search.allow_config_change=true."
+        )
+    log.warning("%sContinuing (hparams_search.allow_config_change=true).", head)
+    _record_change(study, fixed, diff, n_trials)
+    return diff
+
+
+def _record_change(
+    study: optuna.Study, fixed: Mapping[str, str], diff: Mapping[str, Any], n_trials: int
+) -> None:
+    """Append an accepted change to ``fixed_config_changes``; record the new fixed config."""
+    changes = list(study.user_attrs.get(CHANGES_ATTR) or [])
+    changes.append(
+        {
+            "at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "n_trials_before": n_trials,
+            "changed": {k: list(v) for k, v in diff.items()},
+        }
+    )
+    study.set_user_attr(CHANGES_ATTR, changes)
+    study.set_user_attr(FIXED_ATTR, dict(fixed))

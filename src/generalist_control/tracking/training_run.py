@@ -1,0 +1,213 @@
+"""The MLflow run of a training: Lightning's ``MLFlowLogger``, and what it cannot do.
+
+Lightning's :class:`~lightning.pytorch.loggers.MLFlowLogger` is the trainer's logger: it
+creates the run (or, given a run id, continues one) with MLflow's source tags and sends the
+metrics. Our own code remains only where the logger cannot do the job:
+
+* the experiment is looked up or created beforehand, under
+  :func:`~.mlflow_utils.store_lock`: the logger creates a missing experiment unlocked, and
+  trainings started together on a fresh SQLite store would race on it. It is the parent
+  run's experiment for a job of a sweep or a trial of a study, else the ``train``
+  experiment of :func:`~.experiments.experiment_name`;
+* runs of this host left ``RUNNING`` by a dead process are ended first
+  (:func:`~.mlflow_utils.end_stale_runs`), and the run is tagged with its process;
+* the run is nested under the parent run named by the environment
+  (:func:`~.mlflow_utils.parent_run_tags`);
+* :class:`RunRecorder`: the logger sends what is logged with ``logger=True``, with the
+  global step as the step; the project's metrics are logged with ``logger=False`` (the
+  progress bar and callbacks use them) and belong to epochs, so the recorder sends each
+  epoch's ``train/*``, ``val/*``, ``dagger/*``, the learning rate and the epoch's time once,
+  with the epoch as the step. The logger keeps nothing in a checkpoint, so the recorder
+  keeps the run id there: a resume continues the same run (:func:`run_id_from_checkpoint`).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, cast
+
+import lightning as L
+import mlflow
+import torch
+from lightning.pytorch.loggers import MLFlowLogger
+from mlflow.exceptions import MlflowException
+
+from generalist_control.tracking import mlflow_utils
+
+__all__ = [
+    "RunRecorder",
+    "run_id_from_checkpoint",
+    "training_experiment",
+    "training_logger",
+    "training_params",
+]
+
+log = logging.getLogger(__name__)
+
+#: Metric prefixes the recorder sends to MLflow after every epoch.
+EPOCH_METRICS = ("train/", "val/", "dagger/")
+
+
+def _select(cfg: Mapping[str, Any], key: str) -> tuple[bool, Any]:
+    """``(found, value)`` of the dotted ``key`` in a nested mapping."""
+    node: Any = cfg
+    for part in key.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return False, None
+        node = node[part]
+    return True, node
+
+
+def training_params(cfg: Mapping[str, Any], keys: Sequence[str]) -> dict[str, str]:
+    """The params of a training run: the config ``keys`` (each with its subtree), flattened.
+
+    A group switched off (``enabled: false``, e.g. ``dagger``) is logged as its switch
+    alone; Hydra's ``_partial_`` markers are left out; values are redacted as in
+    :func:`~.mlflow_utils.flatten_params`. Keys the config does not hold are skipped.
+
+    Examples
+    --------
+    >>> cfg = {"model": {"hidden": 64}, "dagger": {"enabled": False, "rounds": 5}, "x": 1}
+    >>> training_params(cfg, ["model", "dagger", "nowhere"])
+    {'model.hidden': '64', 'dagger.enabled': 'False'}
+    """
+    out: dict[str, str] = {}
+    for key in keys:
+        found, node = _select(cfg, key)
+        if not found:
+            continue
+        if isinstance(node, Mapping) and node.get("enabled") is False:
+            node = {"enabled": False}
+        flat = mlflow_utils.flatten_params({"_": node}, exclude=())
+        for name, value in flat.items():
+            if not name.endswith("._partial_"):
+                out[key + name[1:]] = value
+    return out
+
+
+def training_experiment(logger: Mapping[str, Any]) -> str:
+    """The experiment id of a new training run: its parent's, else the ``train`` kind's.
+
+    MLflow is pointed at ``logger``'s store first. A parent run (``GC_PARENT_RUN_ID``) that
+    the store does not hold is reported and ignored.
+    """
+    mlflow_utils.set_tracking(logger)
+    parent = os.environ.get(mlflow_utils.PARENT_RUN_ENV)
+    if parent:
+        try:
+            return mlflow.MlflowClient().get_run(parent).info.experiment_id
+        except MlflowException:
+            log.warning("parent run %s is not in this MLflow store; not nesting", parent)
+    return mlflow_utils.experiment_id(logger, kind="train")
+
+
+def _existing_run(run_id: str | None) -> str | None:
+    """``run_id`` if the current store holds it (a checkpoint may come from another store)."""
+    if not run_id:
+        return None
+    try:
+        return mlflow.MlflowClient().get_run(run_id).info.run_id
+    except MlflowException:
+        log.warning("MLflow run %s of the checkpoint is not in this store: a new run", run_id)
+        return None
+
+
+def training_logger(logger: Mapping[str, Any], resume_run_id: str | None = None) -> MLFlowLogger:
+    """Lightning's MLflow logger on the training's run, which exists when this returns.
+
+    Parameters
+    ----------
+    logger : mapping
+        The ``logger`` config: ``tracking_uri``, ``experiment_name`` or
+        ``experiment_prefix``, ``artifact_location``, ``run_name``.
+    resume_run_id : str, optional
+        The run to continue (from :func:`run_id_from_checkpoint`), if this store holds it.
+
+    Returns
+    -------
+    MLFlowLogger
+        With ``log_model=False``: the project logs its own policy and checkpoint.
+    """
+    exp_id = training_experiment(logger)
+    client = mlflow.MlflowClient()
+    mlflow_utils.end_stale_runs(exp_id)
+    run_id = _existing_run(resume_run_id)
+    tags = None if run_id else {**mlflow_utils.parent_run_tags(), **mlflow_utils.process_tags()}
+    run_name = logger.get("run_name")
+    mlf = MLFlowLogger(
+        experiment_name=client.get_experiment(exp_id).name,
+        run_name=None if run_id or not run_name else str(run_name),
+        tracking_uri=mlflow.get_tracking_uri(),
+        tags=tags,
+        log_model=False,
+        run_id=run_id,
+    )
+    if mlf.run_id is None:  # creates the run now
+        raise RuntimeError("MLFlowLogger made no run")
+    if run_id:
+        client.set_tag(run_id, "resumed", "true")
+        for key, value in mlflow_utils.process_tags().items():
+            client.set_tag(run_id, key, value)
+    return mlf
+
+
+class RunRecorder(L.Callback):
+    """Send each epoch's metrics to the trainer's logger, with the epoch as the step.
+
+    Also logs ``lr`` and ``time/epoch_s``, renews the run's heartbeat tag ``gc.heartbeat``
+    (UTC time), and keeps the run id in the checkpoint.
+
+    Parameters
+    ----------
+    run_id : str
+        The training's MLflow run.
+    """
+
+    def __init__(self, run_id: str) -> None:
+        self.run_id = run_id
+        self._t0 = time.perf_counter()
+        self._lr = float("nan")
+
+    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """Start the epoch's clock and note the learning rate it trains with."""
+        self._t0 = time.perf_counter()
+        self._lr = float(trainer.optimizers[0].param_groups[0]["lr"])
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """After the epoch's validation: its metrics, at step ``current_epoch``."""
+        if trainer.sanity_checking or trainer.logger is None:
+            return
+        metrics = {
+            k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith(EPOCH_METRICS)
+        }
+        metrics["lr"] = self._lr
+        metrics["time/epoch_s"] = time.perf_counter() - self._t0
+        trainer.logger.log_metrics(metrics, step=trainer.current_epoch)
+        client = cast(MLFlowLogger, trainer.logger).experiment
+        client.set_tag(self.run_id, mlflow_utils.HEARTBEAT_TAG, mlflow_utils.now())
+
+    def state_dict(self) -> dict[str, Any]:
+        """Checkpoint state: the run id."""
+        return {"run_id": self.run_id}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Keep the current run id (the resumed run is chosen before fitting)."""
+
+
+#: Names under which a checkpoint keeps the run id (``MLflowEpochLogger``: before Lightning's
+#: logger was used).
+_STATE_KEYS = (RunRecorder.__qualname__, "MLflowEpochLogger")
+
+
+def run_id_from_checkpoint(ckpt_path: str | Path) -> str | None:
+    """The MLflow run id that :class:`RunRecorder` kept in a Lightning checkpoint."""
+    blob = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    states = blob.get("callbacks", {})
+    for key in _STATE_KEYS:
+        if states.get(key, {}).get("run_id"):
+            return str(states[key]["run_id"])
+    return None

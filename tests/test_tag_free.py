@@ -1,0 +1,220 @@
+"""Issue 13, part 1: a policy without its plant's tag (tag-free switch, tag dropout)."""
+
+from __future__ import annotations
+
+import json
+
+import pandas as pd
+import pytest
+import torch
+from omegaconf import OmegaConf, open_dict
+
+from generalist_control.evaluate import run as evaluate_run
+from generalist_control.model.network import GeneralistNetwork, network_config
+from generalist_control.model.policy import Policy, load_policy
+from generalist_control.training.fit import train
+from generalist_control.training.lit_module import ImitationModule
+from generalist_control.training.setup import model_config
+from helpers import compose_cfg, tiny_train_overrides
+
+OPT = {"_target_": "torch.optim.AdamW", "_partial_": True, "lr": 1e-2}
+
+
+def _window(batch: int = 6, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    state = torch.randn(batch, 8, 5, generator=g)
+    mask = torch.ones(batch, 8, 5)
+    ref = torch.randn(batch, 8, generator=g)
+    return state, mask, ref
+
+
+def test_tag_free_network_output_does_not_depend_on_the_tag():
+    torch.manual_seed(0)
+    state, mask, ref = _window()
+    tags_a, tags_b = torch.arange(6), torch.arange(6).flip(0) + 10
+    free = GeneralistNetwork(integral=1, linear_skip=1, tag_free=1, history_context=1)
+    u_a, _ = free(state, mask, ref, tags_a)
+    u_b, _ = free(state, mask, ref, tags_b)
+    torch.testing.assert_close(u_a, u_b, rtol=0, atol=0)
+    assert free.tag_embedding.num_embeddings == 1
+    # the same architecture with its tag: the tag changes the output
+    tagged = GeneralistNetwork(integral=1, linear_skip=1)
+    assert not torch.allclose(
+        tagged(state, mask, ref, tags_a)[0], tagged(state, mask, ref, tags_b)[0]
+    )
+
+
+def test_history_context_makes_the_skip_gains_follow_the_window():
+    torch.manual_seed(0)
+    net = GeneralistNetwork(integral=1, linear_skip=1, tag_free=1, history_context=1)
+    assert net.context is not None and net.skip is not None
+    torch.nn.init.normal_(net.skip.weight)  # zero at initialisation: give it gains
+    gains = []
+    net.skip.register_forward_hook(lambda m, i, o: gains.append(o.detach()))
+    for seed in (0, 1):
+        net(*_window(seed=seed), torch.zeros(6, dtype=torch.long))
+    assert not torch.allclose(gains[0], gains[1])
+    # without the context the tag-free skip gains are one row shared by every window
+    plain = GeneralistNetwork(integral=1, linear_skip=1, tag_free=1)
+    torch.nn.init.normal_(plain.skip.weight)
+    gains.clear()
+    plain.skip.register_forward_hook(lambda m, i, o: gains.append(o.detach()))
+    plain(*_window(seed=0), torch.zeros(6, dtype=torch.long))
+    assert torch.equal(gains[0], gains[0][:1].expand_as(gains[0]))
+
+
+def test_withholding_maps_to_the_unknown_row_and_is_refused_without_one():
+    policy = Policy(network_config(unknown_tag=1))
+    tag = torch.tensor([0, 3, 24])
+    assert torch.equal(policy.network_tags(tag), tag)
+    assert torch.equal(
+        policy.network_tags(tag, torch.tensor([True, False, True])), torch.tensor([25, 3, 25])
+    )
+    policy.withhold_tag = True
+    assert torch.equal(policy.network_tags(tag), torch.full((3,), 25))
+    assert policy.net.tag_embedding.num_embeddings == 26
+    plain = Policy(network_config())
+    plain.withhold_tag = True
+    with pytest.raises(ValueError, match="model.tag_dropout > 0"):
+        plain.network_tags(tag)
+
+
+def test_tag_dropout_withholds_the_share_it_is_set_to_in_training_only():
+    lit = ImitationModule(model=network_config(unknown_tag=1), optimizer=OPT, tag_dropout=0.3)
+    seen = []
+    lit.policy.net.tag_embedding.register_forward_hook(lambda m, i, o: seen.append(i[0].clone()))
+    n = 4000
+    batch = {
+        "state": torch.randn(n, 8, 4),
+        "mask": torch.ones(n, 8, 4),
+        "ref": torch.randn(n, 8),
+        "tag": torch.randint(0, 25, (n,)),
+        "target": torch.randn(n, 3),
+    }
+    lit.train()
+    lit._errors(batch)
+    share = float((seen[0] == 25).float().mean())
+    assert 0.27 < share < 0.33, share
+    lit.eval()
+    seen.clear()
+    lit._errors(batch)
+    assert not bool((seen[0] == 25).any())  # validation keeps every tag
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["model.tag_free=true", "model.tag_dropout=0.5"], "tag_free never gives"),
+        (["model.tag_free=true", "model.linear_head=true"], "withholds the tag"),
+        (["model.tag_dropout=1.0"], r"model.tag_dropout must lie in \[0, 1\)"),
+    ],
+)
+def test_contradictory_tag_settings_are_refused(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        model_config(compose_cfg(*overrides))
+
+
+def test_experiment_tag_free_withholds_the_tag_everywhere():
+    cfg = compose_cfg("experiment=tag_free")
+    config = model_config(cfg)
+    assert config["tag_free"] == 1 and config["history_context"] == 1
+    assert config["unknown_tag"] == 0 and cfg.evaluation.withhold_tag
+    dropout = model_config(compose_cfg("model.tag_dropout=0.5"))
+    assert dropout["unknown_tag"] == 1 and dropout["tag_free"] == 0
+    assert model_config(compose_cfg())["unknown_tag"] == 0
+
+
+@pytest.mark.slow
+def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
+    tiny_data_dir, tmp_path, mlflow_uri
+):
+    out = tmp_path / "tf"
+    switch = ("experiment=tag_free", "model.tag_free=false", "model.tag_dropout=0.5")
+    cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, out, mlflow_uri, *switch))
+    _, objects = train(cfg)
+    policy, _ = load_policy(objects["policy_path"])
+    assert policy.config["unknown_tag"] == 1
+    frames = {}
+    for withhold in (True, False):
+        ecfg = compose_cfg(
+            *tiny_train_overrides(tiny_data_dir, out, mlflow_uri, *switch),
+            f"policy={objects['policy_path']}",
+            f"paths.reports_dir={tmp_path / f'reports_{withhold}'}",
+            f"evaluation.withhold_tag={str(withhold).lower()}",
+            f"evaluation.tag_free_report={tmp_path / 'bar' if withhold else 'null'}",
+            "evaluation.plots=false",
+            "systems.include=[cstr,hydraulic_actuator]",
+        )
+        with open_dict(ecfg):
+            ecfg.evaluation.scenarios = OmegaConf.create(
+                {"step": {"kind": "step", "amplitude": 1.0, "duration": 5.0}}
+            )
+            ecfg.evaluation.crazyflie = None
+        evaluate_run(ecfg)
+        frames[withhold] = pd.read_csv(tmp_path / f"reports_{withhold}" / "metrics.csv")
+    gc = {
+        w: f[(f.controller == "GC") & (f.metric == "ISE")].value.to_numpy()
+        for w, f in frames.items()
+    }
+    lqi = {
+        w: f[(f.controller == "LQI") & (f.metric == "ISE")].value.to_numpy()
+        for w, f in frames.items()
+    }
+    assert (lqi[True] == lqi[False]).all()  # the experts do not depend on the policy's tag
+    assert (gc[True] != gc[False]).any()  # the policy does: the tag was really withheld
+    bar = json.loads((tmp_path / "bar" / "bar.json").read_text())
+    f = frames[True]
+    ise = f[(f.scenario == "step") & (f.metric == "ISE")].set_index(["controller", "system"]).value
+    assert bar["step_ise_ratio"] == pytest.approx((ise["GC"] / ise["LQI"]).to_dict())
+    separation = pd.read_csv(tmp_path / "bar" / "separation.csv")
+    assert set(separation.system) == {"cstr", "hydraulic_actuator"}
+
+
+def test_withholding_from_a_tagged_policy_is_refused_with_the_fix(tmp_path):
+    from generalist_control.model.policy import save_policy
+    from helpers import policy_meta
+
+    path = save_policy(tmp_path / "p.ckpt", Policy(network_config()), policy_meta(["cstr"]))
+    cfg = compose_cfg(
+        f"policy={path}", "evaluation.withhold_tag=true", f"paths.reports_dir={tmp_path / 'r'}"
+    )
+    with pytest.raises(ValueError, match="experiment=tag_free"):
+        evaluate_run(cfg)
+
+
+def _long(rows):
+    return pd.DataFrame(
+        rows, columns=["system", "scenario", "controller", "run", "metric", "value"]
+    )
+
+
+def test_tag_free_bar_counts_ratios_and_divergence_by_hand():
+    from generalist_control.evaluation.tag_free import tag_free_bar
+
+    rows = []
+    for system, gc, lqi in (("a", 1.0, 1.0), ("b", 2.6, 2.0), ("c", 1.2, 1.0)):
+        rows += [(system, "step", "GC", 0, "ISE", gc), (system, "step", "LQI", 0, "ISE", lqi)]
+        rows += [(system, "step", "GC", 0, "diverged", 0.0)]
+    rows += [("c", "sine", "GC", 0, "diverged", 1.0), ("a", "sine", "LQI", 0, "diverged", 1.0)]
+    bar = tag_free_bar(_long(rows), ise_ratio=1.25, min_plants=2)
+    assert bar["step_ise_ratio"] == pytest.approx({"a": 1.0, "b": 1.3, "c": 1.2})
+    assert bar["missing"] == ["b"] and bar["passed"] == 2 and bar["step_ise_ratio_met"]
+    assert bar["diverged"] == ["c/sine"]  # LQI's divergence is not GC's
+    assert not bar["no_divergence"] and not bar["met"]
+    assert not tag_free_bar(_long(rows), min_plants=3)["step_ise_ratio_met"]
+
+
+def test_separation_finds_a_twin_and_parts_plants_of_another_order_at_once():
+    import dataclasses
+
+    from generalist_control.evaluation.separation import separation_table
+    from generalist_control.plants.catalog import load_plant
+
+    cstr, hyd = load_plant("cstr"), load_plant("hydraulic_actuator")
+    twin = dataclasses.replace(cstr, name="cstr_twin")
+    policy = Policy(network_config(integral=1, window_scale=1))
+    table = separation_table(policy, [cstr, twin, hyd], duration=1.0).set_index("system")
+    assert table.loc["cstr", "nearest"] == "cstr_twin"
+    assert table.loc["cstr", "input_gap"] == 0 and table.loc["cstr", "control_gap"] == 0
+    assert table.loc["cstr", "separation_time"] == float("inf")
+    assert table.loc["hydraulic_actuator", "separation_time"] == pytest.approx(cstr.dt)

@@ -1,0 +1,125 @@
+"""A training's MLflow run without training: params, experiment routing, metrics.json, messages.
+
+Issue 12, items 2, 3, 4 (``dvc metrics show``) and 5 (the end message). The trainings
+themselves are in tests/test_train.py (registered model, dataset input, end message).
+"""
+
+from __future__ import annotations
+
+import math
+
+import mlflow
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from generalist_control.common.secrets import redact
+from generalist_control.tracking import mlflow_utils, training_run
+from generalist_control.tracking.parents import parent_run
+from generalist_control.training.outputs import DVC_METRICS, dvc_metrics, end_message
+from helpers import compose_cfg
+
+
+def _resolved(*overrides: str) -> dict:
+    cfg = compose_cfg(*overrides)
+    return OmegaConf.to_container(cfg, resolve=True), list(cfg.logger.params)
+
+
+def test_training_params_are_what_shaped_the_training():
+    resolved, keys = _resolved("model.hidden=64", "experts=5")
+    params = training_run.training_params(resolved, keys)
+    assert len(params) + 2 < 60  # + data.content_hash and n_parameters
+    assert params["model.hidden"] == "64" and params["experts"] == "5"
+    assert params["model.optimizer.lr"] == "0.001" and params["seed"] == "42"
+    assert params["trainer.max_epochs"] == "30" and params["dagger.rounds"] == "5"
+    assert params["monitor"] == "val/closed_loop"
+    # independent reference: every param is a config key of a chosen group, none of the others
+    banned = ("evaluation.", "report.", "paths.", "logger.", "hydra.", "callbacks.model_")
+    assert not [k for k in params if k.startswith(banned) or k.endswith("._partial_")]
+    assert all(k == g or k.startswith(g + ".") for k in params for g in [_group(k, keys)])
+    # a group that is off is logged as its switch alone
+    off, _ = _resolved("dagger.enabled=false")
+    params = training_run.training_params(off, keys)
+    assert [k for k in params if k.startswith("dagger")] == ["dagger.enabled"]
+    assert params["dagger.enabled"] == "False"
+
+
+def _group(key: str, groups: list[str]) -> str:
+    (group,) = [g for g in groups if key == g or key.startswith(g + ".")]
+    return group
+
+
+def test_metrics_json_reads_well_at_dvc_precision():
+    metrics = {
+        "val/loss": 0.0035093280021101236,
+        "train/loss": 0.04353262856602669,
+        "val/closed_loop": 1.420085482095601e-06,
+        "closed_loop/mse_mean": 3.2e-12,
+        "closed_loop/mse/cstr": 4.0e-06,
+        "closed_loop/diverged": 0.0,
+        "epochs": 30,
+        "n_parameters": 56484,
+        "global_step": 35594,
+    }
+    out = dvc_metrics(metrics)
+    assert set(out) == set(DVC_METRICS)  # a few headline numbers, nothing per plant
+    assert out["closed_loop/log10_mse_mean"] == pytest.approx(-11.49485, abs=1e-5)
+    assert out["val/log10_closed_loop"] == pytest.approx(math.log10(1.420085482095601e-06))
+    assert out["val/loss"] == pytest.approx(metrics["val/loss"], rel=1e-6)
+    assert out["epochs"] == 30 and isinstance(out["epochs"], int)
+    # what `dvc metrics show` prints (5 decimals) still tells the closed-loop errors apart
+    assert round(out["closed_loop/log10_mse_mean"], 5) != 0.0
+    assert round(metrics["closed_loop/mse_mean"], 5) == 0.0  # the raw value would not
+    assert dvc_metrics({"closed_loop/mse_mean": math.inf}) == {
+        "closed_loop/log10_mse_mean": math.inf
+    }
+
+
+def test_a_training_run_goes_to_the_train_experiment_or_its_parents(tmp_path):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    logger = {"tracking_uri": uri, "experiment_prefix": "p", "run_name": "d32-M3"}
+    mlf = training_run.training_logger(logger)
+    client = mlflow.MlflowClient(uri)
+    run = client.get_run(mlf.run_id)
+    assert client.get_experiment(run.info.experiment_id).name == "p/train"
+    assert run.data.tags["mlflow.runName"] == "d32-M3" and run.data.tags["gc.pid"]
+    assert "mlflow.parentRunId" not in run.data.tags
+
+    sweep_exp = mlflow_utils.experiment_id(logger, kind="sweep")
+    parent = client.create_run(sweep_exp, run_name="sweep:x").info.run_id
+    with parent_run(parent, "sweep:x"):
+        child = client.get_run(training_run.training_logger(logger).run_id)
+    assert child.info.experiment_id == sweep_exp
+    assert child.data.tags["mlflow.parentRunId"] == parent
+    assert child.data.tags["sweep"] == "sweep:x"
+
+    # resume: the same run; an unknown run id starts a new one
+    again = training_run.training_logger(logger, resume_run_id=mlf.run_id)
+    assert again.run_id == mlf.run_id
+    assert training_run.training_logger(logger, resume_run_id="f" * 32).run_id != mlf.run_id
+    explicit = {**logger, "experiment_name": "mine"}
+    mine = client.get_run(training_run.training_logger(explicit).run_id)
+    assert client.get_experiment(mine.info.experiment_id).name == "mine"
+
+
+def test_the_run_id_is_recovered_from_a_checkpoint(tmp_path):
+    recorder = training_run.RunRecorder("abc123")
+    path = tmp_path / "last.ckpt"
+    torch.save({"callbacks": {type(recorder).__qualname__: recorder.state_dict()}}, path)
+    assert training_run.run_id_from_checkpoint(path) == "abc123"
+    torch.save({"callbacks": {"MLflowEpochLogger": {"run_id": "old"}}}, path)  # before
+    assert training_run.run_id_from_checkpoint(path) == "old"
+    torch.save({"callbacks": {}}, path)
+    assert training_run.run_id_from_checkpoint(path) is None
+
+
+def test_end_message_names_policy_run_version_and_ui(tmp_path):
+    uri = "http://gc:hunter2@mlflow.example:5000"
+    line = end_message(tmp_path / "policy.ckpt", "r1", "gc/train", uri, "7", "policy")
+    assert f"policy written to {tmp_path / 'policy.ckpt'}" in line
+    assert "MLflow run r1 in experiment 'gc/train'" in line
+    assert "registered model policy version 7" in line
+    assert "hunter2" not in line and f"open {redact(uri)}" in line
+    local = end_message(tmp_path / "p.ckpt", "r1", "gc/train", "sqlite:///mlflow.db", None, "x")
+    assert "not registered" in local
+    assert "mlflow ui --backend-store-uri sqlite:///mlflow.db" in local

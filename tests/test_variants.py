@@ -1,0 +1,291 @@
+"""Plant variants (issue 13, part 2): ranges, rejection, the data switch, the evaluation."""
+
+from __future__ import annotations
+
+import json
+
+import control
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+
+from generalist_control import evaluate as evaluate_stage
+from generalist_control import generate as generate_stage
+from generalist_control.data.demos import content_hash, load_demos, write_demos
+from generalist_control.data.generation import build_manifest, generate_demos
+from generalist_control.evaluation.variants import check_disjoint, evaluate_variants
+from generalist_control.plants.catalog import load_plant
+from generalist_control.plants.config import plant_from_config
+from generalist_control.plants.plant import PlantConfigError
+from generalist_control.plants.variants import VariantError, make_variant, parameter_ranges
+from generalist_control.simulation.lqi import LQIController
+from generalist_control.simulation.simulate import simulate
+from generalist_control.simulation.variants import (
+    Variant,
+    VariantDraw,
+    check_variant,
+    sample_variants,
+)
+from generalist_control.training.fit import train
+from helpers import compose_cfg, tiny_train_overrides
+from test_evaluate import LQIRuntime
+
+TINY = {
+    "history": 8,
+    "horizon": 3,
+    "duration": 2.0,
+    "amplitudes": {
+        "limit": 20.0,
+        "symmetric": True,
+        "segments": [{"start": 1.0, "stop": 4.0, "step": 1.0}],
+    },
+}
+
+
+def _fast_plant(a: float = 20.0):
+    """First-order plant with an unstable pole at ``a``: near the limit of the 0.05 s sample."""
+    cfg = {
+        "tag": 0, "description": "d", "source": "s", "dt": 0.05,
+        "states": [{"name": "x", "unit": "-"}], "input": {"name": "u", "unit": "-"},
+        "output": {"name": "y", "unit": "-"}, "A": [[a]], "B": [[1.0]], "C": [[1.0]],
+        "lqi": {"Q": [1.0, 1.0], "R": 1.0},
+    }  # fmt: skip
+    return plant_from_config("fast", cfg)
+
+
+def test_perturbation_is_within_range_reproducible_and_keeps_structure():
+    plant = load_plant("hydraulic_actuator")  # A[0,1] = 1 kinematic, zeros structural
+    a = sample_variants(plant, 4, seed=5, default_range=0.25, steps=40)
+    b = sample_variants(plant, 4, seed=5, default_range=0.25, steps=40)
+    c = sample_variants(plant, 4, seed=6, default_range=0.25, steps=40)
+    assert [v.factors for v in a.kept] == [v.factors for v in b.kept]
+    assert [v.factors for v in a.kept] != [v.factors for v in c.kept]
+    for v in a.kept:
+        ratio_a = np.divide(v.plant.A, plant.A, out=np.ones_like(plant.A), where=plant.A != 0)
+        ratio_b = np.divide(v.plant.B, plant.B, out=np.ones_like(plant.B), where=plant.B != 0)
+        assert np.all(np.abs(np.concatenate([ratio_a.ravel(), ratio_b.ravel()]) - 1) <= 0.25)
+        assert np.all(v.plant.A[plant.A == 0] == 0) and v.plant.A[0, 1] == 1.0
+        assert ratio_a[1, 0] == pytest.approx(v.factors["A[1,0]"], rel=1e-15)
+        assert not np.allclose(ratio_a, 1.0)
+        assert (v.plant.name, v.plant.tag) == (plant.name, plant.tag)
+    assert parameter_ranges(load_plant("coupled_tanks"))["A[1,0]"] == 0.25  # its 'include'
+
+
+def test_nonlinear_variant_re_solves_u_op_at_the_nominal_state():
+    plant = load_plant("two_tank")
+    draw = sample_variants(plant, 3, seed=1, default_range=0.25, steps=40)
+    assert set(draw.kept[0].factors) == {"A1", "A2"}  # a1, a2 and g are fixed by its file
+    v = make_variant(plant, {"A1": 1.2, "A2": 0.8, "a1": 1.1, "a2": 1.1})  # a1 = a2 still
+    # Torricelli: the inflow q = a2 sqrt(2 g h2) holds h2 = 50 cm
+    assert v.u_op == pytest.approx(1.65 * np.sqrt(2 * 981.0 * 50.0), rel=1e-9)
+    assert v.u_op != pytest.approx(plant.u_op)
+    assert v.A[1, 1] == pytest.approx(plant.A[1, 1] * 1.1 / 0.8, rel=1e-6)  # -a2/(A2 ...)
+    with pytest.raises(VariantError, match="no equilibrium at the nominal x_op"):
+        make_variant(plant, {"a1": 1.1})  # a1 != a2: equal levels cannot be held
+
+
+def test_unfit_variants_are_rejected_with_the_reason_and_redrawn():
+    with pytest.raises(VariantError, match="LQI design refused it.*cstr"):
+        check_variant(make_variant(load_plant("cstr"), {"B[1]": 0.0}), (1.0,), 40)
+    plant = _fast_plant()
+    draw = sample_variants(plant, 4, seed=0, default_range=0.25, steps=40)
+    assert len(draw.kept) == 4 and len(draw.rejected) >= 1
+    assert all("sampled at dt = 0.05 s is unstable" in r["reason"] for r in draw.rejected)
+    # a faster unstable pole is what breaks the sampled loop: every reject is faster
+    worst_kept = max(v.factors["A[0,0]"] for v in draw.kept)
+    assert min(r["factors"]["A[0,0]"] for r in draw.rejected) > worst_kept
+    with pytest.raises(VariantError, match="only 0 of 4 variants.*Narrow its range"):
+        sample_variants(_fast_plant(30.0), 4, seed=0, default_range=0.25, steps=40)
+
+
+def test_plant_files_variants_block_is_validated():
+    cfg = {
+        "tag": 0, "description": "d", "source": "s", "dt": 0.05,
+        "states": [{"name": "x", "unit": "-"}], "input": {"name": "u", "unit": "-"},
+        "output": {"name": "y", "unit": "-"}, "A": [[-1.0]], "B": [[1.0]], "C": [[1.0]],
+        "lqi": {"Q": [1.0, 1.0], "R": 1.0},
+    }  # fmt: skip
+    for block, msg in (
+        ({"range": 1.5}, "variants.range"),
+        ({"ranges": {"A[0,1]": 0.1}}, "names 'A\\[0,1\\]'"),
+        ({"spread": 0.1}, "unknown keys"),
+    ):
+        with pytest.raises(PlantConfigError, match=msg):
+            plant_from_config("p", {**cfg, "variants": block})
+    p = plant_from_config("p", {**cfg, "variants": {"range": 0.1, "ranges": {"B[0]": 0.0}}})
+    assert parameter_ranges(p) == {"A[0,0]": 0.1}
+
+
+def _config(data):
+    plants = {"fast": {"variants": {"range": 0.25}}, "two_tank": {"x": 1}}
+    return {"systems": {"plants": plants}, "data": data}
+
+
+def test_default_off_leaves_the_tiny_fixtures_bytes_and_hash_unchanged(tiny_data_dir):
+    """The same data stage with a disabled ``data.variants`` block: the fixture's hash."""
+    from conftest import TINY_DATA, TINY_PLANTS
+
+    plants = [load_plant(n) for n in TINY_PLANTS]
+    data = {**TINY_DATA, "variants": {"enabled": False, "count": 8, "seed": 1013}}
+    demos = generate_demos(plants, data, progress=False)
+    config = {"systems": {"name": "tiny", "include": list(TINY_PLANTS)}, "data": data}
+    fixture, manifest = load_demos(tiny_data_dir)
+    assert build_manifest(plants, demos, data, config)["content_hash"] == manifest["content_hash"]
+    assert demos.variant is None and fixture.variant is None
+    assert "variant" not in pq.read_schema(tiny_data_dir / "trajectories.parquet").names
+
+
+def test_manifest_records_variants_and_the_rows_are_the_variants_runs(tmp_path):
+    plants = [_fast_plant(), load_plant("two_tank")]
+    base = generate_demos(plants, TINY, progress=False)
+    off = {**TINY, "variants": {"enabled": False, "count": 3, "seed": 7}}
+    demos_off = generate_demos(plants, off, progress=False)
+    plain = {"fast": {}, "two_tank": {"x": 1}}
+    m_base = build_manifest(plants, base, TINY, {"systems": {"plants": plain}, "data": TINY})
+    m_off = build_manifest(plants, demos_off, off, _config(off))
+    assert demos_off.variant is None
+    assert m_off["content_hash"] == m_base["content_hash"] == content_hash(base, m_base["config"])
+    assert "variants" not in m_off
+    on = {**TINY, "variants": {"enabled": True, "count": 3, "seed": 7, "range": 0.25}}
+    demos = generate_demos(plants, on, progress=False)
+    m_on = build_manifest(plants, demos, on, _config(on))
+    assert m_on["content_hash"] != m_base["content_hash"]
+    assert demos.r.shape == base.r.shape  # same size as the nominal set
+    np.testing.assert_array_equal(demos.r, base.r)  # same references, other plants
+    np.testing.assert_array_equal(demos.variant[:8], [0, 1, 2, 3, 0, 1, 2, 3])  # round robin
+    rec = m_on["variants"]["fast"]
+    assert len(rec["kept"]) == 3 and rec["rejected"] and "unstable" in rec["rejected"][0]["reason"]
+    for v in rec["kept"]:
+        assert v["parameters"]["A[0,0]"] == pytest.approx(20.0 * v["factors"]["A[0,0]"])
+    # a row on variant 2 is that variant's LQI response (an independent single run)
+    v2 = make_variant(plants[0], rec["kept"][1]["factors"])
+    row = int(np.flatnonzero((demos.variant == 2) & (demos.plant == "fast"))[0])
+    tr = simulate(v2, LQIController(v2), demos.r[row : row + 1])
+    np.testing.assert_allclose(demos.y[row], tr.y[0, :-1], rtol=0, atol=1e-12)
+    out = write_demos(tmp_path / "d", demos, m_on)
+    assert "variant" in pq.read_schema(out / "trajectories.parquet").names
+    loaded, _ = load_demos(out)
+    np.testing.assert_array_equal(loaded.variant, demos.variant)
+
+
+def _discrete_lqi_ise(A, B, C, K, dt, steps):
+    """ISE of a unit step: ZOH plant + forward-Euler integrator, by python-control."""
+    sysd = control.c2d(control.ss(A, B, C, 0), dt, method="zoh")
+    Ad, Bd = np.asarray(sysd.A), np.asarray(sysd.B)
+    Kx, Ki = K[:, :-1], K[:, -1:]
+    Acl = np.block([[Ad - Bd @ Kx, -Bd @ Ki], [-dt * C, np.ones((1, 1))]])
+    Bcl = np.vstack([np.zeros((A.shape[0], 1)), [[dt]]])
+    cl = control.ss(Acl, Bcl, np.hstack([C, [[0.0]]]), 0, dt)
+    t = np.arange(steps) * dt
+    y = control.forced_response(cl, t, np.ones(steps)).outputs
+    return float(np.trapezoid((1.0 - y) ** 2, t))
+
+
+def test_lqi_nominal_and_oracle_match_python_control_on_a_hand_case():
+    plant = load_plant("cstr")
+    factors = {"A[1,0]": 0.8, "B[1]": 1.3}
+    draw = VariantDraw(plant, [Variant(1, make_variant(plant, factors), factors)])
+    scen = {"step": {"kind": "step", "amplitude": 1.0, "duration": 6.0}}
+    df = evaluate_variants(LQIRuntime(["cstr"]), {"cstr": draw}, scen)
+    assert list(df.columns) == [
+        "system", "variant", "scenario", "controller", "run", "metric", "value"
+    ]  # fmt: skip
+    ise = df[df.metric == "ISE"].set_index("controller")["value"]
+    A_nom = np.array([[0.0, 1.0], [-5.47, -4.719]])
+    A_var, B_var = np.array([[0.0, 1.0], [-5.47 * 0.8, -4.719]]), np.array([[0.0], [1.3]])
+    C = np.array([[3.199, -1.135]])  # conf/plants/cstr.yaml (a zero at +2.82)
+    Q, R = plant.Q, plant.R
+
+    def gains(A, B):
+        Aa = np.block([[A, np.zeros((2, 1))], [-C, np.zeros((1, 1))]])
+        return np.asarray(control.lqr(Aa, np.vstack([B, [[0.0]]]), Q, R)[0])
+
+    k_nom, k_var = gains(A_nom, np.array([[0.0], [1.0]])), gains(A_var, B_var)
+    assert ise["LQI"] == pytest.approx(_discrete_lqi_ise(A_var, B_var, C, k_var, 0.05, 120))
+    assert ise["LQI-nominal"] == pytest.approx(
+        _discrete_lqi_ise(A_var, B_var, C, k_nom, 0.05, 120)
+    )
+    assert ise["LQI"] != pytest.approx(ise["LQI-nominal"])
+    assert ise["GC"] == ise["LQI-nominal"]  # this "policy" is the nominal law
+
+
+def test_evaluation_variants_must_differ_from_the_training_ones(tmp_path):
+    plant = load_plant("cstr")
+    data = {"variants": {"enabled": True, "count": 3, "seed": 7, "range": 0.25}}
+    same = sample_variants(plant, 3, seed=7, default_range=0.25, steps=40)
+    with pytest.raises(ValueError, match="equals a training variant"):
+        check_disjoint({"cstr": same}, [plant], data, tmp_path, seed=8)
+    with pytest.raises(ValueError, match="is data.variants.seed"):
+        check_disjoint({"cstr": same}, [plant], data, tmp_path, seed=7)
+    other = sample_variants(plant, 3, seed=8, default_range=0.25, steps=40)
+    got = check_disjoint({"cstr": other}, [plant], data, tmp_path, seed=8)
+    assert got["checked_against"].startswith("seed stream") and got["min_factor_distance"] > 0
+
+
+@pytest.mark.slow
+def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
+    tiny = [
+        "experiment=variants",
+        "systems.include=[cstr,two_tank]",
+        "data.duration=2.0",
+        "data.amplitudes.segments=[{start:1.0,stop:4.0,step:1.0}]",
+        "data.families=null",
+        "data.variants.count=2",
+        f"paths.data_dir={tmp_path / 'data'}",
+    ]
+    manifest = generate_stage.run(compose_cfg(*tiny))
+    assert set(manifest["variants"]) == {"cstr", "two_tank"}
+    over = tiny_train_overrides(
+        tmp_path / "data", tmp_path, mlflow_uri, "logger.log_model=false", "model.hidden=8",
+        "experts=2", "dagger.enabled=false", "closed_loop.systems=[cstr]",
+        "closed_loop.duration=2.0",
+    )  # fmt: skip
+    _, objects = train(compose_cfg(*tiny, *over))
+    reports = tmp_path / "reports"
+    cfg = compose_cfg(
+        *tiny, f"policy={objects['policy_path']}", f"paths.reports_dir={reports}",
+        f"logger.tracking_uri={mlflow_uri}", f"logger.experiment_name={tmp_path.name}",
+        "evaluation.scenarios.step.duration=3.0", "evaluation.variants.count=5",
+        "evaluation.backend=torch",
+    )  # fmt: skip
+    summary = evaluate_stage.run(cfg)
+    df = pd.read_csv(reports / "metrics.csv")
+    assert list(df.columns) == [
+        "system", "variant", "scenario", "controller", "run", "metric", "value"
+    ]  # fmt: skip
+    assert set(df.controller) == {"GC", "LQI", "LQI-nominal"}
+    assert sorted(df.variant.unique()) == [1, 2, 3, 4, 5]
+    assert {"ISE", "ITAE", "diverged"} <= set(df.metric)
+    saved = json.loads((reports / "summary.json").read_text())
+    assert set(saved["bars"]) == {
+        "no_divergence", "variants_per_plant", "median_ISE_ratio", "worst_ISE_ratio",
+        "beats_nominal",
+    }  # fmt: skip
+    assert saved["disjoint"]["checked_against"].startswith("manifest")
+    assert summary["pass"] == saved["pass"]
+    table = pd.read_csv(reports / "variants.csv")
+    assert set(table.columns) == {"system", "variant", "parameter", "value", "factor"}
+    assert {p.name for p in (reports / "plots").glob("*.png")} == {
+        "ise_ratio_per_plant.png", "gc_vs_nominal.png"
+    }  # fmt: skip
+    assert summary["bars"]["variants_per_plant"]["min"] == 5
+
+
+def test_dagger_rolls_out_on_the_training_variants_the_data_stage_drew():
+    from generalist_control.data.variants import variants_config
+    from generalist_control.training.setup import dagger_plants, training_plants
+
+    off = compose_cfg("systems.include=[cstr,hydraulic_actuator]")
+    meta = {"tags": {"cstr": 10, "hydraulic_actuator": 13}}
+    nominal = training_plants(off, meta)
+    assert dagger_plants(off, nominal) == nominal  # without variants: the plants as they are
+    on = compose_cfg("systems.include=[cstr,hydraulic_actuator]", "experiment=variants")
+    plants = dagger_plants(on, nominal)
+    count = variants_config(on.data)["count"]
+    assert len(plants) == 2 * (count + 1)
+    assert [p.name for p in plants[: count + 1]] == ["cstr"] * (count + 1)
+    assert {p.tag for p in plants[: count + 1]} == {nominal[0].tag}
+    # each variant is another plant (its own matrices), never the nominal one again
+    a = {tuple(np.round(p.A.ravel(), 12)) for p in plants[1 : count + 1]}
+    assert len(a) == count and tuple(np.round(nominal[0].A.ravel(), 12)) not in a
