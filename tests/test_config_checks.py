@@ -289,3 +289,21 @@ def test_training_refuses_an_include_outside_the_set_before_logging(tiny_data_di
     with pytest.raises(UnknownPlantError, match="unknown plant 'nope'"):
         train(cfg)
     assert not (tmp_path / "mlflow.db").exists()
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "config.yaml",
+        "data/demos.yaml",
+        "evaluation/default.yaml",
+        "model/generalist.yaml",
+        "report/default.yaml",
+        "systems/all.yaml",
+        "trainer/default.yaml",
+    ],
+)
+def test_files_dvc_exp_run_edits_hold_no_interpolation(name):
+    """`dvc exp run -S <file>:<key>=<value>` loads the file alone: a ${...} there fails it."""
+    code = [line.split("#", 1)[0] for line in (conf_dir() / name).read_text().splitlines()]
+    assert not [line for line in code if "${" in line], name
