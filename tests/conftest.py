@@ -11,6 +11,7 @@ import torch
 from generalist_control.data.demos import DemoSet, write_demos
 from generalist_control.data.generation import build_manifest, generate_demos
 from generalist_control.plants.catalog import load_plant
+from helpers import TINY_DATA
 
 # One thread: the tiny batches gain nothing from two, and on a shared 2-core machine a second
 # OpenMP thread that waits for a busy core can stall every step by orders of magnitude.
@@ -18,16 +19,6 @@ torch.set_num_threads(1)
 
 #: Two plants of order 2 and 3, eight step amplitudes each, 2 s (40 samples) per trajectory.
 TINY_PLANTS = ("cstr", "hydraulic_actuator")
-TINY_DATA = {
-    "history": 8,
-    "horizon": 3,
-    "duration": 2.0,
-    "amplitudes": {
-        "limit": 20.0,
-        "symmetric": True,
-        "segments": [{"start": 1.0, "stop": 4.0, "step": 1.0}],
-    },
-}
 
 
 @pytest.fixture(scope="session")

@@ -13,6 +13,18 @@ def compose_cfg(*overrides: str):
         return compose("config", overrides=list(overrides))
 
 
+#: The tiny data config: eight step amplitudes, 2 s (40 samples) per trajectory.
+TINY_DATA = {
+    "history": 8,
+    "horizon": 3,
+    "duration": 2.0,
+    "amplitudes": {
+        "limit": 20.0,
+        "symmetric": True,
+        "segments": [{"start": 1.0, "stop": 4.0, "step": 1.0}],
+    },
+}
+
 #: Closed-loop scoring on the tiny dataset's plants, with short runs.
 TINY_CLOSED_LOOP = ("closed_loop.systems=[cstr,hydraulic_actuator]", "closed_loop.duration=3.0")
 

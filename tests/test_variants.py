@@ -28,19 +28,10 @@ from generalist_control.simulation.variants import (
     sample_variants,
 )
 from generalist_control.training.fit import train
-from helpers import compose_cfg, tiny_train_overrides
+from helpers import TINY_DATA, compose_cfg, tiny_train_overrides
 from test_evaluate import LQIRuntime
 
-TINY = {
-    "history": 8,
-    "horizon": 3,
-    "duration": 2.0,
-    "amplitudes": {
-        "limit": 20.0,
-        "symmetric": True,
-        "segments": [{"start": 1.0, "stop": 4.0, "step": 1.0}],
-    },
-}
+TINY = TINY_DATA
 
 
 def _fast_plant(a: float = 20.0):
@@ -124,7 +115,7 @@ def _config(data):
 
 def test_default_off_leaves_the_tiny_fixtures_bytes_and_hash_unchanged(tiny_data_dir):
     """The same data stage with a disabled ``data.variants`` block: the fixture's hash."""
-    from conftest import TINY_DATA, TINY_PLANTS
+    from conftest import TINY_PLANTS
 
     plants = [load_plant(n) for n in TINY_PLANTS]
     data = {**TINY_DATA, "variants": {"enabled": False, "count": 8, "seed": 1013}}

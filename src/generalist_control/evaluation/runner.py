@@ -42,7 +42,7 @@ from generalist_control.simulation.simulate import (
     simulate_many,
 )
 
-__all__ = ["CONTROLLERS", "GC_ANTI_WINDUP", "STEP_KINDS", "evaluate"]
+__all__ = ["CONTROLLERS", "GC_ANTI_WINDUP", "STEP_KINDS", "evaluate", "metric_rows"]
 
 CONTROLLERS = ("GC", "LQI", "LQI-AW")
 #: Run as well where a scenario limits the actuator and the policy integrates.
@@ -63,9 +63,14 @@ def _controller(name: str, runtime: PolicyRuntime, pert: Perturbation | None) ->
     return PerPlantController(lambda p: AntiWindupLQIController(p, limits))
 
 
-def _rows(
+def metric_rows(
     system: str, scenario: str, controller: str, kind: str, tr: Trajectory
 ) -> list[tuple[str, str, str, int, str, float]]:
+    """Long-form rows ``(system, scenario, controller, run, metric, value)`` of a batch.
+
+    Step metrics for step-like ``kind`` (else tracking metrics); a diverged run has
+    ``diverged = 1`` and NaN for every other metric.
+    """
     if kind in STEP_KINDS:
         m = step_metrics(tr.t[:-1], tr.y[:, :-1], tr.u, tr.r)
     else:
@@ -98,7 +103,7 @@ def _crazyflie(
     for ctrl, c in ctrls.items():
         tr = fly(c, r, control_dt=plant.dt, seed=int(spec.get("seed", 0)))
         trajs["crazyflie_sim2real"][ctrl] = {plant.name: tr}
-        rows += _rows(plant.name, "crazyflie_sim2real", ctrl, "step", tr)
+        rows += metric_rows(plant.name, "crazyflie_sim2real", ctrl, "step", tr)
     return rows
 
 
@@ -119,7 +124,7 @@ def _scenario(
         results = simulate_many(runs, _controller(ctrl, runtime, pert))
         trajs[ctrl] = {p.name: tr for p, tr in zip(plants, results, strict=True)}
         for p, tr in zip(plants, results, strict=True):
-            rows += _rows(p.name, name, ctrl, spec["kind"], tr)
+            rows += metric_rows(p.name, name, ctrl, spec["kind"], tr)
     return rows
 
 

@@ -36,11 +36,11 @@ from generalist_control.common.jsonsafe import strict
 from generalist_control.data.variants import variants_config
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.evaluation.runner import metric_rows
 from generalist_control.evaluation.variant_summary import plot_variants, summarise_variants
 from generalist_control.plants.plant import Plant
 from generalist_control.plants.variants import DEFAULT_RANGE, draw_factors, parameter_ranges
 from generalist_control.simulation.lqi import LQIController, design_lqi
-from generalist_control.simulation.metrics import step_metrics, tracking_metrics
 from generalist_control.simulation.scenarios import perturbation, references
 from generalist_control.simulation.simulate import (
     BatchController,
@@ -62,7 +62,6 @@ __all__ = [
 
 CONTROLLERS = ("GC", "LQI", "LQI-nominal")
 COLUMNS = ["system", "variant", "scenario", "controller", "run", "metric", "value"]
-STEP_KINDS = ("step", "random_steps")
 
 #: What a variants report folder holds: the only entries its evaluation may replace.
 OWNED: dict[str, str | None] = {
@@ -150,18 +149,9 @@ def check_disjoint(
 def _rows(
     v: Variant, scenario: str, ctrl: str, kind: str, tr: Any
 ) -> list[tuple[str, int, str, str, int, str, float]]:
-    if kind in STEP_KINDS:
-        m = step_metrics(tr.t[:-1], tr.y[:, :-1], tr.u, tr.r)
-    else:
-        m = tracking_metrics(tr.t[:-1], tr.y[:, :-1], tr.r)
-    out = []
-    for i in range(tr.r.shape[0]):
-        bad = bool(tr.diverged[i])
-        out.append((v.plant.name, v.index, scenario, ctrl, i, "diverged", float(bad)))
-        for key, values in m.items():
-            value = np.nan if bad else float(values[i])
-            out.append((v.plant.name, v.index, scenario, ctrl, i, key, value))
-    return out
+    """The evaluation's long-form rows (:func:`metric_rows`) with the variant's index."""
+    rows = metric_rows(v.plant.name, scenario, ctrl, kind, tr)
+    return [(system, v.index, *rest) for system, *rest in rows]  # type: ignore[misc]
 
 
 def _controller(
