@@ -16,7 +16,7 @@ pipeline: setup
 ## The DVC experiments and what they changed, without the file-dep hash columns (one full
 ## MD5 each: docs/pipeline.md, "DVC views").
 exp-show:
-	$(VENV)/dvc exp show --only-changed --drop '^(conf|data|models|reports|src)/[^:]*$$'
+	$(VENV)/dvc exp show --only-changed --drop '^(conf|data|models|reports|src)/[^:]*$$|^(Created|epochs|n_parameters|train/loss|val/loss|closed_loop/diverged|closed_loop/log10_mse_mean|bar_checked|diverged|RMSE_ratio)$$'
 
 ## Only the data stage.
 data: setup
