@@ -264,19 +264,24 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
 
 
 def test_dagger_rolls_out_on_the_training_variants_the_data_stage_drew():
-    from generalist_control.data.variants import variants_config
-    from generalist_control.training.setup import dagger_plants, training_plants
+    from generalist_control.data.variants import training_variants, variants_config
+    from generalist_control.training.setup import dagger_plants
 
-    off = compose_cfg("systems.include=[cstr,hydraulic_actuator]")
-    meta = {"tags": {"cstr": 10, "hydraulic_actuator": 13}}
-    nominal = training_plants(off, meta)
-    assert dagger_plants(off, nominal) == nominal  # without variants: the plants as they are
-    on = compose_cfg("systems.include=[cstr,hydraulic_actuator]", "experiment=variants")
-    plants = dagger_plants(on, nominal)
-    count = variants_config(on.data)["count"]
-    assert len(plants) == 2 * (count + 1)
-    assert [p.name for p in plants[: count + 1]] == ["cstr"] * (count + 1)
-    assert {p.tag for p in plants[: count + 1]} == {nominal[0].tag}
-    # each variant is another plant (its own matrices), never the nominal one again
-    a = {tuple(np.round(p.A.ravel(), 12)) for p in plants[1 : count + 1]}
-    assert len(a) == count and tuple(np.round(nominal[0].A.ravel(), 12)) not in a
+    nominal = [_fast_plant(), load_plant("two_tank")]
+    assert dagger_plants(nominal, {}) == nominal  # without variants: the plants as they are
+    on = {**TINY, "variants": {"enabled": True, "count": 3, "seed": 7, "range": 0.25}}
+    demos = generate_demos(nominal, on, progress=False)
+    manifest = build_manifest(nominal, demos, on, _config(on))
+    plants = dagger_plants(nominal, manifest)
+    assert [p.name for p in plants] == ["fast"] * 4 + ["two_tank"] * 4
+    # the very plants the data stage drew and simulated, rebuilt from the manifest
+    steps = demos.r.shape[1]
+    grid = np.unique(np.abs(demos.amplitude))
+    drawn = training_variants(nominal, variants_config(on), np.concatenate([grid, -grid]), steps)
+    for i, p in enumerate(nominal):
+        rebuilt = plants[4 * i + 1 : 4 * i + 4]
+        for q, v in zip(rebuilt, drawn[p.name].kept, strict=True):
+            assert q.tag == p.tag
+            np.testing.assert_array_equal(q.A, v.plant.A)
+            np.testing.assert_array_equal(q.B, v.plant.B)
+            assert q.u_op == v.plant.u_op

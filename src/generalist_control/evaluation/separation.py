@@ -104,6 +104,7 @@ def separation_table(
     plants: Sequence[Plant],
     duration: float = 2.0,
     threshold: float = 0.1,
+    views: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> pd.DataFrame:
     """Per plant: its nearest plant in the network's eyes and when the history separates them.
 
@@ -115,9 +116,10 @@ def separation_table(
         ``p``'s window lies more than ``threshold`` from every other plant's
         (``separation_time``, ``inf`` if never within ``duration``), and, over the samples
         before it (at least the first), the median input gap to ``nearest`` and the median
-        gap between the two experts' controls.
+        gap between the two experts' controls. ``views``: :func:`network_views`' result for
+        these plants and ``duration``, if already computed.
     """
-    inputs, controls = network_views(policy, plants, duration)
+    inputs, controls = views if views is not None else network_views(policy, plants, duration)
     input_gap, control_gap = _gaps(inputs, controls)
     dt = plants[0].dt
     start = 1  # sample 0 is at rest for every plant; the expert acts from sample 1

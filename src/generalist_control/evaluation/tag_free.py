@@ -93,13 +93,16 @@ def tag_free_bar(
 
 
 def _figure(
-    policy: Policy, plants: Sequence[Plant], pairs: list[tuple[str, str]], path: Path
+    views: tuple[np.ndarray, np.ndarray],
+    plants: Sequence[Plant],
+    pairs: list[tuple[str, str]],
+    path: Path,
 ) -> None:
     """First samples of what the network sees (input norm) and must answer, plant by pair."""
     if not pairs:
         return
     index = {p.name: i for i, p in enumerate(plants)}
-    inputs, controls = network_views(policy, plants, duration=2.0)
+    inputs, controls = views
     t = np.arange(inputs.shape[1]) * plants[0].dt
     fig, axes = plt.subplots(len(pairs), 2, figsize=(10, 2.6 * len(pairs)), squeeze=False)
     for row, (a, b) in enumerate(pairs):
@@ -131,7 +134,8 @@ def write_tag_free_report(
     """
     check_tag_free_dir(out_dir)
     verdict = tag_free_bar(df, **(bar or {}))
-    table = separation_table(policy, plants)
+    views = network_views(policy, plants, duration=2.0)
+    table = separation_table(policy, plants, duration=2.0, views=views)
     ratio = verdict["step_ise_ratio"]
     table["step_ise_ratio"] = table.system.map(ratio)
     missing = table[table.system.isin(verdict["missing"])]
@@ -141,6 +145,6 @@ def write_tag_free_report(
         table.to_csv(staging / "separation.csv", index=False)
         write_json(staging / "bar.json", verdict, sort_keys=True)
         (staging / "plots").mkdir()
-        _figure(policy, plants, pairs, staging / "plots" / "tag_free_missed.png")
+        _figure(views, plants, pairs, staging / "plots" / "tag_free_missed.png")
         publish_directory(staging, out_dir, OWNED, "evaluation.tag_free_report")
     return verdict

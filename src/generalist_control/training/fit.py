@@ -122,13 +122,16 @@ def _module(cfg: DictConfig, dm: DemoDataModule, meta: dict[str, Any]) -> Imitat
 
 
 def _callbacks(
-    cfg: DictConfig, run_dir: Path, meta: dict[str, Any]
+    cfg: DictConfig, run_dir: Path, meta: dict[str, Any], manifest: dict[str, Any]
 ) -> tuple[list[L.Callback], L.pytorch.callbacks.ModelCheckpoint]:
     """The config's callbacks, DAgger and closed-loop validation (checked before any run)."""
     callbacks = config_callbacks(cfg, run_dir)
     ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
     plants = training_plants(cfg, meta)
-    own = [dagger_callback(cfg, dagger_plants(cfg, plants)), closed_loop_validation(cfg, plants)]
+    own = [
+        dagger_callback(cfg, dagger_plants(plants, manifest)),
+        closed_loop_validation(cfg, plants),
+    ]
     return [*callbacks, *(c for c in own if c is not None)], ckpt_cb
 
 
@@ -277,7 +280,7 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     n_params = count_parameters(lit.policy)
     run_dir = outputs.run_dir(cfg)
     resume_id = training_run.run_id_from_checkpoint(ckpt_path) if ckpt_path else None
-    callbacks, ckpt_cb = _callbacks(cfg, run_dir, meta)
+    callbacks, ckpt_cb = _callbacks(cfg, run_dir, meta, dm.manifest)
     mlf = training_run.training_logger(cfg.logger, resume_run_id=resume_id)
     trainer = _trainer(cfg, run_dir, callbacks, mlf)
     with mlflow.start_run(run_id=mlf.run_id) as run:  # the fluent API on the logger's run

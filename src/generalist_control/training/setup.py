@@ -12,11 +12,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.schema import require_fraction
-from generalist_control.data.generation import amplitude_grid, enabled_families
-from generalist_control.data.variants import training_variants, variants_config
+from generalist_control.data.generation import enabled_families
 from generalist_control.model.network import MODEL_DEFAULTS, network_config
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.plants.plant import Plant
+from generalist_control.plants.variants import make_variant
 from generalist_control.training.callbacks import ClosedLoopValidation
 from generalist_control.training.dagger_callback import DAggerCallback
 
@@ -91,23 +91,24 @@ def training_plants(cfg: DictConfig, meta: dict[str, Any]) -> list[Plant]:
     return [p for p in plants_from_config(cfg.systems) if p.name in meta["tags"]]
 
 
-def dagger_plants(cfg: DictConfig, plants: list[Plant]) -> list[Plant]:
-    """The plants DAgger rolls out on: ``plants`` and, with ``data.variants``, their variants.
+def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
+    """The plants DAgger rolls out on: ``plants`` and, with variant data, their variants.
 
     With variant data the policy must also recover on the variants it imitates, so each
-    training plant's kept variants (drawn again from ``data.variants``' seed, exactly as the
-    data stage drew them, :func:`~generalist_control.data.variants.training_variants`) join
-    the rollouts; each is labelled by its own LQI expert. ``dagger.rollouts`` is per plant,
-    variants included.
+    training plant's kept variants join the rollouts, rebuilt from the factors the data's
+    manifest records (:func:`~generalist_control.plants.variants.make_variant`: the very
+    plants the data stage simulated); each is labelled by its own LQI expert.
+    ``dagger.rollouts`` is per plant, variants included.
     """
-    vcfg = variants_config(cfg.data)
-    if vcfg is None:
-        return plants
-    data = as_dict(cfg.data)
-    grid = amplitude_grid(data["amplitudes"])
-    steps = int(round(float(data["duration"]) / plants[0].dt))
-    draws = training_variants(plants, vcfg, grid, steps)
-    return [q for p in plants for q in (p, *(v.plant for v in draws[p.name].kept))]
+    recorded = manifest.get("variants") or {}
+    return [
+        q
+        for p in plants
+        for q in (
+            p,
+            *(make_variant(p, v["factors"]) for v in recorded.get(p.name, {}).get("kept", [])),
+        )
+    ]
 
 
 def dagger_callback(cfg: DictConfig, plants: list[Plant]) -> L.Callback | None:
