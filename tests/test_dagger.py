@@ -56,6 +56,29 @@ def test_rounds_for_an_integrating_policy_label_the_augmented_state_it_sees():
     assert np.abs(newest[:, 4]).max() > 0.1  # the policy's rollouts moved the integrator
 
 
+def test_rounds_for_a_control_history_policy_carry_the_executed_controls():
+    """With model.control_history the last channel is the mixed control executed before."""
+    from generalist_control.simulation.simulate import Run, simulate_many
+    from generalist_control.training.dagger import MixedController
+
+    plant = load_plant("hydraulic_actuator")
+    torch.manual_seed(0)
+    on = {"control_history": 1, "linear_skip": 1, "history_context": 1}
+    policy = Policy({"hidden": 8, "experts": 1, "integral": 1, **on}).eval()
+    meta = {"tags": {plant.name: plant.tag}, "orders": {plant.name: plant.order},
+            "dt": plant.dt, "history": 8, "horizon": 3}  # fmt: skip
+    big = {plant.name: np.full(plant.order, np.inf)}
+    amps = np.array([1.0, -2.0])
+    args = ([plant], PolicyRuntime(policy, meta), 0.5, {plant.name: amps}, big, 40, 8, 3)
+    w, _ = aggregate(*args, "tracked", integral=True, controls=True)
+    assert w.state.shape[1:] == (8, 6)
+    refs = np.repeat(amps[:, None], 40, axis=1)
+    tr = simulate_many([Run(plant, refs)], MixedController(PolicyRuntime(policy, meta), 0.5))[0]
+    executed = np.concatenate([np.zeros((2, 1)), tr.u[:, :-1]], axis=1)[:, : 40 - 3 + 1]
+    np.testing.assert_allclose(w.state[:, -1, 5], executed.reshape(-1), rtol=1e-6, atol=1e-7)
+    assert np.abs(executed).max() > 0.1
+
+
 def test_expert_plan_first_control_is_the_lqi_law_at_any_state():
     plant = load_plant("unstable")
     g = design_lqi(plant)

@@ -32,24 +32,35 @@ def _meta() -> dict:
     }
 
 
-@pytest.fixture(scope="module", params=[0, 1, 2], ids=["paper", "ours-no-integral", "ours"])
+@pytest.fixture(
+    scope="module",
+    params=[0, 1, 2, 3],
+    ids=["paper", "ours-no-integral", "ours", "tag-free-controls"],
+)
 def policy(request) -> Policy:
     """A random policy with non-trivial normaliser scales (no training needed here).
 
     ``ours-no-integral``: window scaling and the linear head on, the head's weights made
-    non-zero; ``ours``: the same and the tracking-error integral as a state channel.
+    non-zero; ``ours``: the same and the tracking-error integral as a state channel;
+    ``tag-free-controls``: that, without the tag and with the previous control as a channel.
     """
     torch.manual_seed(0)
     on, integral = int(request.param > 0), int(request.param > 1)
     cfg = {"hidden": 16, "experts": 3, "window_scale": on, "linear_head": on}
+    if request.param == 3:
+        cfg |= {"tag_free": 1, "control_history": 1, "linear_head": 0, "linear_skip": 1}
+        cfg |= {"history_context": 1}
     pol = Policy({**cfg, "integral": integral}).eval()
     g = torch.Generator().manual_seed(1)
-    if on:
-        with torch.no_grad():
-            pol.net.linear.weight.normal_(0.0, 0.1, generator=g)
+    with torch.no_grad():
+        for path, std in ((pol.net.linear, 0.1), (pol.net.skip, 0.02)):
+            if path is not None:  # the skip's own control fed back: small, or it runs away
+                path.weight.normal_(0.0, std, generator=g)
     pol.normaliser.state_scale.uniform_(0.5, 3.0, generator=g)
     pol.normaliser.ref_scale.uniform_(0.5, 3.0, generator=g)
     pol.normaliser.control_scale.uniform_(0.5, 3.0, generator=g)
+    if request.param == 3:  # the random net's feedback on its own control: kept bounded
+        pol.normaliser.state_scale[:, -1] = 10.0
     return pol
 
 
@@ -65,18 +76,21 @@ def test_stepping_equals_the_batch_forward_on_built_windows(policy):
     runtime = PolicyRuntime(policy, _meta())
     for name, amp in (("cstr", 1.5), ("hydraulic_actuator", -3.0)):
         plant, tr = _lqi_trajectory(name, amp)
-        x = pad_states(tr.x[:, :-1])
-        z = integral_of_error(tr.r, tr.y[:, :-1], plant.dt) if runtime.integral else None
-        tag, order = np.array([plant.tag]), np.array([plant.order])
-        w = build_windows(x, tr.r, tr.u, tag, order, 8, 1, z)
-        expected, _ = policy.predict_windows(w)
         runtime.reset(name)
         plans = []
         for k in range(tr.r.shape[1]):
             u = runtime.step(tr.x[0, k], tr.r[0, k])
             assert u == pytest.approx(float(runtime.plan[0, 0]))
             plans.append(runtime.plan[0])
-        np.testing.assert_allclose(np.array(plans), expected, rtol=1e-5, atol=1e-6)
+        plans = np.array(plans)
+        x = pad_states(tr.x[:, :-1])
+        z = integral_of_error(tr.r, tr.y[:, :-1], plant.dt) if runtime.integral else None
+        tag, order = np.array([plant.tag]), np.array([plant.order])
+        # the previous-control channel holds what the runtime itself issued
+        issued = plans[None, :, 0].astype(np.float64)
+        w = build_windows(x, tr.r, issued, tag, order, 8, 1, z, runtime.controls)
+        expected, _ = policy.predict_windows(w)
+        np.testing.assert_allclose(plans, expected, rtol=1e-5, atol=1e-6)
         if runtime.integral:  # the runtime's integrator is the expert's, sample by sample
             np.testing.assert_allclose(
                 runtime.z, z[:, -1] + plant.dt * (tr.r - tr.y[:, :-1])[:, -1]
@@ -232,3 +246,29 @@ def test_runtime_anti_windup_is_lqi_anti_windup_for_the_lqi_law(name, limits):
     np.testing.assert_allclose(gc_aw.y, aw.y, rtol=0, atol=1e-4 * scale)
     np.testing.assert_allclose(gc.y, plain.y, rtol=0, atol=1e-4 * np.abs(plain.y).max())
     assert np.abs(plain.y - aw.y).max() > 0.1 * scale  # the limits matter in this scenario
+
+
+def test_the_previous_control_channel_holds_the_actuated_control():
+    """Without limits the window's newest control entry is the last command; with limits,
+    what the actuator applied (``Perturbation.actuate``); zero on the first step."""
+    torch.manual_seed(3)
+    on = {"control_history": 1, "linear_skip": 1, "history_context": 1}
+    pol = Policy({"hidden": 16, "integral": 1, "tag_free": 1, **on}).eval()
+    with torch.no_grad():
+        pol.net.experts[0][-1].bias.fill_(5.0)  # commands well beyond the limit below
+    runtime = PolicyRuntime(pol, _meta())
+    assert runtime.controls
+    for limit in (None, 0.1):
+        runtime.set_actuator_limits(u_limit=limit)
+        runtime.reset("cstr")
+        commands, seen = [], []
+        for k in range(4):
+            commands.append(runtime.step([0.01 * k, 0.0], 0.5))
+            state, mask, _, _ = runtime.window()
+            assert state.shape[-1] == MAX_ORDER + 2 and mask[0, -1, -1] == 1.0
+            seen.append(float(state[0, -1, -1]))
+        applied = np.array(commands[:-1])
+        if limit is not None:
+            applied = np.clip(applied, -limit, limit)
+            assert np.abs(np.array(commands)).min() > limit  # the limit did act
+        np.testing.assert_allclose(seen, [0.0, *applied], rtol=1e-6)

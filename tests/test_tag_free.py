@@ -107,6 +107,7 @@ def test_tag_dropout_withholds_the_share_it_is_set_to_in_training_only():
         (["model.tag_free=true", "model.tag_dropout=0.5"], "tag_free never gives"),
         (["model.tag_free=true", "model.linear_head=true"], "withholds the tag"),
         (["model.tag_dropout=1.0"], r"model.tag_dropout must lie in \[0, 1\)"),
+        (["model.control_history=true"], "feeds the skip path's gains"),
     ],
 )
 def test_contradictory_tag_settings_are_refused(overrides, message):
@@ -118,6 +119,7 @@ def test_experiment_tag_free_withholds_the_tag_everywhere():
     cfg = compose_cfg("experiment=tag_free")
     config = model_config(cfg)
     assert config["tag_free"] == 1 and config["history_context"] == 1
+    assert config["control_history"] == 1 and model_config(compose_cfg())["control_history"] == 0
     assert config["unknown_tag"] == 0 and cfg.evaluation.withhold_tag
     dropout = model_config(compose_cfg("model.tag_dropout=0.5"))
     assert dropout["unknown_tag"] == 1 and dropout["tag_free"] == 0
@@ -133,7 +135,7 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
     cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, out, mlflow_uri, *switch))
     _, objects = train(cfg)
     policy, _ = load_policy(objects["policy_path"])
-    assert policy.config["unknown_tag"] == 1
+    assert policy.config["unknown_tag"] == 1 and policy.config["control_history"] == 1
     frames = {}
     for withhold in (True, False):
         ecfg = compose_cfg(
@@ -168,6 +170,43 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
     assert bar["step_ise_ratio"] == pytest.approx((ise["GC"] / ise["LQI"]).to_dict())
     separation = pd.read_csv(tmp_path / "bar" / "separation.csv")
     assert set(separation.system) == {"cstr", "hydraulic_actuator"}
+
+
+@pytest.mark.slow
+def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
+    tiny_data_dir, tmp_path, mlflow_uri
+):
+    """experiment=tag_free end to end: DAgger after the first epoch, then evaluation."""
+    out = tmp_path / "pure"
+    cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, out, mlflow_uri, "experiment=tag_free"))
+    _, objects = train(cfg)
+    policy, _ = load_policy(objects["policy_path"])
+    assert policy.config["tag_free"] == policy.config["control_history"] == 1
+    assert policy.net.identifier is not None and policy.net.state_encoder_1[0].in_features == 5
+    (cb,) = [c for c in objects["trainer"].callbacks if type(c).__name__ == "DAggerCallback"]
+    assert cb.done == 1 and cb.history[0]["windows"] > 0  # a round after the first epoch
+    ise = {}
+    for withhold in (True, False):
+        reports = tmp_path / f"reports_{withhold}"
+        ecfg = compose_cfg(
+            *tiny_train_overrides(tiny_data_dir, out, mlflow_uri, "experiment=tag_free"),
+            f"policy={objects['policy_path']}",
+            f"paths.reports_dir={reports}",
+            f"evaluation.withhold_tag={str(withhold).lower()}",
+            f"evaluation.tag_free_report={tmp_path / 'bar' if withhold else 'null'}",
+            "evaluation.plots=false",
+            "systems.include=[cstr,hydraulic_actuator]",
+        )
+        with open_dict(ecfg):
+            ecfg.evaluation.scenarios = OmegaConf.create(
+                {"step": {"kind": "step", "amplitude": 1.0, "duration": 5.0}}
+            )
+            ecfg.evaluation.crazyflie = None
+        evaluate_run(ecfg)
+        f = pd.read_csv(reports / "metrics.csv")
+        ise[withhold] = f[(f.controller == "GC") & (f.metric == "ISE")].value.to_numpy()
+    assert len(ise[True]) == 2 and (ise[True] == ise[False]).all()  # the tag changes nothing
+    assert json.loads((tmp_path / "bar" / "bar.json").read_text())["step_ise_ratio"]
 
 
 def test_withholding_from_a_tagged_policy_is_refused_with_the_fix(tmp_path):

@@ -3,7 +3,12 @@
 import numpy as np
 import pytest
 
-from generalist_control.data.windows import build_windows, history_windows
+from generalist_control.data.windows import (
+    HistoryBuffer,
+    build_windows,
+    history_windows,
+    previous_controls,
+)
 from generalist_control.plants.plant import pad_states
 
 H, K = 8, 3
@@ -106,3 +111,29 @@ def test_integral_channel_is_the_lqi_experts_own_integrator():
         np.testing.assert_array_equal(mask[1], w.mask[keep + k])
     with pytest.raises(ValueError, match="keeps the error integral"):
         buf.push(x[:, 0].astype(np.float32), tr.r[:, 0])
+
+
+def test_previous_control_channel_is_u_one_sample_earlier_online_and_offline():
+    """model.control_history: the last channel is u[k-1] (0 at k = 0), after the integral."""
+    x, r, u, order = toy()
+    z = np.cumsum(r, axis=1)  # any signal will do for the integral channel here
+    prev = previous_controls(u)
+    np.testing.assert_array_equal(prev[:, 0], 0.0)
+    np.testing.assert_array_equal(prev[:, 1:], u[:, :-1])
+    w = build_windows(x, r, u, np.zeros(3, int), order, H, K, z, controls=True)
+    assert w.state.shape[1:] == (H, 6) and np.all(w.mask[:, :, 4:] == 1.0)
+    per = 20 - K + 1
+    for b in range(3):
+        for k in (0, 1, 5, per - 1):
+            idx = np.clip(np.arange(k - H + 1, k + 1), 0, None)
+            expected = np.where(np.arange(k - H + 1, k + 1) >= 1, u[b, idx - 1], 0.0)
+            expected[np.arange(k - H + 1, k + 1) < 0] = 0.0  # front padding repeats u[-1] = 0
+            np.testing.assert_allclose(w.state[b * per + k, :, 5], expected.astype(np.float32))
+            np.testing.assert_allclose(w.state[b * per + k, :, 4], z[b, idx].astype(np.float32))
+    buf = HistoryBuffer(order, H, integral=True, controls=True)
+    for k in range(per):
+        state, mask, _ = buf.push(x[:, k].astype(np.float32), r[:, k], z[:, k], prev[:, k])
+        np.testing.assert_array_equal(state, w.state[k::per])
+        np.testing.assert_array_equal(mask, w.mask[k::per])
+    with pytest.raises(ValueError, match="keeps the previous control"):
+        buf.push(x[:, 0].astype(np.float32), r[:, 0], z[:, 0])

@@ -69,6 +69,7 @@ class ModelSchema:
     tag_free: bool = MISSING
     tag_dropout: float = MISSING
     history_context: bool = MISSING
+    control_history: bool = MISSING
     optimizer: dict[str, Any] = MISSING
     scheduler: dict[str, Any] | None = None
 

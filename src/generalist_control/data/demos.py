@@ -93,14 +93,19 @@ class DemoSet:
     family: np.ndarray
     variant: np.ndarray | None = None
 
-    def windows(self, history: int, horizon: int, integral: bool = False) -> Windows:
+    def windows(
+        self, history: int, horizon: int, integral: bool = False, controls: bool = False
+    ) -> Windows:
         """All training windows of the set.
 
-        With ``integral``, the error integral is the last state channel (see
-        :func:`~generalist_control.data.windows.integral_of_error`).
+        With ``integral``, the error integral is a state channel (see
+        :func:`~generalist_control.data.windows.integral_of_error`); with ``controls``, the
+        expert's control one sample earlier is the last channel.
         """
         z = integral_of_error(self.r, self.y, self.dt) if integral else None
-        return build_windows(self.x, self.r, self.u, self.tag, self.order, history, horizon, z)
+        return build_windows(
+            self.x, self.r, self.u, self.tag, self.order, history, horizon, z, controls
+        )
 
 
 def content_hash(demos: DemoSet, config: dict[str, Any]) -> str:

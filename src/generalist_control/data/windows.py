@@ -7,7 +7,11 @@ reference, the plant's tag, and, for training, the next ``horizon`` expert contr
 more channel after the padded plant state: the integral of the tracking error
 ``z[k] = z[k-1] + dt (r[k-1] - y[k-1])``, ``z[0] = 0``, exactly the LQI expert's own
 integrator (:func:`integral_of_error`), so the window holds the expert's augmented state
-``[x; z]``. Before the first sample the history repeats the first
+``[x; z]``. Optionally (``model.control_history``, issue 13's tag-free policy) one more
+channel after that holds the control applied one sample earlier, ``u[k-1]`` (zero at
+``k = 0``, :func:`previous_controls`), so the window pairs each state change with the
+control that caused it and the plant can be identified from the history. Before the first
+sample the history repeats the first
 sample (the runtime fills its buffer the same way on its first step), so every sample
 ``k = 0 .. N - horizon`` of a trajectory of ``N`` samples yields a window.
 """
@@ -27,6 +31,7 @@ __all__ = [
     "build_windows",
     "history_windows",
     "integral_of_error",
+    "previous_controls",
     "validity_mask",
     "windows_per_trajectory",
 ]
@@ -40,7 +45,8 @@ class Windows:
     ----------
     state, mask : ndarray, float32, shape (W, history, width)
         Masked, zero-padded state history and its validity mask; ``width`` is
-        ``MAX_ORDER``, or ``MAX_ORDER + 1`` with the error integral as the last channel.
+        ``MAX_ORDER``, plus one with the error integral (channel ``MAX_ORDER``), plus one
+        with the previous control (the last channel).
     ref : ndarray, float32, shape (W, history)
     tag : ndarray, int64, shape (W,)
     target : ndarray, float32, shape (W, horizon), or None at deployment
@@ -88,12 +94,30 @@ def integral_of_error(r: np.ndarray, y: np.ndarray, dt: float) -> np.ndarray:
     return z
 
 
+def previous_controls(u: np.ndarray) -> np.ndarray:
+    """The control applied one sample earlier: ``u[:, k - 1]``, zero at ``k = 0``.
+
+    Parameters
+    ----------
+    u : ndarray, shape (B, N)
+
+    Returns
+    -------
+    ndarray, float64, shape (B, N)
+    """
+    u = np.asarray(u, dtype=np.float64)
+    prev = np.zeros_like(u)
+    prev[:, 1:] = u[:, :-1]
+    return prev
+
+
 def history_windows(
     x: np.ndarray,
     r: np.ndarray,
     order: np.ndarray,
     history: int,
     z: np.ndarray | None = None,
+    u_prev: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """State, mask and reference histories ending at every sample.
 
@@ -106,16 +130,19 @@ def history_windows(
         Number of real state entries of each trajectory.
     history : int
     z : ndarray, shape (B, N), optional
-        Error integral (:func:`integral_of_error`), appended as the last state channel.
+        Error integral (:func:`integral_of_error`), appended as a state channel.
+    u_prev : ndarray, shape (B, N), optional
+        Previous controls (:func:`previous_controls`), appended as the last channel.
 
     Returns
     -------
     state, mask : ndarray, float32, shape (B, N, history, width)
-        ``width`` is ``MAX_ORDER``, or ``MAX_ORDER + 1`` when ``z`` is given.
+        ``width`` is ``MAX_ORDER``, plus one for each of ``z`` and ``u_prev`` given.
     ref : ndarray, float32, shape (B, N, history)
     """
-    if z is not None:
-        x = np.concatenate([np.asarray(x), np.asarray(z)[..., None]], axis=-1)
+    extra = [np.asarray(c)[..., None] for c in (z, u_prev) if c is not None]
+    if extra:
+        x = np.concatenate([np.asarray(x), *extra], axis=-1)
     x = np.asarray(x, dtype=np.float32)
     r = np.asarray(r, dtype=np.float32)
     front = history - 1
@@ -123,19 +150,21 @@ def history_windows(
     rp = np.concatenate([np.repeat(r[:, :1], front, axis=1), r], axis=1)
     state = np.moveaxis(sliding_window_view(xp, history, axis=1), -1, 2)
     ref = sliding_window_view(rp, history, axis=1)
-    valid = validity_mask(order, integral=z is not None)
+    valid = validity_mask(order, integral=z is not None, controls=u_prev is not None)
     mask = np.broadcast_to(valid[:, None, None, :], state.shape)
     return state * mask, mask, ref
 
 
-def validity_mask(order: np.ndarray, integral: bool = False) -> np.ndarray:
+def validity_mask(order: np.ndarray, integral: bool = False, controls: bool = False) -> np.ndarray:
     """Float32 (B, width): one for the real state entries of each order, zero for padding.
 
-    With ``integral`` the width is ``MAX_ORDER + 1`` and the last (integral) entry is one.
+    With ``integral`` and ``controls`` the width grows by one each, and those extra entries
+    (error integral, previous control) are one.
     """
     valid = np.arange(MAX_ORDER) < np.asarray(order)[:, None]
-    if integral:
-        valid = np.concatenate([valid, np.ones((valid.shape[0], 1), bool)], axis=1)
+    extra = int(integral) + int(controls)
+    if extra:
+        valid = np.concatenate([valid, np.ones((valid.shape[0], extra), bool)], axis=1)
     return valid.astype(np.float32)
 
 
@@ -157,12 +186,16 @@ class HistoryBuffer:
     order : ndarray of int, shape (B,)
     history : int
     integral : bool
-        Keep the error integral as the last state channel (``push(x, r, z)``).
+        Keep the error integral as a state channel (``push(x, r, z)``).
+    controls : bool
+        Keep the previous control as the last channel (``push(x, r, z, u_prev)``).
     """
 
-    def __init__(self, order: np.ndarray, history: int, integral: bool = False) -> None:
-        valid = validity_mask(order, integral)
-        self.integral = bool(integral)
+    def __init__(
+        self, order: np.ndarray, history: int, integral: bool = False, controls: bool = False
+    ) -> None:
+        valid = validity_mask(order, integral, controls)
+        self.integral, self.controls = bool(integral), bool(controls)
         self.mask = np.ascontiguousarray(
             np.broadcast_to(valid[:, None, :], (len(order), history, valid.shape[1]))
         )
@@ -172,7 +205,11 @@ class HistoryBuffer:
         self._empty, self._staged = True, False
 
     def stage(
-        self, x: np.ndarray, r: np.ndarray, z: np.ndarray | None = None
+        self,
+        x: np.ndarray,
+        r: np.ndarray,
+        z: np.ndarray | None = None,
+        u_prev: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The window :meth:`push` would return, leaving the buffer as it is.
 
@@ -181,11 +218,15 @@ class HistoryBuffer:
         """
         if self.integral and z is None:
             raise ValueError("this buffer keeps the error integral: push(x, r, z)")
+        if self.controls and u_prev is None:
+            raise ValueError("this buffer keeps the previous control: push(x, r, z, u_prev)")
         state, ref = self._next_state, self._next_ref
         row = state[:, -1]  # a view: written in place, this runs once per sample
         row[:, : x.shape[1]] = x
         if z is not None and self.integral:
-            row[:, -1] = z
+            row[:, MAX_ORDER] = z
+        if u_prev is not None and self.controls:
+            row[:, -1] = u_prev
         np.multiply(row, self.mask[:, 0], out=row)
         if self._empty:
             state[:, :-1] = row[:, None, :]
@@ -206,15 +247,20 @@ class HistoryBuffer:
         self._empty = self._staged = False
 
     def push(
-        self, x: np.ndarray, r: np.ndarray, z: np.ndarray | None = None
+        self,
+        x: np.ndarray,
+        r: np.ndarray,
+        z: np.ndarray | None = None,
+        u_prev: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Append zero-padded states ``x`` (B, MAX_ORDER) and references ``r`` (B,).
 
-        With ``integral``, also the error integrals ``z`` (B,) before this sample.
+        With ``integral``, also the error integrals ``z`` (B,) before this sample; with
+        ``controls``, the controls ``u_prev`` (B,) applied at the sample before.
         Returns the newest window ``(state, mask, ref)``: float32 (B, history, width),
         (B, history, width) and (B, history); the state is masked.
         """
-        self.stage(x, r, z)
+        self.stage(x, r, z, u_prev)
         self.commit()
         return self.state, self.mask, self.ref
 
@@ -236,6 +282,7 @@ def build_windows(
     history: int,
     horizon: int,
     z: np.ndarray | None = None,
+    controls: bool = False,
 ) -> Windows:
     """Training windows from ``B`` trajectories of ``N`` samples.
 
@@ -249,7 +296,10 @@ def build_windows(
     history, horizon : int
     z : ndarray, shape (B, N), optional
         Error integral before each sample (:func:`integral_of_error`); given, it becomes
-        the last state channel.
+        a state channel.
+    controls : bool
+        The control applied one sample earlier (:func:`previous_controls` of ``u``) becomes
+        the last channel.
 
     Returns
     -------
@@ -258,7 +308,8 @@ def build_windows(
     """
     B, N = r.shape
     keep = windows_per_trajectory(N, horizon)
-    state, mask, ref = history_windows(x, r, order, history, z)
+    u_prev = previous_controls(u) if controls else None
+    state, mask, ref = history_windows(x, r, order, history, z, u_prev)
     target = sliding_window_view(np.asarray(u, dtype=np.float32), horizon, axis=1)
     W = B * keep
     width = state.shape[-1]

@@ -17,9 +17,11 @@ at ``reset``); ``y`` is the plant's output ``C x`` (rows stored with the policy)
 measured output passed as ``step(x, r, y)``. Like LQI, such a policy winds up against an
 actuator limit; given the limits (:meth:`PolicyRuntime.set_actuator_limits`) the runtime
 integrates conditionally, as :class:`~generalist_control.simulation.lqi.AntiWindupLQIController`
-does. Many plants can be stepped at once (``reset([...names])`` and ``step`` on
-``(B, MAX_ORDER)`` zero-padded states), which is how evaluation batches all plants through
-one network call per sample.
+does. A policy trained with ``model.control_history`` also sees the control applied one
+sample earlier: the runtime keeps the control it issued (the actuated one, once actuator
+limits are known), zero at ``reset``. Many plants can be stepped at once
+(``reset([...names])`` and ``step`` on ``(B, MAX_ORDER)`` zero-padded states), which is how
+evaluation batches all plants through one network call per sample.
 
 **Input range.** A step whose inputs (or controls, or error integral) are not finite or exceed
 ``input_limit`` times their training RMS is refused with :class:`RejectedStep`, naming plant,
@@ -40,15 +42,14 @@ import numpy as np
 
 from generalist_control.data.windows import HistoryBuffer
 from generalist_control.deploy.export import backend as _backend
+from generalist_control.deploy.facts import integral_facts
 from generalist_control.deploy.resolve import resolve
 from generalist_control.model.policy import Policy, load_policy
-from generalist_control.plants.catalog import available_plants, load_plant
 from generalist_control.plants.plant import MAX_ORDER
 from generalist_control.simulation.antiwindup import conditional_increment
-from generalist_control.simulation.lqi import design_lqi
 from generalist_control.simulation.simulate import Perturbation
 
-__all__ = ["INPUT_LIMIT", "PolicyRuntime", "RejectedStep", "integral_facts"]
+__all__ = ["INPUT_LIMIT", "PolicyRuntime", "RejectedStep"]
 
 #: Default input range of a runtime: each signal at most this many times its training RMS.
 INPUT_LIMIT = 1e3
@@ -118,6 +119,7 @@ class PolicyRuntime:
         self.history, self.horizon = int(meta["history"]), int(meta["horizon"])
         self.dt = float(meta["dt"])
         self.integral = bool(policy.config.get("integral", 0))
+        self.controls = bool(policy.config.get("control_history", 0))
         self.outputs: dict[str, np.ndarray] = {
             str(k): np.asarray(v, dtype=np.float64) for k, v in meta.get("outputs", {}).items()
         }
@@ -171,7 +173,7 @@ class PolicyRuntime:
         self._single, self._systems, self._direction = single, names, direction
         self._tag = np.array([self.tags[s] for s in names], dtype=np.int64)
         self._order = np.array([self.orders[s] for s in names], dtype=np.int64)
-        self._buffer = HistoryBuffer(self._order, self.history, self.integral)
+        self._buffer = HistoryBuffer(self._order, self.history, self.integral, self.controls)
         self._padded = np.zeros((len(names), MAX_ORDER), np.float32)
         self.z = np.zeros(len(names))
         self._u_prev = np.zeros(len(names))
@@ -183,7 +185,8 @@ class PolicyRuntime:
         n, L = self.policy.normaliser, self.input_limit
         scales = (n.state_scale, n.ref_scale, n.control_scale)
         sx, sr, su = (s.detach().cpu().double().numpy()[self._tag] for s in scales)
-        self._lim = {"state": L * sx[:, :MAX_ORDER], "error integral": L * sx[:, -1]}
+        sz = sx[:, MAX_ORDER] if self.integral else np.ones(len(sx))  # its channel, if any
+        self._lim = {"state": L * sx[:, :MAX_ORDER], "error integral": L * sz}
         self._lim["reference"] = self._lim["output"] = L * sr  # y is measured in r's units
         self._lim["network output"] = L * su[:, None]
 
@@ -331,16 +334,20 @@ class PolicyRuntime:
         self._screen("output", y, self._lim["output"])
         return y
 
+    def _actuated(self, u: np.ndarray) -> np.ndarray:
+        """The control the actuator applies for command ``u``: ``u`` without known limits."""
+        if self.limits is None:
+            return u
+        return self.limits.actuate(u, self._u_prev, self.dt)
+
     def _next_integral(
-        self, u: np.ndarray, r: np.ndarray, y: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Error integral after control ``u`` and the actuator's control; nothing kept."""
+        self, u: np.ndarray, applied: np.ndarray, r: np.ndarray, y: np.ndarray
+    ) -> np.ndarray:
+        """Error integral after command ``u`` (``applied`` by the actuator); nothing kept."""
         dz = self.dt * (r - y)
-        u_prev = self._u_prev
         if self._direction is not None and self.limits is not None:
-            u_prev = self.limits.actuate(u, self._u_prev, self.dt)
-            dz = conditional_increment(dz, u, u_prev, self._direction)
-        return self.z + dz, u_prev
+            dz = conditional_increment(dz, u, applied, self._direction)
+        return self.z + dz
 
     def step(self, x: Any, r: Any, y: Any = None) -> float | np.ndarray:
         """Control for the current sample (the first of the predicted sequence).
@@ -365,34 +372,18 @@ class PolicyRuntime:
         x, r = self._check(x, r)
         if self.integral:
             y = self._output(y, x)  # checked before anything changes
-            state, mask, ref = self._buffer.stage(x, r, self.z)
-        else:
-            state, mask, ref = self._buffer.stage(x, r)
+        state, mask, ref = self._buffer.stage(x, r, self.z, self._u_prev)
         plan = np.asarray(self._run(state, mask, ref, self._tag))
         if plan.shape != (len(self._systems), self.horizon):
             raise RuntimeError(f"the backend returned controls of shape {plan.shape}")
         self._screen("network output", plan, self._lim["network output"])
         u = plan[:, 0].astype(np.float64)
+        applied = self._actuated(u)
         if self.integral:
-            z, u_prev = self._next_integral(u, r, y)
+            z = self._next_integral(u, applied, r, y)
             self._screen("error integral", z, self._lim["error integral"])
-            self.z, self._u_prev = z, u_prev
+            self.z = z
+        self._u_prev = applied
         self._buffer.commit()
         self.plan = plan
         return float(u[0]) if self._single else u
-
-
-def integral_facts(names: Sequence[str]) -> dict[str, dict[str, Any]]:
-    """Per catalogue plant in ``names``, its output row ``C`` and the sign of its expert's -Ki.
-
-    What an integrating policy's runtime needs to integrate ``r - C x`` from the state alone
-    (``C`` of the linearisation for a nonlinear plant) and to know which way the integral
-    moves the command (anti-windup). Training stores them in the policy's meta
-    (``outputs``, ``integral_directions``); names the catalogue does not know are left out.
-    """
-    known = set(available_plants())
-    plants = [load_plant(n) for n in sorted(names) if n in known]
-    return {
-        "outputs": {p.name: [float(c) for c in p.C[0]] for p in plants},
-        "integral_directions": {p.name: float(np.sign(-design_lqi(p).Ki)) for p in plants},
-    }

@@ -74,6 +74,7 @@ def network_views(
             cfg["history"],
             1,
             z,
+            bool(cfg.get("control_history", 0)),
         )
         args = [torch.tensor(a) for a in (w.state, w.mask, w.ref, w.tag)]
         with torch.no_grad():

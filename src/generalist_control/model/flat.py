@@ -18,8 +18,8 @@ __all__ = ["FlatPolicy", "flat_columns"]
 def flat_columns(history: int, state_dim: int) -> list[str]:
     """Column names of :class:`FlatPolicy`'s input (``k = 0`` is the oldest sample).
 
-    ``state_dim`` is the state input's width (with ``model.integral`` its last entry is the
-    error integral).
+    ``state_dim`` is the state input's width (with ``model.integral`` entry ``MAX_ORDER`` is
+    the error integral, with ``model.control_history`` the last entry the previous control).
     """
     cols = [f"state_{k}_{i}" for k in range(history) for i in range(state_dim)]
     cols += [f"mask_{k}_{i}" for k in range(history) for i in range(state_dim)]

@@ -63,7 +63,10 @@ __all__ = [
 #: "tag withheld" that tag dropout trains; see :class:`~generalist_control.model.policy.Policy`)
 #: and ``history_context`` (0 or 1: the skip path's gains are computed from the embedding
 #: plus a learned projection of the window's summary, so the plant can be inferred from its
-#: history; 0 is the default recipe).
+#: history; 0 is the default recipe) and ``control_history`` (0 or 1: the window carries one
+#: more channel, the control applied one sample earlier, which only an identifier LSTM sees,
+#: whose state joins the skip gains' context, so a state change can be read against the
+#: control that caused it; needs ``linear_skip`` and ``history_context``; 0 is the default).
 MODEL_DEFAULTS: dict[str, int] = {
     "hidden": 32,
     "heads": 3,
@@ -81,6 +84,7 @@ MODEL_DEFAULTS: dict[str, int] = {
     "tag_free": 0,
     "unknown_tag": 0,
     "history_context": 0,
+    "control_history": 0,
 }
 
 #: Keys that are switches (0 or 1) rather than sizes.
@@ -92,6 +96,7 @@ _SWITCHES = (
     "tag_free",
     "unknown_tag",
     "history_context",
+    "control_history",
 )
 
 #: Where a network key is set in the training config, when not at ``model.<key>``.
@@ -99,8 +104,9 @@ _CONFIG_KEYS = {"experts": "experts", "history": "data.history", "horizon": "dat
 
 
 def input_width(config: dict[str, int]) -> int:
-    """Width of the state input per time step: ``state_dim``, plus one with ``integral``."""
-    return int(config["state_dim"]) + int(config.get("integral", 0))
+    """Width of the state input per step: ``state_dim`` (+1 each: integral, previous control)."""
+    extra = int(config.get("integral", 0)) + int(config.get("control_history", 0))
+    return int(config["state_dim"]) + extra
 
 
 def network_config(**kwargs: Any) -> dict[str, int]:
@@ -137,6 +143,11 @@ def network_config(**kwargs: Any) -> dict[str, int]:
         raise ValueError(
             "model.linear_head is a table of gains per tag and model.tag_free withholds the "
             "tag: turn one of them off"
+        )
+    if cfg["control_history"] and not (cfg["linear_skip"] and cfg["history_context"]):
+        raise ValueError(
+            "model.control_history feeds the skip path's gains (model.linear_skip and "
+            "model.history_context): turn those on, or control_history off"
         )
     if cfg["hidden"] % 2:
         raise ValueError(f"model.hidden must be even (encoders give hidden // 2), got {cfg}")
@@ -222,8 +233,12 @@ class GeneralistNetwork(nn.Module):
         c = self.config
         d, e = c["hidden"], c["hidden"] // 2
         width = input_width(c)
-        self.state_encoder_1 = _mlp(width, d, e)
-        self.state_encoder_2 = _mlp(width, d, e)
+        # Only the identifier (below) sees the previous control; the encoders and the linear
+        # paths see the law's own state [x; z]. With the control in their input the
+        # closed-loop score collapsed in training (measured, docs/training.md).
+        law_width = width - c["control_history"]
+        self.state_encoder_1 = _mlp(law_width, d, e)
+        self.state_encoder_2 = _mlp(law_width, d, e)
         self.ref_encoder = _mlp(1, d, e)
         # one-hot tag -> W_1 onehot + b_1 is a row lookup: an embedding of size d. Tag-free:
         # one shared row (the network never learns who is who); with unknown_tag one more
@@ -247,7 +262,7 @@ class GeneralistNetwork(nn.Module):
         # (linear_samples = 1): the head is then the LQI law's own form.
         self.linear: nn.Embedding | None = None
         if c["linear_head"]:
-            n_in = (c["linear_samples"] or c["history"]) * (width + 1)
+            n_in = (c["linear_samples"] or c["history"]) * (law_width + 1)
             self.linear = nn.Embedding(c["n_tags"] + c["unknown_tag"], c["horizon"] * n_in)
             nn.init.zeros_(self.linear.weight)
         # Ours (model.linear_skip): a linear path whose gains the network computes from the
@@ -257,22 +272,33 @@ class GeneralistNetwork(nn.Module):
         # plants differ only through the embedding the rest of the network learns too.
         self.skip: nn.Linear | None = None
         if c["linear_skip"]:
-            n_in = (c["linear_samples"] or c["history"]) * (width + 1)
+            n_in = (c["linear_samples"] or c["history"]) * (law_width + 1)
             self.skip = nn.Linear(d, c["horizon"] * n_in)
             nn.init.zeros_(self.skip.weight)
             nn.init.zeros_(self.skip.bias)
+        self._add_history_paths(d, width)
+        # the slow LSTM sees samples ..., t - 2 tau, t - tau, t (always the newest one)
+        self.slow_start = (c["history"] - 1) % c["stride"]
+
+    def _add_history_paths(self, d: int, width: int) -> None:
+        """The skip gains' context from the history, and the identifier that feeds it."""
+        c = self.config
         # Ours (model.history_context, with the skip path): the skip gains are computed from
         # the embedding plus a projection of the window's summary z, so that a policy without
         # its tag can still give each plant its own gains, inferred from the history.
         self.context: nn.Linear | None = None
         if c["history_context"] and self.skip is not None:
-            self.context = nn.Linear(2 * d, d)
-        # the slow LSTM sees samples ..., t - 2 tau, t - tau, t (always the newest one)
-        self.slow_start = (c["history"] - 1) % c["stride"]
+            self.context = nn.Linear((3 if c["control_history"] else 2) * d, d)
+        # Ours (model.control_history): an LSTM over the whole window, previous controls
+        # included, whose final state joins the context of the skip gains: it can identify
+        # the plant from how its state answers the controls, and acts only through the gains.
+        self.identifier: nn.LSTM | None = None
+        if c["control_history"]:
+            self.identifier = nn.LSTM(width + 1, d, batch_first=True)
 
     def features(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor) -> Tensor:
         """Per-step features ``f_k`` (B, history, 2 * hidden) of the encoders."""
-        x = state * mask  # the paper's X ⊙ M: padded entries never reach the network
+        x = (state * mask)[..., : state.shape[-1] - self.config["control_history"]]  # X ⊙ M
         f_tag = self.tag_encoder(self.tag_embedding(self.tag_index(tag)))  # same at every step
         return torch.cat(
             [
@@ -292,7 +318,8 @@ class GeneralistNetwork(nn.Module):
         Parameters
         ----------
         state, mask : Tensor, shape (B, history, width)
-            ``width`` = :func:`input_width`: ``state_dim``, plus the error integral.
+            ``width`` = :func:`input_width`: ``state_dim``, plus the error integral and
+            the previous control where switched on.
         ref : Tensor, shape (B, history)
         tag : Tensor of int, shape (B,)
 
@@ -312,6 +339,9 @@ class GeneralistNetwork(nn.Module):
         u_experts = torch.stack([expert(z_att) for expert in self.experts], dim=1)
         u = torch.einsum("bm,bmk->bk", gates, u_experts)
         if self.linear is not None or self.skip is not None:
+            if self.identifier is not None:
+                seq = torch.cat([state * mask, ref.unsqueeze(-1)], dim=-1)
+                z_att = torch.cat([z_att, self.identifier(seq)[1][0][-1]], dim=-1)
             u = u + self._linear_paths(state, mask, ref, tag, z_att)
         return u, gates
 
@@ -342,9 +372,14 @@ class GeneralistNetwork(nn.Module):
         return u
 
     def linear_features(self, state: Tensor, mask: Tensor, ref: Tensor) -> Tensor:
-        """What the linear head sees: the newest ``linear_samples`` of state and reference."""
+        """What the linear paths see: the newest ``linear_samples`` of state and reference.
+
+        Without the previous-control channel (``control_history``), which only the encoders
+        see.
+        """
         n = self.config["linear_samples"] or self.config["history"]
-        return torch.cat([(state * mask)[:, -n:].flatten(1), ref[:, -n:]], dim=1)
+        law = state.shape[-1] - self.config["control_history"]
+        return torch.cat([(state * mask)[:, -n:, :law].flatten(1), ref[:, -n:]], dim=1)
 
 
 def count_parameters(module: nn.Module) -> int:

@@ -9,7 +9,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from generalist_control.data.windows import Windows, history_windows, integral_of_error
+from generalist_control.data.windows import (
+    Windows,
+    history_windows,
+    integral_of_error,
+    previous_controls,
+)
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
@@ -40,7 +45,8 @@ def _mean_gates(policy: Policy, tr: Trajectory, p: Plant, tag: int, history: int
     z = None
     if policy.config.get("integral", 0):
         z = integral_of_error(tr.r, tr.y[:, :steps], p.dt)
-    state, mask, ref = history_windows(x, tr.r, order, history, z)
+    u_prev = previous_controls(tr.u) if policy.config.get("control_history", 0) else None
+    state, mask, ref = history_windows(x, tr.r, order, history, z, u_prev)
     B, N = tr.r.shape
     windows = Windows(
         state=np.ascontiguousarray(state).reshape(B * N, history, -1),

@@ -194,6 +194,7 @@ def _labelled_windows(
     horizon: int,
     takeover: str,
     integral: bool,
+    controls: bool = False,
 ) -> tuple[Windows, np.ndarray]:
     """One plant's rollout windows with the expert's plans as targets, and which to keep."""
     steps = tr.r.shape[1]
@@ -205,9 +206,9 @@ def _labelled_windows(
         z = bumpless_integrator(p, x, tr.u, tr.r)
     plans = expert_plans(p, x, z, tr.r, horizon)
     w = build_windows(
-        pad_states(np.nan_to_num(x)), tr.r, np.zeros_like(tr.r),
+        pad_states(np.nan_to_num(x)), tr.r, np.nan_to_num(tr.u),
         np.full(B, p.tag), np.full(B, p.order), history, horizon,
-        z if integral else None,
+        z if integral else None, controls,
     )  # fmt: skip
     per = steps - horizon + 1
     keep = ok[:, horizon - 1 :].reshape(-1)  # every sample up to the plan's end in range
@@ -226,6 +227,7 @@ def aggregate(
     horizon: int,
     takeover: str = "bumpless",
     integral: bool = False,
+    controls: bool = False,
 ) -> tuple[Windows, dict[str, int]]:
     """One DAgger round: rollouts of the mixed controller, labelled by the experts.
 
@@ -237,8 +239,11 @@ def aggregate(
     ``takeover`` is the integrator the expert takes over with: ``"bumpless"`` sets it so
     that the expert's law reproduces the control applied one sample earlier
     (:func:`bumpless_integrator`), ``"tracked"`` uses the integral of ``r - y`` along the
-    rollout. With ``integral`` the windows carry that integral as their last state channel
-    (a policy trained with ``model.integral``), which requires ``"tracked"``.
+    rollout. With ``integral`` the windows carry that integral as a state channel
+    (a policy trained with ``model.integral``), which requires ``"tracked"``. With
+    ``controls`` they carry the control executed one sample earlier (``model.control_history``);
+    in a mixed round the policy's runtime sees its own command there instead, the executed
+    one being a blend it does not know (exact once ``beta`` is zero, as in deployment).
 
     Returns
     -------
@@ -260,7 +265,7 @@ def aggregate(
     counts: dict[str, int] = {}
     for p, tr, rows in zip(plants, trajs, row_slices([len(r.r) for r in runs]), strict=True):
         w, keep = _labelled_windows(
-            p, tr, z_all[rows], bounds[p.name], history, horizon, takeover, integral
+            p, tr, z_all[rows], bounds[p.name], history, horizon, takeover, integral, controls
         )
         parts.append((w, keep))
         counts[p.name] = counts.get(p.name, 0) + int(keep.sum())  # variants share a name

@@ -134,7 +134,7 @@ class DAggerCallback(L.Callback):
         with torch.inference_mode():
             windows, counts = aggregate(
                 self.plants, runtime, beta, amps, self._bounds(dm.train_set), steps,
-                dm.history, dm.horizon, takeover, integral,
+                dm.history, dm.horizon, takeover, integral, runtime.controls,
             )  # fmt: skip
         policy.train(was_training)
         dm.train_set.append(windows)

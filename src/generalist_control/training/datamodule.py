@@ -136,8 +136,11 @@ class DemoDataModule(L.LightningDataModule):
     seed : int
         Seeds the split and the per-epoch shuffling.
     integral : bool
-        Windows carry the tracking-error integral as the last state channel
+        Windows carry the tracking-error integral as a state channel
         (``model.integral``; see :func:`~generalist_control.windows.integral_of_error`).
+    controls : bool
+        Windows carry the control one sample earlier as the last channel
+        (``model.control_history``).
     plants : sequence of str, optional
         Train and validate on these plants only (``systems.include``); None or empty: all
         the dataset holds. The split is made over the whole dataset first, so a plant kept
@@ -170,10 +173,11 @@ class DemoDataModule(L.LightningDataModule):
         seed: int = 0,
         integral: bool = False,
         plants: Sequence[str] | None = None,
+        controls: bool = False,
     ) -> None:
         super().__init__()
         self.data_dir = Path(data_dir)
-        self.integral = bool(integral)
+        self.integral, self.controls = bool(integral), bool(controls)
         self.history = require_int("data.history", history)
         self.horizon = require_int("data.horizon", horizon)
         self.val_fraction = require_fraction("loader.val_fraction", val_fraction)
@@ -202,7 +206,7 @@ class DemoDataModule(L.LightningDataModule):
             return
         demos, self.manifest = load_demos(self.data_dir)
         kept_traj = self._kept(demos.plant)
-        windows = demos.windows(self.history, self.horizon, self.integral)
+        windows = demos.windows(self.history, self.horizon, self.integral, self.controls)
         is_val = split_by_trajectory(demos.plant, self.val_fraction, self.seed)[windows.traj]
         kept = kept_traj[windows.traj]
         self.train_set = WindowTensors(windows, kept & ~is_val)

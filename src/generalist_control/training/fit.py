@@ -32,7 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.secrets import redact
-from generalist_control.deploy.runtime import integral_facts
+from generalist_control.deploy.facts import integral_facts
 from generalist_control.model.network import count_parameters
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy, save_policy
 from generalist_control.tracking import training_run
@@ -68,6 +68,7 @@ def _data(cfg: DictConfig) -> tuple[DemoDataModule, dict[str, Any]]:
         seed=int(cfg.seed or 0),
         integral=bool(cfg.model.get("integral", False)),
         plants=included_plants(cfg),
+        controls=bool(cfg.model.get("control_history", False)),
         **cfg.loader,
     )
     dm.setup("fit")
