@@ -126,22 +126,19 @@ def test_experiment_tag_free_withholds_the_tag_everywhere():
     assert model_config(compose_cfg())["unknown_tag"] == 0
 
 
-@pytest.mark.slow
-def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
-    tiny_data_dir, tmp_path, mlflow_uri
-):
-    out = tmp_path / "tf"
-    switch = ("experiment=tag_free", "model.tag_free=false", "model.tag_dropout=0.5")
-    cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, out, mlflow_uri, *switch))
-    _, objects = train(cfg)
-    policy, _ = load_policy(objects["policy_path"])
-    assert policy.config["unknown_tag"] == 1 and policy.config["control_history"] == 1
+def _evaluate_both_ways(data_dir, tmp_path, uri, switch, policy_path) -> dict:
+    """The step scenario on cstr and hydraulic_actuator with the tag withheld and given.
+
+    Returns each way's ``metrics.csv``; the withheld run also writes the bar to
+    ``tmp_path / "bar"``.
+    """
     frames = {}
     for withhold in (True, False):
+        reports = tmp_path / f"reports_{withhold}"
         ecfg = compose_cfg(
-            *tiny_train_overrides(tiny_data_dir, out, mlflow_uri, *switch),
-            f"policy={objects['policy_path']}",
-            f"paths.reports_dir={tmp_path / f'reports_{withhold}'}",
+            *tiny_train_overrides(data_dir, tmp_path / "tf", uri, *switch),
+            f"policy={policy_path}",
+            f"paths.reports_dir={reports}",
             f"evaluation.withhold_tag={str(withhold).lower()}",
             f"evaluation.tag_free_report={tmp_path / 'bar' if withhold else 'null'}",
             "evaluation.plots=false",
@@ -153,15 +150,30 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
             )
             ecfg.evaluation.crazyflie = None
         evaluate_run(ecfg)
-        frames[withhold] = pd.read_csv(tmp_path / f"reports_{withhold}" / "metrics.csv")
-    gc = {
-        w: f[(f.controller == "GC") & (f.metric == "ISE")].value.to_numpy()
+        frames[withhold] = pd.read_csv(reports / "metrics.csv")
+    return frames
+
+
+def _ise(frames: dict, controller: str) -> dict:
+    return {
+        w: f[(f.controller == controller) & (f.metric == "ISE")].value.to_numpy()
         for w, f in frames.items()
     }
-    lqi = {
-        w: f[(f.controller == "LQI") & (f.metric == "ISE")].value.to_numpy()
-        for w, f in frames.items()
-    }
+
+
+@pytest.mark.slow
+def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
+    tiny_data_dir, tmp_path, mlflow_uri
+):
+    switch = ("experiment=tag_free", "model.tag_free=false", "model.tag_dropout=0.5")
+    cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, tmp_path / "tf", mlflow_uri, *switch))
+    _, objects = train(cfg)
+    policy, _ = load_policy(objects["policy_path"])
+    assert policy.config["unknown_tag"] == 1 and policy.config["control_history"] == 1
+    frames = _evaluate_both_ways(
+        tiny_data_dir, tmp_path, mlflow_uri, switch, objects["policy_path"]
+    )
+    gc, lqi = _ise(frames, "GC"), _ise(frames, "LQI")
     assert (lqi[True] == lqi[False]).all()  # the experts do not depend on the policy's tag
     assert (gc[True] != gc[False]).any()  # the policy does: the tag was really withheld
     bar = json.loads((tmp_path / "bar" / "bar.json").read_text())
@@ -177,35 +189,19 @@ def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
     tiny_data_dir, tmp_path, mlflow_uri
 ):
     """experiment=tag_free end to end: DAgger after the first epoch, then evaluation."""
-    out = tmp_path / "pure"
-    cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, out, mlflow_uri, "experiment=tag_free"))
+    switch = ("experiment=tag_free",)
+    cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, tmp_path / "tf", mlflow_uri, *switch))
     _, objects = train(cfg)
     policy, _ = load_policy(objects["policy_path"])
     assert policy.config["tag_free"] == policy.config["control_history"] == 1
     assert policy.net.identifier is not None and policy.net.state_encoder_1[0].in_features == 5
     (cb,) = [c for c in objects["trainer"].callbacks if type(c).__name__ == "DAggerCallback"]
     assert cb.done == 1 and cb.history[0]["windows"] > 0  # a round after the first epoch
-    ise = {}
-    for withhold in (True, False):
-        reports = tmp_path / f"reports_{withhold}"
-        ecfg = compose_cfg(
-            *tiny_train_overrides(tiny_data_dir, out, mlflow_uri, "experiment=tag_free"),
-            f"policy={objects['policy_path']}",
-            f"paths.reports_dir={reports}",
-            f"evaluation.withhold_tag={str(withhold).lower()}",
-            f"evaluation.tag_free_report={tmp_path / 'bar' if withhold else 'null'}",
-            "evaluation.plots=false",
-            "systems.include=[cstr,hydraulic_actuator]",
-        )
-        with open_dict(ecfg):
-            ecfg.evaluation.scenarios = OmegaConf.create(
-                {"step": {"kind": "step", "amplitude": 1.0, "duration": 5.0}}
-            )
-            ecfg.evaluation.crazyflie = None
-        evaluate_run(ecfg)
-        f = pd.read_csv(reports / "metrics.csv")
-        ise[withhold] = f[(f.controller == "GC") & (f.metric == "ISE")].value.to_numpy()
-    assert len(ise[True]) == 2 and (ise[True] == ise[False]).all()  # the tag changes nothing
+    frames = _evaluate_both_ways(
+        tiny_data_dir, tmp_path, mlflow_uri, switch, objects["policy_path"]
+    )
+    gc = _ise(frames, "GC")
+    assert len(gc[True]) == 2 and (gc[True] == gc[False]).all()  # the tag changes nothing
     assert json.loads((tmp_path / "bar" / "bar.json").read_text())["step_ise_ratio"]
 
 
