@@ -185,8 +185,9 @@ class PolicyRuntime:
         n, L = self.policy.normaliser, self.input_limit
         scales = (n.state_scale, n.ref_scale, n.control_scale)
         sx, sr, su = (s.detach().cpu().double().numpy()[self._tag] for s in scales)
-        sz = sx[:, MAX_ORDER] if self.integral else np.ones(len(sx))  # its channel, if any
-        self._lim = {"state": L * sx[:, :MAX_ORDER], "error integral": L * sz}
+        self._lim = {"state": L * sx[:, :MAX_ORDER]}
+        if self.integral:
+            self._lim["error integral"] = L * sx[:, MAX_ORDER]
         self._lim["reference"] = self._lim["output"] = L * sr  # y is measured in r's units
         self._lim["network output"] = L * su[:, None]
 

@@ -1,9 +1,11 @@
 """Why a policy without its tag can miss a plant: how soon the history tells plants apart.
 
 Without the tag, the policy's only clue to the plant is its window (history of the
-normalised, window-scaled state, integral and reference; the mask gives the order). For a
-unit step from rest every plant's window starts alike: the state at rest, the reference at
-one and the error integral ramping at the same rate, so the first controls must be guessed.
+normalised, window-scaled state, integral, previous control where the policy has it, and
+reference; the mask gives the order). For a unit step from rest every plant's window starts
+alike: the state at rest, the reference at one, the error integral ramping at the same rate
+and the first previous control zero, so the first controls must be guessed. In this replay
+the previous-control channel holds the expert's own controls.
 This module measures, on the LQI experts' own unit-step responses and through the policy's
 own preprocessing (:meth:`~generalist_control.model.policy.Policy.network_inputs`):
 

@@ -298,7 +298,7 @@ class GeneralistNetwork(nn.Module):
 
     def features(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor) -> Tensor:
         """Per-step features ``f_k`` (B, history, 2 * hidden) of the encoders."""
-        x = (state * mask)[..., : state.shape[-1] - self.config["control_history"]]  # X ⊙ M
+        x = self.law_state(state, mask)
         f_tag = self.tag_encoder(self.tag_embedding(self.tag_index(tag)))  # same at every step
         return torch.cat(
             [
@@ -374,12 +374,15 @@ class GeneralistNetwork(nn.Module):
     def linear_features(self, state: Tensor, mask: Tensor, ref: Tensor) -> Tensor:
         """What the linear paths see: the newest ``linear_samples`` of state and reference.
 
-        Without the previous-control channel (``control_history``), which only the encoders
-        see.
+        Without the previous-control channel (``control_history``), which only the
+        identifier sees.
         """
         n = self.config["linear_samples"] or self.config["history"]
-        law = state.shape[-1] - self.config["control_history"]
-        return torch.cat([(state * mask)[:, -n:, :law].flatten(1), ref[:, -n:]], dim=1)
+        return torch.cat([self.law_state(state, mask)[:, -n:].flatten(1), ref[:, -n:]], dim=1)
+
+    def law_state(self, state: Tensor, mask: Tensor) -> Tensor:
+        """The paper's ``X ⊙ M`` without the previous-control channel: ``[x; z]`` per step."""
+        return (state * mask)[..., : state.shape[-1] - self.config["control_history"]]
 
 
 def count_parameters(module: nn.Module) -> int:
