@@ -79,6 +79,62 @@ def test_rounds_for_a_control_history_policy_carry_the_executed_controls():
     assert np.abs(executed).max() > 0.1
 
 
+def test_per_plant_expert_share_blends_each_plant_with_its_own_beta():
+    """``betas`` gives one plant its own share: 1 there is the expert, 0.5 elsewhere a blend."""
+    from generalist_control.simulation.simulate import Run, simulate_many
+    from generalist_control.training.dagger import MixedController
+
+    a, b = load_plant("dc_servo"), load_plant("unstable")
+    torch.manual_seed(0)
+    policy = Policy({"hidden": 8, "experts": 1}).eval()
+    meta = {"tags": {p.name: p.tag for p in (a, b)}, "orders": {p.name: p.order for p in (a, b)},
+            "dt": a.dt, "history": 8, "horizon": 3}  # fmt: skip
+    refs = np.repeat(np.array([[1.0], [-2.0]]), 30, axis=1)
+    runs = [Run(a, refs), Run(b, refs)]
+
+    def executed(beta, betas=None):
+        ctrl = MixedController(PolicyRuntime(policy, meta), beta, betas)
+        return [t.u for t in simulate_many(runs, ctrl)]
+
+    u_a, u_b = executed(0.5, {a.name: 1.0})
+    expert_a = simulate(a, LQIController(a), refs).u
+    np.testing.assert_allclose(u_a, expert_a, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(u_b, executed(0.5)[1], rtol=1e-12, atol=1e-12)
+    assert np.abs(u_a - executed(0.5)[0]).max() > 1e-3  # the override changed plant a only
+    with pytest.raises(ValueError, match="beta must be 1"):
+        MixedController(None, 1.0, {a.name: 0.5})
+
+
+def _focus_callback(**kw):
+    from generalist_control.training.dagger_callback import DAggerCallback
+
+    plants = [load_plant("dc_servo"), load_plant("unstable")]
+    return DAggerCallback(plants, rollouts=4, families=None, **kw)
+
+
+def test_focus_adds_rollouts_and_expert_share_to_the_plants_still_lost():
+    """A plant scored s gets round(focus s rollouts) more steps; the off switch changes nothing."""
+    from types import SimpleNamespace
+
+    metrics = {"val/closed_loop/unstable": torch.tensor(0.75),
+               "val/closed_loop/dc_servo": torch.tensor(float("nan"))}  # fmt: skip
+    trainer = SimpleNamespace(callback_metrics=metrics)
+    off, on = _focus_callback(), _focus_callback(focus=2.0, focus_beta=0.5)
+    assert off._lost(trainer) == {}
+    lost = on._lost(trainer)
+    assert lost == {"unstable": 0.75}  # a NaN score counts as no score
+    base, focused = off._rollouts(50), on._rollouts(50, lost)
+    assert len(base["unstable"][0]) == 4 and len(focused["unstable"][0]) == 4 + 6
+    assert len(focused["dc_servo"][0]) == 4
+    np.testing.assert_array_equal(base["dc_servo"][0], focused["dc_servo"][0])  # drawn first
+    np.testing.assert_array_equal(base["unstable"][0], off._rollouts(50, lost)["unstable"][0])
+    metrics["val/closed_loop/unstable"] = torch.tensor(3.0)  # clipped to 1
+    assert on._lost(trainer) == {"unstable": 1.0}
+    for bad in ({"focus": -1.0}, {"focus_beta": 1.5}):
+        with pytest.raises(ValueError, match="dagger.focus"):
+            _focus_callback(**bad)
+
+
 def test_expert_plan_first_control_is_the_lqi_law_at_any_state():
     plant = load_plant("unstable")
     g = design_lqi(plant)

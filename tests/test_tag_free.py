@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pandas as pd
 import pytest
 import torch
@@ -202,7 +203,11 @@ def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
     )
     gc = _ise(frames, "GC")
     assert len(gc[True]) == 2 and (gc[True] == gc[False]).all()  # the tag changes nothing
-    assert json.loads((tmp_path / "bar" / "bar.json").read_text())["step_ise_ratio"]
+    bar = json.loads((tmp_path / "bar" / "bar.json").read_text())
+    assert bar["step_ise_ratio"]
+    left = pd.read_csv(tmp_path / "bar" / "departures.csv")
+    diverged = frames[True].query("controller == 'GC' and metric == 'diverged' and value > 0")
+    assert len(left) == len(diverged) == bar["departures"]["runs"]  # one row per diverged run
 
 
 def test_withholding_from_a_tagged_policy_is_refused_with_the_fix(tmp_path):
@@ -253,3 +258,59 @@ def test_separation_finds_a_twin_and_parts_plants_of_another_order_at_once():
     assert table.loc["cstr", "input_gap"] == 0 and table.loc["cstr", "control_gap"] == 0
     assert table.loc["cstr", "separation_time"] == float("inf")
     assert table.loc["hydraulic_actuator", "separation_time"] == pytest.approx(cstr.dt)
+
+
+def _traj(y, r, diverged):
+    from generalist_control.simulation.simulate import Trajectory
+
+    y, r = np.atleast_2d(y), np.atleast_2d(r)
+    t = np.arange(r.shape[1] + 1) * 0.05
+    x = y[..., None]
+    return Trajectory(t=t, x=x, u=np.zeros_like(r), r=r, y=y, diverged=np.asarray(diverged))
+
+
+def test_departures_place_each_diverged_run_on_its_reference_level_by_hand():
+    """Level changes at samples 20 and 40; GC leaves at 46 (level 2) or at 6 (level 0)."""
+    from generalist_control.evaluation.departures import COLUMNS, departure_summary
+    from generalist_control.evaluation.departures import departure_table as table
+
+    r = np.repeat([1.0, 3.0, 5.0], 20)
+    lqi_y = np.append(r - 1.0, r[-1] - 1.0)  # the expert's tracking error: 1 throughout
+    late, early, fine = lqi_y.copy(), lqi_y.copy(), lqi_y.copy()
+    late[47:] = 1e7
+    late[46] = 5.0 + 3.5  # error 3.5 > 3 x 1 first at sample 46 (level 2, 6 samples in)
+    early[6:] = np.nan  # a non-finite output counts
+    sine = np.sin(np.arange(60) * 0.3)
+    sine_lqi = np.append(sine - 0.1, 0.0)
+    sine_gc = sine_lqi.copy()
+    sine_gc[30:] = 50.0
+    trajs = {
+        "staircase": {
+            "GC": {"p": _traj(np.stack([late, early, fine]), np.stack([r] * 3), [1, 1, 0])},
+            "LQI": {"p": _traj(np.stack([lqi_y] * 3), np.stack([r] * 3), [0, 0, 0])},
+        },
+        "sine": {
+            "GC": {"q": _traj(sine_gc, sine, [1])},
+            "LQI": {"q": _traj(sine_lqi, sine, [0])},
+        },
+        "step": {"GC": {"p": _traj(lqi_y, r, [1])}},  # no LQI runs: left out
+    }
+    got = table(trajs)
+    assert list(got.columns) == COLUMNS
+    rows = {(s, run): row for _, s, run, *row in got.itertuples(index=False, name=None)}
+    assert set(rows) == {("staircase", 0), ("staircase", 1), ("sine", 0)}
+    np.testing.assert_allclose(rows["staircase", 0][:3], [46 * 0.05, 2, 6 * 0.05])
+    np.testing.assert_allclose(rows["staircase", 1][:3], [6 * 0.05, 0, 6 * 0.05])
+    assert rows["sine", 0][0] == pytest.approx(30 * 0.05)
+    assert np.isnan(rows["sine", 0][1]) and np.isnan(rows["sine", 0][2])
+    assert departure_summary(got) == {
+        "runs": 3,
+        "on_first_level": 1,
+        "after_a_later_change": 1,
+        "continuous_reference": 1,
+        "median_t_leave_s": pytest.approx(30 * 0.05),
+    }
+    # a looser factor lets the error of 3.5 pass: the late run leaves one sample later
+    assert table(trajs, factor=4.0).set_index(["scenario", "run"]).loc[
+        ("staircase", 0), "t_leave"
+    ] == pytest.approx(47 * 0.05)

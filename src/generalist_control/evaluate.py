@@ -82,7 +82,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     bar = as_dict(cfg.evaluation.get("quality_bar") or {})
     summary = write_reports(df, trajs, out_dir, plots, bar)
     if tag_free_dir:
-        verdict = write_tag_free_report(df, runtime.policy, plants, tag_free_dir)
+        verdict = write_tag_free_report(
+            df, runtime.policy, plants, tag_free_dir, trajectories=trajs
+        )
         log.info("tag-free bar written to %s: met=%s", tag_free_dir, verdict["met"])
     extra = {"tag_free_bar": Path(tag_free_dir)} if tag_free_dir else None
     log_to_mlflow(cfg, runtime.meta, summary, out_dir, extra)

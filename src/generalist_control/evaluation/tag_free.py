@@ -8,13 +8,15 @@ From the long-form metrics of an evaluation run with the tag withheld
   (20) of the plants;
 
 and, for the plants that miss, :func:`write_tag_free_report` adds how soon the history tells
-each plant apart (:func:`~generalist_control.evaluation.separation.separation_table`) and a
-figure of the first samples the network sees for the plant and its nearest neighbour.
+each plant apart (:func:`~generalist_control.evaluation.separation.separation_table`), a
+figure of the first samples the network sees for the plant and its nearest neighbour, and,
+given the evaluation's trajectories, when each diverged run left its expert
+(:func:`~generalist_control.evaluation.departures.departure_table`, ``departures.csv``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -31,12 +33,17 @@ from generalist_control.common.atomic import (  # noqa: E402
     staging_directory,
 )
 from generalist_control.common.jsonsafe import write_json  # noqa: E402
+from generalist_control.evaluation.departures import (  # noqa: E402
+    departure_summary,
+    departure_table,
+)
 from generalist_control.evaluation.separation import (  # noqa: E402
     network_views,
     separation_table,
 )
 from generalist_control.model.policy import Policy  # noqa: E402
 from generalist_control.plants.plant import Plant  # noqa: E402
+from generalist_control.simulation.simulate import Trajectory  # noqa: E402
 
 __all__ = ["OWNED", "check_tag_free_dir", "tag_free_bar", "write_tag_free_report"]
 
@@ -44,6 +51,7 @@ __all__ = ["OWNED", "check_tag_free_dir", "tag_free_bar", "write_tag_free_report
 OWNED: dict[str, str | None] = {
     "bar.json": None,
     "separation.csv": None,
+    "departures.csv": None,
     "plots": "*.png",
 }
 
@@ -127,10 +135,13 @@ def write_tag_free_report(
     plants: Sequence[Plant],
     out_dir: str | Path,
     bar: dict[str, Any] | None = None,
+    trajectories: Mapping[str, Mapping[str, Mapping[str, Trajectory]]] | None = None,
 ) -> dict[str, Any]:
     """Write ``bar.json``, ``separation.csv`` and ``plots/`` to ``out_dir``; return the bar.
 
-    ``bar`` overrides ``ise_ratio`` and ``min_plants`` of :func:`tag_free_bar`.
+    ``bar`` overrides ``ise_ratio`` and ``min_plants`` of :func:`tag_free_bar`. With the
+    evaluation's ``trajectories`` it also writes ``departures.csv`` (when each diverged GC
+    run left its expert) and its counts as ``departures`` in the bar.
     """
     check_tag_free_dir(out_dir)
     verdict = tag_free_bar(df, **(bar or {}))
@@ -141,8 +152,13 @@ def write_tag_free_report(
     missing = table[table.system.isin(verdict["missing"])]
     verdict["why_missed"] = missing.to_dict(orient="records")
     pairs = list(zip(missing.system, missing.nearest, strict=True))
+    left = departure_table(trajectories) if trajectories is not None else None
+    if left is not None:
+        verdict["departures"] = departure_summary(left)
     with staging_directory(out_dir) as staging:
         table.to_csv(staging / "separation.csv", index=False)
+        if left is not None:
+            left.to_csv(staging / "departures.csv", index=False)
         write_json(staging / "bar.json", verdict, sort_keys=True)
         (staging / "plots").mkdir()
         _figure(views, plants, pairs, staging / "plots" / "tag_free_missed.png")

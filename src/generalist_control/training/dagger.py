@@ -56,13 +56,21 @@ __all__ = [
 class MixedController:
     """Executes ``beta * LQI + (1 - beta) * policy``; records the experts' integrators.
 
+    ``betas`` overrides ``beta`` for the plants it names (variants share their plant's name).
+
     A :class:`~generalist_control.simulation.simulate.BatchController` for
     :func:`~generalist_control.simulation.simulate.simulate_many`. After a run, :attr:`z` holds the
     expert integrator *before* each sample's control, shape (rows, N).
     """
 
-    def __init__(self, runtime: PolicyRuntime | None, beta: float) -> None:
-        if runtime is None and beta != 1.0:
+    def __init__(
+        self,
+        runtime: PolicyRuntime | None,
+        beta: float,
+        betas: Mapping[str, float] | None = None,
+    ) -> None:
+        self.betas = {k: float(v) for k, v in (betas or {}).items()}
+        if runtime is None and any(b != 1.0 for b in (beta, *self.betas.values())):
             raise ValueError("without a policy runtime, beta must be 1 (pure expert)")
         self.runtime, self.beta = runtime, float(beta)
 
@@ -73,8 +81,14 @@ class MixedController:
             ctrl = LQIController(plant)
             ctrl.reset(count)
             self._parts.append((ctrl, plant.order, rows))
+        self._beta = np.concatenate(
+            [
+                np.full(c, self.betas.get(p.name, self.beta))
+                for p, c in zip(plants, counts, strict=True)
+            ]
+        )
         self._policy = None
-        if self.runtime is not None and self.beta < 1.0:
+        if self.runtime is not None and bool(np.any(self._beta < 1.0)):
             self._policy = RuntimeAdapter(self.runtime)
             self._policy.reset(plants, counts)
         self._z: list[np.ndarray] = []
@@ -90,7 +104,7 @@ class MixedController:
             return u_e
         u_p = self._policy.step(x, r)  # NaN: a run the runtime refused (outside its range)
         u_p = np.where(np.isnan(u_p), u_e, u_p)  # the expert takes that run over
-        return self.beta * u_e + (1.0 - self.beta) * u_p
+        return self._beta * u_e + (1.0 - self._beta) * u_p
 
     @property
     def z(self) -> np.ndarray:
@@ -228,6 +242,7 @@ def aggregate(
     takeover: str = "bumpless",
     integral: bool = False,
     controls: bool = False,
+    betas: Mapping[str, float] | None = None,
 ) -> tuple[Windows, dict[str, int]]:
     """One DAgger round: rollouts of the mixed controller, labelled by the experts.
 
@@ -240,10 +255,11 @@ def aggregate(
     that the expert's law reproduces the control applied one sample earlier
     (:func:`bumpless_integrator`), ``"tracked"`` uses the integral of ``r - y`` along the
     rollout. With ``integral`` the windows carry that integral as a state channel
-    (a policy trained with ``model.integral``), which requires ``"tracked"``. With
-    ``controls`` they carry the control executed one sample earlier (``model.control_history``);
-    in a mixed round the policy's runtime sees its own command there instead, the executed
-    one being a blend it does not know (exact once ``beta`` is zero, as in deployment).
+    (``model.integral``), which requires ``"tracked"``. With ``controls`` they carry the
+    control executed one sample earlier (``model.control_history``); in a mixed round the
+    policy's runtime sees its own command there instead, the executed one being a blend it
+    does not know (exact once ``beta`` is zero, as in deployment); ``betas`` gives some
+    plants (by name) an expert share of their own.
 
     Returns
     -------
@@ -258,8 +274,7 @@ def aggregate(
             "use dagger.takeover=tracked (or auto)"
         )
     runs = [Run(p, *_references(amplitudes[p.name], steps)) for p in plants]
-    ctrl = MixedController(runtime, beta)
-    trajs = simulate_many(runs, ctrl)
+    trajs = simulate_many(runs, ctrl := MixedController(runtime, beta, betas))
     z_all = ctrl.z
     parts: list[tuple[Windows, np.ndarray]] = []
     counts: dict[str, int] = {}
@@ -269,10 +284,6 @@ def aggregate(
         )
         parts.append((w, keep))
         counts[p.name] = counts.get(p.name, 0) + int(keep.sum())  # variants share a name
-    windows = Windows(
-        **{
-            k: np.concatenate([getattr(w, k)[keep] for w, keep in parts])
-            for k in ("state", "mask", "ref", "tag", "target", "traj")
-        }
-    )
-    return windows, counts
+    fields = ("state", "mask", "ref", "tag", "target", "traj")
+    cat = {k: np.concatenate([getattr(w, k)[keep] for w, keep in parts]) for k in fields}
+    return Windows(**cat), counts

@@ -52,6 +52,14 @@ class DAggerCallback(L.Callback):
         seed of its own (:func:`~generalist_control.simulation.references.family_references`),
         from the family's random initial states.
     family_count : int
+    focus, focus_beta : float
+        Lost-plant focus (0: off). A plant whose latest closed-loop validation score
+        (``val/closed_loop/<plant>``, 0 for matching its expert, 1 for diverging or holding
+        still; :class:`~generalist_control.training.callbacks.ClosedLoopValidation`) is ``s``
+        gets ``round(focus * s * rollouts)`` more step rollouts in the round, and an expert
+        share of at least ``focus_beta * s`` in them, so a plant the policy still loses is
+        rolled out more often and stays in range longer while the expert steers it. Needs the
+        closed-loop validation; a plant without a score counts as ``s = 0``.
     """
 
     def __init__(
@@ -70,6 +78,8 @@ class DAggerCallback(L.Callback):
         seed: int = 0,
         families: Mapping[str, Mapping[str, Any]] | None = None,
         family_count: int = 2,
+        focus: float = 0.0,
+        focus_beta: float = 0.0,
     ) -> None:
         self.plants = list(plants)
         self.limit, self.start_epoch, self.every = float(limit), int(start_epoch), int(every)
@@ -83,15 +93,28 @@ class DAggerCallback(L.Callback):
         self.takeover = takeover
         self.families = {k: dict(v) for k, v in (families or {}).items()}
         self.family_count = int(family_count)
+        self.focus, self.focus_beta = float(focus), float(focus_beta)
+        if self.focus < 0 or not 0 <= self.focus_beta <= 1:
+            raise ValueError(
+                f"dagger.focus must be >= 0 and dagger.focus_beta in [0, 1], "
+                f"got {focus!r} and {focus_beta!r}"
+            )
         self.done = 0
         self.history: list[dict[str, Any]] = []
 
-    def _rollouts(self, steps: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Per plant, the round's rollouts: references and initial states (steps, families)."""
+    def _rollouts(
+        self, steps: int, lost: Mapping[str, float] | None = None
+    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Per plant, the round's rollouts: references and initial states (steps, families).
+
+        ``lost`` (plant name -> closed-loop score in [0, 1]) adds the focus's step rollouts.
+        """
         rng = np.random.default_rng(self.seed + self.done)
+        lost = lost or {}
         out = {}
         for p in self.plants:
-            amps = rng.uniform(-self.limit, self.limit, self.rollouts) * p.amplitude_scale
+            count = self.rollouts + int(round(self.focus * lost.get(p.name, 0.0) * self.rollouts))
+            amps = rng.uniform(-self.limit, self.limit, count) * p.amplitude_scale
             rs, x0s = [np.repeat(amps[:, None], steps, axis=1)], [np.zeros((len(amps), p.order))]
             for i, spec in enumerate(self.families.values()):
                 seed = int(spec.get("seed", 0)) + 7919 * (self.done + 1) + 31 * i + self.seed
@@ -100,6 +123,18 @@ class DAggerCallback(L.Callback):
                 rs.append(r)
                 x0s.append(x0)
             out[p.name] = (np.concatenate(rs), np.concatenate(x0s))
+        return out
+
+    def _lost(self, trainer: L.Trainer) -> dict[str, float]:
+        """Each plant's latest closed-loop validation score, clipped to [0, 1] (focus only)."""
+        if self.focus == 0 and self.focus_beta == 0:
+            return {}
+        metrics = trainer.callback_metrics
+        out = {}
+        for name in {p.name for p in self.plants}:
+            v = metrics.get(f"val/closed_loop/{name}")
+            if v is not None and np.isfinite(float(v)):
+                out[name] = float(np.clip(float(v), 0.0, 1.0))
         return out
 
     def _due(self, epochs_done: int) -> bool:
@@ -122,8 +157,10 @@ class DAggerCallback(L.Callback):
             return
         dm = cast(Any, trainer).datamodule
         steps = int(round(self.duration / self.plants[0].dt))
-        amps = self._rollouts(steps)
+        lost = self._lost(trainer)
+        amps = self._rollouts(steps, lost)
         beta = self.beta * self.beta_decay**self.done
+        betas = {k: max(beta, self.focus_beta * s) for k, s in lost.items() if s > 0}
         policy = cast(Policy, pl_module.policy)
         was_training = policy.training
         runtime = PolicyRuntime(policy, dm.meta())
@@ -134,7 +171,7 @@ class DAggerCallback(L.Callback):
         with torch.inference_mode():
             windows, counts = aggregate(
                 self.plants, runtime, beta, amps, self._bounds(dm.train_set), steps,
-                dm.history, dm.horizon, takeover, integral, runtime.controls,
+                dm.history, dm.horizon, takeover, integral, runtime.controls, betas,
             )  # fmt: skip
         policy.train(was_training)
         dm.train_set.append(windows)
@@ -147,5 +184,7 @@ class DAggerCallback(L.Callback):
         record = {"round": self.done, "beta": beta, "windows": len(windows), **counts}
         self.history.append(record)
         log.info("DAgger round %d (beta %.3g): %d windows added", self.done, beta, len(windows))
+        if betas:
+            log.info("DAgger focus on %s", {k: round(v, 3) for k, v in sorted(betas.items())})
         for key in ("windows", "beta"):
             pl_module.log(f"dagger/{key}", float(record[key]), logger=False)
