@@ -310,6 +310,11 @@ def test_departures_place_each_diverged_run_on_its_reference_level_by_hand():
         "continuous_reference": 1,
         "median_t_leave_s": pytest.approx(30 * 0.05),
     }
+    # a run lost through another state: its output stays within 3x, its state freezes at 30
+    stuck = lqi_y + 0.001 * np.arange(61)
+    stuck[30:] = stuck[30]
+    other = {"staircase": {"GC": {"p": _traj(stuck, r, [1])}, "LQI": {"p": _traj(lqi_y, r, [0])}}}
+    np.testing.assert_allclose(table(other).iloc[0, 3:], [30 * 0.05, 1, 10 * 0.05])
     # a looser factor lets the error of 3.5 pass: the late run leaves one sample later
     assert table(trajs, factor=4.0).set_index(["scenario", "run"]).loc[
         ("staircase", 0), "t_leave"

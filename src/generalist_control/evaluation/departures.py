@@ -6,6 +6,7 @@ forgets, they leave after a later change of the reference, from a quiet state.
 :func:`departure_table` tells the two apart on the evaluation's own trajectories: for every
 diverged GC run, the first sample at which the GC tracking error exceeds ``factor`` times
 the largest tracking error of the LQI expert on the same run (a non-finite output counts),
+or, if the output never does, the sample at which the run diverged through another state,
 and, for a piecewise-constant reference, how many level changes came before it and how long
 after the last one it left.
 """
@@ -34,12 +35,18 @@ def _leave(gc: np.ndarray, lqi: np.ndarray, r: np.ndarray, factor: float) -> int
     return int(np.argmax(bad)) if bad.any() else len(err) - 1
 
 
+def _diverged_at(x: np.ndarray) -> int:
+    """Sample a diverged run stopped at: the simulator freezes its state from there on."""
+    moved = np.flatnonzero(np.any(x[1:] != x[:-1], axis=1))
+    return int(moved[-1]) + 1 if len(moved) else 0
+
+
 def _row(
     system: str, scenario: str, run: int, gc: Trajectory, lqi: Trajectory, factor: float
 ) -> list:
     """One diverged run's departure (see :func:`departure_table`)."""
     r = gc.r[run]
-    k = _leave(gc.y[run, :-1], lqi.y[run, :-1], r, factor)
+    k = min(_leave(gc.y[run, :-1], lqi.y[run, :-1], r, factor), _diverged_at(gc.x[run]))
     dt = float(gc.t[1] - gc.t[0])
     changes = np.flatnonzero(np.diff(r) != 0) + 1
     if len(changes) > CONTINUOUS_SHARE * len(r):
@@ -64,7 +71,8 @@ def departure_table(
         share the GC runs' references and initial states).
     factor : float
         A run has left its expert where its tracking error first exceeds ``factor`` times
-        the expert's largest tracking error on the same run.
+        the expert's largest tracking error on the same run, or where it diverged if that
+        comes first (a state other than the output can leave first).
     controller : str
 
     Returns

@@ -160,7 +160,7 @@ class DAggerCallback(L.Callback):
         lost = self._lost(trainer)
         amps = self._rollouts(steps, lost)
         beta = self.beta * self.beta_decay**self.done
-        betas = {k: max(beta, self.focus_beta * s) for k, s in lost.items() if s > 0}
+        betas = {k: self.focus_beta * s for k, s in lost.items() if self.focus_beta * s > beta}
         policy = cast(Policy, pl_module.policy)
         was_training = policy.training
         runtime = PolicyRuntime(policy, dm.meta())
