@@ -57,7 +57,13 @@ def test_rounds_for_an_integrating_policy_label_the_augmented_state_it_sees():
 
 
 def test_rounds_for_a_control_history_policy_carry_the_executed_controls():
-    """With model.control_history the last channel is the mixed control executed before."""
+    """With model.control_history the last channel is the mixed control executed before.
+
+    The rollout's policy saw those same windows: the executed control is ``0.5 u_expert +
+    0.5 u_policy``, and ``u_policy`` recomputed by the network from the aggregated windows
+    (previous control included) is the one the rollout blended.
+    """
+    from generalist_control.deploy.export import backend
     from generalist_control.simulation.simulate import Run, simulate_many
     from generalist_control.training.dagger import MixedController
 
@@ -65,6 +71,8 @@ def test_rounds_for_a_control_history_policy_carry_the_executed_controls():
     torch.manual_seed(0)
     on = {"control_history": 1, "linear_skip": 1, "history_context": 1}
     policy = Policy({"hidden": 8, "experts": 1, "integral": 1, **on}).eval()
+    with torch.no_grad():  # the skip path's gains start at zero: give them weight, so that
+        policy.net.skip.weight.normal_(0.0, 0.3)  # the previous control reaches the output
     meta = {"tags": {plant.name: plant.tag}, "orders": {plant.name: plant.order},
             "dt": plant.dt, "history": 8, "horizon": 3}  # fmt: skip
     big = {plant.name: np.full(plant.order, np.inf)}
@@ -77,6 +85,14 @@ def test_rounds_for_a_control_history_policy_carry_the_executed_controls():
     executed = np.concatenate([np.zeros((2, 1)), tr.u[:, :-1]], axis=1)[:, : 40 - 3 + 1]
     np.testing.assert_allclose(w.state[:, -1, 5], executed.reshape(-1), rtol=1e-6, atol=1e-7)
     assert np.abs(executed).max() > 0.1
+    run = backend(policy, "torch")
+    own = w.state.copy()
+    own[:, :, 5] *= 2.0
+    assert np.abs(run(own, w.mask, w.ref, w.tag) - run(w.state, w.mask, w.ref, w.tag)).max() > 1e-2
+    u_policy = run(w.state, w.mask, w.ref, w.tag)[:, 0]
+    blended = 0.5 * w.target[:, 0] + 0.5 * u_policy  # the expert's law, the network's answer
+    np.testing.assert_allclose(blended, tr.u[:, :38].reshape(-1), rtol=1e-4, atol=1e-5)
+    assert np.abs(u_policy - w.target[:, 0]).max() > 0.1  # the two differ: a real blend
 
 
 def test_per_plant_expert_share_blends_each_plant_with_its_own_beta():

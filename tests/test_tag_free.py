@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pandas as pd
@@ -43,6 +44,28 @@ def test_tag_free_network_output_does_not_depend_on_the_tag():
     assert not torch.allclose(
         tagged(state, mask, ref, tags_a)[0], tagged(state, mask, ref, tags_b)[0]
     )
+
+
+def test_skip_gain_scale_multiplies_the_skip_path_by_exp_of_its_exponent():
+    """u = u_rest + exp(s) u_skip: with s = log 3 the skip path's part triples, the rest not."""
+    torch.manual_seed(0)
+    net = GeneralistNetwork(
+        integral=1, linear_skip=1, tag_free=1, history_context=1, skip_gain_scale=1
+    ).eval()
+    assert net.skip is not None and net.skip_scale is not None
+    torch.nn.init.normal_(net.skip.weight)  # zero at initialisation: give it gains
+    args = (*_window(), torch.zeros(6, dtype=torch.long))
+    with torch.no_grad():
+        u1 = net(*args)[0]  # s = 0 at initialisation: a factor 1
+        net.skip_scale.bias.fill_(math.log(3.0))
+        u3 = net(*args)[0]
+        net.skip.weight.zero_()
+        rest = net(*args)[0]
+    exponent = 6.0 * math.tanh(math.log(3.0) / 6.0)  # the bounded exponent
+    torch.testing.assert_close(u3 - rest, math.exp(exponent) * (u1 - rest), rtol=1e-4, atol=1e-5)
+    assert (u1 - rest).abs().max() > 1e-2
+    with pytest.raises(ValueError, match="skip_gain_scale scales the skip path's gains"):
+        network_config(skip_gain_scale=1)
 
 
 def test_history_context_makes_the_skip_gains_follow_the_window():
@@ -208,6 +231,13 @@ def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
     left = pd.read_csv(tmp_path / "bar" / "departures.csv")
     diverged = frames[True].query("controller == 'GC' and metric == 'diverged' and value > 0")
     assert len(left) == len(diverged) == bar["departures"]["runs"]  # one row per diverged run
+    handover = pd.read_csv(tmp_path / "bar" / "handover.csv")
+    assert sorted(set(handover.handover_samples)) == [0, 1, 2, 5, 10, 20, 40]
+    start = handover[handover.handover_samples == 0].set_index("system")
+    for system, ratio in bar["step_ise_ratio"].items():  # N = 0: the evaluation's own GC run
+        if start.diverged[system] == 0:
+            assert start.ise_ratio[system] == pytest.approx(ratio, rel=1e-9)
+    assert set(bar["handover"]) == {"0", "1", "2", "5", "10", "20", "40"}
 
 
 def test_withholding_from_a_tagged_policy_is_refused_with_the_fix(tmp_path):

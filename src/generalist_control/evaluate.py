@@ -17,12 +17,15 @@ from pathlib import Path
 from typing import Any
 
 import hydra
+import pandas as pd
 from omegaconf import DictConfig
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.deploy.resolve import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.evaluation.handover import handover_table
+from generalist_control.evaluation.local_gains import local_gains
 from generalist_control.evaluation.mlflow_log import log_to_mlflow
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.tag_free import check_tag_free_dir, write_tag_free_report
@@ -30,6 +33,7 @@ from generalist_control.evaluation.variants import check_variants_dir, run_varia
 from generalist_control.evaluation.writer import check_reports_dir, write_reports
 from generalist_control.model.policy import POLICY_FILE, load_policy
 from generalist_control.plants.catalog import plants_from_config
+from generalist_control.plants.plant import Plant
 from generalist_control.tracking import mlflow_utils
 
 __all__ = ["main", "run"]
@@ -57,6 +61,21 @@ def _runtime(source: str, cfg: DictConfig) -> PolicyRuntime:
     return PolicyRuntime(policy, meta, backend=cfg.evaluation.get("backend", "torch"))
 
 
+def _diagnostics(
+    cfg: DictConfig, runtime: PolicyRuntime, plants: list[Plant], step: dict[str, Any] | None
+) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
+    """The tag-free report's hand-over table and local gains (None: off or no step)."""
+    if step is None:
+        return None, None
+    samples = cfg.evaluation.get("handover_samples")
+    handover = (
+        handover_table(runtime, plants, step, [int(n) for n in samples]) if samples else None
+    )
+    after = cfg.evaluation.get("gain_samples")
+    gains = local_gains(runtime, plants, step, int(after)) if after is not None else None
+    return handover, gains
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Load the policy, evaluate it on ``cfg.systems`` and write (and log) the reports."""
     out_dir = Path(cfg.paths.reports_dir)
@@ -82,9 +101,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     bar = as_dict(cfg.evaluation.get("quality_bar") or {})
     summary = write_reports(df, trajs, out_dir, plots, bar)
     if tag_free_dir:
+        handover, gains = _diagnostics(cfg, runtime, plants, scen.get("step"))
         verdict = write_tag_free_report(
-            df, runtime.policy, plants, tag_free_dir, trajectories=trajs
-        )
+            df, runtime.policy, plants, tag_free_dir,
+            trajectories=trajs, handover=handover, gains=gains,
+        )  # fmt: skip
         log.info("tag-free bar written to %s: met=%s", tag_free_dir, verdict["met"])
     extra = {"tag_free_bar": Path(tag_free_dir)} if tag_free_dir else None
     log_to_mlflow(cfg, runtime.meta, summary, out_dir, extra)

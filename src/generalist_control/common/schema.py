@@ -70,6 +70,7 @@ class ModelSchema:
     tag_dropout: float = MISSING
     history_context: bool = MISSING
     control_history: bool = MISSING
+    skip_gain_scale: bool = MISSING
     optimizer: dict[str, Any] = MISSING
     scheduler: dict[str, Any] | None = None
 

@@ -117,6 +117,14 @@ class RuntimeAdapter:
         y = None if self._output is None else self._output(x)
         return step_live(self.runtime, self._live, x, r, y, self.refused)
 
+    def record_applied(self, u: np.ndarray) -> None:
+        """Record the controls (B,) the plants received instead of the last step's.
+
+        See :meth:`PolicyRuntime.record_applied`; rows the runtime refused are skipped.
+        """
+        if self._live.any():
+            self.runtime.record_applied(np.asarray(u, dtype=np.float64)[self._live])
+
 
 class SinglePlantAdapter:
     """The runtime as a single-plant controller (unpadded states of one plant).

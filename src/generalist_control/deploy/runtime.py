@@ -19,7 +19,8 @@ actuator limit; given the limits (:meth:`PolicyRuntime.set_actuator_limits`) the
 integrates conditionally, as :class:`~generalist_control.simulation.lqi.AntiWindupLQIController`
 does. A policy trained with ``model.control_history`` also sees the control applied one
 sample earlier: the runtime keeps the control it issued (the actuated one, once actuator
-limits are known), zero at ``reset``. Many plants can be stepped at once
+limits are known), zero at ``reset``, or the one it is told the plant received instead
+(:meth:`PolicyRuntime.record_applied`). Many plants can be stepped at once
 (``reset([...names])`` and ``step`` on ``(B, MAX_ORDER)`` zero-padded states), which is how
 evaluation batches all plants through one network call per sample.
 
@@ -34,7 +35,7 @@ Backends: ``"torch"`` (eager), ``"torchscript"`` and ``"onnx"`` (ONNX Runtime); 
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +44,7 @@ import numpy as np
 from generalist_control.data.windows import HistoryBuffer
 from generalist_control.deploy.export import backend as _backend
 from generalist_control.deploy.facts import integral_facts
+from generalist_control.deploy.rejection import RejectedStep, rejection
 from generalist_control.deploy.resolve import resolve
 from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.plant import MAX_ORDER
@@ -53,31 +55,6 @@ __all__ = ["INPUT_LIMIT", "PolicyRuntime", "RejectedStep"]
 
 #: Default input range of a runtime: each signal at most this many times its training RMS.
 INPUT_LIMIT = 1e3
-
-_ADVICE = {
-    "input": "Check the measurement, its units and that it is a deviation from the operating "
-    "point; a plant really this far out is beyond the policy's training: hand over to a "
-    "fallback controller and reset().",
-    "error integral": "The error integral would wind up beyond its range: declare actuator "
-    "limits (set_actuator_limits) for anti-windup, check the measured output, or reset().",
-    "network output": "The policy's command is unusable (a corrupt policy file, e.g. NaN "
-    "weights, or inputs unlike its training data): hand over to a fallback controller.",
-}
-_LABELS = {
-    "state": "state entry {}",
-    "reference": "reference r",
-    "output": "measured output y",
-    "error integral": "error integral z after this sample",
-    "network output": "control u[k+{}]",
-}
-
-
-class RejectedStep(ValueError):
-    """A step the runtime refused, its state unchanged; ``rows``: the batch rows at fault."""
-
-    def __init__(self, message: str, rows: Iterable[int]) -> None:
-        super().__init__(message)
-        self.rows = tuple(int(i) for i in rows)
 
 
 class PolicyRuntime:
@@ -216,35 +193,10 @@ class PolicyRuntime:
         """Refuse the step unless every ``|value| <= limit`` (NaN and inf never are)."""
         ok = np.abs(values) <= limit
         if not ok.all():
-            raise self._rejection(kind, values, limit, ok)
-
-    def _rejection(
-        self, kind: str, values: np.ndarray, limit: np.ndarray, ok: np.ndarray
-    ) -> RejectedStep:
-        """The error for the entries of ``values`` (B,) or (B, n) that are not ``ok``."""
-        B = len(values)
-        v, lim = values.reshape(B, -1), np.broadcast_to(limit, values.shape).reshape(B, -1)
-        bad_rows = np.flatnonzero(~ok.reshape(B, -1).all(axis=1))
-        items = []
-        for i in bad_rows[:4]:
-            j = int(np.flatnonzero(~ok.reshape(B, -1)[i])[0])
-            label = _LABELS[kind].format(j)
-            if kind == "state" and j >= self._order[i]:
-                label += f" (padding beyond the plant's order {self._order[i]}: keep it zero)"
-            where = f"plant '{self._systems[i]}'"
-            where = where if self._single else f"row {i} ({where})"
-            if np.isfinite(v[i, j]):
-                L = self.input_limit
-                problem = (
-                    f"is outside the allowed range |value| <= {lim[i, j]:.4g} "
-                    f"(= {L:g} x the training RMS {lim[i, j] / L:.4g})"
-                )
-            else:
-                problem = f"is not finite ({kind} contains NaN or inf)"
-            items.append(f"{where}: {label} = {v[i, j]:.6g} {problem}")
-        more = f" (and {len(bad_rows) - 4} more rows)" if len(bad_rows) > 4 else ""
-        text = f"{'; '.join(items)}{more}. {_ADVICE.get(kind, _ADVICE['input'])}"
-        return RejectedStep(f"step refused, the runtime's state is unchanged: {text}", bad_rows)
+            raise rejection(
+                kind, values, limit, ok, self._systems, self._order, self._single,
+                self.input_limit,
+            )  # fmt: skip
 
     def _check(self, x: Any, r: Any) -> tuple[np.ndarray, np.ndarray]:
         if not self._systems:
@@ -388,3 +340,23 @@ class PolicyRuntime:
         self._buffer.commit()
         self.plan = plan
         return float(u[0]) if self._single else u
+
+    def record_applied(self, u: Any) -> None:
+        """Tell the runtime the control the plant received at the last :meth:`step`.
+
+        For when another controller's control replaced the runtime's own (a fallback
+        controller, the expert during a hand-over, a DAgger rollout's mix of expert and
+        policy). A policy trained with ``model.control_history`` reads it as the previous
+        control at the next step, and a known rate limit starts from it; the error integral
+        does not depend on it. ``u``: a scalar for one plant, (B,) for a batch; finite.
+        """
+        u = np.asarray(u, dtype=np.float64).reshape(-1)
+        if u.shape != self._u_prev.shape:
+            raise ValueError(
+                f"applied control has shape {u.shape}; expected {self._u_prev.shape} "
+                "(one per running plant)"
+            )
+        if not np.all(np.isfinite(u)):
+            rows = np.flatnonzero(~np.isfinite(u)).tolist()
+            raise ValueError(f"applied control is not finite in rows {rows}")
+        self._u_prev = u.copy()

@@ -11,7 +11,11 @@ and, for the plants that miss, :func:`write_tag_free_report` adds how soon the h
 each plant apart (:func:`~generalist_control.evaluation.separation.separation_table`), a
 figure of the first samples the network sees for the plant and its nearest neighbour, and,
 given the evaluation's trajectories, when each diverged run left its expert
-(:func:`~generalist_control.evaluation.departures.departure_table`, ``departures.csv``).
+(:func:`~generalist_control.evaluation.departures.departure_table`, ``departures.csv``)
+and, given a hand-over table, whether the plant's own expert making the first controls
+saves the missed plants (:mod:`~generalist_control.evaluation.handover`, ``handover.csv``),
+and given local gains, how the policy's feedback compares with LQI's
+(:mod:`~generalist_control.evaluation.local_gains`, ``gains.csv``).
 """
 
 from __future__ import annotations
@@ -37,6 +41,8 @@ from generalist_control.evaluation.departures import (  # noqa: E402
     departure_summary,
     departure_table,
 )
+from generalist_control.evaluation.handover import handover_summary  # noqa: E402
+from generalist_control.evaluation.local_gains import gain_summary  # noqa: E402
 from generalist_control.evaluation.separation import (  # noqa: E402
     network_views,
     separation_table,
@@ -52,6 +58,8 @@ OWNED: dict[str, str | None] = {
     "bar.json": None,
     "separation.csv": None,
     "departures.csv": None,
+    "handover.csv": None,
+    "gains.csv": None,
     "plots": "*.png",
 }
 
@@ -129,6 +137,31 @@ def _figure(
     plt.close(fig)
 
 
+def _handover_figure(table: pd.DataFrame, verdict: dict[str, Any], path: Path) -> None:
+    """Missed plants' unit-step ISE ratio against the samples the expert made first."""
+    missed = [s for s in verdict["missing"] if s in set(table.system)]
+    if not missed:
+        return
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for name in missed:
+        part = table[table.system == name].sort_values("handover_s")
+        ratio = part.ise_ratio.where(part.diverged == 0)  # a diverged run draws no point
+        ax.plot(part.handover_s, ratio, "o-", label=name)
+    ax.axhline(verdict["ise_ratio_bar"], color="k", ls=":", lw=1)
+    lost = table.groupby("system").diverged.min()  # diverged whoever made the first controls
+    if (lost > 0).any():
+        ax.set_title(f"diverged at every hand-over: {', '.join(lost.index[lost > 0])}", fontsize=9)
+    ax.set_xscale("symlog", linthresh=0.05)
+    ax.set_xlim(left=0.0)
+    ax.set_yscale("log")
+    ax.set_xlabel("expert's controls before the policy takes over (s)")
+    ax.set_ylabel("unit-step ISE GC / LQI (no point: diverged)")
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def write_tag_free_report(
     df: pd.DataFrame,
     policy: Policy,
@@ -136,12 +169,20 @@ def write_tag_free_report(
     out_dir: str | Path,
     bar: dict[str, Any] | None = None,
     trajectories: Mapping[str, Mapping[str, Mapping[str, Trajectory]]] | None = None,
+    handover: pd.DataFrame | None = None,
+    gains: pd.DataFrame | None = None,
 ) -> dict[str, Any]:
     """Write ``bar.json``, ``separation.csv`` and ``plots/`` to ``out_dir``; return the bar.
 
     ``bar`` overrides ``ise_ratio`` and ``min_plants`` of :func:`tag_free_bar`. With the
     evaluation's ``trajectories`` it also writes ``departures.csv`` (when each diverged GC
-    run left its expert) and its counts as ``departures`` in the bar.
+    run left its expert) and its counts as ``departures`` in the bar; with a ``handover``
+    table (:func:`~generalist_control.evaluation.handover.handover_table`) ``handover.csv``,
+    its summary as ``handover`` in the bar and a figure of the missed plants' ISE ratios;
+    with ``gains`` (:func:`~generalist_control.evaluation.local_gains.local_gains`)
+    ``gains.csv`` and, per plant,
+    :func:`~generalist_control.evaluation.local_gains.gain_summary` as ``local_gains`` in
+    the bar.
     """
     check_tag_free_dir(out_dir)
     verdict = tag_free_bar(df, **(bar or {}))
@@ -155,12 +196,22 @@ def write_tag_free_report(
     left = departure_table(trajectories) if trajectories is not None else None
     if left is not None:
         verdict["departures"] = departure_summary(left)
+    if handover is not None:
+        verdict["handover"] = handover_summary(handover, verdict["ise_ratio_bar"])
+    if gains is not None:
+        verdict["local_gains"] = gain_summary(gains)
     with staging_directory(out_dir) as staging:
         table.to_csv(staging / "separation.csv", index=False)
         if left is not None:
             left.to_csv(staging / "departures.csv", index=False)
+        if handover is not None:
+            handover.to_csv(staging / "handover.csv", index=False)
+        if gains is not None:
+            gains.to_csv(staging / "gains.csv", index=False)
         write_json(staging / "bar.json", verdict, sort_keys=True)
         (staging / "plots").mkdir()
         _figure(views, plants, pairs, staging / "plots" / "tag_free_missed.png")
+        if handover is not None:
+            _handover_figure(handover, verdict, staging / "plots" / "tag_free_handover.png")
         publish_directory(staging, out_dir, OWNED, "evaluation.tag_free_report")
     return verdict

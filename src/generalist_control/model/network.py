@@ -32,8 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from generalist_control.common.schema import require_int, require_switch
-from generalist_control.plants.plant import MAX_ORDER
+from generalist_control.model.net_config import MODEL_DEFAULTS, input_width, network_config
 
 __all__ = [
     "MODEL_DEFAULTS",
@@ -44,114 +43,6 @@ __all__ = [
     "count_parameters",
     "input_width",
 ]
-
-
-#: Network config keys and defaults: ``hidden`` (d), ``heads`` (N_h), ``stride`` (tau),
-#: ``history`` (T_h), ``horizon`` (K), ``experts`` (M), ``n_tags``, ``state_dim`` (n_max),
-#: ``window_scale`` (0 or 1: per-window amplitude scaling in
-#: :class:`~generalist_control.model.policy.Policy`; 0 is the paper's recipe), ``linear_head``
-#: (0 or 1: add a per-tag linear map of the window to the output; 0 is the paper's),
-#: ``integral`` (0 or 1: the window's state carries one more channel, the integral of the
-#: tracking error that the LQI expert itself integrates; 0 is the paper's),
-#: ``linear_samples`` (how many of the newest samples the linear head sees; 0, the default, is
-#: the whole window; 1 with ``integral``, where the LQI law is linear in the newest
-#: augmented state alone), ``linear_skip`` (0 or 1: a linear map of those samples added to
-#: the output, its gains computed from the learned tag embedding by one shared linear
-#: layer: the plant enters only through the embedding; 0 is the paper's), ``tag_free`` (0 or
-#: 1: the network never receives the plant's identity, one shared embedding row replaces
-#: the tag), ``unknown_tag`` (0 or 1: the embedding has one more row, index ``n_tags``, the
-#: "tag withheld" that tag dropout trains; see :class:`~generalist_control.model.policy.Policy`)
-#: and ``history_context`` (0 or 1: the skip path's gains are computed from the embedding
-#: plus a learned projection of the window's summary, so the plant can be inferred from its
-#: history; 0 is the default recipe) and ``control_history`` (0 or 1: the window carries one
-#: more channel, the control applied one sample earlier, which only an identifier LSTM sees,
-#: whose state joins the skip gains' context, so a state change can be read against the
-#: control that caused it; needs ``linear_skip`` and ``history_context``; 0 is the default).
-MODEL_DEFAULTS: dict[str, int] = {
-    "hidden": 32,
-    "heads": 3,
-    "stride": 2,
-    "history": 8,
-    "horizon": 3,
-    "experts": 3,
-    "n_tags": 25,
-    "state_dim": MAX_ORDER,
-    "window_scale": 0,
-    "linear_head": 0,
-    "integral": 0,
-    "linear_samples": 0,
-    "linear_skip": 0,
-    "tag_free": 0,
-    "unknown_tag": 0,
-    "history_context": 0,
-    "control_history": 0,
-}
-
-#: Keys that are switches (0 or 1) rather than sizes.
-_SWITCHES = (
-    "window_scale",
-    "linear_head",
-    "integral",
-    "linear_skip",
-    "tag_free",
-    "unknown_tag",
-    "history_context",
-    "control_history",
-)
-
-#: Where a network key is set in the training config, when not at ``model.<key>``.
-_CONFIG_KEYS = {"experts": "experts", "history": "data.history", "horizon": "data.horizon"}
-
-
-def input_width(config: dict[str, int]) -> int:
-    """Width of the state input per step: ``state_dim`` (+1 each: integral, previous control)."""
-    extra = int(config.get("integral", 0)) + int(config.get("control_history", 0))
-    return int(config["state_dim"]) + extra
-
-
-def network_config(**kwargs: Any) -> dict[str, int]:
-    """Complete and check a network config; a plain ``dict`` (checkpoints store it as is).
-
-    Values are taken as they are, never rounded: a size must be an integer (a float, even
-    ``32.0``, a boolean or a string is refused), a switch a boolean or 0 or 1.
-
-    Raises
-    ------
-    ValueError
-        If a key is unknown, a size is not a positive integer (``linear_samples``: not
-        negative), a switch is not 0 or 1, or ``hidden`` is odd; the message names the
-        config key (``model.hidden``, ``experts``, ``data.history``), the value and its type.
-    """
-    unknown = set(kwargs) - set(MODEL_DEFAULTS)
-    if unknown:
-        raise ValueError(
-            f"unknown model config keys {sorted(unknown)}; known: {sorted(MODEL_DEFAULTS)}"
-        )
-    cfg: dict[str, int] = {}
-    for key, default in MODEL_DEFAULTS.items():
-        value, name = kwargs.get(key, default), _CONFIG_KEYS.get(key, f"model.{key}")
-        if key in _SWITCHES:
-            cfg[key] = require_switch(name, value)
-        else:
-            cfg[key] = require_int(name, value, minimum=0 if key == "linear_samples" else 1)
-    if cfg["linear_samples"] > cfg["history"]:
-        raise ValueError(
-            f"model.linear_samples ({cfg['linear_samples']}) exceeds the history "
-            f"({cfg['history']})"
-        )
-    if cfg["tag_free"] and cfg["linear_head"]:
-        raise ValueError(
-            "model.linear_head is a table of gains per tag and model.tag_free withholds the "
-            "tag: turn one of them off"
-        )
-    if cfg["control_history"] and not (cfg["linear_skip"] and cfg["history_context"]):
-        raise ValueError(
-            "model.control_history feeds the skip path's gains (model.linear_skip and "
-            "model.history_context): turn those on, or control_history off"
-        )
-    if cfg["hidden"] % 2:
-        raise ValueError(f"model.hidden must be even (encoders give hidden // 2), got {cfg}")
-    return cfg
 
 
 def _mlp(n_in: int, n_hidden: int, n_out: int) -> nn.Sequential:
@@ -276,6 +167,13 @@ class GeneralistNetwork(nn.Module):
             self.skip = nn.Linear(d, c["horizon"] * n_in)
             nn.init.zeros_(self.skip.weight)
             nn.init.zeros_(self.skip.bias)
+        # Ours (model.skip_gain_scale): the gains times exp(s(code)), s zero at first, so the
+        # context can scale them by orders of magnitude (LQI's gains span ~200x over plants).
+        self.skip_scale: nn.Linear | None = None
+        if c["skip_gain_scale"] and self.skip is not None:
+            self.skip_scale = nn.Linear(d, 1)
+            nn.init.zeros_(self.skip_scale.weight)
+            nn.init.zeros_(self.skip_scale.bias)
         self._add_history_paths(d, width)
         # the slow LSTM sees samples ..., t - 2 tau, t - tau, t (always the newest one)
         self.slow_start = (c["history"] - 1) % c["stride"]
@@ -368,6 +266,9 @@ class GeneralistNetwork(nn.Module):
             if self.context is not None:
                 code = code + self.context(summary)
             gains = self.skip(code).view(shape)
+            if self.skip_scale is not None:  # exponent bounded: a factor within e^+-6
+                exponent = 6.0 * torch.tanh(self.skip_scale(code) / 6.0)
+                gains = gains * torch.exp(exponent).unsqueeze(-1)
             u = u + torch.einsum("bkf,bf->bk", gains, window)
         return u
 

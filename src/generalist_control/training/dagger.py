@@ -57,6 +57,10 @@ class MixedController:
     """Executes ``beta * LQI + (1 - beta) * policy``; records the experts' integrators.
 
     ``betas`` overrides ``beta`` for the plants it names (variants share their plant's name).
+    The policy's runtime is told the executed mix
+    (:meth:`~generalist_control.deploy.runtime.PolicyRuntime.record_applied`), so a policy
+    that reads its previous control (``model.control_history``) sees the control that moved
+    the plant, as in the windows it is trained on.
 
     A :class:`~generalist_control.simulation.simulate.BatchController` for
     :func:`~generalist_control.simulation.simulate.simulate_many`. After a run, :attr:`z` holds the
@@ -104,7 +108,9 @@ class MixedController:
             return u_e
         u_p = self._policy.step(x, r)  # NaN: a run the runtime refused (outside its range)
         u_p = np.where(np.isnan(u_p), u_e, u_p)  # the expert takes that run over
-        return self._beta * u_e + (1.0 - self._beta) * u_p
+        u = self._beta * u_e + (1.0 - self._beta) * u_p
+        self._policy.record_applied(u)  # the policy's previous-control channel: the mix
+        return u
 
     @property
     def z(self) -> np.ndarray:
@@ -256,10 +262,9 @@ def aggregate(
     (:func:`bumpless_integrator`), ``"tracked"`` uses the integral of ``r - y`` along the
     rollout. With ``integral`` the windows carry that integral as a state channel
     (``model.integral``), which requires ``"tracked"``. With ``controls`` they carry the
-    control executed one sample earlier (``model.control_history``); in a mixed round the
-    policy's runtime sees its own command there instead, the executed one being a blend it
-    does not know (exact once ``beta`` is zero, as in deployment); ``betas`` gives some
-    plants (by name) an expert share of their own.
+    control executed one sample earlier (``model.control_history``), and so does the
+    policy's runtime during the rollout (:class:`MixedController` tells it the executed
+    mix); ``betas`` gives some plants (by name) an expert share of their own.
 
     Returns
     -------
