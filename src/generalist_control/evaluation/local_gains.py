@@ -70,6 +70,11 @@ def local_gains(
             )
         runs.append(Run(p, r[:, :steps], x0))
     simulate_many(runs, Handover(runtime, steps))
+    if len(runtime.window()[3]) != sum(run.r.shape[0] for run in runs):  # rows stay aligned
+        raise RuntimeError(
+            "the policy's runtime refused a run on LQI's own closed loop (its output left "
+            "its range), so its rows no longer match the plants: no local gains"
+        )
     jac = _jacobian(runtime)  # rows: one per run, plants in order (one run each for a step)
     norm = runtime.policy.normaliser
     rows = []
