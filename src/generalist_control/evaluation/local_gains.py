@@ -76,34 +76,41 @@ def local_gains(
             "its range), so its rows no longer match the plants: no local gains"
         )
     jac = _jacobian(runtime)  # rows: one per run, plants in order (one run each for a step)
-    norm = runtime.policy.normaliser
-    rows = []
+    rows: list[dict[str, Any]] = []
     row = 0
     for p, run in zip(plants, runs, strict=True):
-        g = design_lqi(p)
-        sx = norm.state_scale[p.tag].double().cpu().numpy()
-        su = float(norm.control_scale[p.tag])
-        inputs = [(f"x{i + 1}", i, -float(g.Kx[i])) for i in range(p.order)]
-        if runtime.integral:
-            inputs.append(("z", MAX_ORDER, -float(g.Ki)))
-        if runtime.controls:
-            inputs.append(("u_prev", jac.shape[1] - 1, 0.0))
-        for name, j, lqi in inputs:
-            scale = sx[j] / su  # what the network sees per unit of what it answers
-            policy = float(jac[row, j])
-            rows.append(
-                {
-                    "system": p.name,
-                    "input": name,
-                    "lqi": lqi,
-                    "policy": policy,
-                    "lqi_norm": lqi * scale,
-                    "policy_norm": policy * scale,
-                    "ratio": policy / lqi if lqi != 0.0 else np.nan,
-                }
-            )
+        rows.extend(_plant_rows(runtime, p, jac[row]))
         row += run.r.shape[0]
     return pd.DataFrame(rows)
+
+
+def _plant_rows(runtime: PolicyRuntime, p: Plant, jac: np.ndarray) -> list[dict[str, Any]]:
+    """One plant's rows of :func:`local_gains` from its row ``jac`` of the Jacobian."""
+    g = design_lqi(p)
+    norm = runtime.policy.normaliser
+    sx = norm.state_scale[p.tag].double().cpu().numpy()
+    su = float(norm.control_scale[p.tag])
+    inputs = [(f"x{i + 1}", i, -float(g.Kx[i])) for i in range(p.order)]
+    if runtime.integral:
+        inputs.append(("z", MAX_ORDER, -float(g.Ki)))
+    if runtime.controls:
+        inputs.append(("u_prev", jac.shape[0] - 1, 0.0))
+    rows = []
+    for name, j, lqi in inputs:
+        scale = sx[j] / su  # what the network sees per unit of what it answers
+        policy = float(jac[j])
+        rows.append(
+            {
+                "system": p.name,
+                "input": name,
+                "lqi": lqi,
+                "policy": policy,
+                "lqi_norm": lqi * scale,
+                "policy_norm": policy * scale,
+                "ratio": policy / lqi if lqi != 0.0 else np.nan,
+            }
+        )
+    return rows
 
 
 def gain_summary(gains: pd.DataFrame) -> dict[str, dict[str, Any]]:
