@@ -189,7 +189,12 @@ def _ise(frames: dict, controller: str) -> dict:
 def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
     tiny_data_dir, tmp_path, mlflow_uri
 ):
-    switch = ("experiment=tag_free", "model.tag_free=false", "model.tag_dropout=0.5")
+    switch = (
+        "experiment=tag_free",
+        "model.tag_free=false",
+        "model.infer_tag=false",
+        "model.tag_dropout=0.5",
+    )
     cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, tmp_path / "tf", mlflow_uri, *switch))
     _, objects = train(cfg)
     policy, _ = load_policy(objects["policy_path"])
@@ -212,8 +217,11 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
 def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
     tiny_data_dir, tmp_path, mlflow_uri
 ):
-    """experiment=tag_free end to end: DAgger after the first epoch, then evaluation."""
-    switch = ("experiment=tag_free",)
+    """experiment=tag_free end to end: DAgger after the first epoch, then evaluation.
+
+    With the identity read-out on, so its training and its report table run too.
+    """
+    switch = ("experiment=tag_free", "model.identity_loss=0.5")
     cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, tmp_path / "tf", mlflow_uri, *switch))
     _, objects = train(cfg)
     policy, _ = load_policy(objects["policy_path"])
@@ -238,6 +246,10 @@ def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
         if start.diverged[system] == 0:
             assert start.ise_ratio[system] == pytest.approx(ratio, rel=1e-9)
     assert set(bar["handover"]) == {"0", "1", "2", "5", "10", "20", "40"}
+    named = pd.read_csv(tmp_path / "bar" / "identity.csv")
+    assert set(named.system) == {"cstr", "hydraulic_actuator"} and len(named) == 10
+    assert named.p_true.between(0, 1).all() and (named.p_guess >= named.p_true - 1e-12).all()
+    assert bar["identity"]["0.1"]["plants"] == 2
 
 
 def test_withholding_from_a_tagged_policy_is_refused_with_the_fix(tmp_path):
@@ -349,3 +361,183 @@ def test_departures_place_each_diverged_run_on_its_reference_level_by_hand():
     assert table(trajs, factor=4.0).set_index(["scenario", "run"]).loc[
         ("staircase", 0), "t_leave"
     ] == pytest.approx(47 * 0.05)
+
+
+def _identity_config(**extra: int) -> dict[str, int]:
+    """A tag-free network with the identifier and the identity head."""
+    switches = ("integral", "linear_skip", "tag_free", "history_context", "control_history")
+    return network_config(**dict.fromkeys(switches, 1), identity_head=1, **extra)
+
+
+def _identity_batch(n: int = 64, seed: int = 0) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "state": torch.randn(n, 8, 6, generator=g),
+        "mask": torch.ones(n, 8, 6),
+        "ref": torch.randn(n, 8, generator=g),
+        "tag": torch.randint(0, 25, (n,), generator=g),
+        "target": torch.randn(n, 3, generator=g),
+    }
+
+
+def test_identity_loss_adds_the_cross_entropy_of_the_plant_read_out():
+    """Training loss = imitation MSE + w * CE(identity logits, tag), recomputed by hand."""
+    cfg = _identity_config()
+    torch.manual_seed(0)
+    lit = ImitationModule(model=cfg, optimizer=OPT, identity_loss=0.5).eval()
+    batch = _identity_batch()
+    with torch.no_grad():
+        loss = lit.training_step(batch, 0)
+        p = lit.policy
+        x, m, r, _, s = p.network_inputs(batch["state"], batch["mask"], batch["ref"], batch["tag"])
+        u, _, code = p.net.forward_code(x, m, r, batch["tag"])
+        assert code is not None and p.net.identity is not None
+        mse = (
+            (u - p.normaliser.normalise_controls(batch["target"], batch["tag"]) / s) ** 2
+        ).mean()
+        logits = code @ p.net.identity.weight.T + p.net.identity.bias
+        ce = -torch.log_softmax(logits, 1)[torch.arange(64), batch["tag"]].mean()
+    torch.testing.assert_close(loss, mse + 0.5 * ce)
+    # the read-out is a training signal only: the control does not depend on the tag
+    other = {**batch, "tag": (batch["tag"] + 7) % 25}
+    with torch.no_grad():
+        u_other = p.net.forward_code(x, m, r, other["tag"])[0]
+    torch.testing.assert_close(u, u_other, rtol=0, atol=0)
+
+
+def test_identity_loss_trains_the_context_to_name_the_plant():
+    """Windows whose history differs by plant: the read-out learns to tell them apart."""
+    cfg = _identity_config()
+    torch.manual_seed(0)
+    lit = ImitationModule(model=cfg, optimizer=OPT, identity_loss=1.0)
+    batch = _identity_batch(n=200)
+    batch["tag"] = torch.randint(0, 2, (200,), generator=torch.Generator().manual_seed(1))
+    batch["state"][:, :, 0] += 3.0 * batch["tag"].unsqueeze(1)  # plant 1's first state is offset
+    opt = torch.optim.Adam(lit.parameters(), lr=1e-2)
+    for _ in range(60):
+        opt.zero_grad()
+        lit.training_step(batch, 0).backward()
+        opt.step()
+    with torch.no_grad():
+        _, logits = lit._errors(batch)
+    assert logits is not None
+    assert float((logits.argmax(1) == batch["tag"]).float().mean()) > 0.95
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["model.identity_loss=-0.1"], "finite number >= 0"),
+        (["model.identity_loss=0.5"], "reads the plant from the skip gains' context"),
+    ],
+)
+def test_bad_identity_loss_is_refused(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        model_config(compose_cfg(*overrides))
+
+
+def test_identity_head_is_built_from_the_weight_only():
+    assert model_config(compose_cfg())["identity_head"] == 0
+    stage = model_config(compose_cfg("experiment=tag_free"))
+    assert stage["identity_head"] == stage["infer_tag"] == 1
+    off = ("experiment=tag_free", "model.identity_loss=0", "model.infer_tag=false")
+    assert model_config(compose_cfg(*off))["identity_head"] == 0
+    with pytest.raises(ValueError, match="no identity head"):
+        GeneralistNetwork().identity_logits(torch.zeros(2, 32))
+
+
+def test_identity_table_reads_the_head_on_each_plant_s_expert_step():
+    """A head whose output is its bias alone: p_true is the softmax of the bias over the
+    plants, at each of the times asked; a policy without the head is refused."""
+    from generalist_control.evaluation.identity import identity_table
+    from generalist_control.plants.catalog import load_plant
+
+    plants = [load_plant(n) for n in ("cstr", "two_tank", "hydraulic_actuator")]
+    cfg = _identity_config()
+    policy = Policy(cfg).eval()
+    head = policy.net.identity
+    assert head is not None
+    with torch.no_grad():
+        head.weight.zero_()
+        head.bias.zero_()
+        head.bias[plants[1].tag] = 2.0
+    table = identity_table(policy, plants, times=(0.1, 0.5))
+    assert list(table.time.unique()) == pytest.approx([0.1, 0.5])
+    p_two_tank = math.exp(2.0) / (math.exp(2.0) + 2.0)
+    for name, group in table.groupby("system"):
+        expected = p_two_tank if name == "two_tank" else 1.0 / (math.exp(2.0) + 2.0)
+        assert group.p_true.to_numpy() == pytest.approx([expected] * 2)
+        assert (group.guess == "two_tank").all()
+    with pytest.raises(ValueError, match="no identity head"):
+        identity_table(Policy(network_config(linear_skip=1, integral=1)), plants)
+
+
+def test_infer_tag_weighs_the_plants_rows_by_the_identity_head_and_ignores_the_tag():
+    cfg = _identity_config(infer_tag=1)
+    torch.manual_seed(0)
+    net = GeneralistNetwork(**cfg).eval()
+    assert net.tag_embedding.num_embeddings == 25 and net.identity is not None
+    torch.nn.init.normal_(net.skip.weight)  # zero at initialisation: give it gains
+    batch = _identity_batch(n=6)  # state, integral and previous control: 6 channels
+    state, mask, ref = batch["state"], batch["mask"], batch["ref"]
+    tags_a, tags_b = torch.arange(6), torch.arange(6).flip(0) + 10
+    with torch.no_grad():
+        u_a, _, ident = net.forward_code(state, mask, ref, tags_a)
+        torch.testing.assert_close(u_a, net(state, mask, ref, tags_b)[0], rtol=0, atol=0)
+        # the embedding is the softmax-weighted rows of the head's logits on the identifier
+        weights = torch.softmax(ident @ net.identity.weight.T + net.identity.bias, dim=1)
+        torch.testing.assert_close(
+            net.embedding(tags_a, ident), weights @ net.tag_embedding.weight
+        )
+        # a head sure of plant 3: the rows of plant 3 exactly; of plant 7: another control
+        net.identity.weight.zero_()
+        net.identity.bias.fill_(-1e4)
+        net.identity.bias[3] = 0.0
+        torch.testing.assert_close(
+            net.embedding(tags_a, ident), net.tag_embedding.weight[3].expand(6, -1)
+        )
+        u_3 = net(state, mask, ref, tags_a)[0]
+        net.identity.bias[[3, 7]] = torch.tensor([-1e4, 0.0])
+        assert not torch.allclose(u_3, net(state, mask, ref, tags_a)[0])
+
+
+def test_infer_tag_without_what_it_needs_is_refused():
+    with pytest.raises(ValueError, match="model.infer_tag infers the tag"):
+        network_config(integral=1, linear_skip=1, history_context=1, infer_tag=1)
+    with pytest.raises(ValueError, match="model.infer_tag infers the tag"):
+        model_config(compose_cfg("experiment=tag_free", "model.identity_loss=0"))
+
+
+def test_identity_trace_reads_the_head_on_the_runtime_s_own_windows():
+    """Before the hand-over the runtime's windows are the expert's closed loop: the traced
+    probabilities there equal the head's on the windows the window builder cuts from the
+    expert's own step (identity_table), sample by sample."""
+    from generalist_control.deploy.runtime import PolicyRuntime
+    from generalist_control.evaluation.identity import (
+        identity_summary,
+        identity_table,
+        identity_trace,
+    )
+    from generalist_control.plants.catalog import load_plant
+    from helpers import policy_meta
+
+    names = ["cstr", "two_tank"]
+    plants = [load_plant(n) for n in names]
+    torch.manual_seed(0)
+    policy = Policy(_identity_config(infer_tag=1)).eval()
+    with torch.no_grad():
+        torch.nn.init.normal_(policy.net.identity.weight)  # a head that tells windows apart
+    spec = {"kind": "step", "amplitude": 1.0, "duration": 1.0}
+    trace = identity_trace(PolicyRuntime(policy, policy_meta(names)), plants, spec, [0, 5])
+    assert set(trace.handover_samples) == {0, 5}
+    part = trace[trace.handover_samples == 5]
+    assert len(part) == 2 * 20 and set(part.system) == set(names)
+    table = identity_table(policy, plants, times=(0.05, 0.1, 0.2))
+    expert = part.assign(time=part.time.round(6)).set_index(["system", "time"]).p_true
+    reference = table.assign(time=table.time.round(6)).set_index(["system", "time"]).p_true
+    assert len(set(reference.round(6))) > 2  # the head's answers differ by plant and time
+    for key, value in reference.items():
+        assert expert[key] == pytest.approx(value, rel=1e-4)
+    summary = identity_summary(table, trace)
+    assert set(summary) == {"0.05", "0.1", "0.2", "own_from_0", "own_from_5"}
+    assert set(summary["own_from_5"]) == set(names)

@@ -25,6 +25,7 @@ from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.deploy.resolve import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.handover import handover_table
+from generalist_control.evaluation.identity import identity_trace
 from generalist_control.evaluation.local_gains import local_gains
 from generalist_control.evaluation.mlflow_log import log_to_mlflow
 from generalist_control.evaluation.runner import evaluate
@@ -63,17 +64,20 @@ def _runtime(source: str, cfg: DictConfig) -> PolicyRuntime:
 
 def _diagnostics(
     cfg: DictConfig, runtime: PolicyRuntime, plants: list[Plant], step: dict[str, Any] | None
-) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
-    """The tag-free report's hand-over table and local gains (None: off or no step)."""
+) -> dict[str, pd.DataFrame | None]:
+    """The tag-free report's hand-over table, local gains and identity trace (None: off)."""
     if step is None:
-        return None, None
+        return {}
     samples = cfg.evaluation.get("handover_samples")
     handover = (
         handover_table(runtime, plants, step, [int(n) for n in samples]) if samples else None
     )
     after = cfg.evaluation.get("gain_samples")
     gains = local_gains(runtime, plants, step, int(after)) if after is not None else None
-    return handover, gains
+    trace = None
+    if runtime.policy.net.identity is not None:  # from the start, and after the gains' N
+        trace = identity_trace(runtime, plants, step, [0] + ([int(after)] if after else []))
+    return {"handover": handover, "gains": gains, "identity_trace": trace}
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -101,11 +105,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     bar = as_dict(cfg.evaluation.get("quality_bar") or {})
     summary = write_reports(df, trajs, out_dir, plots, bar)
     if tag_free_dir:
-        handover, gains = _diagnostics(cfg, runtime, plants, scen.get("step"))
+        diagnostics = _diagnostics(cfg, runtime, plants, scen.get("step"))
         verdict = write_tag_free_report(
-            df, runtime.policy, plants, tag_free_dir,
-            trajectories=trajs, handover=handover, gains=gains,
-        )  # fmt: skip
+            df, runtime.policy, plants, tag_free_dir, trajectories=trajs, **diagnostics
+        )
         log.info("tag-free bar written to %s: met=%s", tag_free_dir, verdict["met"])
     extra = {"tag_free_bar": Path(tag_free_dir)} if tag_free_dir else None
     log_to_mlflow(cfg, runtime.meta, summary, out_dir, extra)

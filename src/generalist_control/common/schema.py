@@ -71,6 +71,8 @@ class ModelSchema:
     history_context: bool = MISSING
     control_history: bool = MISSING
     skip_gain_scale: bool = MISSING
+    identity_loss: float = MISSING
+    infer_tag: bool = MISSING
     optimizer: dict[str, Any] = MISSING
     scheduler: dict[str, Any] | None = None
 

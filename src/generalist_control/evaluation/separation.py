@@ -30,13 +30,13 @@ import numpy as np
 import pandas as pd
 import torch
 
-from generalist_control.data.windows import build_windows, integral_of_error
+from generalist_control.data.windows import Windows, build_windows, integral_of_error
 from generalist_control.model.policy import Policy
 from generalist_control.plants.plant import Plant, pad_states
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import PerPlantController, Run, simulate_many
 
-__all__ = ["network_views", "separation_table"]
+__all__ = ["network_views", "separation_table", "step_windows"]
 
 
 def network_views(
@@ -60,24 +60,8 @@ def network_views(
     controls : ndarray, shape (P, N)
         The expert's first control of each window in the policy's learned units.
     """
-    cfg = policy.config
-    steps = int(round(duration / plants[0].dt))
-    runs = [Run(p, np.full((1, steps), p.amplitude_scale)) for p in plants]
-    trajs = simulate_many(runs, PerPlantController(LQIController))
     inputs, controls = [], []
-    for p, tr in zip(plants, trajs, strict=True):
-        z = integral_of_error(tr.r, tr.y[:, :steps], p.dt) if cfg["integral"] else None
-        w = build_windows(
-            pad_states(tr.x[:, :steps]),
-            tr.r,
-            tr.u,
-            np.array([p.tag]),
-            np.array([p.order]),
-            cfg["history"],
-            1,
-            z,
-            bool(cfg.get("control_history", 0)),
-        )
+    for w in step_windows(policy, plants, duration):
         args = [torch.tensor(a) for a in (w.state, w.mask, w.ref, w.tag)]
         with torch.no_grad():
             x, m, r, tag, s = policy.network_inputs(*args)
@@ -85,6 +69,31 @@ def network_views(
         inputs.append(torch.cat([x.flatten(1), m.flatten(1), r], dim=1).numpy())
         controls.append(u[:, 0].numpy())
     return np.stack(inputs), np.stack(controls)
+
+
+def step_windows(policy: Policy, plants: Sequence[Plant], duration: float) -> list[Windows]:
+    """Each plant's LQI unit step from rest, as the policy's window builder cuts it."""
+    cfg = policy.config
+    steps = int(round(duration / plants[0].dt))
+    runs = [Run(p, np.full((1, steps), p.amplitude_scale)) for p in plants]
+    trajs = simulate_many(runs, PerPlantController(LQIController))
+    out = []
+    for p, tr in zip(plants, trajs, strict=True):
+        z = integral_of_error(tr.r, tr.y[:, :steps], p.dt) if cfg["integral"] else None
+        out.append(
+            build_windows(
+                pad_states(tr.x[:, :steps]),
+                tr.r,
+                tr.u,
+                np.array([p.tag]),
+                np.array([p.order]),
+                cfg["history"],
+                1,
+                z,
+                bool(cfg.get("control_history", 0)),
+            )
+        )
+    return out
 
 
 def _gaps(inputs: np.ndarray, controls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -42,6 +42,10 @@ from generalist_control.evaluation.departures import (  # noqa: E402
     departure_table,
 )
 from generalist_control.evaluation.handover import handover_summary  # noqa: E402
+from generalist_control.evaluation.identity import (  # noqa: E402
+    identity_summary,
+    identity_table,
+)
 from generalist_control.evaluation.local_gains import gain_summary  # noqa: E402
 from generalist_control.evaluation.separation import (  # noqa: E402
     network_views,
@@ -51,7 +55,12 @@ from generalist_control.model.policy import Policy  # noqa: E402
 from generalist_control.plants.plant import Plant  # noqa: E402
 from generalist_control.simulation.simulate import Trajectory  # noqa: E402
 
-__all__ = ["OWNED", "check_tag_free_dir", "tag_free_bar", "write_tag_free_report"]
+__all__ = [
+    "OWNED",
+    "check_tag_free_dir",
+    "tag_free_bar",
+    "write_tag_free_report",
+]
 
 #: What a tag-free report folder holds (the only entries a new report may replace).
 OWNED: dict[str, str | None] = {
@@ -60,6 +69,8 @@ OWNED: dict[str, str | None] = {
     "departures.csv": None,
     "handover.csv": None,
     "gains.csv": None,
+    "identity.csv": None,
+    "identity_trace.csv": None,
     "plots": "*.png",
 }
 
@@ -162,6 +173,34 @@ def _handover_figure(table: pd.DataFrame, verdict: dict[str, Any], path: Path) -
     plt.close(fig)
 
 
+def _diagnostic_tables(
+    verdict: dict[str, Any],
+    policy: Policy,
+    plants: Sequence[Plant],
+    trajectories: Mapping[str, Mapping[str, Mapping[str, Trajectory]]] | None,
+    handover: pd.DataFrame | None,
+    gains: pd.DataFrame | None,
+) -> dict[str, pd.DataFrame | None]:
+    """The departure, hand-over, gain and identity tables (None: not given).
+
+    Their summaries (but the identity's) go into ``verdict``.
+    """
+    left = departure_table(trajectories) if trajectories is not None else None
+    if left is not None:
+        verdict["departures"] = departure_summary(left)
+    if handover is not None:
+        verdict["handover"] = handover_summary(handover, verdict["ise_ratio_bar"])
+    if gains is not None:
+        verdict["local_gains"] = gain_summary(gains)
+    named = identity_table(policy, plants) if policy.net.identity is not None else None
+    return {
+        "departures.csv": left,
+        "handover.csv": handover,
+        "gains.csv": gains,
+        "identity.csv": named,
+    }
+
+
 def write_tag_free_report(
     df: pd.DataFrame,
     policy: Policy,
@@ -171,6 +210,7 @@ def write_tag_free_report(
     trajectories: Mapping[str, Mapping[str, Mapping[str, Trajectory]]] | None = None,
     handover: pd.DataFrame | None = None,
     gains: pd.DataFrame | None = None,
+    identity_trace: pd.DataFrame | None = None,
 ) -> dict[str, Any]:
     """Write ``bar.json``, ``separation.csv`` and ``plots/`` to ``out_dir``; return the bar.
 
@@ -182,7 +222,11 @@ def write_tag_free_report(
     with ``gains`` (:func:`~generalist_control.evaluation.local_gains.local_gains`)
     ``gains.csv`` and, per plant,
     :func:`~generalist_control.evaluation.local_gains.gain_summary` as ``local_gains`` in
-    the bar.
+    the bar. A policy with an identity head (``model.identity_loss``) also gets
+    ``identity.csv`` (:func:`~generalist_control.evaluation.identity.identity_table`) and
+    its :func:`~generalist_control.evaluation.identity.identity_summary` as ``identity`` in
+    the bar; with an ``identity_trace``
+    (:func:`~generalist_control.evaluation.identity.identity_trace`) ``identity_trace.csv``.
     """
     check_tag_free_dir(out_dir)
     verdict = tag_free_bar(df, **(bar or {}))
@@ -193,21 +237,17 @@ def write_tag_free_report(
     missing = table[table.system.isin(verdict["missing"])]
     verdict["why_missed"] = missing.to_dict(orient="records")
     pairs = list(zip(missing.system, missing.nearest, strict=True))
-    left = departure_table(trajectories) if trajectories is not None else None
-    if left is not None:
-        verdict["departures"] = departure_summary(left)
-    if handover is not None:
-        verdict["handover"] = handover_summary(handover, verdict["ise_ratio_bar"])
-    if gains is not None:
-        verdict["local_gains"] = gain_summary(gains)
+    tables = {
+        "separation.csv": table,
+        **_diagnostic_tables(verdict, policy, plants, trajectories, handover, gains),
+        "identity_trace.csv": identity_trace,
+    }
+    if tables["identity.csv"] is not None:
+        verdict["identity"] = identity_summary(tables["identity.csv"], identity_trace)
     with staging_directory(out_dir) as staging:
-        table.to_csv(staging / "separation.csv", index=False)
-        if left is not None:
-            left.to_csv(staging / "departures.csv", index=False)
-        if handover is not None:
-            handover.to_csv(staging / "handover.csv", index=False)
-        if gains is not None:
-            gains.to_csv(staging / "gains.csv", index=False)
+        for name, frame in tables.items():
+            if frame is not None:
+                frame.to_csv(staging / name, index=False)
         write_json(staging / "bar.json", verdict, sort_keys=True)
         (staging / "plots").mkdir()
         _figure(views, plants, pairs, staging / "plots" / "tag_free_missed.png")

@@ -37,7 +37,12 @@ __all__ = ["MODEL_DEFAULTS", "input_width", "network_config"]
 #: control that caused it; needs ``linear_skip`` and ``history_context``; 0 is the default)
 #: and ``skip_gain_scale`` (0 or 1: the skip gains are multiplied by ``exp(s)``, ``s`` a
 #: learned scalar function of their context, so the gains can move over orders of
-#: magnitude; needs ``linear_skip``; 0 is the default).
+#: magnitude; needs ``linear_skip``; 0 is the default) and ``identity_head`` (0 or 1: a linear
+#: read-out of the plant from the skip gains' context, trained against the tag by
+#: ``model.identity_loss``; needs ``history_context``; set by that weight, not directly)
+#: and ``infer_tag`` (0 or 1, with ``tag_free``: the embedding keeps a row per plant and the
+#: network weighs them by the identity head's softmax, read from the identifier's state, so
+#: the plant reaches the law only through the embedding of the plant it infers).
 MODEL_DEFAULTS: dict[str, int] = {
     "hidden": 32,
     "heads": 3,
@@ -57,6 +62,8 @@ MODEL_DEFAULTS: dict[str, int] = {
     "history_context": 0,
     "control_history": 0,
     "skip_gain_scale": 0,
+    "identity_head": 0,
+    "infer_tag": 0,
 }
 
 #: Keys that are switches (0 or 1) rather than sizes.
@@ -70,6 +77,8 @@ _SWITCHES = (
     "history_context",
     "control_history",
     "skip_gain_scale",
+    "identity_head",
+    "infer_tag",
 )
 
 #: Where a network key is set in the training config, when not at ``model.<key>``.
@@ -112,6 +121,14 @@ def network_config(**kwargs: Any) -> dict[str, int]:
             f"model.linear_samples ({cfg['linear_samples']}) exceeds the history "
             f"({cfg['history']})"
         )
+    _check_combinations(cfg)
+    if cfg["hidden"] % 2:
+        raise ValueError(f"model.hidden must be even (encoders give hidden // 2), got {cfg}")
+    return cfg
+
+
+def _check_combinations(cfg: dict[str, int]) -> None:
+    """Refuse switches that contradict each other or miss what they need."""
     if cfg["tag_free"] and cfg["linear_head"]:
         raise ValueError(
             "model.linear_head is a table of gains per tag and model.tag_free withholds the "
@@ -127,6 +144,16 @@ def network_config(**kwargs: Any) -> dict[str, int]:
             "model.skip_gain_scale scales the skip path's gains: turn model.linear_skip on, "
             "or skip_gain_scale off"
         )
-    if cfg["hidden"] % 2:
-        raise ValueError(f"model.hidden must be even (encoders give hidden // 2), got {cfg}")
-    return cfg
+    if cfg["identity_head"] and not (cfg["linear_skip"] and cfg["history_context"]):
+        raise ValueError(
+            "model.identity_loss reads the plant from the skip gains' context (model."
+            "linear_skip and model.history_context): turn those on, or identity_loss to 0"
+        )
+    if cfg["infer_tag"] and not (
+        cfg["tag_free"] and cfg["identity_head"] and cfg["control_history"]
+    ):
+        raise ValueError(
+            "model.infer_tag infers the tag a tag-free network is not given, from the "
+            "identifier (model.control_history) by the identity head (model.identity_loss > 0):"
+            " set model.tag_free=true, model.control_history=true and model.identity_loss > 0"
+        )

@@ -134,7 +134,8 @@ class GeneralistNetwork(nn.Module):
         # one-hot tag -> W_1 onehot + b_1 is a row lookup: an embedding of size d. Tag-free:
         # one shared row (the network never learns who is who); with unknown_tag one more
         # row, index n_tags, for a withheld tag (trained by tag dropout).
-        rows = 1 if c["tag_free"] else c["n_tags"] + c["unknown_tag"]
+        # With infer_tag the plant's row is inferred: a softmax over the n_tags rows.
+        rows = 1 if c["tag_free"] and not c["infer_tag"] else c["n_tags"] + c["unknown_tag"]
         self.tag_embedding = nn.Embedding(rows, d)
         self.tag_encoder = nn.Sequential(nn.ReLU(), nn.Linear(d, e))
         self.lstm_fast = nn.LSTM(4 * e, d, batch_first=True)
@@ -179,7 +180,7 @@ class GeneralistNetwork(nn.Module):
         self.slow_start = (c["history"] - 1) % c["stride"]
 
     def _add_history_paths(self, d: int, width: int) -> None:
-        """The skip gains' context from the history, and the identifier that feeds it."""
+        """The skip gains' context, the identifier feeding it and the head reading it."""
         c = self.config
         # Ours (model.history_context, with the skip path): the skip gains are computed from
         # the embedding plus a projection of the window's summary z, so that a policy without
@@ -193,11 +194,20 @@ class GeneralistNetwork(nn.Module):
         self.identifier: nn.LSTM | None = None
         if c["control_history"]:
             self.identifier = nn.LSTM(width + 1, d, batch_first=True)
+        # Ours (model.identity_loss > 0): a linear read-out of the plant from the skip gains'
+        # context, trained by cross-entropy against the tag (a training label only: the
+        # network's output never depends on it), so the context must carry the identity.
+        self.identity: nn.Linear | None = None
+        if c["identity_head"]:
+            self.identity = nn.Linear(d, c["n_tags"])
 
-    def features(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor) -> Tensor:
-        """Per-step features ``f_k`` (B, history, 2 * hidden) of the encoders."""
+    def features(self, state: Tensor, mask: Tensor, ref: Tensor, embedding: Tensor) -> Tensor:
+        """Per-step features ``f_k`` (B, history, 2 * hidden) of the encoders.
+
+        ``embedding`` (B, hidden): the plant's embedding row (:meth:`embedding`).
+        """
         x = self.law_state(state, mask)
-        f_tag = self.tag_encoder(self.tag_embedding(self.tag_index(tag)))  # same at every step
+        f_tag = self.tag_encoder(embedding)  # the same at every step
         return torch.cat(
             [
                 self.state_encoder_1(x),
@@ -228,7 +238,24 @@ class GeneralistNetwork(nn.Module):
         gates : Tensor, shape (B, experts)
             Softmax gate weights ``alpha`` (rows sum to one).
         """
-        f = self.features(state, mask, ref, tag)
+        u, gates, _ = self.forward_code(state, mask, ref, tag)
+        return u, gates
+
+    def forward_code(
+        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
+        """:meth:`forward`, and what the identity head reads (B, hidden), or None.
+
+        The skip gains' context (None without a skip path); with ``infer_tag`` the
+        identifier's state. :meth:`identity_logits` reads the plant from it
+        (``model.identity_loss``).
+        """
+        code, ident = None, None
+        if self.identifier is not None:
+            seq = torch.cat([state * mask, ref.unsqueeze(-1)], dim=-1)
+            ident = self.identifier(seq)[1][0][-1]
+        embedding = self.embedding(tag, ident)
+        f = self.features(state, mask, ref, embedding)
         _, (h_fast, _) = self.lstm_fast(f)
         _, (h_slow, _) = self.lstm_slow(f[:, self.slow_start :: self.config["stride"]])
         z = torch.cat([h_fast[-1], h_slow[-1]], dim=-1)
@@ -237,11 +264,39 @@ class GeneralistNetwork(nn.Module):
         u_experts = torch.stack([expert(z_att) for expert in self.experts], dim=1)
         u = torch.einsum("bm,bmk->bk", gates, u_experts)
         if self.linear is not None or self.skip is not None:
-            if self.identifier is not None:
-                seq = torch.cat([state * mask, ref.unsqueeze(-1)], dim=-1)
-                z_att = torch.cat([z_att, self.identifier(seq)[1][0][-1]], dim=-1)
-            u = u + self._linear_paths(state, mask, ref, tag, z_att)
-        return u, gates
+            if ident is not None:
+                z_att = torch.cat([z_att, ident], dim=-1)
+            u_linear, code = self._linear_paths(state, mask, ref, tag, embedding, z_att)
+            u = u + u_linear
+        if self.config["infer_tag"]:
+            return u, gates, ident  # the identity head reads the identifier (embedding)
+        return u, gates, code
+
+    def embedding(self, tag: Tensor, ident: Tensor | None = None) -> Tensor:
+        """The plant's embedding row (B, hidden) that the encoders and the skip gains see.
+
+        The tag's row; one shared row when ``tag_free``; with ``infer_tag`` the rows weighed
+        by the identity head's softmax over the plants, read from the identifier's state
+        ``ident`` (the tag is not used).
+        """
+        if not self.config["infer_tag"]:
+            return self.tag_embedding(self.tag_index(tag))
+        if ident is None or self.identity is None:
+            raise ValueError("infer_tag needs the identifier and the identity head")
+        weights = torch.softmax(self.identity(ident), dim=-1)
+        return weights @ self.tag_embedding.weight[: self.config["n_tags"]]
+
+    def identity_logits(self, code: Tensor) -> Tensor:
+        """Logits (B, n_tags) of the plant read from ``code`` (see :meth:`forward_code`).
+
+        Raises
+        ------
+        ValueError
+            If the network has no identity head (``model.identity_loss`` is 0).
+        """
+        if self.identity is None:
+            raise ValueError("the network has no identity head: set model.identity_loss > 0")
+        return self.identity(code)
 
     def tag_index(self, tag: Tensor) -> Tensor:
         """The embedding row of each tag: row 0 for every plant when ``tag_free``.
@@ -253,16 +308,23 @@ class GeneralistNetwork(nn.Module):
         return torch.zeros_like(tag) if self.config["tag_free"] else tag
 
     def _linear_paths(
-        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor, summary: Tensor
-    ) -> Tensor:
-        """The per-tag head and the embedding-conditioned skip path, on the newest samples."""
+        self,
+        state: Tensor,
+        mask: Tensor,
+        ref: Tensor,
+        tag: Tensor,
+        embedding: Tensor,
+        summary: Tensor,
+    ) -> tuple[Tensor, Tensor | None]:
+        """The per-tag head and the embedding-conditioned skip path, and the skip's context."""
         window = self.linear_features(state, mask, ref)
         shape = (-1, self.config["horizon"], window.shape[1])
         u = window.new_zeros(window.shape[0], self.config["horizon"])
+        code = None
         if self.linear is not None:
             u = u + torch.einsum("bkf,bf->bk", self.linear(tag).view(shape), window)
         if self.skip is not None:
-            code = self.tag_embedding(self.tag_index(tag))
+            code = embedding
             if self.context is not None:
                 code = code + self.context(summary)
             gains = self.skip(code).view(shape)
@@ -270,7 +332,7 @@ class GeneralistNetwork(nn.Module):
                 exponent = 6.0 * torch.tanh(self.skip_scale(code) / 6.0)
                 gains = gains * torch.exp(exponent).unsqueeze(-1)
             u = u + torch.einsum("bkf,bf->bk", gains, window)
-        return u
+        return u, code
 
     def linear_features(self, state: Tensor, mask: Tensor, ref: Tensor) -> Tensor:
         """What the linear paths see: the newest ``linear_samples`` of state and reference.

@@ -109,9 +109,44 @@ class Policy(nn.Module):
         signal, as precise for a unit step as for a step of 20. With it off, ``s = 1``.
         The data scales use the plant's tag; the network gets :meth:`network_tags`.
         """
-        state, mask, ref, tag, s = self.network_inputs(state, mask, ref, tag)
-        u, gates = self.net(state, mask, ref, self.network_tags(tag, withheld))
+        u, gates, s, _ = self.scaled_code(state, mask, ref, tag, withheld)
         return u, gates, s
+
+    def scaled_code(
+        self,
+        state: Tensor,
+        mask: Tensor,
+        ref: Tensor,
+        tag: Tensor,
+        withheld: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+        """:meth:`scaled`, and the skip gains' context (None without a skip path).
+
+        The network's identity head reads the plant from that context
+        (:meth:`~generalist_control.model.network.GeneralistNetwork.identity_logits`,
+        ``model.identity_loss``).
+        """
+        state, mask, ref, tag, s = self.network_inputs(state, mask, ref, tag)
+        u, gates, code = self.net.forward_code(state, mask, ref, self.network_tags(tag, withheld))
+        return u, gates, s, code
+
+    def identity_logits(
+        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """The network's output (window-scaled units) and its plant logits (B, n_tags).
+
+        The logits are the identity head's read-out of the skip gains' context
+        (``model.identity_loss``); the tag only scales the data, as in :meth:`scaled`.
+
+        Raises
+        ------
+        ValueError
+            If the network has no skip path or no identity head.
+        """
+        u, _, _, code = self.scaled_code(state, mask, ref, tag)
+        if code is None:
+            raise ValueError("the network has no skip path, so no identity context")
+        return u, self.net.identity_logits(code)
 
     def network_inputs(
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor

@@ -46,6 +46,7 @@ from generalist_control.training.setup import (
     config_callbacks,
     dagger_callback,
     dagger_plants,
+    identity_loss,
     included_plants,
     model_config,
     tag_dropout,
@@ -102,6 +103,7 @@ def _module(cfg: DictConfig, dm: DemoDataModule, meta: dict[str, Any]) -> Imitat
         scheduler=_plain(scheduler) if scheduler else None,
         meta=meta,
         tag_dropout=tag_dropout(cfg),
+        identity_loss=identity_loss(cfg),
     )
     lit.policy.normaliser.fit(**_tensors(dm.train_set))
     linear_init = cfg.model.get("linear_init", "zero")

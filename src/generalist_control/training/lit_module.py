@@ -42,6 +42,10 @@ class ImitationModule(L.LightningModule):
     tag_dropout : float
         In training steps, each window goes without its tag with this probability
         (``model.tag_dropout``; the network needs ``unknown_tag``). Validation keeps tags.
+    identity_loss : float
+        Weight of the cross-entropy of the network's plant read-out against the tag, added
+        to the training loss (``model.identity_loss``; the network needs ``identity_head``).
+        Logged as ``train/identity`` and, its accuracy, ``val/identity_acc``.
 
     Notes
     -----
@@ -56,12 +60,17 @@ class ImitationModule(L.LightningModule):
         scheduler: dict[str, Any] | None = None,
         meta: dict[str, Any] | None = None,
         tag_dropout: float = 0.0,
+        identity_loss: float = 0.0,
     ) -> None:
         super().__init__()
         # in checkpoints only: the run's params are chosen (logger.params), not the hparams
         self.save_hyperparameters(logger=False)
         self.policy = Policy(model)
         self.tag_dropout = float(tag_dropout)
+        self.identity_loss = float(identity_loss)
+        if self.identity_loss > 0 and self.policy.net.identity is None:
+            raise ValueError("identity_loss > 0 needs a network with identity_head")
+        self._val_hits = torch.zeros((), dtype=torch.float64)
         tags = (meta or {}).get("tags", {})
         self.tag_names = {int(t): str(name) for name, t in tags.items()}
         n_tags = self.policy.config["n_tags"]
@@ -74,22 +83,33 @@ class ImitationModule(L.LightningModule):
         """Controls in plant units and gate weights (see :meth:`Policy.forward`)."""
         return self.policy(state, mask, ref, tag)
 
-    def _errors(self, batch: dict[str, Tensor]) -> Tensor:
-        """Squared errors (B, horizon) in normalised units, relative to the window scale.
+    def _errors(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor | None]:
+        """Squared errors (B, horizon) and the identity head's plant logits (or None).
 
+        Errors in normalised units, relative to the window scale; logits (B, n_tags).
         Without ``window_scale`` the scale is one: the paper's MSE in normalised units.
         """
         tag = batch["tag"]
         withheld = None
         if self.training and self.tag_dropout > 0:
             withheld = torch.rand(tag.shape, device=tag.device) < self.tag_dropout
-        u, _, s = self.policy.scaled(batch["state"], batch["mask"], batch["ref"], tag, withheld)
+        u, _, s, code = self.policy.scaled_code(
+            batch["state"], batch["mask"], batch["ref"], tag, withheld
+        )
         target = self.policy.normaliser.normalise_controls(batch["target"], batch["tag"])
-        return (u - target / s) ** 2
+        logits = None
+        if self.identity_loss > 0 and code is not None:
+            logits = self.policy.net.identity_logits(code)
+        return (u - target / s) ** 2, logits
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        """MSE on the control sequence of one batch."""
-        loss = self._errors(batch).mean()
+        """MSE on the control sequence of one batch (plus the weighted identity loss)."""
+        errors, logits = self._errors(batch)
+        loss = errors.mean()
+        if logits is not None:
+            identity = torch.nn.functional.cross_entropy(logits, batch["tag"])
+            self.log("train/identity", identity, on_step=False, on_epoch=True, logger=False)
+            loss = loss + self.identity_loss * identity
         self.log(
             "train/loss",
             loss,
@@ -105,10 +125,14 @@ class ImitationModule(L.LightningModule):
         """Reset the per-tag error sums."""
         self._val_sse = torch.zeros_like(self._val_sse, device=self.device)
         self._val_count = torch.zeros_like(self._val_count, device=self.device)
+        self._val_hits = torch.zeros_like(self._val_hits, device=self.device)
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         """Accumulate squared errors per system tag."""
-        err = self._errors(batch).to(torch.float64)
+        err, logits = self._errors(batch)
+        err = err.to(torch.float64)
+        if logits is not None:
+            self._val_hits += (logits.argmax(1) == batch["tag"]).sum()
         self._val_sse.index_add_(0, batch["tag"], err.sum(1))
         self._val_count.index_add_(0, batch["tag"], torch.full_like(err[:, 0], err.shape[1]))
 
@@ -118,6 +142,9 @@ class ImitationModule(L.LightningModule):
         if total == 0:
             return
         self.log("val/loss", (self._val_sse.sum() / total).float(), prog_bar=True, logger=False)
+        if self.identity_loss > 0:  # windows = count / horizon
+            share = self._val_hits * self.policy.config["horizon"] / total
+            self.log("val/identity_acc", share.float(), logger=False)
         for tag in torch.nonzero(self._val_count).flatten().tolist():
             name = self.tag_names.get(tag, f"tag{tag}")
             mse = self._val_sse[tag] / self._val_count[tag]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import numbers
 from pathlib import Path
 from typing import Any, cast
 
@@ -25,6 +27,7 @@ __all__ = [
     "closed_loop_validation",
     "config_callbacks",
     "dagger_callback",
+    "identity_loss",
     "included_plants",
     "model_config",
     "training_plants",
@@ -43,10 +46,12 @@ def model_config(cfg: DictConfig) -> dict[str, int]:
         If a value is not of its type (``model.hidden=32.9``, ``experts=2.5``: nothing is
         rounded) or out of range; see :func:`~generalist_control.model.network.network_config`.
     """
-    keys = set(MODEL_DEFAULTS) - {"experts", "state_dim", "history", "horizon", "unknown_tag"}
+    derived = {"unknown_tag", "identity_head"}  # from tag_dropout and identity_loss
+    keys = set(MODEL_DEFAULTS) - {"experts", "state_dim", "history", "horizon", *derived}
     return network_config(
         **{k: v for k, v in cfg.model.items() if k in keys},
         unknown_tag=tag_dropout(cfg) > 0,
+        identity_head=identity_loss(cfg) > 0,
         experts=cfg.experts,
         history=cfg.data.history,
         horizon=cfg.data.horizon,
@@ -68,6 +73,23 @@ def tag_dropout(cfg: DictConfig) -> float:
             "model.tag_dropout drops a tag that model.tag_free never gives: set one of them"
         )
     return p
+
+
+def identity_loss(cfg: DictConfig) -> float:
+    """``model.identity_loss``, checked: the weight of the plant read-out's cross-entropy.
+
+    Raises
+    ------
+    ValueError
+        If it is not a finite number >= 0.
+    """
+    value = cfg.model.get("identity_loss", 0.0)
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"model.identity_loss must be a number >= 0, got {value!r}")
+    weight = float(value)
+    if not (math.isfinite(weight) and weight >= 0.0):
+        raise ValueError(f"model.identity_loss must be a finite number >= 0, got {value}")
+    return weight
 
 
 def included_plants(cfg: DictConfig) -> list[str] | None:
