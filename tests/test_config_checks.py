@@ -40,13 +40,15 @@ from helpers import compose_cfg, tiny_train_overrides
 
 REPO = Path(__file__).resolve().parents[1]
 #: Network keys set in the ``model`` group (the others come from ``experts`` and ``data``;
-#: ``unknown_tag`` follows from ``model.tag_dropout``).
+#: ``unknown_tag`` follows from ``model.tag_dropout``, ``identity_head`` from
+#: ``model.identity_loss``).
 MODEL_GROUP_KEYS = set(MODEL_DEFAULTS) - {
     "experts",
     "state_dim",
     "history",
     "horizon",
     "unknown_tag",
+    "identity_head",
 }
 
 

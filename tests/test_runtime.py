@@ -42,14 +42,15 @@ def policy(request) -> Policy:
 
     ``ours-no-integral``: window scaling and the linear head on, the head's weights made
     non-zero; ``ours``: the same and the tracking-error integral as a state channel;
-    ``tag-free-controls``: that, without the tag and with the previous control as a channel.
+    ``tag-free-controls``: that, without the tag and with the previous control as a channel,
+    the plant's embedding inferred from the window (``infer_tag``, the tag-free stage's).
     """
     torch.manual_seed(0)
     on, integral = int(request.param > 0), int(request.param > 1)
     cfg = {"hidden": 16, "experts": 3, "window_scale": on, "linear_head": on}
     if request.param == 3:
         cfg |= {"tag_free": 1, "control_history": 1, "linear_head": 0, "linear_skip": 1}
-        cfg |= {"history_context": 1}
+        cfg |= {"history_context": 1, "identity_head": 1, "infer_tag": 1}
     pol = Policy({**cfg, "integral": integral}).eval()
     g = torch.Generator().manual_seed(1)
     with torch.no_grad():

@@ -98,33 +98,18 @@ class Policy(nn.Module):
         ref: Tensor,
         tag: Tensor,
         withheld: Tensor | None = None,
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Network output in window-scaled units, gate weights and the window scales (B, 1).
-
-        With ``window_scale`` on, each window's normalised state and reference are divided
-        by their largest magnitude ``s`` (at least :data:`WINDOW_SCALE_FLOOR`) and the
-        network's output is multiplied by it. The LQI law is linear, so its step responses
-        from rest are exactly proportional to the step: scaled windows of every amplitude
-        coincide, the network learns one shape per plant, and its error is relative to the
-        signal, as precise for a unit step as for a step of 20. With it off, ``s = 1``.
-        The data scales use the plant's tag; the network gets :meth:`network_tags`.
-        """
-        u, gates, s, _ = self.scaled_code(state, mask, ref, tag, withheld)
-        return u, gates, s
-
-    def scaled_code(
-        self,
-        state: Tensor,
-        mask: Tensor,
-        ref: Tensor,
-        tag: Tensor,
-        withheld: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
-        """:meth:`scaled`, and the skip gains' context (None without a skip path).
+        """Output (window-scaled units), gates, window scales (B, 1), identity-head input.
 
-        The network's identity head reads the plant from that context
-        (:meth:`~generalist_control.model.network.GeneralistNetwork.identity_logits`,
-        ``model.identity_loss``).
+        The last is what the identity head reads (None without a skip path; see
+        ``model.identity_loss``). With ``window_scale`` on, each window's normalised
+        state and reference are divided by their largest magnitude ``s`` (at least
+        :data:`WINDOW_SCALE_FLOOR`) and the network's output is multiplied by it. The
+        LQI law is linear, so its step responses from rest are exactly proportional to
+        the step: scaled windows of every amplitude coincide, the network learns one
+        shape per plant, and its error is relative to the signal, as precise for a unit
+        step as for a step of 20. With it off, ``s = 1``. The data scales use the
+        plant's tag; the network gets :meth:`network_tags`.
         """
         state, mask, ref, tag, s = self.network_inputs(state, mask, ref, tag)
         u, gates, code = self.net.forward_code(state, mask, ref, self.network_tags(tag, withheld))
@@ -135,15 +120,16 @@ class Policy(nn.Module):
     ) -> tuple[Tensor, Tensor]:
         """The network's output (window-scaled units) and its plant logits (B, n_tags).
 
-        The logits are the identity head's read-out of the skip gains' context
-        (``model.identity_loss``); the tag only scales the data, as in :meth:`scaled`.
+        The logits are the identity head's read-out of the skip gains' context, or with
+        ``infer_tag`` of the identifier's state (``model.identity_loss``); the tag only
+        scales the data, as in :meth:`scaled`.
 
         Raises
         ------
         ValueError
             If the network has no skip path or no identity head.
         """
-        u, _, _, code = self.scaled_code(state, mask, ref, tag)
+        u, _, _, code = self.scaled(state, mask, ref, tag)
         if code is None:
             raise ValueError("the network has no skip path, so no identity context")
         return u, self.net.identity_logits(code)
@@ -217,7 +203,7 @@ class Policy(nn.Module):
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
     ) -> tuple[Tensor, Tensor]:
         """Network output in normalised units and gate weights."""
-        u, gates, s = self.scaled(state, mask, ref, tag)
+        u, gates, s, _ = self.scaled(state, mask, ref, tag)
         return u * s, gates
 
     def forward(

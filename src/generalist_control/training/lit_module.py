@@ -93,7 +93,7 @@ class ImitationModule(L.LightningModule):
         withheld = None
         if self.training and self.tag_dropout > 0:
             withheld = torch.rand(tag.shape, device=tag.device) < self.tag_dropout
-        u, _, s, code = self.policy.scaled_code(
+        u, _, s, code = self.policy.scaled(
             batch["state"], batch["mask"], batch["ref"], tag, withheld
         )
         target = self.policy.normaliser.normalise_controls(batch["target"], batch["tag"])
