@@ -123,7 +123,7 @@ def identity_trace(
     Returns
     -------
     DataFrame
-        ``system, handover_samples, time, p_true, guess, p_guess``, one row per plant and
+        ``system, handover_samples, sample, time, p_true, guess, p_guess``, one row per plant and
         sample until the run ends (or the runtime refuses a run, which ends every row's
         trace: the window's rows would no longer match the plants).
     """
@@ -137,7 +137,7 @@ def identity_trace(
         for k, prob in enumerate(traced.probs):
             if prob is None:
                 break
-            where = {"handover_samples": int(n), "time": k * plants[0].dt}
+            where = {"handover_samples": int(n), "sample": k, "time": k * plants[0].dt}
             rows += [_row(p, plants, q, **where) for p, q in zip(plants, prob, strict=True)]
     return pd.DataFrame(rows)
 
@@ -159,14 +159,8 @@ def identity_summary(
             "misnamed": {s: q for s, q in zip(g.system, g.guess, strict=True) if s != q},
         }
     if trace is not None:
-        own = trace[trace.time >= trace.handover_samples * _dt(trace)]
+        own = trace[trace["sample"] >= trace.handover_samples]
         for n, g in own.groupby("handover_samples"):
             named = (g.guess == g.system).groupby(g.system).mean()
             out[f"own_from_{n}"] = {s: float(v) for s, v in named.items()}
     return out
-
-
-def _dt(trace: pd.DataFrame) -> float:
-    """The sample time of a trace (its second time stamp)."""
-    times = np.unique(trace.time.to_numpy())
-    return float(times[1]) if times.size > 1 else 1.0

@@ -127,6 +127,36 @@ def network_config(**kwargs: Any) -> dict[str, int]:
     return cfg
 
 
+#: A switch, the switches it needs, and the message when one is off.
+_NEEDS = (
+    (
+        "control_history",
+        ("linear_skip", "history_context"),
+        "model.control_history feeds the skip path's gains (model.linear_skip and "
+        "model.history_context): turn those on, or control_history off",
+    ),
+    (
+        "skip_gain_scale",
+        ("linear_skip",),
+        "model.skip_gain_scale scales the skip path's gains: turn model.linear_skip on, "
+        "or skip_gain_scale off",
+    ),
+    (
+        "identity_head",
+        ("linear_skip", "history_context"),
+        "model.identity_loss reads the plant from the skip gains' context (model."
+        "linear_skip and model.history_context): turn those on, or identity_loss to 0",
+    ),
+    (
+        "infer_tag",
+        ("tag_free", "identity_head", "control_history"),
+        "model.infer_tag infers the tag a tag-free network is not given, from the "
+        "identifier (model.control_history) by the identity head (model.identity_loss > 0):"
+        " set model.tag_free=true, model.control_history=true and model.identity_loss > 0",
+    ),
+)
+
+
 def _check_combinations(cfg: dict[str, int]) -> None:
     """Refuse switches that contradict each other or miss what they need."""
     if cfg["tag_free"] and cfg["linear_head"]:
@@ -134,26 +164,6 @@ def _check_combinations(cfg: dict[str, int]) -> None:
             "model.linear_head is a table of gains per tag and model.tag_free withholds the "
             "tag: turn one of them off"
         )
-    if cfg["control_history"] and not (cfg["linear_skip"] and cfg["history_context"]):
-        raise ValueError(
-            "model.control_history feeds the skip path's gains (model.linear_skip and "
-            "model.history_context): turn those on, or control_history off"
-        )
-    if cfg["skip_gain_scale"] and not cfg["linear_skip"]:
-        raise ValueError(
-            "model.skip_gain_scale scales the skip path's gains: turn model.linear_skip on, "
-            "or skip_gain_scale off"
-        )
-    if cfg["identity_head"] and not (cfg["linear_skip"] and cfg["history_context"]):
-        raise ValueError(
-            "model.identity_loss reads the plant from the skip gains' context (model."
-            "linear_skip and model.history_context): turn those on, or identity_loss to 0"
-        )
-    if cfg["infer_tag"] and not (
-        cfg["tag_free"] and cfg["identity_head"] and cfg["control_history"]
-    ):
-        raise ValueError(
-            "model.infer_tag infers the tag a tag-free network is not given, from the "
-            "identifier (model.control_history) by the identity head (model.identity_loss > 0):"
-            " set model.tag_free=true, model.control_history=true and model.identity_loss > 0"
-        )
+    for switch, needs, message in _NEEDS:
+        if cfg[switch] and not all(cfg[k] for k in needs):
+            raise ValueError(message)
