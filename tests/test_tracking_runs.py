@@ -123,3 +123,64 @@ def test_end_message_names_policy_run_version_and_ui(tmp_path):
     local = end_message(tmp_path / "p.ckpt", "r1", "gc/train", "sqlite:///mlflow.db", None, "x")
     assert "not registered" in local
     assert "mlflow ui --backend-store-uri sqlite:///mlflow.db" in local
+
+
+def _numpy_dataset(digest: str):
+    import numpy as np
+    from mlflow.data.numpy_dataset import from_numpy
+
+    return from_numpy(np.zeros((3, 2)), source="/data/demos", name="demos", digest=digest)
+
+
+def test_a_dataset_logged_by_another_run_at_the_same_time_is_linked(tmp_path, monkeypatch):
+    """Two runs insert one dataset together: the second insert breaks the unique key, then links.
+
+    The race of two study workers is reproduced on a real store: just before this run's
+    transaction writes its rows (after its lookup missed the dataset), another run logs the
+    same dataset and commits; the transaction then fails on ``datasets``' unique key.
+    """
+    from sqlalchemy.orm import Session
+
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    exp = mlflow.create_experiment("race", artifact_location=(tmp_path / "art").as_uri())
+    client = mlflow.MlflowClient()
+    other = client.create_run(exp).info.run_id
+    real_add_all, racing = Session.add_all, []
+
+    def add_all(session, objs):
+        objs = list(objs)
+        if racing and any(type(o).__name__ == "SqlDataset" for o in objs):
+            dataset = racing.pop()  # the other worker commits the same dataset first
+            with mlflow.start_run(run_id=other, nested=True):
+                mlflow.log_input(dataset, context="training")
+        return real_add_all(session, objs)
+
+    monkeypatch.setattr(Session, "add_all", add_all)
+    with mlflow.start_run(experiment_id=exp) as run:
+        racing.append(_numpy_dataset("d" * 36))
+        with pytest.raises(mlflow.exceptions.MlflowException, match="UNIQUE constraint"):
+            mlflow.log_input(racing[0], context="training")  # MLflow alone fails
+        assert not racing
+        dataset = _numpy_dataset("f" * 36)
+        racing.append(dataset)
+        mlflow_utils.log_input_shared(dataset, context="training", tags={"content_hash": "x"})
+    assert not racing  # the race happened on the shared path too, and it recovered
+    (linked,) = client.get_run(run.info.run_id).inputs.dataset_inputs
+    assert linked.dataset.digest == "f" * 36
+    assert {t.key: t.value for t in linked.tags}["content_hash"] == "x"
+    other_inputs = client.get_run(other).inputs.dataset_inputs
+    assert sorted(i.dataset.digest for i in other_inputs) == ["d" * 36, "f" * 36]
+    client.set_terminated(other)
+
+
+def test_other_mlflow_errors_of_log_input_are_raised_at_once(monkeypatch):
+    calls = []
+
+    def fail(*args, **kwargs):
+        calls.append(1)
+        raise mlflow.exceptions.MlflowException("RESOURCE_DOES_NOT_EXIST: run not found")
+
+    monkeypatch.setattr(mlflow, "log_input", fail)
+    with pytest.raises(mlflow.exceptions.MlflowException, match="run not found"):
+        mlflow_utils.log_input_shared(_numpy_dataset("e" * 36), context="training", tags={})
+    assert calls == [1]

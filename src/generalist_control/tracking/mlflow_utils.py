@@ -48,6 +48,7 @@ __all__ = [
     "experiment_id",
     "flatten_params",
     "init_store",
+    "log_input_shared",
     "log_params_once",
     "mlflow_run",
     "now",
@@ -345,3 +346,33 @@ def log_params_once(params: Mapping[str, str]) -> dict[str, tuple[str, str]]:
     if changed:
         mlflow.set_tag("resume.changed_params", json.dumps(changed)[:_MAX_VALUE])
     return changed
+
+
+#: What a database says when a row another process inserted first is inserted again
+#: (PostgreSQL, SQLite, MySQL), lower-cased.
+_DUPLICATE_ROW = ("duplicate key", "unique constraint", "duplicate entry")
+
+
+def log_input_shared(
+    dataset: Any, context: str, tags: Mapping[str, str], attempts: int = 3
+) -> None:
+    """:func:`mlflow.log_input`, again when another process logged the same dataset first.
+
+    MLflow's database store looks a dataset up by (experiment, name, digest) and inserts it
+    when missing, in one transaction without a lock: two trainings on one data set that
+    start together (the workers of a study) can both miss it, and the second insert then
+    fails on the table's unique key. The failed transaction is rolled back, so logging again
+    finds the row the other process wrote and only links it to this run. Any other error,
+    or the same one ``attempts`` times, is raised.
+    """
+    for attempt in range(1, attempts + 1):
+        try:
+            mlflow.log_input(dataset, context=context, tags=dict(tags))
+            return
+        except MlflowException as err:
+            text = str(err).lower()
+            if attempt == attempts or not any(s in text for s in _DUPLICATE_ROW):
+                raise
+            log.info(
+                "dataset %s was logged by another run at the same time; linking it", dataset.name
+            )

@@ -261,7 +261,9 @@ def log_dataset(dm: DemoDataModule) -> None:
         dataset = from_numpy(
             features, source=source, targets=t["target"].numpy(), name="demos", digest=digest
         )
-    mlflow.log_input(dataset, context="training", tags={"content_hash": meta["content_hash"]})
+    mlflow_utils.log_input_shared(
+        dataset, context="training", tags={"content_hash": meta["content_hash"]}
+    )
 
 
 def dvc_metrics(metrics: Mapping[str, float]) -> dict[str, float]:
