@@ -264,6 +264,65 @@ def test_withholding_from_a_tagged_policy_is_refused_with_the_fix(tmp_path):
         evaluate_run(cfg)
 
 
+def _evaluate_given(tmp_path, path, given: bool) -> pd.DataFrame:
+    reports = tmp_path / f"r_{given}"
+    cfg = compose_cfg(
+        f"policy={path}",
+        "experiment=tag_free",
+        f"evaluation.identity_given={str(given).lower()}",
+        f"paths.reports_dir={reports}",
+        f"evaluation.tag_free_report={tmp_path / f'bar_{given}'}",
+        "evaluation.plots=false",
+        "evaluation.handover_samples=[]",
+        "evaluation.gain_samples=null",
+        "systems.include=[cstr,two_tank]",
+        f"logger.tracking_uri=sqlite:///{tmp_path / 'mlflow.db'}",
+    )
+    with open_dict(cfg):
+        cfg.evaluation.scenarios = OmegaConf.create(
+            {"step": {"kind": "step", "amplitude": 1.0, "duration": 2.0}}
+        )
+        cfg.evaluation.crazyflie = None
+    evaluate_run(cfg)
+    frame = pd.read_csv(reports / "metrics.csv")
+    return frame[frame.controller == "GC"].set_index(["system", "metric", "run"]).value
+
+
+def test_identity_given_gives_the_inferring_network_the_true_plant_s_row(tmp_path):
+    """A head sure of cstr: given or inferred, cstr's runs are the same; two_tank's differ."""
+    from generalist_control.model.policy import save_policy
+    from generalist_control.plants.catalog import load_plant
+    from helpers import policy_meta
+
+    torch.manual_seed(0)
+    policy = Policy(_identity_config(infer_tag=1)).eval()
+    with torch.no_grad():
+        policy.net.skip.weight.normal_(std=0.01)
+        policy.net.identity.weight.zero_()
+        policy.net.identity.bias.fill_(-1e4)
+        policy.net.identity.bias[load_plant("cstr").tag] = 0.0
+    path = save_policy(tmp_path / "p.ckpt", policy, policy_meta(["cstr", "two_tank"]))
+    inferred, given = (_evaluate_given(tmp_path, path, g) for g in (False, True))
+    pd.testing.assert_series_equal(inferred.loc["cstr"], given.loc["cstr"])
+    assert not np.allclose(inferred.loc["two_tank"], given.loc["two_tank"], equal_nan=True)
+    bars = [json.loads((tmp_path / f"bar_{g}" / "bar.json").read_text()) for g in (False, True)]
+    assert "identity_given" not in bars[0]
+    assert bars[1]["identity_given"] is True and bars[1]["met"] is False
+    # logged apart from the policy's own evaluation
+    import mlflow
+
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    runs = mlflow.search_runs(search_all_experiments=True, output_format="list")
+    key = {g: f"eval{'_identity_given' if g else ''}/diverged/GC" for g in (False, True)}
+    for g, frame in ((False, inferred), (True, given)):
+        (run,) = (r for r in runs if key[g] in r.data.metrics)
+        assert key[not g] not in run.data.metrics
+        assert run.data.metrics[key[g]] == frame.loc[:, "diverged", :].sum()
+    plain = save_policy(tmp_path / "q.ckpt", Policy(_identity_config()), policy_meta(["cstr"]))
+    with pytest.raises(ValueError, match="does not infer its plant"):
+        _evaluate_given(tmp_path, plain, True)
+
+
 def _long(rows):
     return pd.DataFrame(
         rows, columns=["system", "scenario", "controller", "run", "metric", "value"]
@@ -499,6 +558,12 @@ def test_infer_tag_weighs_the_plants_rows_by_the_identity_head_and_ignores_the_t
         u_3 = net(state, mask, ref, tags_a)[0]
         net.identity.bias[[3, 7]] = torch.tensor([-1e4, 0.0])
         assert not torch.allclose(u_3, net(state, mask, ref, tags_a)[0])
+        # the diagnostic evaluation.identity_given: each sample gets its own tag's row
+        net.identity_given = True
+        torch.testing.assert_close(net.embedding(tags_a, ident), net.tag_embedding(tags_a))
+        assert not torch.allclose(
+            net(state, mask, ref, tags_a)[0], net(state, mask, ref, tags_b)[0]
+        )
 
 
 def test_infer_tag_without_what_it_needs_is_refused():

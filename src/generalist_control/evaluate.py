@@ -45,10 +45,14 @@ log = logging.getLogger(__name__)
 def _runtime(source: str, cfg: DictConfig) -> PolicyRuntime:
     """The policy's runtime; with ``evaluation.withhold_tag`` its network never gets the tag.
 
+    With ``evaluation.identity_given`` (a diagnostic) an ``infer_tag`` network gets the
+    true plant's embedding row instead of the one its identity head infers.
+
     Raises
     ------
     ValueError
-        If the tag is to be withheld from a policy trained with its tag always given.
+        If the tag is to be withheld from a policy trained with its tag always given, or
+        the identity given to a policy that does not infer it.
     """
     policy, meta = load_policy(resolve(source))
     if cfg.evaluation.get("withhold_tag", False):
@@ -59,6 +63,13 @@ def _runtime(source: str, cfg: DictConfig) -> PolicyRuntime:
                 "(experiment=tag_free)"
             )
         policy.withhold_tag = True
+    if cfg.evaluation.get("identity_given", False):
+        if not policy.config["infer_tag"]:
+            raise ValueError(
+                f"evaluation.identity_given=true, but the policy {source} does not infer its "
+                "plant (model.infer_tag); it is a diagnostic of experiment=tag_free policies"
+            )
+        policy.net.identity_given = True
     return PolicyRuntime(policy, meta, backend=cfg.evaluation.get("backend", "torch"))
 
 

@@ -25,9 +25,13 @@ def log_to_mlflow(
 
     Names start with ``evaluation.mlflow_prefix`` (default ``eval``), so that two
     evaluations of one policy (e.g. with and without its tag) keep apart in its run;
-    ``extra`` maps artifact sub-folders to further folders to log (the tag-free bar).
+    ``extra`` maps artifact sub-folders to further folders to log (the tag-free bar). With
+    ``evaluation.identity_given`` (a diagnostic with the tag given) the prefix ends in
+    ``_identity_given``, so it never stands in for the policy's own evaluation.
     """
     prefix = str(cfg.evaluation.get("mlflow_prefix") or "eval")
+    if cfg.evaluation.get("identity_given", False):
+        prefix += "_identity_given"
     flat: dict[str, float] = {}
     for scen, vals in summary.get("ratios", {}).items():
         for k, v in vals.items():

@@ -227,9 +227,13 @@ def write_tag_free_report(
     its :func:`~generalist_control.evaluation.identity.identity_summary` as ``identity`` in
     the bar; with an ``identity_trace``
     (:func:`~generalist_control.evaluation.identity.identity_trace`) ``identity_trace.csv``.
+    A policy evaluated with its identity given (``evaluation.identity_given``) gets
+    ``identity_given: true`` and ``met: false`` in the bar: it is not a tag-free result.
     """
     check_tag_free_dir(out_dir)
     verdict = tag_free_bar(df, **(bar or {}))
+    if policy.net.identity_given:  # a diagnostic with the tag given: no tag-free verdict
+        verdict.update(identity_given=True, met=False)
     views = network_views(policy, plants, duration=2.0)
     table = separation_table(policy, plants, duration=2.0, views=views)
     ratio = verdict["step_ise_ratio"]

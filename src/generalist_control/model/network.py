@@ -200,6 +200,9 @@ class GeneralistNetwork(nn.Module):
         self.identity: nn.Linear | None = None
         if c["identity_head"]:
             self.identity = nn.Linear(d, c["n_tags"])
+        #: Diagnostic only (``evaluation.identity_given``): with ``infer_tag``, the true
+        #: plant's row instead of the head's inference. The tag is then given.
+        self.identity_given = False
 
     def features(self, state: Tensor, mask: Tensor, ref: Tensor, embedding: Tensor) -> Tensor:
         """Per-step features ``f_k`` (B, history, 2 * hidden) of the encoders.
@@ -277,10 +280,12 @@ class GeneralistNetwork(nn.Module):
 
         The tag's row; one shared row when ``tag_free``; with ``infer_tag`` the rows weighed
         by the identity head's softmax over the plants, read from the identifier's state
-        ``ident`` (the tag is not used).
+        ``ident`` (the tag is not used), unless :attr:`identity_given` is set.
         """
         if not self.config["infer_tag"]:
             return self.tag_embedding(self.tag_index(tag))
+        if self.identity_given:
+            return self.tag_embedding(tag)
         if ident is None or self.identity is None:
             raise ValueError("infer_tag needs the identifier and the identity head")
         weights = torch.softmax(self.identity(ident), dim=-1)
