@@ -12,6 +12,7 @@ import torch
 from omegaconf import OmegaConf, open_dict
 
 from generalist_control.evaluate import run as evaluate_run
+from generalist_control.model.identifier import TransitionSet
 from generalist_control.model.network import GeneralistNetwork, network_config
 from generalist_control.model.policy import Policy, load_policy
 from generalist_control.training.fit import train
@@ -214,19 +215,30 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize(
+    "identifier",
+    [("data.history=8", "model.law_history=0", "model.transition_identifier=false"), ()],
+    ids=["lstm", "transitions"],
+)
 def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
-    tiny_data_dir, tmp_path, mlflow_uri
+    tiny_data_dir, tmp_path, mlflow_uri, identifier
 ):
     """experiment=tag_free end to end: DAgger after the first epoch, then evaluation.
 
-    With the identity read-out on, so its training and its report table run too.
+    With the identity read-out on, so its training and its report table run too; and
+    with the stage's transition identifier on a longer window than the law reads.
     """
-    switch = ("experiment=tag_free", "model.identity_loss=0.5")
+    switch = ("experiment=tag_free", "model.identity_loss=0.5", *identifier)
     cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, tmp_path / "tf", mlflow_uri, *switch))
     _, objects = train(cfg)
     policy, _ = load_policy(objects["policy_path"])
     assert policy.config["tag_free"] == policy.config["control_history"] == 1
     assert policy.net.identifier is not None and policy.net.state_encoder_1[0].in_features == 5
+    kind = torch.nn.LSTM if identifier else TransitionSet
+    assert isinstance(policy.net.identifier, kind)
+    assert (policy.config["history"], policy.config["law_history"]) == (
+        (8, 0) if identifier else (24, 8)
+    )
     (cb,) = [c for c in objects["trainer"].callbacks if type(c).__name__ == "DAggerCallback"]
     assert cb.done == 1 and cb.history[0]["windows"] > 0  # a round after the first epoch
     frames = _evaluate_both_ways(

@@ -73,6 +73,8 @@ class ModelSchema:
     skip_gain_scale: bool = MISSING
     identity_loss: float = MISSING
     infer_tag: bool = MISSING
+    law_history: int = MISSING
+    transition_identifier: bool = MISSING
     optimizer: dict[str, Any] = MISSING
     scheduler: dict[str, Any] | None = None
 

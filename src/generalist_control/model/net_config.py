@@ -11,7 +11,7 @@ from typing import Any
 from generalist_control.common.schema import require_int, require_switch
 from generalist_control.plants.plant import MAX_ORDER
 
-__all__ = ["MODEL_DEFAULTS", "input_width", "network_config"]
+__all__ = ["MODEL_DEFAULTS", "input_width", "law_history", "network_config"]
 
 
 #: Network config keys and defaults: ``hidden`` (d), ``heads`` (N_h), ``stride`` (tau),
@@ -64,6 +64,8 @@ MODEL_DEFAULTS: dict[str, int] = {
     "skip_gain_scale": 0,
     "identity_head": 0,
     "infer_tag": 0,
+    "law_history": 0,
+    "transition_identifier": 0,
 }
 
 #: Keys that are switches (0 or 1) rather than sizes.
@@ -79,6 +81,7 @@ _SWITCHES = (
     "skip_gain_scale",
     "identity_head",
     "infer_tag",
+    "transition_identifier",
 )
 
 #: Where a network key is set in the training config, when not at ``model.<key>``.
@@ -89,6 +92,11 @@ def input_width(config: dict[str, int]) -> int:
     """Width of the state input per step: ``state_dim`` (+1 each: integral, previous control)."""
     extra = int(config.get("integral", 0)) + int(config.get("control_history", 0))
     return int(config["state_dim"]) + extra
+
+
+def law_history(config: dict[str, int]) -> int:
+    """Samples of the window the law reads: ``law_history``, or the whole ``history``."""
+    return int(config.get("law_history", 0)) or int(config["history"])
 
 
 def network_config(**kwargs: Any) -> dict[str, int]:
@@ -115,11 +123,18 @@ def network_config(**kwargs: Any) -> dict[str, int]:
         if key in _SWITCHES:
             cfg[key] = require_switch(name, value)
         else:
-            cfg[key] = require_int(name, value, minimum=0 if key == "linear_samples" else 1)
-    if cfg["linear_samples"] > cfg["history"]:
+            minimum = 0 if key in ("linear_samples", "law_history") else 1
+            cfg[key] = require_int(name, value, minimum=minimum)
+    for key in ("law_history", "linear_samples"):
+        if cfg[key] > cfg["history"]:
+            raise ValueError(
+                f"model.{key} ({cfg[key]}) exceeds the history (data.history = "
+                f"{cfg['history']}): lower it, or lengthen data.history"
+            )
+    if cfg["linear_samples"] > law_history(cfg):
         raise ValueError(
-            f"model.linear_samples ({cfg['linear_samples']}) exceeds the history "
-            f"({cfg['history']})"
+            f"model.linear_samples ({cfg['linear_samples']}) exceeds the samples the law "
+            f"reads (model.law_history = {cfg['law_history']})"
         )
     _check_combinations(cfg)
     if cfg["hidden"] % 2:
@@ -153,6 +168,12 @@ _NEEDS = (
         "model.infer_tag infers the tag a tag-free network is not given, from the "
         "identifier (model.control_history) by the identity head (model.identity_loss > 0):"
         " set model.tag_free=true, model.control_history=true and model.identity_loss > 0",
+    ),
+    (
+        "transition_identifier",
+        ("control_history",),
+        "model.transition_identifier reads each state change against the control that "
+        "caused it (model.control_history): turn control_history on, or the switch off",
     ),
 )
 

@@ -32,7 +32,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from generalist_control.model.net_config import MODEL_DEFAULTS, input_width, network_config
+from generalist_control.model.identifier import TransitionSet
+from generalist_control.model.net_config import (
+    MODEL_DEFAULTS,
+    input_width,
+    law_history,
+    network_config,
+)
 
 __all__ = [
     "MODEL_DEFAULTS",
@@ -123,7 +129,7 @@ class GeneralistNetwork(nn.Module):
         self.config = network_config(**config)
         c = self.config
         d, e = c["hidden"], c["hidden"] // 2
-        width = input_width(c)
+        width, n_law = input_width(c), law_history(c)
         # Only the identifier (below) sees the previous control; the encoders and the linear
         # paths see the law's own state [x; z]. With the control in their input the
         # closed-loop score collapsed in training (measured, docs/training.md).
@@ -154,7 +160,7 @@ class GeneralistNetwork(nn.Module):
         # (linear_samples = 1): the head is then the LQI law's own form.
         self.linear: nn.Embedding | None = None
         if c["linear_head"]:
-            n_in = (c["linear_samples"] or c["history"]) * (law_width + 1)
+            n_in = (c["linear_samples"] or n_law) * (law_width + 1)
             self.linear = nn.Embedding(c["n_tags"] + c["unknown_tag"], c["horizon"] * n_in)
             nn.init.zeros_(self.linear.weight)
         # Ours (model.linear_skip): a linear path whose gains the network computes from the
@@ -164,7 +170,7 @@ class GeneralistNetwork(nn.Module):
         # plants differ only through the embedding the rest of the network learns too.
         self.skip: nn.Linear | None = None
         if c["linear_skip"]:
-            n_in = (c["linear_samples"] or c["history"]) * (law_width + 1)
+            n_in = (c["linear_samples"] or n_law) * (law_width + 1)
             self.skip = nn.Linear(d, c["horizon"] * n_in)
             nn.init.zeros_(self.skip.weight)
             nn.init.zeros_(self.skip.bias)
@@ -177,7 +183,7 @@ class GeneralistNetwork(nn.Module):
             nn.init.zeros_(self.skip_scale.bias)
         self._add_history_paths(d, width)
         # the slow LSTM sees samples ..., t - 2 tau, t - tau, t (always the newest one)
-        self.slow_start = (c["history"] - 1) % c["stride"]
+        self.slow_start = (n_law - 1) % c["stride"]
 
     def _add_history_paths(self, d: int, width: int) -> None:
         """The skip gains' context, the identifier feeding it and the head reading it."""
@@ -191,8 +197,12 @@ class GeneralistNetwork(nn.Module):
         # Ours (model.control_history): an LSTM over the whole window, previous controls
         # included, whose final state joins the context of the skip gains: it can identify
         # the plant from how its state answers the controls, and acts only through the gains.
-        self.identifier: nn.LSTM | None = None
-        if c["control_history"]:
+        # With model.transition_identifier a set encoder of the window's one-step transitions
+        # instead (generalist_control.model.identifier).
+        self.identifier: nn.LSTM | TransitionSet | None = None
+        if c["transition_identifier"]:
+            self.identifier = TransitionSet(c["state_dim"], d)
+        elif c["control_history"]:
             self.identifier = nn.LSTM(width + 1, d, batch_first=True)
         # Ours (model.identity_loss > 0): a linear read-out of the plant from the skip gains'
         # context, trained by cross-entropy against the tag (a training label only: the
@@ -253,10 +263,10 @@ class GeneralistNetwork(nn.Module):
         identifier's state. :meth:`identity_logits` reads the plant from it
         (``model.identity_loss``).
         """
-        code, ident = None, None
-        if self.identifier is not None:
-            seq = torch.cat([state * mask, ref.unsqueeze(-1)], dim=-1)
-            ident = self.identifier(seq)[1][0][-1]
+        ident = self.identify(state, mask, ref)
+        n_law = law_history(self.config)  # the law reads the newest n_law samples only
+        state, mask, ref = state[:, -n_law:], mask[:, -n_law:], ref[:, -n_law:]
+        code = None
         embedding = self.embedding(tag, ident)
         f = self.features(state, mask, ref, embedding)
         _, (h_fast, _) = self.lstm_fast(f)
@@ -274,6 +284,15 @@ class GeneralistNetwork(nn.Module):
         if self.config["infer_tag"]:
             return u, gates, ident  # the identity head reads the identifier (embedding)
         return u, gates, code
+
+    def identify(self, state: Tensor, mask: Tensor, ref: Tensor) -> Tensor | None:
+        """The identifier's state (B, hidden) of the whole window, or None without one."""
+        if isinstance(self.identifier, TransitionSet):
+            return self.identifier(state, mask)
+        if self.identifier is not None:
+            seq = torch.cat([state * mask, ref.unsqueeze(-1)], dim=-1)
+            return self.identifier(seq)[1][0][-1]
+        return None
 
     def embedding(self, tag: Tensor, ident: Tensor | None = None) -> Tensor:
         """The plant's embedding row (B, hidden) that the encoders and the skip gains see.
@@ -345,7 +364,7 @@ class GeneralistNetwork(nn.Module):
         Without the previous-control channel (``control_history``), which only the
         identifier sees.
         """
-        n = self.config["linear_samples"] or self.config["history"]
+        n = self.config["linear_samples"] or law_history(self.config)
         return torch.cat([self.law_state(state, mask)[:, -n:].flatten(1), ref[:, -n:]], dim=1)
 
     def law_state(self, state: Tensor, mask: Tensor) -> Tensor:
