@@ -329,7 +329,7 @@ def test_least_squares_head_recovers_the_lqi_law_from_the_data(tiny_demos):
 
 
 def test_model_config_is_checked():
-    with pytest.raises(ValueError, match=r"linear_samples \(9\) exceeds the history \(8\)"):
+    with pytest.raises(ValueError, match=r"linear_samples \(9\) exceeds the history \(data.hist"):
         network_config(linear_samples=9)
     with pytest.raises(ValueError, match="unknown model config keys"):
         network_config(hiden=32)
