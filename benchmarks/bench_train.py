@@ -81,7 +81,8 @@ def make_data(cfg, out: Path) -> Path:
             continue
         plants.append(plant)
     demos = generate_demos(plants, data, progress=False)
-    manifest = build_manifest(plants, demos, data, {"systems": list(PLANTS), "data": data})
+    systems = {"plants": {p.name: {} for p in plants}}  # the shape the data stage records
+    manifest = build_manifest(plants, demos, data, {"systems": systems, "data": data})
     return write_demos(out / "demos", demos, manifest)
 
 
@@ -122,7 +123,7 @@ def bench_steps(
             torch.cuda.synchronize()
         t0 = time.perf_counter()
         for b in batches:
-            loss = lit._errors(b).mean()
+            loss = lit._errors(b)[0].mean()  # the imitation loss (not the identity's)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(lit.parameters(), 1.0)
@@ -215,6 +216,7 @@ def main(argv: list[str] | None = None) -> dict:
             cfg.data.horizon,
             seed=int(cfg.seed),
             integral=bool(cfg.model.get("integral", False)),
+            controls=bool(cfg.model.get("control_history", False)),
             **cfg.loader,
         )
         dm.setup("fit")

@@ -194,6 +194,7 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
         "experiment=tag_free",
         "model.tag_free=false",
         "model.infer_tag=false",
+        "model.transition_models=false",
         "model.tag_dropout=0.5",
     )
     cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, tmp_path / "tf", mlflow_uri, *switch))
@@ -217,7 +218,15 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "identifier",
-    [("data.history=8", "model.law_history=0", "model.transition_identifier=false"), ()],
+    [
+        (
+            "data.history=8",
+            "model.law_history=0",
+            "model.transition_identifier=false",
+            "model.transition_models=false",
+        ),
+        (),
+    ],
     ids=["lstm", "transitions"],
 )
 def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
@@ -236,6 +245,8 @@ def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
     assert policy.net.identifier is not None and policy.net.state_encoder_1[0].in_features == 5
     kind = torch.nn.LSTM if identifier else TransitionSet
     assert isinstance(policy.net.identifier, kind)
+    if not identifier:  # the stage's plant models: trained away from their zero start
+        assert policy.net.identifier.models.params.weight.abs().max() > 0
     assert (policy.config["history"], policy.config["law_history"]) == (
         (8, 0) if identifier else (24, 8)
     )
@@ -490,7 +501,7 @@ def test_identity_loss_trains_the_context_to_name_the_plant():
         lit.training_step(batch, 0).backward()
         opt.step()
     with torch.no_grad():
-        _, logits = lit._errors(batch)
+        _, logits, _ = lit._errors(batch)
     assert logits is not None
     assert float((logits.argmax(1) == batch["tag"]).float().mean()) > 0.95
 
@@ -512,6 +523,7 @@ def test_identity_head_is_built_from_the_weight_only():
     stage = model_config(compose_cfg("experiment=tag_free"))
     assert stage["identity_head"] == stage["infer_tag"] == 1
     off = ("experiment=tag_free", "model.identity_loss=0", "model.infer_tag=false")
+    off += ("model.transition_models=false",)
     assert model_config(compose_cfg(*off))["identity_head"] == 0
     with pytest.raises(ValueError, match="no identity head"):
         GeneralistNetwork().identity_logits(torch.zeros(2, 32))

@@ -75,6 +75,7 @@ class ModelSchema:
     infer_tag: bool = MISSING
     law_history: int = MISSING
     transition_identifier: bool = MISSING
+    transition_models: bool = MISSING
     optimizer: dict[str, Any] = MISSING
     scheduler: dict[str, Any] | None = None
 

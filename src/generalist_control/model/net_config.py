@@ -42,7 +42,11 @@ __all__ = ["MODEL_DEFAULTS", "input_width", "law_history", "network_config"]
 #: ``model.identity_loss``; needs ``history_context``; set by that weight, not directly)
 #: and ``infer_tag`` (0 or 1, with ``tag_free``: the embedding keeps a row per plant and the
 #: network weighs them by the identity head's softmax, read from the identifier's state, so
-#: the plant reaches the law only through the embedding of the plant it infers).
+#: the plant reaches the law only through the embedding of the plant it infers) and
+#: ``transition_models`` (0 or 1, with ``transition_identifier`` and ``infer_tag``: each plant's
+#: linear one-step model, computed from its embedding row, is weighed against the window's
+#: transitions and its evidence joins the identity logits; see
+#: :mod:`~generalist_control.model.identifier`).
 MODEL_DEFAULTS: dict[str, int] = {
     "hidden": 32,
     "heads": 3,
@@ -66,6 +70,7 @@ MODEL_DEFAULTS: dict[str, int] = {
     "infer_tag": 0,
     "law_history": 0,
     "transition_identifier": 0,
+    "transition_models": 0,
 }
 
 #: Keys that are switches (0 or 1) rather than sizes.
@@ -82,6 +87,7 @@ _SWITCHES = (
     "identity_head",
     "infer_tag",
     "transition_identifier",
+    "transition_models",
 )
 
 #: Where a network key is set in the training config, when not at ``model.<key>``.
@@ -174,6 +180,13 @@ _NEEDS = (
         ("control_history",),
         "model.transition_identifier reads each state change against the control that "
         "caused it (model.control_history): turn control_history on, or the switch off",
+    ),
+    (
+        "transition_models",
+        ("transition_identifier", "infer_tag"),
+        "model.transition_models weighs each plant's one-step model in the transition "
+        "identifier for the inferred tag: set model.transition_identifier=true and "
+        "model.infer_tag=true, or the switch off",
     ),
 )
 

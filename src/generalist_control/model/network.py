@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from generalist_control.model.identifier import TransitionSet
+from generalist_control.model.identifier import TransitionModels, TransitionSet
 from generalist_control.model.net_config import (
     MODEL_DEFAULTS,
     input_width,
@@ -104,6 +104,10 @@ class ExpertMLP(nn.Sequential):
             nn.LayerNorm(n_hidden),
             nn.Linear(n_hidden, n_out),
         )
+
+
+#: The initial weight of each plant's evidence in its logit (``model.transition_models``).
+EVIDENCE_WEIGHT = 4.0
 
 
 class GeneralistNetwork(nn.Module):
@@ -192,8 +196,10 @@ class GeneralistNetwork(nn.Module):
         # the embedding plus a projection of the window's summary z, so that a policy without
         # its tag can still give each plant its own gains, inferred from the history.
         self.context: nn.Linear | None = None
+        # with model.transition_models the identifier's state ends in each plant's evidence
+        evidence = c["n_tags"] if c["transition_models"] else 0
         if c["history_context"] and self.skip is not None:
-            self.context = nn.Linear((3 if c["control_history"] else 2) * d, d)
+            self.context = nn.Linear((3 if c["control_history"] else 2) * d + evidence, d)
         # Ours (model.control_history): an LSTM over the whole window, previous controls
         # included, whose final state joins the context of the skip gains: it can identify
         # the plant from how its state answers the controls, and acts only through the gains.
@@ -201,7 +207,8 @@ class GeneralistNetwork(nn.Module):
         # instead (generalist_control.model.identifier).
         self.identifier: nn.LSTM | TransitionSet | None = None
         if c["transition_identifier"]:
-            self.identifier = TransitionSet(c["state_dim"], d)
+            models = TransitionModels(c["state_dim"], d) if c["transition_models"] else None
+            self.identifier = TransitionSet(c["state_dim"], d, models)
         elif c["control_history"]:
             self.identifier = nn.LSTM(width + 1, d, batch_first=True)
         # Ours (model.identity_loss > 0): a linear read-out of the plant from the skip gains'
@@ -209,7 +216,10 @@ class GeneralistNetwork(nn.Module):
         # network's output never depends on it), so the context must carry the identity.
         self.identity: nn.Linear | None = None
         if c["identity_head"]:
-            self.identity = nn.Linear(d, c["n_tags"])
+            self.identity = nn.Linear(d + evidence, c["n_tags"])
+            if evidence:  # each plant's evidence starts as its logit (x EVIDENCE_WEIGHT)
+                with torch.no_grad():
+                    self.identity.weight[:, d:] = EVIDENCE_WEIGHT * torch.eye(evidence)
         #: Diagnostic only (``evaluation.identity_given``): with ``infer_tag``, the true
         #: plant's row instead of the head's inference. The tag is then given.
         self.identity_given = False
@@ -286,9 +296,12 @@ class GeneralistNetwork(nn.Module):
         return u, gates, code
 
     def identify(self, state: Tensor, mask: Tensor, ref: Tensor) -> Tensor | None:
-        """The identifier's state (B, hidden) of the whole window, or None without one."""
+        """The identifier's state (B, hidden; + n_tags evidence with transition_models)."""
         if isinstance(self.identifier, TransitionSet):
-            return self.identifier(state, mask)
+            # detached: the models' fit moves their own layer, never the rows the law reads
+            rows = self.tag_embedding.weight[: self.config["n_tags"]].detach()
+            models = self.identifier.models is not None
+            return self.identifier(state, mask, rows if models else None)
         if self.identifier is not None:
             seq = torch.cat([state * mask, ref.unsqueeze(-1)], dim=-1)
             return self.identifier(seq)[1][0][-1]
@@ -321,6 +334,16 @@ class GeneralistNetwork(nn.Module):
         if self.identity is None:
             raise ValueError("the network has no identity head: set model.identity_loss > 0")
         return self.identity(code)
+
+    def transition_fit(self, code: Tensor, tag: Tensor) -> Tensor:
+        """How badly the true plants' one-step models fit their windows (>= 0; 0 without).
+
+        ``code``: the identifier's state (:meth:`forward_code` with ``infer_tag``).
+        """
+        models = getattr(self.identifier, "models", None)
+        if models is None:
+            return code.new_zeros(())
+        return models.fit_loss(code[:, -self.config["n_tags"] :], tag)
 
     def tag_index(self, tag: Tensor) -> Tensor:
         """The embedding row of each tag: row 0 for every plant when ``tag_free``.

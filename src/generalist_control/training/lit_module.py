@@ -83,8 +83,8 @@ class ImitationModule(L.LightningModule):
         """Controls in plant units and gate weights (see :meth:`Policy.forward`)."""
         return self.policy(state, mask, ref, tag)
 
-    def _errors(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor | None]:
-        """Squared errors (B, horizon) and the identity head's plant logits (or None).
+    def _errors(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """Squared errors (B, horizon), the identity head's plant logits and what it read.
 
         Errors in normalised units, relative to the window scale; logits (B, n_tags).
         Without ``window_scale`` the scale is one: the paper's MSE in normalised units.
@@ -100,15 +100,17 @@ class ImitationModule(L.LightningModule):
         logits = None
         if self.identity_loss > 0 and code is not None:
             logits = self.policy.net.identity_logits(code)
-        return (u - target / s) ** 2, logits
+        return (u - target / s) ** 2, logits, code
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         """MSE on the control sequence of one batch (plus the weighted identity loss)."""
-        errors, logits = self._errors(batch)
+        errors, logits, code = self._errors(batch)
         loss = errors.mean()
-        if logits is not None:
+        if logits is not None and code is not None:
             identity = torch.nn.functional.cross_entropy(logits, batch["tag"])
             self.log("train/identity", identity, on_step=False, on_epoch=True, logger=False)
+            # model.transition_models: the true plant's one-step model fits its window
+            identity = identity + self.policy.net.transition_fit(code, batch["tag"])
             loss = loss + self.identity_loss * identity
         self.log(
             "train/loss",
@@ -129,7 +131,7 @@ class ImitationModule(L.LightningModule):
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         """Accumulate squared errors per system tag."""
-        err, logits = self._errors(batch)
+        err, logits, _ = self._errors(batch)
         err = err.to(torch.float64)
         if logits is not None:
             self._val_hits += (logits.argmax(1) == batch["tag"]).sum()
