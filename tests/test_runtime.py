@@ -45,7 +45,8 @@ def policy(request) -> Policy:
     ``tag-free-controls``: that, without the tag and with the previous control as a channel,
     the plant's embedding inferred from the window (``infer_tag``, the tag-free stage's);
     ``tag-free-transitions``: that with a 12-sample window read by the transition
-    identifier and each plant's one-step model (``transition_models``), the law reading
+    identifier and each plant's one-step model with its fitted input gain
+    (``transition_models``, ``transition_input_gain``), the law reading
     the newest 8 (``law_history``).
     """
     torch.manual_seed(0)
@@ -53,7 +54,7 @@ def policy(request) -> Policy:
     cfg = {"hidden": 16, "experts": 3, "window_scale": on, "linear_head": on}
     if request.param == 4:
         cfg |= {"history": 12, "law_history": 8, "transition_identifier": 1}
-        cfg |= {"transition_models": 1}
+        cfg |= {"transition_models": 1, "transition_input_gain": 1}
     if request.param >= 3:
         cfg |= {"tag_free": 1, "control_history": 1, "linear_head": 0, "linear_skip": 1}
         cfg |= {"history_context": 1, "identity_head": 1, "infer_tag": 1}

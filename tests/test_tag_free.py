@@ -195,6 +195,7 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
         "model.tag_free=false",
         "model.infer_tag=false",
         "model.transition_models=false",
+        "model.transition_input_gain=false",
         "model.tag_dropout=0.5",
     )
     cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, tmp_path / "tf", mlflow_uri, *switch))
@@ -224,6 +225,7 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
             "model.law_history=0",
             "model.transition_identifier=false",
             "model.transition_models=false",
+            "model.transition_input_gain=false",
         ),
         (),
     ],
@@ -247,6 +249,7 @@ def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
     assert isinstance(policy.net.identifier, kind)
     if not identifier:  # the stage's plant models: trained away from their zero start
         assert policy.net.identifier.models.params.weight.abs().max() > 0
+        assert policy.net.identifier.models.input_gain is None  # the stage: no input gain yet
     assert (policy.config["history"], policy.config["law_history"]) == (
         (8, 0) if identifier else (24, 8)
     )
@@ -523,7 +526,7 @@ def test_identity_head_is_built_from_the_weight_only():
     stage = model_config(compose_cfg("experiment=tag_free"))
     assert stage["identity_head"] == stage["infer_tag"] == 1
     off = ("experiment=tag_free", "model.identity_loss=0", "model.infer_tag=false")
-    off += ("model.transition_models=false",)
+    off += ("model.transition_models=false", "model.transition_input_gain=false")
     assert model_config(compose_cfg(*off))["identity_head"] == 0
     with pytest.raises(ValueError, match="no identity head"):
         GeneralistNetwork().identity_logits(torch.zeros(2, 32))

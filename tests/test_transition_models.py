@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from generalist_control.model.identifier import TransitionModels, TransitionSet
+from generalist_control.model.identifier import INPUT_GAIN, TransitionModels, TransitionSet
 from generalist_control.model.network import EVIDENCE_WEIGHT, GeneralistNetwork, network_config
 from generalist_control.training.setup import model_config
 from helpers import compose_cfg
@@ -174,3 +174,81 @@ def test_the_models_need_the_transition_identifier_and_the_inferred_tag(off):
 def test_the_models_from_the_config_are_refused_alone():
     with pytest.raises(ValueError, match="set model.transition_identifier=true"):
         model_config(compose_cfg("model.transition_models=true"))
+
+
+def _scaled(plants, gain: float):
+    """The same plants with an actuator delivering ``gain`` times the control."""
+    return [(a, gain * b, c) for a, b, c in plants]
+
+
+@pytest.mark.parametrize(
+    ("actuator", "fitted"), [(0.8, 0.8), (1.2, 1.2), (0.5, 0.75), (2.0, 1.25)]
+)
+def test_the_fitted_input_gain_is_the_least_squares_scale_within_its_range(actuator, fitted):
+    """By hand: g = <d, b u> / |b u|^2 of d = dx - A x - c, clipped to INPUT_GAIN; the
+    residual at that gain equals numpy's, and the moment form equals the direct form."""
+    assert INPUT_GAIN == (0.75, 1.25)
+    plants = _plants(3, seed=7)
+    rows = torch.eye(3, 8)
+    models = TransitionModels(state_dim=4, embedding=8, input_gain=INPUT_GAIN)
+    _set_models(models, plants, rows)
+    tags = np.array([0, 1, 2])
+    x, dx, u = _transitions(_scaled(plants, actuator), tags, steps=9, seed=8, scale=3.0)
+    gain = models.gain(x, dx, u, rows).detach().numpy()
+    residual = models.residual(x, dx, u, rows).detach().numpy()
+    for i in range(len(tags)):
+        for p, (a, b, c) in enumerate(plants):
+            d = dx[i].numpy() - x[i].numpy() @ a.T - c
+            v = u[i].numpy()[:, None] * b
+            g = np.clip((d * v).sum() / (v * v).sum(), *INPUT_GAIN)
+            assert gain[i, p] == pytest.approx(g, rel=1e-4)
+            assert residual[i, p] == pytest.approx(((d - g * v) ** 2).sum(1).mean(), rel=1e-3)
+    np.testing.assert_allclose(np.diag(gain), fitted, rtol=1e-4)
+    direct = (dx.unsqueeze(2) - models.predict(x, u, rows, models.gain(x, dx, u, rows))) ** 2
+    torch.testing.assert_close(
+        models.residual(x, dx, u, rows), direct.sum(-1).mean(1), rtol=1e-4, atol=1e-4
+    )
+
+
+def test_an_actuator_off_its_gain_leaves_the_plant_its_evidence():
+    """At 80 % actuator gain the true plant's fixed model is off by 0.2 b u; fitted, it
+    explains the window to the noise again and names the plant on every window."""
+    plants = _plants(6, seed=9)
+    rows = torch.eye(6, 8)
+    fixed = TransitionModels(state_dim=4, embedding=8)
+    fitted = TransitionModels(state_dim=4, embedding=8, input_gain=INPUT_GAIN)
+    _set_models(fixed, plants, rows)
+    _set_models(fitted, plants, rows)
+    tags = np.repeat(np.arange(6), 20)
+    x, dx, u = _transitions(_scaled(plants, 0.8), tags, steps=12, seed=10, noise=1e-3)
+    true = np.arange(len(tags)), tags
+    res_fixed = fixed.residual(x, dx, u, rows).detach().numpy()[true]
+    res_fitted = fitted.residual(x, dx, u, rows).detach().numpy()[true]
+    assert np.median(res_fitted) < 1e-5 < 1e-2 < np.median(res_fixed)
+    assert (fitted(x, dx, u, rows).argmax(1).detach().numpy() == tags).all()
+
+
+def test_a_window_without_control_leaves_the_gain_at_one():
+    plants = _plants(2, seed=11)
+    rows = torch.eye(2, 4)
+    models = TransitionModels(state_dim=4, embedding=4, input_gain=INPUT_GAIN)
+    _set_models(models, plants, rows)
+    x, dx, u = _transitions(plants, np.array([0, 1]), steps=6, seed=12)
+    u = torch.zeros_like(u)
+    assert torch.equal(models.gain(x, dx, u, rows), torch.ones(2, 2))
+    fixed = TransitionModels(state_dim=4, embedding=4)
+    _set_models(fixed, plants, rows)
+    torch.testing.assert_close(models.residual(x, dx, u, rows), fixed.residual(x, dx, u, rows))
+
+
+def test_the_input_gain_switch_builds_fitted_models_and_needs_them():
+    net = GeneralistNetwork(
+        **network_config(**TAG_FREE, history=12, transition_models=1, transition_input_gain=1)
+    )
+    assert net.identifier.models.input_gain == INPUT_GAIN
+    plain = GeneralistNetwork(**network_config(**TAG_FREE, history=12, transition_models=1))
+    assert plain.identifier.models.input_gain is None
+    with pytest.raises(ValueError, match="model.transition_input_gain fits an input gain"):
+        network_config(**TAG_FREE, transition_input_gain=1)
+    with pytest.raises(ValueError, match="input_gain must hold 1"):
+        TransitionModels(state_dim=4, embedding=4, input_gain=(1.1, 2.0))

@@ -76,6 +76,7 @@ class ModelSchema:
     law_history: int = MISSING
     transition_identifier: bool = MISSING
     transition_models: bool = MISSING
+    transition_input_gain: bool = MISSING
     optimizer: dict[str, Any] = MISSING
     scheduler: dict[str, Any] | None = None
 

@@ -16,14 +16,24 @@ its evidence is ``-1/2 log`` of the model's mean squared residual over the windo
 transitions: Gaussian residuals of unknown variance give a likelihood that falls with that
 residual, whoever chose the controls. The models are trained to fit the true plant's
 transitions (:meth:`TransitionModels.fit_loss`) beside the identity head's cross-entropy.
+With ``model.transition_input_gain`` each model's input column ``b_p`` is scaled by the gain
+within :data:`INPUT_GAIN` that fits the window best (closed-form least squares from the same
+moments): a plant whose actuator delivers 80 % of the control is still the plant whose
+model explains its window, where a fixed ``b_p`` leaves the identity to a near neighbour.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import torch
 from torch import Tensor, nn
 
-__all__ = ["TransitionModels", "TransitionSet"]
+__all__ = ["INPUT_GAIN", "TransitionModels", "TransitionSet"]
+
+#: The range of an actuator's gain the one-step models fit (``model.transition_input_gain``):
+#: +-25 %, the range the plant variants draw their parameters in (``data.variants.range``).
+INPUT_GAIN = (0.75, 1.25)
 
 
 class TransitionSet(nn.Module):
@@ -67,6 +77,15 @@ class TransitionSet(nn.Module):
             nn.ReLU(),
         )
         self.rho = nn.Linear(hidden, hidden)
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, int], hidden: int) -> TransitionSet:
+        """The identifier of a network config (its ``transition_*`` switches)."""
+        models = None
+        if config.get("transition_models"):
+            gain = INPUT_GAIN if config.get("transition_input_gain") else None
+            models = TransitionModels(config["state_dim"], hidden, input_gain=gain)
+        return cls(config["state_dim"], hidden, models)
 
     def transitions(self, state: Tensor, mask: Tensor) -> Tensor:
         """Inputs of ``phi`` (B, history - 1, 3 state_dim + 1) of a masked window."""
@@ -124,9 +143,18 @@ class TransitionModels(nn.Module):
     (3, 7)
     """
 
-    def __init__(self, state_dim: int, embedding: int, eps: float = 1e-6) -> None:
+    def __init__(
+        self,
+        state_dim: int,
+        embedding: int,
+        eps: float = 1e-6,
+        input_gain: tuple[float, float] | None = None,
+    ) -> None:
         super().__init__()
         self.state_dim, self.eps = state_dim, eps
+        if input_gain is not None and not 0 < input_gain[0] <= 1 <= input_gain[1]:
+            raise ValueError(f"input_gain must hold 1 and be positive, got {input_gain}")
+        self.input_gain = input_gain
         self.params = nn.Linear(embedding, state_dim * (state_dim + 2))
         nn.init.zeros_(self.params.weight)
         nn.init.zeros_(self.params.bias)
@@ -138,10 +166,20 @@ class TransitionModels(nn.Module):
         a = theta[:, : n * n].reshape(-1, n, n)
         return torch.cat([a, theta[:, n * n :].reshape(-1, 2, n).transpose(1, 2)], dim=2)
 
-    def predict(self, x: Tensor, u: Tensor, rows: Tensor) -> Tensor:
-        """Each plant's predicted change (B, T, plants, state_dim) of states x (B, T, n)."""
+    def predict(self, x: Tensor, u: Tensor, rows: Tensor, gain: Tensor | None = None) -> Tensor:
+        """Each plant's predicted change (B, T, plants, state_dim) of states x (B, T, n).
+
+        ``gain`` (B, plants) multiplies each model's input column ``b_p`` (default 1).
+        """
         z = torch.cat([x, u.unsqueeze(-1), torch.ones_like(u).unsqueeze(-1)], dim=-1)
-        return torch.einsum("pik,btk->btpi", self.theta(rows), z)
+        theta = self.theta(rows)
+        if gain is None:
+            return torch.einsum("pik,btk->btpi", theta, z)
+        n = self.state_dim
+        free = torch.einsum(
+            "pik,btk->btpi", theta[:, :, [*range(n), n + 1]], z[..., [*range(n), n + 1]]
+        )
+        return free + torch.einsum("bp,pi,bt->btpi", gain, theta[:, :, n], u)
 
     def residual(self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor) -> Tensor:
         """Each plant's mean squared residual (B, plants) over the transitions.
@@ -150,17 +188,44 @@ class TransitionModels(nn.Module):
         every plant's prediction (:meth:`predict`): ``|dx|^2 - 2 tr(Theta S_zd) +
         tr(Theta S_zz Theta^T)``, about 1.5x cheaper a training step. In float64: the sum
         cancels where a model fits, where float32 would leave the rounding of the window's
-        energy in place of the residual; clamped at 0.
+        energy in place of the residual; clamped at 0. With :attr:`input_gain` each model's
+        input column is scaled by the gain within that range that fits the window best
+        (:meth:`gain`).
         """
+        return self._residual(x, dx, u, rows)[0]
+
+    def gain(self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor) -> Tensor:
+        """Each model's input gain (B, plants) on the window: 1 without :attr:`input_gain`.
+
+        The least-squares scale ``g`` of ``b_p u`` against what the rest of the model leaves,
+        ``dx - A_p x - c_p``, clipped to :attr:`input_gain`: an actuator whose gain is off
+        leaves the plant's model its evidence (a window without control: 1).
+        """
+        return self._residual(x, dx, u, rows)[1]
+
+    def _residual(self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+        n = self.state_dim
         z = torch.cat([x, u.unsqueeze(-1), torch.ones_like(u).unsqueeze(-1)], dim=-1).double()
         dx, t = dx.double(), z.shape[1]
-        s_zz = torch.einsum("btk,btl->bkl", z, z).flatten(1) / t
-        s_zd = torch.einsum("btk,bti->bik", z, dx).flatten(1) / t
-        s_dd = (dx**2).sum(dim=(1, 2)) / t
+        s_zz = torch.einsum("btk,btl->bkl", z, z) / t
+        s_zd = torch.einsum("btk,bti->bik", z, dx) / t
         theta = self.theta(rows).double()
+        b = theta[:, :, n]
+        if self.input_gain is not None:  # the model without its input column ...
+            theta = torch.cat(
+                [theta[:, :, :n], torch.zeros_like(b)[..., None], theta[:, :, n + 1 :]], 2
+            )
         gram = torch.einsum("pik,pil->pkl", theta, theta).flatten(1)
-        rss = s_dd.unsqueeze(1) - 2.0 * s_zd @ theta.flatten(1).T + s_zz @ gram.T
-        return rss.clamp(min=0.0).to(x.dtype)
+        rss = (dx**2).sum(dim=(1, 2)).unsqueeze(1) / t - 2.0 * s_zd.flatten(1) @ theta.flatten(1).T
+        rss = rss + s_zz.flatten(1) @ gram.T
+        gain = torch.ones_like(rss)
+        if self.input_gain is not None:  # ... and g b_p u fitted to what it leaves
+            vv = s_zz[:, n, n].unsqueeze(1) * (b**2).sum(1)
+            dv = s_zd[:, :, n] @ b.T - torch.einsum("pi,pik,bk->bp", b, theta, s_zz[:, :, n])
+            fitted = (dv / vv.clamp(min=1e-300)).clamp(*self.input_gain)
+            gain = torch.where(vv > 0, fitted, gain)
+            rss = rss - 2.0 * gain * dv + gain**2 * vv
+        return rss.clamp(min=0.0).to(x.dtype), gain.to(x.dtype)
 
     def forward(self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor) -> Tensor:
         """Evidence ``-1/2 log(residual + eps)`` (B, plants) of each plant's model."""

@@ -46,7 +46,10 @@ __all__ = ["MODEL_DEFAULTS", "input_width", "law_history", "network_config"]
 #: ``transition_models`` (0 or 1, with ``transition_identifier`` and ``infer_tag``: each plant's
 #: linear one-step model, computed from its embedding row, is weighed against the window's
 #: transitions and its evidence joins the identity logits; see
-#: :mod:`~generalist_control.model.identifier`).
+#: :mod:`~generalist_control.model.identifier`) and ``transition_input_gain`` (0 or 1, with
+#: ``transition_models``: each model's input column is scaled by the gain within
+#: :data:`~generalist_control.model.identifier.INPUT_GAIN` that fits the window best, so an
+#: actuator whose gain is off leaves the plant its evidence).
 MODEL_DEFAULTS: dict[str, int] = {
     "hidden": 32,
     "heads": 3,
@@ -71,6 +74,7 @@ MODEL_DEFAULTS: dict[str, int] = {
     "law_history": 0,
     "transition_identifier": 0,
     "transition_models": 0,
+    "transition_input_gain": 0,
 }
 
 #: Keys that are switches (0 or 1) rather than sizes.
@@ -88,6 +92,7 @@ _SWITCHES = (
     "infer_tag",
     "transition_identifier",
     "transition_models",
+    "transition_input_gain",
 )
 
 #: Where a network key is set in the training config, when not at ``model.<key>``.
@@ -187,6 +192,12 @@ _NEEDS = (
         "model.transition_models weighs each plant's one-step model in the transition "
         "identifier for the inferred tag: set model.transition_identifier=true and "
         "model.infer_tag=true, or the switch off",
+    ),
+    (
+        "transition_input_gain",
+        ("transition_models",),
+        "model.transition_input_gain fits an input gain to each plant's one-step model "
+        "(model.transition_models): turn transition_models on, or the switch off",
     ),
 )
 

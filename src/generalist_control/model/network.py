@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from generalist_control.model.identifier import TransitionModels, TransitionSet
+from generalist_control.model.identifier import TransitionSet
 from generalist_control.model.net_config import (
     MODEL_DEFAULTS,
     input_width,
@@ -207,8 +207,7 @@ class GeneralistNetwork(nn.Module):
         # instead (generalist_control.model.identifier).
         self.identifier: nn.LSTM | TransitionSet | None = None
         if c["transition_identifier"]:
-            models = TransitionModels(c["state_dim"], d) if c["transition_models"] else None
-            self.identifier = TransitionSet(c["state_dim"], d, models)
+            self.identifier = TransitionSet.from_config(c, d)
         elif c["control_history"]:
             self.identifier = nn.LSTM(width + 1, d, batch_first=True)
         # Ours (model.identity_loss > 0): a linear read-out of the plant from the skip gains'
