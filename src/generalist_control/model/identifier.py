@@ -173,13 +173,10 @@ class TransitionModels(nn.Module):
         """
         z = torch.cat([x, u.unsqueeze(-1), torch.ones_like(u).unsqueeze(-1)], dim=-1)
         theta = self.theta(rows)
+        change = torch.einsum("pik,btk->btpi", theta, z)
         if gain is None:
-            return torch.einsum("pik,btk->btpi", theta, z)
-        n = self.state_dim
-        free = torch.einsum(
-            "pik,btk->btpi", theta[:, :, [*range(n), n + 1]], z[..., [*range(n), n + 1]]
-        )
-        return free + torch.einsum("bp,pi,bt->btpi", gain, theta[:, :, n], u)
+            return change
+        return change + torch.einsum("bp,pi,bt->btpi", gain - 1.0, theta[:, :, self.state_dim], u)
 
     def residual(self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor) -> Tensor:
         """Each plant's mean squared residual (B, plants) over the transitions.
