@@ -12,7 +12,7 @@ import torch
 from omegaconf import OmegaConf, open_dict
 
 from generalist_control.evaluate import run as evaluate_run
-from generalist_control.model.identifier import TransitionSet
+from generalist_control.model.identifier import INPUT_GAIN, TransitionSet
 from generalist_control.model.network import GeneralistNetwork, network_config
 from generalist_control.model.policy import Policy, load_policy
 from generalist_control.training.fit import train
@@ -249,7 +249,7 @@ def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
     assert isinstance(policy.net.identifier, kind)
     if not identifier:  # the stage's plant models: trained away from their zero start
         assert policy.net.identifier.models.params.weight.abs().max() > 0
-        assert policy.net.identifier.models.input_gain is None  # the stage: no input gain yet
+        assert policy.net.identifier.models.input_gain == INPUT_GAIN  # the stage's fitted gain
     assert (policy.config["history"], policy.config["law_history"]) == (
         (8, 0) if identifier else (24, 8)
     )
