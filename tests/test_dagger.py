@@ -139,11 +139,13 @@ def test_focus_adds_rollouts_and_expert_share_to_the_plants_still_lost():
     assert off._lost(trainer) == {}
     lost = on._lost(trainer)
     assert lost == {"unstable": 0.75}  # a NaN score counts as no score
-    base, focused = off._rollouts(50), on._rollouts(50, lost)
+    base, focused = off._rollouts(50, off.plants), on._rollouts(50, on.plants, lost)
     assert len(base["unstable"][0]) == 4 and len(focused["unstable"][0]) == 4 + 6
     assert len(focused["dc_servo"][0]) == 4
     np.testing.assert_array_equal(base["dc_servo"][0], focused["dc_servo"][0])  # drawn first
-    np.testing.assert_array_equal(base["unstable"][0], off._rollouts(50, lost)["unstable"][0])
+    np.testing.assert_array_equal(
+        base["unstable"][0], off._rollouts(50, off.plants, lost)["unstable"][0]
+    )
     metrics["val/closed_loop/unstable"] = torch.tensor(3.0)  # clipped to 1
     assert on._lost(trainer) == {"unstable": 1.0}
     for bad in ({"focus": -1.0}, {"focus_beta": 1.5}):
@@ -245,3 +247,24 @@ def test_bumpless_integrator_is_the_tracked_one_on_expert_runs_and_velocity_form
         u[:, :-1] - (x[:, 1:] - x[:, :-1]) @ g.Kx - g.Ki * plant.dt * (r[:, :-1] - y[:, :-1])
     )
     np.testing.assert_allclose(label[:, 1:], velocity, rtol=1e-9, atol=1e-9)
+
+
+def test_dagger_variants_takes_each_plants_variants_in_turn():
+    """dagger.variants=k: the nominal version and k variants per round, wrapping around."""
+    from generalist_control.plants.variants import make_variant
+    from generalist_control.training.dagger_callback import DAggerCallback
+
+    servo, unstable = load_plant("dc_servo"), load_plant("unstable")
+    v = [make_variant(servo, {"B[2]": f}) for f in (0.8, 0.9, 1.1)]
+    plants = [servo, *v, unstable]  # as dagger_plants orders them: nominal, then variants
+    assert DAggerCallback(plants, families=None)._round_plants() == plants
+    cb = DAggerCallback(plants, families=None, variants=2)
+    assert cb._round_plants() == [servo, v[0], v[1], unstable]
+    cb.done = 1
+    assert cb._round_plants() == [servo, v[2], v[0], unstable]
+    cb.done = 2
+    assert cb._round_plants() == [servo, v[1], v[2], unstable]
+    assert DAggerCallback(plants, families=None, variants=0)._round_plants() == [servo, unstable]
+    assert DAggerCallback(plants, families=None, variants=9)._round_plants() == plants
+    with pytest.raises(ValueError, match="dagger.variants must be a non-negative integer"):
+        DAggerCallback(plants, families=None, variants=-1)

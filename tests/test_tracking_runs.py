@@ -28,7 +28,9 @@ def _resolved(*overrides: str) -> dict:
 def test_training_params_are_what_shaped_the_training():
     resolved, keys = _resolved("model.hidden=64", "experts=5")
     params = training_run.training_params(resolved, keys)
-    assert len(params) + 2 < 64  # + data.content_hash and n_parameters
+    # + data.content_hash and n_parameters; a bound on the growth, under the 100 params of
+    # one MLflow log_batch
+    assert len(params) + 2 < 72
     assert params["model.hidden"] == "64" and params["experts"] == "5"
     assert params["model.optimizer.lr"] == "0.001" and params["seed"] == "42"
     assert params["trainer.max_epochs"] == "30" and params["dagger.rounds"] == "5"

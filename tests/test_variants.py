@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import control
+import mlflow
 import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
@@ -18,7 +19,12 @@ from generalist_control.evaluation.variants import check_disjoint, evaluate_vari
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.config import plant_from_config
 from generalist_control.plants.plant import PlantConfigError
-from generalist_control.plants.variants import VariantError, make_variant, parameter_ranges
+from generalist_control.plants.variants import (
+    VariantError,
+    make_variant,
+    nominal_parameters,
+    parameter_ranges,
+)
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import simulate
 from generalist_control.simulation.variants import (
@@ -160,8 +166,8 @@ def test_manifest_records_variants_and_the_rows_are_the_variants_runs(tmp_path):
     np.testing.assert_array_equal(loaded.variant, demos.variant)
 
 
-def _discrete_lqi_ise(A, B, C, K, dt, steps):
-    """ISE of a unit step: ZOH plant + forward-Euler integrator, by python-control."""
+def _discrete_lqi_step(A, B, C, K, dt, steps):
+    """Unit-step output: ZOH plant + forward-Euler integrator, by python-control."""
     sysd = control.c2d(control.ss(A, B, C, 0), dt, method="zoh")
     Ad, Bd = np.asarray(sysd.A), np.asarray(sysd.B)
     Kx, Ki = K[:, :-1], K[:, -1:]
@@ -169,7 +175,12 @@ def _discrete_lqi_ise(A, B, C, K, dt, steps):
     Bcl = np.vstack([np.zeros((A.shape[0], 1)), [[dt]]])
     cl = control.ss(Acl, Bcl, np.hstack([C, [[0.0]]]), 0, dt)
     t = np.arange(steps) * dt
-    y = control.forced_response(cl, t, np.ones(steps)).outputs
+    return t, control.forced_response(cl, t, np.ones(steps)).outputs
+
+
+def _discrete_lqi_ise(A, B, C, K, dt, steps):
+    """ISE of a unit step: ZOH plant + forward-Euler integrator, by python-control."""
+    t, y = _discrete_lqi_step(A, B, C, K, dt, steps)
     return float(np.trapezoid((1.0 - y) ** 2, t))
 
 
@@ -183,16 +194,7 @@ def test_lqi_nominal_and_oracle_match_python_control_on_a_hand_case():
         "system", "variant", "scenario", "controller", "run", "metric", "value"
     ]  # fmt: skip
     ise = df[df.metric == "ISE"].set_index("controller")["value"]
-    A_nom = np.array([[0.0, 1.0], [-5.47, -4.719]])
-    A_var, B_var = np.array([[0.0, 1.0], [-5.47 * 0.8, -4.719]]), np.array([[0.0], [1.3]])
-    C = np.array([[3.199, -1.135]])  # conf/plants/cstr.yaml (a zero at +2.82)
-    Q, R = plant.Q, plant.R
-
-    def gains(A, B):
-        Aa = np.block([[A, np.zeros((2, 1))], [-C, np.zeros((1, 1))]])
-        return np.asarray(control.lqr(Aa, np.vstack([B, [[0.0]]]), Q, R)[0])
-
-    k_nom, k_var = gains(A_nom, np.array([[0.0], [1.0]])), gains(A_var, B_var)
+    A_var, B_var, C, k_nom, k_var = _cstr_hand_case()
     assert ise["LQI"] == pytest.approx(_discrete_lqi_ise(A_var, B_var, C, k_var, 0.05, 120))
     assert ise["LQI-nominal"] == pytest.approx(
         _discrete_lqi_ise(A_var, B_var, C, k_nom, 0.05, 120)
@@ -229,10 +231,19 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
     assert set(manifest["variants"]) == {"cstr", "two_tank"}
     over = tiny_train_overrides(
         tmp_path / "data", tmp_path, mlflow_uri, "logger.log_model=false", "model.hidden=8",
-        "experts=2", "dagger.enabled=false", "closed_loop.systems=[cstr]",
-        "closed_loop.duration=2.0",
+        "experts=2", "closed_loop.systems=[cstr]", "closed_loop.duration=2.0",
+        # one DAgger round on the nominal plants and 1 variant each; the closed-loop
+        # validation on the nominal plants and 2 variants each
+        "dagger.start_epoch=0", "dagger.every=1", "dagger.rounds=1", "dagger.duration=2.0",
+        "dagger.variants=1", "closed_loop_val.variants=2", "closed_loop_val.duration=2.0",
     )  # fmt: skip
     _, objects = train(compose_cfg(*tiny, *over))
+    logged = mlflow.MlflowClient(mlflow_uri).get_run(objects["run_id"]).data.metrics
+    scored = {k for k in logged if k.startswith("val/closed_loop/")}
+    assert scored == {
+        f"val/closed_loop/{p}{v}" for p in ("cstr", "two_tank") for v in ("", "/v1", "/v2")
+    }
+    assert logged["dagger/windows"] > 0
     reports = tmp_path / "reports"
     cfg = compose_cfg(
         *tiny, f"policy={objects['policy_path']}", f"paths.reports_dir={reports}",
@@ -285,3 +296,65 @@ def test_dagger_rolls_out_on_the_training_variants_the_data_stage_drew():
             np.testing.assert_array_equal(q.A, v.plant.A)
             np.testing.assert_array_equal(q.B, v.plant.B)
             assert q.u_op == v.plant.u_op
+
+
+def _cstr_hand_case():
+    """cstr's A, B, C, the variant A[1,0] x0.8, B x1.3, and both LQI gains (python-control)."""
+    plant = load_plant("cstr")
+    A_nom, B_nom = np.array([[0.0, 1.0], [-5.47, -4.719]]), np.array([[0.0], [1.0]])
+    A_var, B_var = np.array([[0.0, 1.0], [-5.47 * 0.8, -4.719]]), np.array([[0.0], [1.3]])
+    C = np.array([[3.199, -1.135]])  # conf/plants/cstr.yaml
+
+    def gains(A, B):
+        Aa = np.block([[A, np.zeros((2, 1))], [-C, np.zeros((1, 1))]])
+        return np.asarray(control.lqr(Aa, np.vstack([B, [[0.0]]]), plant.Q, plant.R)[0])
+
+    return A_var, B_var, C, gains(A_nom, B_nom), gains(A_var, B_var)
+
+
+def test_closed_loop_score_keys_variants_by_label_against_their_own_lqi():
+    from generalist_control.deploy.adapter import RuntimeAdapter
+    from generalist_control.simulation.comparison import closed_loop_score
+
+    plant = load_plant("cstr")
+    variant = make_variant(plant, {"A[1,0]": 0.8, "B[1]": 1.3})
+    nominal_law = RuntimeAdapter(LQIRuntime(["cstr"]))  # the nominal LQI on every row
+    got = closed_loop_score(nominal_law, [plant, variant], [1.0], 6.0, labels=["cstr", "cstr/v1"])
+    A, B, C, k_nom, k_var = _cstr_hand_case()
+    # 6 s = 120 steps: 121 samples, y(0) to y(6 s)
+    _, y_gc = _discrete_lqi_step(A, B, C, k_nom, 0.05, 121)  # the nominal law on the variant
+    _, y_lqi = _discrete_lqi_step(A, B, C, k_var, 0.05, 121)  # the variant's own LQI
+    want = float(np.mean((y_gc - y_lqi) ** 2) / np.mean(y_lqi**2))
+    assert got["cstr"] == pytest.approx(0.0, abs=1e-20)  # its own law: no error
+    assert got["cstr/v1"] == pytest.approx(want, rel=1e-6) and 0.0 < want < 1.0
+    with pytest.raises(ValueError, match="one distinct label per plant"):
+        closed_loop_score(nominal_law, [plant, variant], [1.0], 1.0)  # both named cstr
+
+
+def test_closed_loop_validation_adds_the_first_k_training_variants(tmp_path):
+    from generalist_control.training.setup import closed_loop_validation
+
+    nominal = [_fast_plant(), load_plant("two_tank")]
+    on = {**TINY, "variants": {"enabled": True, "count": 3, "seed": 7, "range": 0.25}}
+    demos = generate_demos(nominal, on, progress=False)
+    manifest = build_manifest(nominal, demos, on, _config(on))
+    off = closed_loop_validation(compose_cfg(), nominal, manifest)
+    assert off is not None and off.labels == ["fast", "two_tank"] and off.plants == nominal
+    cb = closed_loop_validation(compose_cfg("closed_loop_val.variants=2"), nominal, manifest)
+    assert cb is not None
+    assert cb.labels == ["fast", "fast/v1", "fast/v2", "two_tank", "two_tank/v1", "two_tank/v2"]
+    for label, q in zip(cb.labels, cb.plants, strict=True):
+        name, _, index = label.partition("/v")
+        kept = manifest["variants"][name]["kept"]
+        factors = kept[int(index) - 1]["factors"] if index else {}
+        p = nominal[0 if name == "fast" else 1]
+        assert q.name == name and q.tag == p.tag
+        scaled = {k: v * factors.get(k, 1.0) for k, v in nominal_parameters(p).items()}
+        assert nominal_parameters(q) == pytest.approx(scaled)
+        if name == "fast":  # A = [[20 * factor]], B = [[factor]]: by hand
+            assert q.A[0, 0] == pytest.approx(20.0 * factors.get("A[0,0]", 1.0))
+            assert q.B[0, 0] == pytest.approx(factors.get("B[0]", 1.0))
+    with pytest.raises(ValueError, match="holds no plant variants.*data.variants.enabled"):
+        closed_loop_validation(compose_cfg("closed_loop_val.variants=2"), nominal, {})
+    with pytest.raises(ValueError, match="closed_loop_val.variants must be"):
+        closed_loop_validation(compose_cfg("closed_loop_val.variants=-1"), nominal, manifest)

@@ -48,23 +48,37 @@ def closed_loop_score(
     plants: Sequence[Plant],
     amplitudes: Sequence[float] = (1.0, -3.0),
     duration: float = 10.0,
+    labels: Sequence[str] | None = None,
 ) -> dict[str, float]:
     """Per plant, the output error against LQI on steps, relative to LQI's, capped at 1.
 
     ``mean((y - y_LQI)**2) / mean(y_LQI**2)`` over steps of each amplitude (times the
     plant's ``amplitude_scale``) from rest; 1 for a diverged run (and at most 1 anyway), so
-    the mean over plants is a bounded closed-loop validation score.
+    the mean over plants is a bounded closed-loop validation score. Keyed by ``labels``
+    (one per plant, distinct; e.g. for variants, which share their plant's name), else by
+    the plants' names. Each plant's LQI is designed for that plant itself.
+
+    Raises
+    ------
+    ValueError
+        ``labels`` does not name each plant once.
     """
+    keys = [p.name for p in plants] if labels is None else list(labels)
+    if len(keys) != len(plants) or len(set(keys)) != len(keys):
+        raise ValueError(
+            f"closed_loop_score needs one distinct label per plant, got {len(keys)} labels "
+            f"({len(set(keys))} distinct) for {len(plants)} plants"
+        )
     steps = int(round(duration / plants[0].dt))
     amps = np.asarray(amplitudes, dtype=float)
     runs = [Run(p, np.repeat(amps[:, None] * p.amplitude_scale, steps, axis=1)) for p in plants]
     ours = simulate_many(runs, controller)
     lqi = simulate_many(runs, PerPlantController(LQIController))
     out = {}
-    for p, a, b in zip(plants, ours, lqi, strict=True):
+    for key, a, b in zip(keys, ours, lqi, strict=True):
         if a.diverged.any():
-            out[p.name] = 1.0
+            out[key] = 1.0
             continue
         err = np.mean((a.y - b.y) ** 2, axis=1) / np.maximum(np.mean(b.y**2, axis=1), 1e-300)
-        out[p.name] = float(min(1.0, err.mean()))
+        out[key] = float(min(1.0, err.mean()))
     return out

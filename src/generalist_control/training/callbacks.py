@@ -23,7 +23,8 @@ class ClosedLoopValidation(L.Callback):
 
     Open-loop validation MSE says little about the closed loop (a small error in the
     feedback of an unstable plant diverges), so with DAgger the best checkpoint is chosen
-    on this score (``monitor: val/closed_loop``). Per plant: ``val/closed_loop/<plant>``.
+    on this score (``monitor: val/closed_loop``). Per plant: ``val/closed_loop/<plant>``, or
+    per label where ``labels`` name the plants (e.g. ``<plant>/v<index>`` for a variant).
     The mean is shown in the progress bar too (3 significant digits, see
     :meth:`~generalist_control.training.lit_module.ImitationModule.setup`).
     """
@@ -33,8 +34,10 @@ class ClosedLoopValidation(L.Callback):
         plants: Sequence[Plant],
         amplitudes: Sequence[float] = (1.0, -3.0),
         duration: float = 10.0,
+        labels: Sequence[str] | None = None,
     ) -> None:
         self.plants, self.amplitudes, self.duration = list(plants), amplitudes, duration
+        self.labels = None if labels is None else list(labels)
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Score the current policy in closed loop and log it."""
@@ -45,7 +48,7 @@ class ClosedLoopValidation(L.Callback):
         runtime = PolicyRuntime(policy, cast(Any, trainer).datamodule.meta())
         with torch.inference_mode():
             scores = closed_loop_score(
-                RuntimeAdapter(runtime), self.plants, self.amplitudes, self.duration
+                RuntimeAdapter(runtime), self.plants, self.amplitudes, self.duration, self.labels
             )
         policy.train(was_training)
         score = float(np.mean(list(scores.values())))

@@ -10,6 +10,7 @@ import lightning as L
 import numpy as np
 import torch
 
+from generalist_control.common.schema import require_int
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
 from generalist_control.plants.plant import Plant
@@ -60,6 +61,11 @@ class DAggerCallback(L.Callback):
         share of at least ``focus_beta * s`` in them, so a plant the policy still loses is
         rolled out more often and stays in range longer while the expert steers it. Needs the
         closed-loop validation; a plant without a score counts as ``s = 0``.
+    variants : int, optional
+        With plant variants among ``plants`` (versions sharing a plant's name, the nominal
+        one first), roll out on each plant's nominal version and only this many of its
+        variants per round, taken in turn (round ``i``: variants ``i*k+1 .. i*k+k``, wrapping
+        around), so that many variants keep the round's cost. None: every version.
     """
 
     def __init__(
@@ -80,8 +86,12 @@ class DAggerCallback(L.Callback):
         family_count: int = 2,
         focus: float = 0.0,
         focus_beta: float = 0.0,
+        variants: int | None = None,
     ) -> None:
         self.plants = list(plants)
+        if variants is not None:
+            variants = require_int("dagger.variants", variants, minimum=0)
+        self.variants = variants
         self.limit, self.start_epoch, self.every = float(limit), int(start_epoch), int(every)
         self.rounds, self.rollouts, self.duration = int(rounds), int(rollouts), float(duration)
         self.beta, self.beta_decay = float(beta), float(beta_decay)
@@ -102,8 +112,22 @@ class DAggerCallback(L.Callback):
         self.done = 0
         self.history: list[dict[str, Any]] = []
 
+    def _round_plants(self) -> list[Plant]:
+        """The round's plants: all, or each nominal version and ``variants`` in turn."""
+        if self.variants is None:
+            return self.plants
+        groups: dict[str, list[Plant]] = {}
+        for p in self.plants:
+            groups.setdefault(p.name, []).append(p)
+        out = []
+        for nominal, *rest in groups.values():
+            k = min(self.variants, len(rest))
+            out.append(nominal)
+            out.extend(rest[(self.done * k + j) % len(rest)] for j in range(k))
+        return out
+
     def _rollouts(
-        self, steps: int, lost: Mapping[str, float] | None = None
+        self, steps: int, plants: Sequence[Plant], lost: Mapping[str, float] | None = None
     ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Per plant, the round's rollouts: references and initial states (steps, families).
 
@@ -112,7 +136,7 @@ class DAggerCallback(L.Callback):
         rng = np.random.default_rng(self.seed + self.done)
         lost = lost or {}
         out = {}
-        for p in self.plants:
+        for p in plants:
             count = self.rollouts + int(round(self.focus * lost.get(p.name, 0.0) * self.rollouts))
             amps = rng.uniform(-self.limit, self.limit, count) * p.amplitude_scale
             rs, x0s = [np.repeat(amps[:, None], steps, axis=1)], [np.zeros((len(amps), p.order))]
@@ -158,7 +182,8 @@ class DAggerCallback(L.Callback):
         dm = cast(Any, trainer).datamodule
         steps = int(round(self.duration / self.plants[0].dt))
         lost = self._lost(trainer)
-        amps = self._rollouts(steps, lost)
+        plants = self._round_plants()
+        amps = self._rollouts(steps, plants, lost)
         beta = self.beta * self.beta_decay**self.done
         betas = {k: self.focus_beta * s for k, s in lost.items() if self.focus_beta * s > beta}
         policy = cast(Policy, pl_module.policy)
@@ -170,7 +195,7 @@ class DAggerCallback(L.Callback):
             takeover = "tracked" if integral else "bumpless"
         with torch.inference_mode():
             windows, counts = aggregate(
-                self.plants, runtime, beta, amps, self._bounds(dm.train_set), steps,
+                plants, runtime, beta, amps, self._bounds(dm.train_set), steps,
                 dm.history, dm.horizon, takeover, integral, runtime.controls, betas,
             )  # fmt: skip
         policy.train(was_training)

@@ -133,7 +133,7 @@ def _callbacks(
     plants = training_plants(cfg, meta)
     own = [
         dagger_callback(cfg, dagger_plants(plants, manifest)),
-        closed_loop_validation(cfg, plants),
+        closed_loop_validation(cfg, plants, manifest),
     ]
     return [*callbacks, *(c for c in own if c is not None)], ckpt_cb
 

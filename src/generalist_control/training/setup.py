@@ -13,7 +13,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.configs import as_dict
-from generalist_control.common.schema import require_fraction
+from generalist_control.common.schema import require_fraction, require_int
 from generalist_control.data.generation import enabled_families
 from generalist_control.model.network import MODEL_DEFAULTS, network_config
 from generalist_control.plants.catalog import plants_from_config
@@ -30,6 +30,7 @@ __all__ = [
     "identity_loss",
     "included_plants",
     "model_config",
+    "plant_versions",
     "training_plants",
 ]
 
@@ -113,24 +114,34 @@ def training_plants(cfg: DictConfig, meta: dict[str, Any]) -> list[Plant]:
     return [p for p in plants_from_config(cfg.systems) if p.name in meta["tags"]]
 
 
+def plant_versions(
+    plants: list[Plant], manifest: dict[str, Any], per_plant: int | None = None
+) -> list[tuple[str, Plant]]:
+    """Each plant and, with variant data, its kept variants, labelled ``<plant>/v<index>``.
+
+    The variants are rebuilt from the factors the data's manifest records
+    (:func:`~generalist_control.plants.variants.make_variant`: the very plants the data stage
+    simulated). ``per_plant`` keeps each plant's first that many variants (None: all).
+    """
+    recorded = manifest.get("variants") or {}
+    out: list[tuple[str, Plant]] = []
+    for p in plants:
+        kept = recorded.get(p.name, {}).get("kept", [])
+        out.append((p.name, p))
+        out.extend(
+            (f"{p.name}/v{v['index']}", make_variant(p, v["factors"])) for v in kept[:per_plant]
+        )
+    return out
+
+
 def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
     """The plants DAgger rolls out on: ``plants`` and, with variant data, their variants.
 
     With variant data the policy must also recover on the variants it imitates, so each
-    training plant's kept variants join the rollouts, rebuilt from the factors the data's
-    manifest records (:func:`~generalist_control.plants.variants.make_variant`: the very
-    plants the data stage simulated); each is labelled by its own LQI expert.
-    ``dagger.rollouts`` is per plant, variants included.
+    training plant's kept variants join the rollouts (:func:`plant_versions`); each is
+    labelled by its own LQI expert. ``dagger.rollouts`` is per plant, variants included.
     """
-    recorded = manifest.get("variants") or {}
-    return [
-        q
-        for p in plants
-        for q in (
-            p,
-            *(make_variant(p, v["factors"]) for v in recorded.get(p.name, {}).get("kept", [])),
-        )
-    ]
+    return [q for _, q in plant_versions(plants, manifest)]
 
 
 def dagger_callback(cfg: DictConfig, plants: list[Plant]) -> L.Callback | None:
@@ -152,12 +163,44 @@ def dagger_callback(cfg: DictConfig, plants: list[Plant]) -> L.Callback | None:
     return DAggerCallback(plants, **kwargs)
 
 
-def closed_loop_validation(cfg: DictConfig, plants: list[Plant]) -> L.Callback | None:
-    """``val/closed_loop`` on every training plant (``closed_loop_val``; None when off)."""
+def closed_loop_validation(
+    cfg: DictConfig, plants: list[Plant], manifest: dict[str, Any] | None = None
+) -> L.Callback | None:
+    """``val/closed_loop`` on every training plant (``closed_loop_val``; None when off).
+
+    Raises
+    ------
+    ValueError
+        ``closed_loop_val.variants`` is not a non-negative integer, or is set on data without
+        variants.
+
+    Notes
+    -----
+    ``closed_loop_val.variants: k`` (default 0) adds each plant's first ``k`` training
+    variants from the data's ``manifest`` (:func:`plant_versions`), each scored against its
+    own LQI expert, so that the checkpoint choice sees the variants' closed loops too.
+    """
     spec = cfg.get("closed_loop_val")
     if not spec or not spec.get("enabled", True):
         return None
-    return ClosedLoopValidation(plants, list(spec.amplitudes), float(spec.duration))
+    per_plant = require_int("closed_loop_val.variants", spec.get("variants", 0), minimum=0)
+    if per_plant and not (manifest or {}).get("variants"):
+        raise ValueError(
+            f"closed_loop_val.variants={per_plant}, but the training data holds no plant "
+            "variants; generate them with data.variants.enabled=true (experiment=variants) "
+            "or set closed_loop_val.variants=0"
+        )
+    versions = (
+        plant_versions(plants, manifest or {}, per_plant)
+        if per_plant
+        else [(p.name, p) for p in plants]
+    )
+    return ClosedLoopValidation(
+        [q for _, q in versions],
+        list(spec.amplitudes),
+        float(spec.duration),
+        labels=[label for label, _ in versions],
+    )
 
 
 def config_callbacks(cfg: DictConfig, run_dir: Path) -> list[L.Callback]:
