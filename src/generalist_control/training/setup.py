@@ -190,11 +190,7 @@ def closed_loop_validation(
             "variants; generate them with data.variants.enabled=true (experiment=variants) "
             "or set closed_loop_val.variants=0"
         )
-    versions = (
-        plant_versions(plants, manifest or {}, per_plant)
-        if per_plant
-        else [(p.name, p) for p in plants]
-    )
+    versions = plant_versions(plants, manifest or {}, per_plant)  # 0: the plants alone
     return ClosedLoopValidation(
         [q for _, q in versions],
         list(spec.amplitudes),
