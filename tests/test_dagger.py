@@ -140,12 +140,11 @@ def test_focus_adds_rollouts_and_expert_share_to_the_plants_still_lost():
     lost = on._lost(trainer)
     assert lost == {"unstable": 0.75}  # a NaN score counts as no score
     base, focused = off._rollouts(50, off.plants), on._rollouts(50, on.plants, lost)
-    assert len(base["unstable"][0]) == 4 and len(focused["unstable"][0]) == 4 + 6
-    assert len(focused["dc_servo"][0]) == 4
-    np.testing.assert_array_equal(base["dc_servo"][0], focused["dc_servo"][0])  # drawn first
-    np.testing.assert_array_equal(
-        base["unstable"][0], off._rollouts(50, off.plants, lost)["unstable"][0]
-    )
+    servo, unstable = 0, 1  # specs come in the plants' order
+    assert len(base[unstable][0]) == 4 and len(focused[unstable][0]) == 4 + 6
+    assert len(focused[servo][0]) == 4
+    np.testing.assert_array_equal(base[servo][0], focused[servo][0])  # drawn first
+    np.testing.assert_array_equal(base[unstable][0], off._rollouts(50, off.plants, lost)[1][0])
     metrics["val/closed_loop/unstable"] = torch.tensor(3.0)  # clipped to 1
     assert on._lost(trainer) == {"unstable": 1.0}
     for bad in ({"focus": -1.0}, {"focus_beta": 1.5}):
@@ -268,3 +267,65 @@ def test_dagger_variants_takes_each_plants_variants_in_turn():
     assert DAggerCallback(plants, families=None, variants=9)._round_plants() == plants
     with pytest.raises(ValueError, match="dagger.variants must be a non-negative integer"):
         DAggerCallback(plants, families=None, variants=-1)
+
+
+def test_each_plant_version_gets_its_own_rollout_references():
+    """Variants share their plant's name, yet each version's rollouts are its own draws."""
+    from generalist_control.plants.variants import make_variant
+    from generalist_control.training.dagger_callback import DAggerCallback
+
+    servo = load_plant("dc_servo")
+    plants = [servo, make_variant(servo, {"B[2]": 0.8}), make_variant(servo, {"B[2]": 1.2})]
+    specs = DAggerCallback(plants, rollouts=3, families=None)._rollouts(40, plants)
+    refs = [spec[0][:, 0] for spec in specs]
+    assert len(specs) == 3 and all(len(r) == 3 for r in refs)
+    assert not np.allclose(refs[0], refs[1]) and not np.allclose(refs[1], refs[2])
+    with pytest.raises(ValueError, match="2 rollout specs for 3 plants"):
+        aggregate(plants, None, 1.0, specs[:2], {servo.name: np.ones(3)}, 40, 8, 3)
+
+
+def _hand_lqi_law(plant):
+    """The gains of u = -Kx x - Ki z for ``plant``: python-control's LQR of [x; z], z' = r - y."""
+    import control
+
+    n = plant.order
+    A = np.block([[plant.A, np.zeros((n, 1))], [-plant.C.reshape(1, n), np.zeros((1, 1))]])
+    B = np.vstack([plant.B.reshape(n, 1), [[0.0]]])
+    K, _, _ = control.lqr(A, B, plant.Q, plant.R)
+    return np.asarray(K)[0, :n], float(np.asarray(K)[0, n])
+
+
+def test_fresh_variants_are_new_each_round_fit_and_labelled_by_their_own_expert():
+    """dagger.fresh_variants=k: k new variants per plant and round, each its own LQI's."""
+    from generalist_control.plants.variants import parameter_ranges
+    from generalist_control.training.dagger_callback import DAggerCallback
+
+    servo, unstable = load_plant("dc_servo"), load_plant("unstable")
+    cb = DAggerCallback([servo, unstable], families=None, fresh_variants=2, variant_range=0.2)
+    first = cb._fresh_plants(100)
+    assert [p.name for p in first] == ["dc_servo"] * 2 + ["unstable"] * 2
+    cb.done = 1
+    second = cb._fresh_plants(100)
+    assert len(cb.fresh["dc_servo"]) == 4  # every round's factors are kept
+    for name in ("dc_servo", "unstable"):
+        factors = [tuple(f.values()) for f in cb.fresh[name]]
+        assert len(set(factors)) == 4  # none repeats across rounds
+        for f in cb.fresh[name]:
+            assert set(f) == set(parameter_ranges(load_plant(name), 0.2))
+            assert all(0.8 <= v <= 1.2 for v in f.values())
+    again = DAggerCallback([servo, unstable], families=None, fresh_variants=2, variant_range=0.2)
+    assert [p.A.tolist() for p in again._fresh_plants(100)] == [p.A.tolist() for p in first]
+    assert DAggerCallback([servo], families=None)._fresh_plants(100) == []
+    # a fresh variant's windows carry the law of its own LQI, not the nominal plant's
+    v = second[0]
+    amps = np.array([1.0]) * v.amplitude_scale
+    w, _ = aggregate([v], None, 1.0, [amps], {v.name: np.full(v.order, np.inf)}, 60, 8, 3)
+    Kx, Ki = _hand_lqi_law(v)
+    tr = simulate(v, LQIController(v), np.repeat(amps[:, None], 60, axis=1))
+    z = np.cumsum(np.r_[0.0, (tr.r[0] - tr.y[0, :60])[:-1]]) * v.dt  # integral before sample
+    law = -(tr.x[0, :60] @ Kx) - Ki * z
+    np.testing.assert_allclose(w.target[:, 0], law[:58], rtol=1e-5, atol=1e-7)
+    nominal_kx, _ = _hand_lqi_law(servo)
+    assert not np.allclose(Kx, nominal_kx, rtol=1e-3)
+    with pytest.raises(ValueError, match="dagger.fresh_variants must be a non-negative"):
+        DAggerCallback([servo], families=None, fresh_variants=-1)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import control
 import mlflow
@@ -30,6 +31,7 @@ from generalist_control.simulation.simulate import simulate
 from generalist_control.simulation.variants import (
     Variant,
     VariantDraw,
+    check_class,
     check_variant,
     sample_variants,
 )
@@ -94,6 +96,53 @@ def test_unfit_variants_are_rejected_with_the_reason_and_redrawn():
     assert min(r["factors"]["A[0,0]"] for r in draw.rejected) > worst_kept
     with pytest.raises(VariantError, match="only 0 of 4 variants.*Narrow its range"):
         sample_variants(_fast_plant(30.0), 4, seed=0, default_range=0.25, steps=40)
+
+
+def _linear_plant(A, B, C):
+    """A linear plant from its matrices, LQI weights of ones."""
+    n = len(A)
+    cfg = {
+        "tag": 0, "description": "d", "source": "s", "dt": 0.05,
+        "states": [{"name": f"x{i}", "unit": "-"} for i in range(n)],
+        "input": {"name": "u", "unit": "-"}, "output": {"name": "y", "unit": "-"},
+        "A": A, "B": B, "C": C, "lqi": {"Q": [1.0] * (n + 1), "R": 1.0},
+    }  # fmt: skip
+    return plant_from_config("lin", cfg)
+
+
+def test_a_variant_must_keep_the_nominal_plants_class():
+    """As many right-half-plane poles and zeros as the nominal plant, else refused."""
+    # stable 2x2 (det 0.16 - 0.15 > 0, trace < 0): A[0,0] x0.75 makes det < 0, one pole > 0
+    stable = _linear_plant([[-0.1, 0.5], [0.3, -1.6]], [[1.0], [0.0]], [[1.0, 0.0]])
+    check_class(make_variant(stable, {"A[0,0]": 1.05}), stable)  # det 0.018 > 0: kept
+    unstable = make_variant(stable, {"A[0,0]": 0.75})
+    pole = max(np.linalg.eigvals(unstable.A).real)  # closed form: det -0.03, one root > 0
+    assert pole > 0
+    with pytest.raises(
+        VariantError, match=re.escape(f"poles in the right half-plane (rightmost at {pole:+.4g})")
+    ):
+        check_class(unstable, stable)
+    # C = [1, 0]: the zero is at a22 - a12 b2 / b1 = -1 + 0.9 = -0.1; B[1] x1.2 moves it to +0.08
+    minimum = _linear_plant([[-2.0, -1.0], [1.0, -1.0]], [[1.0], [0.9]], [[1.0, 0.0]])
+    check_class(make_variant(minimum, {"B[1]": 1.1}), minimum)  # zero at -0.01: kept
+    with pytest.raises(VariantError, match=r"1 open-loop zeros .*\(rightmost at \+0\.08\)"):
+        check_class(make_variant(minimum, {"B[1]": 1.2}), minimum)
+    # hvac_two_zone's rows are heat balances: this draw (an evaluation variant before the
+    # rule) has an unstable pole and a DC gain of the other sign; it is refused by the sampler
+    hvac = load_plant("hvac_two_zone")
+    factors = {"A[0,0]": 0.873713, "A[0,1]": 1.120397, "A[0,2]": 1.219406, "A[1,0]": 0.794282,
+               "A[1,1]": 1.093401, "A[2,0]": 0.973756, "A[2,2]": 0.776620, "A[2,3]": 1.169105,
+               "A[3,2]": 0.991258, "A[3,3]": 1.204047, "B[0]": 0.785979}  # fmt: skip
+    bad = make_variant(hvac, factors)
+    dc = -(bad.C.reshape(1, -1) @ np.linalg.solve(bad.A, bad.B.reshape(-1, 1))).item()
+    assert max(np.linalg.eigvals(bad.A).real) > 0 and dc < 0
+    with pytest.raises(VariantError, match="changes the plant's class: 1 open-loop poles"):
+        check_variant(bad, (1.0,), 40, hvac)
+    check_variant(bad, (), 40)  # without its nominal plant, no class check: LQI accepts it
+    draw = sample_variants(hvac, 8, seed=3002, default_range=0.25, steps=40)
+    assert any("changes the plant's class" in r["reason"] for r in draw.rejected)
+    for v in draw.kept:
+        assert max(np.linalg.eigvals(v.plant.A).real) < 0
 
 
 def test_plant_files_variants_block_is_validated():
@@ -214,6 +263,17 @@ def test_evaluation_variants_must_differ_from_the_training_ones(tmp_path):
     other = sample_variants(plant, 3, seed=8, default_range=0.25, steps=40)
     got = check_disjoint({"cstr": other}, [plant], data, tmp_path, seed=8)
     assert got["checked_against"].startswith("seed stream") and got["min_factor_distance"] > 0
+    # DAgger's fresh variants (seeds 11, 12: one per round) count as training variants too
+    dagger = {"enabled": True, "fresh_variants": 2, "variant_seed": 11, "rounds": 2}
+    fresh = sample_variants(plant, 2, seed=12, default_range=0.25, steps=40)  # round 1's
+    with pytest.raises(ValueError, match=r"equals a training variant \(.*DAgger's fresh"):
+        check_disjoint({"cstr": fresh}, [plant], data, tmp_path, 8, dagger)
+    with pytest.raises(ValueError, match="one of DAgger's fresh-variant seeds"):
+        check_disjoint({"cstr": other}, [plant], data, tmp_path, 12, dagger)
+    got = check_disjoint({"cstr": other}, [plant], data, tmp_path, 8, dagger)
+    assert "DAgger's fresh variants (seeds 11..12)" in got["checked_against"]
+    off = check_disjoint({"cstr": fresh}, [plant], data, tmp_path, 8, {**dagger, "enabled": 0})
+    assert "DAgger" not in off["checked_against"]
 
 
 @pytest.mark.slow
@@ -236,6 +296,7 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
         # validation on the nominal plants and 2 variants each
         "dagger.start_epoch=0", "dagger.every=1", "dagger.rounds=1", "dagger.duration=2.0",
         "dagger.variants=1", "closed_loop_val.variants=2", "closed_loop_val.duration=2.0",
+        "dagger.fresh_variants=1",  # and 1 variant each drawn for the round
     )  # fmt: skip
     _, objects = train(compose_cfg(*tiny, *over))
     logged = mlflow.MlflowClient(mlflow_uri).get_run(objects["run_id"]).data.metrics
@@ -244,12 +305,14 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
         f"val/closed_loop/{p}{v}" for p in ("cstr", "two_tank") for v in ("", "/v1", "/v2")
     }
     assert logged["dagger/windows"] > 0
+    assert logged["dagger/versions"] == 2 * 3  # per plant: nominal, 1 in turn, 1 fresh
     reports = tmp_path / "reports"
     cfg = compose_cfg(
         *tiny, f"policy={objects['policy_path']}", f"paths.reports_dir={reports}",
         f"logger.tracking_uri={mlflow_uri}", f"logger.experiment_name={tmp_path.name}",
         "evaluation.scenarios.step.duration=3.0", "evaluation.variants.count=5",
-        "evaluation.backend=torch",
+        "evaluation.backend=torch", "dagger.start_epoch=0", "dagger.rounds=1",
+        "dagger.fresh_variants=1",
     )  # fmt: skip
     summary = evaluate_stage.run(cfg)
     df = pd.read_csv(reports / "metrics.csv")
@@ -264,7 +327,10 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
         "no_divergence", "variants_per_plant", "median_ISE_ratio", "worst_ISE_ratio",
         "beats_nominal",
     }  # fmt: skip
-    assert saved["disjoint"]["checked_against"].startswith("manifest")
+    checked = saved["disjoint"]["checked_against"]
+    assert (
+        checked.startswith("manifest") and "DAgger's fresh variants (seeds 3001..3001)" in checked
+    )
     assert summary["pass"] == saved["pass"]
     table = pd.read_csv(reports / "variants.csv")
     assert set(table.columns) == {"system", "variant", "parameter", "value", "factor"}

@@ -112,26 +112,65 @@ def _training_factors(
     return f"seed stream data.variants.seed={vcfg['seed']}", out
 
 
+def _dagger_factors(
+    plants: Sequence[Plant], data: Mapping[str, Any], dagger: Mapping[str, Any]
+) -> tuple[range, dict[str, list[dict[str, float]]]]:
+    """The seeds and candidate factors of DAgger's fresh variants (``dagger.fresh_variants``).
+
+    Every candidate a round may have drawn (kept or refused), from its seed stream
+    (:meth:`~generalist_control.training.dagger_callback.DAggerCallback._fresh_plants`).
+    """
+    fresh = int(dagger.get("fresh_variants", 0) or 0)
+    if not dagger.get("enabled", False) or fresh < 1:
+        return range(0), {}
+    block = data.get("variants") or {}
+    seed, tries = int(dagger.get("variant_seed", 0)), int(block.get("max_tries", 10))
+    seeds = range(seed, seed + int(dagger.get("rounds", 0)))
+    out: dict[str, list[dict[str, float]]] = {}
+    for p in plants:
+        ranges = parameter_ranges(p, float(block.get("range", DEFAULT_RANGE)))
+        for s in seeds:
+            rng = np.random.default_rng([s, p.tag])
+            out.setdefault(p.name, []).extend(
+                draw_factors(ranges, rng) for _ in range(fresh * tries)
+            )
+    return seeds, out
+
+
 def check_disjoint(
     draws: Mapping[str, VariantDraw],
     plants: Sequence[Plant],
     data: Mapping[str, Any],
     data_dir: Path,
     seed: int,
+    dagger: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Refuse evaluation variants equal to a training variant; return what was checked.
+
+    The training variants are the data's and, with ``dagger.fresh_variants``, every
+    candidate DAgger's rounds may have drawn.
 
     Raises
     ------
     ValueError
-        The evaluation's seed is the data's, or a drawn factor vector equals a training one.
+        The evaluation's seed is the data's or one of DAgger's, or a drawn factor vector
+        equals a training one.
     """
     if seed == int((data.get("variants") or {}).get("seed", -1)):
         raise ValueError(
             f"evaluation.variants.seed = {seed} is data.variants.seed: choose another, so the "
             "evaluation's variants are not the training's"
         )
+    seeds, fresh = _dagger_factors(plants, data, dagger or {})
+    if seed in seeds:
+        raise ValueError(
+            f"evaluation.variants.seed = {seed} is one of DAgger's fresh-variant seeds "
+            f"({seeds.start}..{seeds.stop - 1}): choose another, or move dagger.variant_seed"
+        )
     source, train = _training_factors(plants, data, data_dir)
+    if fresh:
+        source += f" and DAgger's fresh variants (seeds {seeds.start}..{seeds.stop - 1})"
+        train = {n: train.get(n, []) + fresh.get(n, []) for n in {*train, *fresh}}
     gap = np.inf
     for name, draw in draws.items():
         for v in draw.kept:
@@ -217,7 +256,10 @@ def run_variants(cfg: Any, runtime: PolicyRuntime, plants: Sequence[Plant]) -> d
     steps = int(round(float(scen[names[0]].get("duration", 15.0)) / plants[0].dt))
     draws = draw_eval_variants(plants, ecfg, steps)
     data = as_dict(cfg.data)
-    disjoint = check_disjoint(draws, plants, data, Path(cfg.paths.data_dir), int(ecfg["seed"]))
+    dagger = as_dict(cfg.get("dagger") or {})
+    disjoint = check_disjoint(
+        draws, plants, data, Path(cfg.paths.data_dir), int(ecfg["seed"]), dagger
+    )
     df = evaluate_variants(runtime, draws, scen)
     summary = summarise_variants(df, names[0], as_dict(ecfg.get("bar") or {}))
     summary["disjoint"] = disjoint

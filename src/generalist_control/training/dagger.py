@@ -196,13 +196,26 @@ def _in_range(x: np.ndarray, bound: np.ndarray) -> np.ndarray:
     return np.cumprod(ok, axis=1).astype(bool)
 
 
-def _references(
-    spec: np.ndarray | tuple[np.ndarray, np.ndarray | None], steps: int
-) -> tuple[np.ndarray, np.ndarray | None]:
+#: One plant's rollouts: step amplitudes, or references (B, steps) and initial states.
+RolloutSpec = np.ndarray | tuple[np.ndarray, np.ndarray | None]
+
+
+def _references(spec: RolloutSpec, steps: int) -> tuple[np.ndarray, np.ndarray | None]:
     """References (B, steps) and initial states of one plant's rollouts."""
     if isinstance(spec, tuple):
         return spec
     return np.repeat(np.asarray(spec, dtype=float)[:, None], steps, axis=1), None
+
+
+def _specs(
+    plants: Sequence[Plant], amplitudes: Mapping[str, RolloutSpec] | Sequence[RolloutSpec]
+) -> list[RolloutSpec]:
+    """Each plant's rollout spec: by name from a mapping, or in order from a sequence."""
+    if isinstance(amplitudes, Mapping):
+        return [amplitudes[p.name] for p in plants]
+    if len(amplitudes) != len(plants):
+        raise ValueError(f"{len(amplitudes)} rollout specs for {len(plants)} plants")
+    return list(amplitudes)
 
 
 def _labelled_windows(
@@ -240,7 +253,7 @@ def aggregate(
     plants: Sequence[Plant],
     runtime: PolicyRuntime | None,
     beta: float,
-    amplitudes: Mapping[str, np.ndarray | tuple[np.ndarray, np.ndarray | None]],
+    amplitudes: Mapping[str, RolloutSpec] | Sequence[RolloutSpec],
     bounds: Mapping[str, np.ndarray],
     steps: int,
     history: int,
@@ -254,8 +267,9 @@ def aggregate(
 
     ``runtime`` is the current policy (None with ``beta = 1``: pure expert rollouts) and
     ``beta`` the expert's weight in the executed control. ``amplitudes`` gives, per plant
-    name, the step amplitudes (one rollout from rest each), or the rollouts' references
-    (B, steps) and initial states (B, n) (the data's families), and ``bounds`` the largest state
+    name (or per entry of ``plants``, in order, as plant variants share a name), the step
+    amplitudes (one rollout from rest each), or the rollouts' references (B, steps) and
+    initial states (B, n) (the data's families), and ``bounds`` the largest state
     magnitude (n,) a rollout may reach (windows past the first sample outside are dropped).
     ``takeover`` is the integrator the expert takes over with: ``"bumpless"`` sets it so
     that the expert's law reproduces the control applied one sample earlier
@@ -278,7 +292,8 @@ def aggregate(
             "a policy that sees the error integral is labelled from that integrator: "
             "use dagger.takeover=tracked (or auto)"
         )
-    runs = [Run(p, *_references(amplitudes[p.name], steps)) for p in plants]
+    specs = _specs(plants, amplitudes)
+    runs = [Run(p, *_references(spec, steps)) for p, spec in zip(plants, specs, strict=True)]
     trajs = simulate_many(runs, ctrl := MixedController(runtime, beta, betas))
     z_all = ctrl.z
     parts: list[tuple[Windows, np.ndarray]] = []

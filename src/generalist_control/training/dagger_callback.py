@@ -14,8 +14,10 @@ from generalist_control.common.schema import require_int
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
 from generalist_control.plants.plant import Plant
+from generalist_control.plants.variants import DEFAULT_RANGE
 from generalist_control.simulation.references import family_references
-from generalist_control.training.dagger import aggregate
+from generalist_control.simulation.variants import sample_variants
+from generalist_control.training.dagger import RolloutSpec, aggregate
 
 __all__ = ["DAggerCallback"]
 
@@ -66,6 +68,14 @@ class DAggerCallback(L.Callback):
         one first), roll out on each plant's nominal version and only this many of its
         variants per round, taken in turn (round ``i``: variants ``i*k+1 .. i*k+k``, wrapping
         around), so that many variants keep the round's cost. None: every version.
+    fresh_variants : int
+        Each round also rolls out on this many variants of each plant drawn for that round
+        alone (:func:`~generalist_control.simulation.variants.sample_variants`: fit for LQI,
+        steps of +-``limit`` included; seed ``variant_seed + round``, parameters within
+        ``variant_range``, at most ``variant_tries`` draws per variant), each labelled by
+        its own LQI expert, so the policy learns to recover on many more variants than the
+        data holds. 0: off. Their factors are kept in :attr:`fresh`, per plant.
+    variant_seed, variant_range, variant_tries : int / float / int
     """
 
     def __init__(
@@ -87,11 +97,20 @@ class DAggerCallback(L.Callback):
         focus: float = 0.0,
         focus_beta: float = 0.0,
         variants: int | None = None,
+        fresh_variants: int = 0,
+        variant_seed: int = 3001,
+        variant_range: float = DEFAULT_RANGE,
+        variant_tries: int = 10,
     ) -> None:
         self.plants = list(plants)
         if variants is not None:
             variants = require_int("dagger.variants", variants, minimum=0)
         self.variants = variants
+        self.fresh_variants = require_int("dagger.fresh_variants", fresh_variants, minimum=0)
+        self.variant_seed = require_int("dagger.variant_seed", variant_seed, minimum=0)
+        self.variant_range = float(variant_range)
+        self.variant_tries = require_int("dagger.variant_tries", variant_tries, minimum=1)
+        self.fresh: dict[str, list[dict[str, float]]] = {}
         self.limit, self.start_epoch, self.every = float(limit), int(start_epoch), int(every)
         self.rounds, self.rollouts, self.duration = int(rounds), int(rollouts), float(duration)
         self.beta, self.beta_decay = float(beta), float(beta_decay)
@@ -126,16 +145,33 @@ class DAggerCallback(L.Callback):
             out.extend(rest[(self.done * k + j) % len(rest)] for j in range(k))
         return out
 
+    def _fresh_plants(self, steps: int) -> list[Plant]:
+        """The round's fresh variants: ``fresh_variants`` per plant, drawn for this round."""
+        if not self.fresh_variants:
+            return []
+        nominals: dict[str, Plant] = {}
+        for p in self.plants:
+            nominals.setdefault(p.name, p)  # the nominal version comes first
+        out: list[Plant] = []
+        for p in nominals.values():
+            draw = sample_variants(
+                p, self.fresh_variants, self.variant_seed + self.done, self.variant_range,
+                (self.limit, -self.limit), steps, self.variant_tries,
+            )  # fmt: skip
+            self.fresh.setdefault(p.name, []).extend(v.factors for v in draw.kept)
+            out.extend(v.plant for v in draw.kept)
+        return out
+
     def _rollouts(
         self, steps: int, plants: Sequence[Plant], lost: Mapping[str, float] | None = None
-    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Per plant, the round's rollouts: references and initial states (steps, families).
+    ) -> list[RolloutSpec]:
+        """Per plant version, in order: references and initial states (steps, families).
 
         ``lost`` (plant name -> closed-loop score in [0, 1]) adds the focus's step rollouts.
         """
         rng = np.random.default_rng(self.seed + self.done)
         lost = lost or {}
-        out = {}
+        out: list[RolloutSpec] = []
         for p in plants:
             count = self.rollouts + int(round(self.focus * lost.get(p.name, 0.0) * self.rollouts))
             amps = rng.uniform(-self.limit, self.limit, count) * p.amplitude_scale
@@ -146,7 +182,7 @@ class DAggerCallback(L.Callback):
                 r, x0 = family_references(p, own, steps)
                 rs.append(r)
                 x0s.append(x0)
-            out[p.name] = (np.concatenate(rs), np.concatenate(x0s))
+            out.append((np.concatenate(rs), np.concatenate(x0s)))
         return out
 
     def _lost(self, trainer: L.Trainer) -> dict[str, float]:
@@ -182,7 +218,7 @@ class DAggerCallback(L.Callback):
         dm = cast(Any, trainer).datamodule
         steps = int(round(self.duration / self.plants[0].dt))
         lost = self._lost(trainer)
-        plants = self._round_plants()
+        plants = self._round_plants() + self._fresh_plants(steps)
         amps = self._rollouts(steps, plants, lost)
         beta = self.beta * self.beta_decay**self.done
         betas = {k: self.focus_beta * s for k, s in lost.items() if self.focus_beta * s > beta}
@@ -207,9 +243,10 @@ class DAggerCallback(L.Callback):
                 cb.wait_count = 0
         trainer.should_stop = False
         record = {"round": self.done, "beta": beta, "windows": len(windows), **counts}
+        record["versions"] = len(plants)
         self.history.append(record)
         log.info("DAgger round %d (beta %.3g): %d windows added", self.done, beta, len(windows))
         if betas:
             log.info("DAgger focus on %s", {k: round(v, 3) for k, v in sorted(betas.items())})
-        for key in ("windows", "beta"):
+        for key in ("windows", "beta", "versions"):
             pl_module.log(f"dagger/{key}", float(record[key]), logger=False)

@@ -18,7 +18,7 @@ from generalist_control.data.generation import enabled_families
 from generalist_control.model.network import MODEL_DEFAULTS, network_config
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.plants.plant import Plant
-from generalist_control.plants.variants import make_variant
+from generalist_control.plants.variants import DEFAULT_RANGE, make_variant
 from generalist_control.training.callbacks import ClosedLoopValidation
 from generalist_control.training.dagger_callback import DAggerCallback
 
@@ -155,6 +155,9 @@ def dagger_callback(cfg: DictConfig, plants: list[Plant]) -> L.Callback | None:
     kwargs.setdefault("seed", int(cfg.seed or 0))
     families = kwargs.pop("families", False)
     kwargs["families"] = enabled_families(as_dict(cfg.data)) if families else None
+    block = cfg.data.get("variants") or {}  # fresh variants: the data's range and tries
+    kwargs.setdefault("variant_range", float(block.get("range", DEFAULT_RANGE)))
+    kwargs.setdefault("variant_tries", int(block.get("max_tries", 10)))
     if cfg.model.get("integral", False) and kwargs.get("takeover") == "bumpless":
         raise ValueError(
             "model.integral=true: DAgger must label from the integrator the policy sees; "
