@@ -18,6 +18,7 @@ parameters and factors) and plots.
 
 from __future__ import annotations
 
+import itertools
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -39,7 +40,7 @@ from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.runner import metric_rows
 from generalist_control.evaluation.variant_summary import plot_variants, summarise_variants
 from generalist_control.plants.plant import Plant
-from generalist_control.plants.variants import DEFAULT_RANGE, draw_factors, parameter_ranges
+from generalist_control.plants.variants import DEFAULT_RANGE
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.scenarios import perturbation, references
 from generalist_control.simulation.simulate import (
@@ -48,7 +49,12 @@ from generalist_control.simulation.simulate import (
     Run,
     simulate_many,
 )
-from generalist_control.simulation.variants import Variant, VariantDraw, sample_variants
+from generalist_control.simulation.variants import (
+    Variant,
+    VariantDraw,
+    candidate_factors,
+    sample_variants,
+)
 
 __all__ = [
     "CONTROLLERS",
@@ -104,12 +110,18 @@ def _training_factors(
             }
     vcfg = variants_config({**data, "variants": {**(data.get("variants") or {}), "enabled": 1}})
     assert vcfg is not None
-    out: dict[str, list[dict[str, float]]] = {}
-    for p in plants:  # every candidate the data stage may have drawn, kept or not
-        rng = np.random.default_rng([vcfg["seed"], p.tag])
-        ranges = parameter_ranges(p, vcfg["range"])
-        out[p.name] = [draw_factors(ranges, rng) for _ in range(vcfg["count"] * vcfg["max_tries"])]
+    n = vcfg["count"] * vcfg["max_tries"]  # every candidate the data stage may have drawn
+    out = {p.name: _candidates(p, [vcfg["seed"]], vcfg["range"], n) for p in plants}
     return f"seed stream data.variants.seed={vcfg['seed']}", out
+
+
+def _candidates(
+    plant: Plant, seeds: Sequence[int], default_range: float, n: int
+) -> list[dict[str, float]]:
+    """The first ``n`` candidates of each seed's stream (:func:`candidate_factors`)."""
+    return [
+        f for s in seeds for f in itertools.islice(candidate_factors(plant, s, default_range), n)
+    ]
 
 
 def _dagger_factors(
@@ -118,23 +130,18 @@ def _dagger_factors(
     """The seeds and candidate factors of DAgger's fresh variants (``dagger.fresh_variants``).
 
     Every candidate a round may have drawn (kept or refused), from its seed stream
-    (:meth:`~generalist_control.training.dagger_callback.DAggerCallback._fresh_plants`).
+    (:meth:`~generalist_control.training.dagger_callback.DAggerCallback._fresh_plants`;
+    range and tries as :func:`~generalist_control.training.setup.dagger_callback` sets them).
     """
     fresh = int(dagger.get("fresh_variants", 0) or 0)
     if not dagger.get("enabled", False) or fresh < 1:
         return range(0), {}
     block = data.get("variants") or {}
-    seed, tries = int(dagger.get("variant_seed", 0)), int(block.get("max_tries", 10))
+    rng = float(dagger.get("variant_range", block.get("range", DEFAULT_RANGE)))
+    tries = int(dagger.get("variant_tries", block.get("max_tries", 10)))
+    seed = int(dagger.get("variant_seed", 0))
     seeds = range(seed, seed + int(dagger.get("rounds", 0)))
-    out: dict[str, list[dict[str, float]]] = {}
-    for p in plants:
-        ranges = parameter_ranges(p, float(block.get("range", DEFAULT_RANGE)))
-        for s in seeds:
-            rng = np.random.default_rng([s, p.tag])
-            out.setdefault(p.name, []).extend(
-                draw_factors(ranges, rng) for _ in range(fresh * tries)
-            )
-    return seeds, out
+    return seeds, {p.name: _candidates(p, seeds, rng, fresh * tries) for p in plants}
 
 
 def check_disjoint(

@@ -21,7 +21,7 @@ Otherwise it is recorded as rejected with that reason and another is drawn, up t
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,7 +38,14 @@ from generalist_control.plants.variants import (
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.simulate import simulate
 
-__all__ = ["Variant", "VariantDraw", "check_class", "check_variant", "sample_variants"]
+__all__ = [
+    "Variant",
+    "VariantDraw",
+    "candidate_factors",
+    "check_class",
+    "check_variant",
+    "sample_variants",
+]
 
 
 @dataclass(frozen=True)
@@ -137,6 +144,18 @@ def check_variant(
             raise VariantError(f"its LQI loop diverges on steps of {bad} from rest")
 
 
+def candidate_factors(plant: Plant, seed: int, default_range: float) -> Iterator[dict[str, float]]:
+    """The endless stream of factor draws :func:`sample_variants` takes its candidates from.
+
+    Seeded by ``seed`` and the plant's tag, so every candidate a draw may have tried
+    (kept or refused) can be listed again, e.g. to keep evaluation variants disjoint.
+    """
+    ranges = parameter_ranges(plant, default_range)
+    rng = np.random.default_rng([int(seed), plant.tag])
+    while True:
+        yield draw_factors(ranges, rng)
+
+
 def sample_variants(
     plant: Plant,
     count: int,
@@ -172,13 +191,13 @@ def sample_variants(
             f"plant '{plant.name}' has no perturbable parameter (all fixed by its ranges); "
             "give it a 'variants.range' > 0 in conf/plants/" + plant.name + ".yaml"
         )
-    rng = np.random.default_rng([int(seed), plant.tag])
+    stream = candidate_factors(plant, seed, default_range)
     kept: list[Variant] = []
     rejected: list[dict[str, object]] = []
     for _ in range(max(1, int(max_tries)) * count):
         if len(kept) == count:
             break
-        factors = draw_factors(ranges, rng)
+        factors = next(stream)
         try:
             candidate = make_variant(plant, factors)
             check_variant(candidate, amplitudes, steps, plant)

@@ -131,15 +131,19 @@ class DAggerCallback(L.Callback):
         self.done = 0
         self.history: list[dict[str, Any]] = []
 
+    def _versions(self) -> list[list[Plant]]:
+        """The plants grouped by name, each group its nominal version first."""
+        groups: dict[str, list[Plant]] = {}
+        for p in self.plants:
+            groups.setdefault(p.name, []).append(p)
+        return list(groups.values())
+
     def _round_plants(self) -> list[Plant]:
         """The round's plants: all, or each nominal version and ``variants`` in turn."""
         if self.variants is None:
             return self.plants
-        groups: dict[str, list[Plant]] = {}
-        for p in self.plants:
-            groups.setdefault(p.name, []).append(p)
         out = []
-        for nominal, *rest in groups.values():
+        for nominal, *rest in self._versions():
             k = min(self.variants, len(rest))
             out.append(nominal)
             out.extend(rest[(self.done * k + j) % len(rest)] for j in range(k))
@@ -149,11 +153,8 @@ class DAggerCallback(L.Callback):
         """The round's fresh variants: ``fresh_variants`` per plant, drawn for this round."""
         if not self.fresh_variants:
             return []
-        nominals: dict[str, Plant] = {}
-        for p in self.plants:
-            nominals.setdefault(p.name, p)  # the nominal version comes first
         out: list[Plant] = []
-        for p in nominals.values():
+        for p, *_ in self._versions():
             draw = sample_variants(
                 p, self.fresh_variants, self.variant_seed + self.done, self.variant_range,
                 (self.limit, -self.limit), steps, self.variant_tries,
