@@ -329,3 +329,50 @@ def test_fresh_variants_are_new_each_round_fit_and_labelled_by_their_own_expert(
     assert not np.allclose(Kx, nominal_kx, rtol=1e-3)
     with pytest.raises(ValueError, match="dagger.fresh_variants must be a non-negative"):
         DAggerCallback([servo], families=None, fresh_variants=-1)
+
+
+def test_fresh_pool_rolls_out_on_the_variants_where_the_loop_is_worst():
+    """dagger.fresh_pool: of each plant's pool, the fresh_variants worst under the controller.
+
+    The screened controller is the nominal plant's LQI law on each variant (what a user
+    without redesign has); its error against each variant's own LQI, computed by hand from
+    two simulations, must rank the chosen variants first.
+    """
+    from generalist_control.simulation.simulate import PerPlantController
+    from generalist_control.simulation.variants import sample_variants
+    from generalist_control.training.dagger_callback import SCREEN_AMPLITUDES, DAggerCallback
+
+    plants = [load_plant("mass_spring_damper"), load_plant("dc_servo")]
+    gains = {p.name: design_lqi(p) for p in plants}
+    nominal_law = PerPlantController(lambda p: LQIController(p, gains[p.name]))
+    cb = DAggerCallback(plants, families=None, fresh_variants=2, fresh_pool=6)
+    chosen = cb._fresh_plants(200, nominal_law)
+    assert [p.name for p in chosen] == ["mass_spring_damper"] * 2 + ["dc_servo"] * 2
+    for k, p in enumerate(plants):
+        pool = sample_variants(p, 6, cb.variant_seed, cb.variant_range, (20.0, -20.0), 200)
+        err = []
+        for v in pool.kept:
+            refs = np.repeat(np.asarray(SCREEN_AMPLITUDES)[:, None] * p.amplitude_scale, 200, 1)
+            own = simulate(v.plant, LQIController(v.plant), refs)
+            nom = simulate(v.plant, LQIController(v.plant, gains[p.name]), refs)
+            rel = np.mean((nom.y - own.y) ** 2, axis=1) / np.mean(own.y**2, axis=1)
+            err.append(min(1.0, rel.mean()))
+        worst = sorted(np.argsort(err)[::-1][:2])
+        want = [pool.kept[j].plant.A.tolist() for j in worst]
+        assert [q.A.tolist() for q in chosen[2 * k : 2 * k + 2]] == want
+        np.testing.assert_allclose(cb.screened[p.name], [err[j] for j in worst], rtol=1e-9)
+        assert min(cb.screened[p.name]) >= np.median(err)  # the worst, not the draw's first
+        # fresh_worst=1 of 3: the draw's first two as they come, the worst of the other four
+        # (for dc_servo not the first of them: 8e-6 against 4e-6)
+        mixed = DAggerCallback([p], families=None, fresh_variants=3, fresh_pool=6, fresh_worst=1)
+        got = mixed._fresh_plants(200, nominal_law)
+        rest = 2 + int(np.argmax(err[2:]))
+        want = [pool.kept[j].plant.A.tolist() for j in (0, 1, rest)]
+        assert [q.A.tolist() for q in got] == want
+        assert mixed.screened[p.name] == pytest.approx([err[rest]], rel=1e-9)
+    with pytest.raises(ValueError, match="dagger.fresh_worst = 3 exceeds"):
+        DAggerCallback(plants, families=None, fresh_variants=2, fresh_pool=6, fresh_worst=3)
+    with pytest.raises(ValueError, match="screening the pool needs the policy's loop"):
+        DAggerCallback(plants, families=None, fresh_variants=1, fresh_pool=3)._fresh_plants(50)
+    with pytest.raises(ValueError, match="dagger.fresh_pool = 1 is smaller than"):
+        DAggerCallback(plants, families=None, fresh_variants=2, fresh_pool=1)

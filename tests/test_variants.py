@@ -296,7 +296,8 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
         # validation on the nominal plants and 2 variants each
         "dagger.start_epoch=0", "dagger.every=1", "dagger.rounds=1", "dagger.duration=2.0",
         "dagger.variants=1", "closed_loop_val.variants=2", "closed_loop_val.duration=2.0",
-        "dagger.fresh_variants=1",  # and 1 variant each drawn for the round
+        "dagger.fresh_variants=1",  # and 1 variant each, the worse of 2 drawn for the round
+        "dagger.fresh_pool=2",
     )  # fmt: skip
     _, objects = train(compose_cfg(*tiny, *over))
     logged = mlflow.MlflowClient(mlflow_uri).get_run(objects["run_id"]).data.metrics
@@ -306,14 +307,19 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
     }
     assert logged["dagger/windows"] > 0
     assert logged["dagger/versions"] == 2 * 3  # per plant: nominal, 1 in turn, 1 fresh
+    assert 0.0 <= logged["dagger/screened"] <= 1.0  # the chosen fresh variants' median score
     reports = tmp_path / "reports"
-    cfg = compose_cfg(
+    ev = [
         *tiny, f"policy={objects['policy_path']}", f"paths.reports_dir={reports}",
         f"logger.tracking_uri={mlflow_uri}", f"logger.experiment_name={tmp_path.name}",
         "evaluation.scenarios.step.duration=3.0", "evaluation.variants.count=5",
         "evaluation.backend=torch", "dagger.start_epoch=0", "dagger.rounds=1",
-        "dagger.fresh_variants=1",
-    )  # fmt: skip
+        "dagger.fresh_variants=1", "dagger.fresh_pool=2", "evaluation.variants.validation.count=5",
+    ]  # fmt: skip
+    cfg, clash = compose_cfg(*ev), compose_cfg(*ev, "evaluation.variants.validation.seed=2027")
+    with pytest.raises(ValueError, match="validation.seed = 2027 is the test variants' seed"):
+        evaluate_stage.run(clash)
+    assert not reports.exists()  # refused before any work
     summary = evaluate_stage.run(cfg)
     df = pd.read_csv(reports / "metrics.csv")
     assert list(df.columns) == [
@@ -338,6 +344,13 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
         "ise_ratio_per_plant.png", "gc_vs_nominal.png"
     }  # fmt: skip
     assert summary["bars"]["variants_per_plant"]["min"] == 5
+    # the held-out check: the same bar on 5 other variants per plant (seed 4001), step only
+    val, held = pd.read_csv(reports / "validation.csv"), saved["validation"]
+    assert (held["seed"], held["count"]) == (4001, 5) and set(held["bars"]) == set(saved["bars"])
+    assert set(val.scenario) == {"step"} and sorted(val.variant.unique()) == [1, 2, 3, 4, 5]
+    assert "DAgger's fresh variants (seeds 3001..3001)" in held["disjoint"]["checked_against"]
+    assert len(val[(val.metric == "ISE") & (val.controller == "GC")]) == 2 * 5
+    assert held["bars"]["variants_per_plant"]["min"] == 5
 
 
 def test_dagger_rolls_out_on_the_training_variants_the_data_stage_drew():

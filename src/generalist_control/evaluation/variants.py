@@ -13,7 +13,10 @@ the nominal plant's tag), ``LQI`` (the variant's own LQI, the oracle) and ``LQI-
 Outputs (``paths.reports_dir``): ``metrics.csv`` (system, variant, scenario, controller, run,
 metric, value), ``summary.json`` (the issue's bars, each with its verdict;
 :mod:`~generalist_control.evaluation.variant_summary`), ``variants.csv`` (each variant's
-parameters and factors) and plots.
+parameters and factors) and plots. With ``evaluation.variants.validation`` (on by default), a
+held-out check: the same bar on a second draw of other variants (its own seed and count) on
+the judged scenario, in ``summary.json``'s ``validation`` block and ``validation.csv``; the
+top-level verdict stays the test draw's.
 """
 
 from __future__ import annotations
@@ -73,6 +76,7 @@ COLUMNS = ["system", "variant", "scenario", "controller", "run", "metric", "valu
 OWNED: dict[str, str | None] = {
     "metrics.csv": None,
     "summary.json": None,
+    "validation.csv": None,
     "variants.csv": None,
     "plots": "*.png",
 }
@@ -136,6 +140,7 @@ def _dagger_factors(
     fresh = int(dagger.get("fresh_variants", 0) or 0)
     if not dagger.get("enabled", False) or fresh < 1:
         return range(0), {}
+    fresh = max(fresh, int(dagger.get("fresh_pool", 0) or 0))  # a screened pool draws more
     block = data.get("variants") or {}
     rng = float(dagger.get("variant_range", block.get("range", DEFAULT_RANGE)))
     tries = int(dagger.get("variant_tries", block.get("max_tries", 10)))
@@ -151,11 +156,12 @@ def check_disjoint(
     data_dir: Path,
     seed: int,
     dagger: Mapping[str, Any] | None = None,
+    key: str = "evaluation.variants.seed",
 ) -> dict[str, Any]:
     """Refuse evaluation variants equal to a training variant; return what was checked.
 
     The training variants are the data's and, with ``dagger.fresh_variants``, every
-    candidate DAgger's rounds may have drawn.
+    candidate DAgger's rounds may have drawn. ``key`` names the seed in the messages.
 
     Raises
     ------
@@ -165,13 +171,13 @@ def check_disjoint(
     """
     if seed == int((data.get("variants") or {}).get("seed", -1)):
         raise ValueError(
-            f"evaluation.variants.seed = {seed} is data.variants.seed: choose another, so the "
-            "evaluation's variants are not the training's"
+            f"{key} = {seed} is data.variants.seed: choose another, so the evaluation's "
+            "variants are not the training's"
         )
     seeds, fresh = _dagger_factors(plants, data, dagger or {})
     if seed in seeds:
         raise ValueError(
-            f"evaluation.variants.seed = {seed} is one of DAgger's fresh-variant seeds "
+            f"{key} = {seed} is one of DAgger's fresh-variant seeds "
             f"({seeds.start}..{seeds.stop - 1}): choose another, or move dagger.variant_seed"
         )
     source, train = _training_factors(plants, data, data_dir)
@@ -186,7 +192,7 @@ def check_disjoint(
                 if d < 1e-9:
                     raise ValueError(
                         f"plant '{name}': evaluation variant {v.index} equals a training "
-                        f"variant ({source}); change evaluation.variants.seed"
+                        f"variant ({source}); change {key}"
                     )
                 gap = min(gap, d)
     return {"checked_against": source, "min_factor_distance": float(gap)}
@@ -260,6 +266,7 @@ def run_variants(cfg: Any, runtime: PolicyRuntime, plants: Sequence[Plant]) -> d
             f"evaluation.variants.scenarios names {missing}, not in evaluation.scenarios"
         )
     scen = {n: all_scen[n] for n in names}
+    vcfg = _validation_config(ecfg)
     steps = int(round(float(scen[names[0]].get("duration", 15.0)) / plants[0].dt))
     draws = draw_eval_variants(plants, ecfg, steps)
     data = as_dict(cfg.data)
@@ -271,11 +278,72 @@ def run_variants(cfg: Any, runtime: PolicyRuntime, plants: Sequence[Plant]) -> d
     summary = summarise_variants(df, names[0], as_dict(ecfg.get("bar") or {}))
     summary["disjoint"] = disjoint
     summary["rejected"] = {n: d.rejected for n, d in draws.items() if d.rejected}
+    val = None
+    if vcfg is not None:
+        val, summary["validation"] = _validation(
+            runtime, plants, vcfg, {names[0]: scen[names[0]]}, steps, (data, dagger), cfg
+        )
     with staging_directory(out_dir) as staging:
         df.to_csv(staging / "metrics.csv", index=False)
+        if val is not None:
+            val.to_csv(staging / "validation.csv", index=False)
         _variants_table(draws).to_csv(staging / "variants.csv", index=False)
         (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
         if bool(cfg.evaluation.get("plots", True)):
             plot_variants(df, names[0], staging / "plots")
         publish_directory(staging, out_dir, OWNED, "paths.reports_dir")
     return summary
+
+
+def _validation_config(ecfg: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The held-out draw's config (``evaluation.variants.validation`` over the test's).
+
+    Raises
+    ------
+    ValueError
+        Its seed is the test variants' seed.
+    """
+    if not ecfg.get("validation"):
+        return None
+    vcfg = {**ecfg, **as_dict(ecfg["validation"])}
+    if int(vcfg["seed"]) == int(ecfg["seed"]):
+        raise ValueError(
+            f"evaluation.variants.validation.seed = {vcfg['seed']} is the test variants' seed: "
+            "choose another, so the held-out check draws other variants"
+        )
+    return vcfg
+
+
+def _validation(
+    runtime: PolicyRuntime,
+    plants: Sequence[Plant],
+    vcfg: Mapping[str, Any],
+    scenario: Mapping[str, Mapping[str, Any]],
+    steps: int,
+    training: tuple[Mapping[str, Any], Mapping[str, Any]],
+    cfg: Any,
+) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """The held-out check (``evaluation.variants.validation``): the bar on a second draw.
+
+    ``vcfg.count`` variants per plant from ``vcfg.seed`` (:func:`_validation_config`), which
+    must be no training seed either, on the judged scenario only: does a bar met on the test
+    variants hold on others? Returns its metrics and its summary (bars, verdicts, per plant,
+    what the draw was checked against).
+
+    Raises
+    ------
+    ValueError
+        A validation variant is a training one, or its seed a training seed
+        (:func:`check_disjoint`).
+    """
+    seed = int(vcfg["seed"])
+    draws = draw_eval_variants(plants, vcfg, steps)
+    disjoint = check_disjoint(
+        draws, plants, training[0], Path(cfg.paths.data_dir), seed, training[1],
+        "evaluation.variants.validation.seed",
+    )  # fmt: skip
+    df = evaluate_variants(runtime, draws, scenario)
+    name = next(iter(scenario))
+    summary = summarise_variants(df, name, vcfg.get("bar") or {})
+    summary.update(seed=seed, count=int(vcfg["count"]), disjoint=disjoint)
+    return df, summary

@@ -11,17 +11,50 @@ import numpy as np
 import torch
 
 from generalist_control.common.schema import require_int
+from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
 from generalist_control.plants.plant import Plant
 from generalist_control.plants.variants import DEFAULT_RANGE
+from generalist_control.simulation.comparison import closed_loop_score
 from generalist_control.simulation.references import family_references
-from generalist_control.simulation.variants import sample_variants
+from generalist_control.simulation.simulate import BatchController
+from generalist_control.simulation.variants import Variant, sample_variants
 from generalist_control.training.dagger import RolloutSpec, aggregate
 
 __all__ = ["DAggerCallback"]
 
 log = logging.getLogger(__name__)
+
+#: Steps (times each plant's amplitude scale) a fresh-variant pool is screened on: the
+#: closed-loop validation's default amplitudes.
+SCREEN_AMPLITUDES = (1.0, -3.0)
+
+
+def _fresh_counts(fresh: Any, pool: Any, worst: Any) -> tuple[int, int, int]:
+    """``dagger.fresh_variants``, ``fresh_pool`` and ``fresh_worst`` (None: all), checked.
+
+    Raises
+    ------
+    ValueError
+        A count is not a non-negative integer, the pool is smaller than the fresh variants,
+        or more of them are to be the worst than there are.
+    """
+    m = require_int("dagger.fresh_variants", fresh, minimum=0)
+    n = require_int("dagger.fresh_pool", pool, minimum=0)
+    if 0 < n < m:
+        raise ValueError(
+            f"dagger.fresh_pool = {pool} is smaller than dagger.fresh_variants = {fresh}: the "
+            "pool the worst are chosen from must hold at least as many; raise it, or set 0 to "
+            "take the draw as it comes"
+        )
+    k = require_int("dagger.fresh_worst", m if worst is None else worst, minimum=0)
+    if k > m:
+        raise ValueError(
+            f"dagger.fresh_worst = {worst} exceeds dagger.fresh_variants = {fresh}: at most "
+            "all of the fresh variants can be the worst"
+        )
+    return m, n, k
 
 
 class DAggerCallback(L.Callback):
@@ -75,6 +108,17 @@ class DAggerCallback(L.Callback):
         ``variant_range``, at most ``variant_tries`` draws per variant), each labelled by
         its own LQI expert, so the policy learns to recover on many more variants than the
         data holds. 0: off. Their factors are kept in :attr:`fresh`, per plant.
+    fresh_pool : int
+        0: the fresh variants are the first ``fresh_variants`` of the round's draw. Otherwise
+        ``fresh_pool`` (>= ``fresh_variants``) are drawn per plant and the current policy is
+        screened on each (:func:`~generalist_control.simulation.comparison.closed_loop_score`
+        on steps of :data:`SCREEN_AMPLITUDES` over ``duration``, against each variant's own
+        LQI); the ``fresh_variants`` on which its loop is worst are rolled out, so the rounds
+        go where the policy fails. Their scores are kept in :attr:`screened`, per plant.
+    fresh_worst : int, optional
+        With ``fresh_pool``: only this many of the ``fresh_variants`` are the worst of the
+        pool's rest; the others are the draw's first, as without a pool, so the rounds keep
+        covering the range. None: all are the worst.
     variant_seed, variant_range, variant_tries : int / float / int
     """
 
@@ -98,6 +142,8 @@ class DAggerCallback(L.Callback):
         focus_beta: float = 0.0,
         variants: int | None = None,
         fresh_variants: int = 0,
+        fresh_pool: int = 0,
+        fresh_worst: int | None = None,
         variant_seed: int = 3001,
         variant_range: float = DEFAULT_RANGE,
         variant_tries: int = 10,
@@ -106,11 +152,14 @@ class DAggerCallback(L.Callback):
         if variants is not None:
             variants = require_int("dagger.variants", variants, minimum=0)
         self.variants = variants
-        self.fresh_variants = require_int("dagger.fresh_variants", fresh_variants, minimum=0)
+        counts = _fresh_counts(fresh_variants, fresh_pool, fresh_worst)
+        self.fresh_variants, self.fresh_pool, self.fresh_worst = counts
         self.variant_seed = require_int("dagger.variant_seed", variant_seed, minimum=0)
         self.variant_range = float(variant_range)
         self.variant_tries = require_int("dagger.variant_tries", variant_tries, minimum=1)
         self.fresh: dict[str, list[dict[str, float]]] = {}
+        self.screened: dict[str, list[float]] = {}
+        self.last_screen: list[float] = []
         self.limit, self.start_epoch, self.every = float(limit), int(start_epoch), int(every)
         self.rounds, self.rollouts, self.duration = int(rounds), int(rollouts), float(duration)
         self.beta, self.beta_decay = float(beta), float(beta_decay)
@@ -149,18 +198,62 @@ class DAggerCallback(L.Callback):
             out.extend(rest[(self.done * k + j) % len(rest)] for j in range(k))
         return out
 
-    def _fresh_plants(self, steps: int) -> list[Plant]:
-        """The round's fresh variants: ``fresh_variants`` per plant, drawn for this round."""
+    def _fresh_plants(self, steps: int, controller: BatchController | None = None) -> list[Plant]:
+        """The round's fresh variants: ``fresh_variants`` per plant, drawn for this round.
+
+        With ``fresh_pool``, the worst of each plant's pool under ``controller`` (the
+        current policy's loop; required then, see :meth:`_worst`).
+        """
         if not self.fresh_variants:
             return []
-        out: list[Plant] = []
-        for p, *_ in self._versions():
-            draw = sample_variants(
-                p, self.fresh_variants, self.variant_seed + self.done, self.variant_range,
+        wanted = max(self.fresh_variants, self.fresh_pool)
+        pools = [
+            sample_variants(
+                p, wanted, self.variant_seed + self.done, self.variant_range,
                 (self.limit, -self.limit), steps, self.variant_tries,
-            )  # fmt: skip
-            self.fresh.setdefault(p.name, []).extend(v.factors for v in draw.kept)
-            out.extend(v.plant for v in draw.kept)
+            ).kept
+            for p, *_ in self._versions()
+        ]  # fmt: skip
+        if wanted > self.fresh_variants:
+            if controller is None:
+                raise ValueError("dagger.fresh_pool: screening the pool needs the policy's loop")
+            pools = self._worst(pools, controller, steps)
+        out: list[Plant] = []
+        for pool in pools:
+            for v in pool:
+                self.fresh.setdefault(v.plant.name, []).append(v.factors)
+                out.append(v.plant)
+        return out
+
+    def _worst(
+        self, pools: list[list[Variant]], controller: BatchController, steps: int
+    ) -> list[list[Variant]]:
+        """Of each pool, the draw's first and the ``fresh_worst`` worst of the rest, in order.
+
+        The draw's first ``fresh_variants - fresh_worst`` are kept as drawn; the rest of the
+        pool is screened in one batched :func:`closed_loop_score` of ``controller`` (steps of
+        :data:`SCREEN_AMPLITUDES`, ``steps`` samples, each against its own LQI), and the
+        ``fresh_worst`` with the highest scores join them (ties keep the draw's order). The
+        chosen scores go to :attr:`screened`.
+        """
+        first = self.fresh_variants - self.fresh_worst
+        flat = [v for pool in pools for v in pool[first:]]
+        if not self.fresh_worst or not flat:
+            return [pool[:first] for pool in pools]
+        labels = [f"{v.plant.name}/{k}" for k, v in enumerate(flat)]
+        scores = closed_loop_score(
+            controller, [v.plant for v in flat], SCREEN_AMPLITUDES,
+            steps * flat[0].plant.dt, labels,
+        )  # fmt: skip
+        out, start, self.last_screen = [], 0, []
+        for pool in pools:
+            own = [scores[labels[start + j]] for j in range(len(pool) - first)]
+            start += len(own)
+            chosen = sorted(np.argsort(-np.asarray(own), kind="stable")[: self.fresh_worst])
+            out.append(pool[:first] + [pool[first + j] for j in chosen])
+            if pool:
+                self.screened.setdefault(pool[0].plant.name, []).extend(own[j] for j in chosen)
+                self.last_screen.extend(own[j] for j in chosen)
         return out
 
     def _rollouts(
@@ -219,8 +312,6 @@ class DAggerCallback(L.Callback):
         dm = cast(Any, trainer).datamodule
         steps = int(round(self.duration / self.plants[0].dt))
         lost = self._lost(trainer)
-        plants = self._round_plants() + self._fresh_plants(steps)
-        amps = self._rollouts(steps, plants, lost)
         beta = self.beta * self.beta_decay**self.done
         betas = {k: self.focus_beta * s for k, s in lost.items() if self.focus_beta * s > beta}
         policy = cast(Policy, pl_module.policy)
@@ -231,6 +322,9 @@ class DAggerCallback(L.Callback):
         if takeover == "auto":
             takeover = "tracked" if integral else "bumpless"
         with torch.inference_mode():
+            screen = RuntimeAdapter(PolicyRuntime(policy, dm.meta()))
+            plants = self._round_plants() + self._fresh_plants(steps, screen)
+            amps = self._rollouts(steps, plants, lost)
             windows, counts = aggregate(
                 plants, runtime, beta, amps, self._bounds(dm.train_set), steps,
                 dm.history, dm.horizon, takeover, integral, runtime.controls, betas,
@@ -245,9 +339,12 @@ class DAggerCallback(L.Callback):
         trainer.should_stop = False
         record = {"round": self.done, "beta": beta, "windows": len(windows), **counts}
         record["versions"] = len(plants)
+        if self.fresh_pool > self.fresh_variants:  # the chosen variants' median screening score
+            record["screened"] = float(np.median(self.last_screen))
         self.history.append(record)
         log.info("DAgger round %d (beta %.3g): %d windows added", self.done, beta, len(windows))
         if betas:
             log.info("DAgger focus on %s", {k: round(v, 3) for k, v in sorted(betas.items())})
-        for key in ("windows", "beta", "versions"):
-            pl_module.log(f"dagger/{key}", float(record[key]), logger=False)
+        for key in ("windows", "beta", "versions", "screened"):
+            if key in record:
+                pl_module.log(f"dagger/{key}", float(record[key]), logger=False)
