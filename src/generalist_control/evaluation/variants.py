@@ -268,21 +268,16 @@ def run_variants(cfg: Any, runtime: PolicyRuntime, plants: Sequence[Plant]) -> d
     scen = {n: all_scen[n] for n in names}
     vcfg = _validation_config(ecfg)
     steps = int(round(float(scen[names[0]].get("duration", 15.0)) / plants[0].dt))
-    draws = draw_eval_variants(plants, ecfg, steps)
-    data = as_dict(cfg.data)
-    dagger = as_dict(cfg.get("dagger") or {})
-    disjoint = check_disjoint(
-        draws, plants, data, Path(cfg.paths.data_dir), int(ecfg["seed"]), dagger
-    )
-    df = evaluate_variants(runtime, draws, scen)
-    summary = summarise_variants(df, names[0], as_dict(ecfg.get("bar") or {}))
-    summary["disjoint"] = disjoint
+    training = (as_dict(cfg.data), as_dict(cfg.get("dagger") or {}), Path(cfg.paths.data_dir))
+    draws, df, summary = _judge(runtime, plants, ecfg, scen, steps, training)
     summary["rejected"] = {n: d.rejected for n, d in draws.items() if d.rejected}
     val = None
-    if vcfg is not None:
-        val, summary["validation"] = _validation(
-            runtime, plants, vcfg, {names[0]: scen[names[0]]}, steps, (data, dagger), cfg
-        )
+    if vcfg is not None:  # the held-out check: the judged scenario on a second draw
+        _, val, held = _judge(
+            runtime, plants, vcfg, {names[0]: scen[names[0]]}, steps, training,
+            "evaluation.variants.validation.seed",
+        )  # fmt: skip
+        summary["validation"] = {**held, "seed": int(vcfg["seed"]), "count": int(vcfg["count"])}
     with staging_directory(out_dir) as staging:
         df.to_csv(staging / "metrics.csv", index=False)
         if val is not None:
@@ -314,36 +309,26 @@ def _validation_config(ecfg: Mapping[str, Any]) -> dict[str, Any] | None:
     return vcfg
 
 
-def _validation(
+def _judge(
     runtime: PolicyRuntime,
     plants: Sequence[Plant],
-    vcfg: Mapping[str, Any],
-    scenario: Mapping[str, Mapping[str, Any]],
+    ecfg: Mapping[str, Any],
+    scenarios: Mapping[str, Mapping[str, Any]],
     steps: int,
-    training: tuple[Mapping[str, Any], Mapping[str, Any]],
-    cfg: Any,
-) -> tuple[pd.DataFrame, dict[str, Any]]:
-    """The held-out check (``evaluation.variants.validation``): the bar on a second draw.
+    training: tuple[Mapping[str, Any], Mapping[str, Any], Path],
+    key: str = "evaluation.variants.seed",
+) -> tuple[dict[str, VariantDraw], pd.DataFrame, dict[str, Any]]:
+    """Draw ``ecfg``'s variants, check them against training, evaluate, summarise.
 
-    ``vcfg.count`` variants per plant from ``vcfg.seed`` (:func:`_validation_config`), which
-    must be no training seed either, on the judged scenario only: does a bar met on the test
-    variants hold on others? Returns its metrics and its summary (bars, verdicts, per plant,
-    what the draw was checked against).
-
-    Raises
-    ------
-    ValueError
-        A validation variant is a training one, or its seed a training seed
-        (:func:`check_disjoint`).
+    ``training`` is the data config, the DAgger config and the data folder
+    (:func:`check_disjoint`, whose messages name ``key``); the bars judge the first of
+    ``scenarios``. Returns the draws, the long-form metrics and the summary (bars,
+    verdicts, per plant, ``disjoint``).
     """
-    seed = int(vcfg["seed"])
-    draws = draw_eval_variants(plants, vcfg, steps)
-    disjoint = check_disjoint(
-        draws, plants, training[0], Path(cfg.paths.data_dir), seed, training[1],
-        "evaluation.variants.validation.seed",
-    )  # fmt: skip
-    df = evaluate_variants(runtime, draws, scenario)
-    name = next(iter(scenario))
-    summary = summarise_variants(df, name, vcfg.get("bar") or {})
-    summary.update(seed=seed, count=int(vcfg["count"]), disjoint=disjoint)
-    return df, summary
+    data, dagger, data_dir = training
+    draws = draw_eval_variants(plants, ecfg, steps)
+    disjoint = check_disjoint(draws, plants, data, data_dir, int(ecfg["seed"]), dagger, key)
+    df = evaluate_variants(runtime, draws, scenarios)
+    summary = summarise_variants(df, next(iter(scenarios)), as_dict(ecfg.get("bar") or {}))
+    summary["disjoint"] = disjoint
+    return draws, df, summary

@@ -322,8 +322,8 @@ class DAggerCallback(L.Callback):
         if takeover == "auto":
             takeover = "tracked" if integral else "bumpless"
         with torch.inference_mode():
-            screen = RuntimeAdapter(PolicyRuntime(policy, dm.meta()))
-            plants = self._round_plants() + self._fresh_plants(steps, screen)
+            # a pool is screened with the round's runtime; aggregate resets it afterwards
+            plants = self._round_plants() + self._fresh_plants(steps, RuntimeAdapter(runtime))
             amps = self._rollouts(steps, plants, lost)
             windows, counts = aggregate(
                 plants, runtime, beta, amps, self._bounds(dm.train_set), steps,
