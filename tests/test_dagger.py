@@ -376,3 +376,72 @@ def test_fresh_pool_rolls_out_on_the_variants_where_the_loop_is_worst():
         DAggerCallback(plants, families=None, fresh_variants=1, fresh_pool=3)._fresh_plants(50)
     with pytest.raises(ValueError, match="dagger.fresh_pool = 1 is smaller than"):
         DAggerCallback(plants, families=None, fresh_variants=2, fresh_pool=1)
+
+
+class _NoisyLQI:
+    """Reference for noise injection: plant ``i``'s LQI law plus ``sigma[i] * e_k``.
+
+    ``e_k`` is the k-th draw of ``rows_total`` standard normals from ``default_rng(seed)``,
+    of which this plant's rows are ``rows``: the documented generator, drawn over all rows.
+    """
+
+    def __init__(self, plant, sigma, draws, rows):
+        self.lqi, self.sigma, self.draws, self.rows = LQIController(plant), sigma, draws, rows
+
+    def reset(self, batch_size):
+        self.lqi.reset(batch_size)
+        self.k = 0
+
+    def step(self, x, r):
+        u = self.lqi.step(x, r) + self.sigma * self.draws[self.k][self.rows]
+        self.k += 1
+        return u
+
+
+def test_control_noise_moves_the_named_plant_and_the_labels_stay_the_experts_law():
+    """``noise``: white noise on one plant's executed control; labels are the clean LQI law."""
+    from generalist_control.simulation.simulate import Run, simulate_many
+    from generalist_control.training.dagger import MixedController
+
+    a, b = load_plant("dc_servo"), load_plant("unstable")
+    steps, seed, sigma = 40, 11, 0.3
+    refs = np.repeat(np.array([[1.0], [-2.0]]), steps, axis=1)
+    gen = np.random.default_rng(seed)
+    draws = [gen.standard_normal(4) for _ in range(steps)]
+    ctrl = MixedController(None, 1.0, noise={a.name: sigma}, seed=seed)
+    u_a, u_b = (t.u for t in simulate_many([Run(a, refs), Run(b, refs)], ctrl))
+    want_a = simulate(a, _NoisyLQI(a, sigma, draws, slice(0, 2)), refs)
+    np.testing.assert_allclose(u_a, want_a.u, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(u_b, simulate(b, LQIController(b), refs).u, rtol=0, atol=1e-12)
+    assert np.abs(u_a - simulate(a, LQIController(a), refs).u).max() > 0.1  # it did move a
+
+    # the round's windows: the visited (noisy) states, labelled by the expert's own law there
+    big = {p.name: np.full(p.order, np.inf) for p in (a, b)}
+    amps = {a.name: np.array([1.0, -2.0])}
+    w, _ = aggregate([a], None, 1.0, amps, big, steps, 8, 3, "tracked",
+                     noise={a.name: sigma}, noise_seed=seed)  # fmt: skip
+    gen = np.random.default_rng(seed)  # this round holds plant a's two rows alone
+    alone = simulate(a, _NoisyLQI(a, sigma, [gen.standard_normal(2) for _ in refs[0]], ...), refs)
+    g = design_lqi(a)
+    z = np.concatenate([np.zeros((2, 1)), np.cumsum(a.dt * (refs - alone.y[:, :steps]), 1)], 1)
+    law = -(alone.x[:, :steps] @ g.Kx) - g.Ki * z[:, :steps]  # the clean law at each state
+    np.testing.assert_allclose(w.target[:, 0], law[:, : steps - 2].reshape(-1), rtol=1e-6,
+                               atol=1e-6)  # fmt: skip
+    executed = alone.u[:, : steps - 2].reshape(-1)
+    assert np.abs(w.target[:, 0] - executed).max() > 0.1  # not the noisy control executed
+    with pytest.raises(ValueError, match="noise must be finite and >= 0"):
+        MixedController(None, 1.0, noise={a.name: -0.1})
+
+
+def test_dagger_noise_is_a_fraction_of_each_plants_control_scale():
+    cb = _focus_callback(noise=0.1)
+    policy = Policy({"hidden": 8, "experts": 1})
+    with torch.no_grad():
+        policy.normaliser.control_scale.copy_(
+            torch.arange(1.0, 1.0 + len(policy.normaliser.control_scale))
+        )
+    want = {p.name: 0.1 * (1.0 + p.tag) for p in cb.plants}
+    assert cb._noise(policy, cb.plants) == pytest.approx(want)
+    assert _focus_callback()._noise(policy, cb.plants) is None  # 0: off
+    with pytest.raises(ValueError, match="dagger.noise must be a finite fraction >= 0"):
+        _focus_callback(noise=-0.5)

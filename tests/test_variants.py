@@ -300,7 +300,9 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
         "dagger.fresh_pool=2",
     )  # fmt: skip
     _, objects = train(compose_cfg(*tiny, *over))
-    logged = mlflow.MlflowClient(mlflow_uri).get_run(objects["run_id"]).data.metrics
+    run = mlflow.MlflowClient(mlflow_uri).get_run(objects["run_id"]).data
+    assert float(run.params["dagger.noise"]) == 0.05  # the stage's recipe: noisy rollouts
+    logged = run.metrics
     scored = {k for k in logged if k.startswith("val/closed_loop/")}
     assert scored == {
         f"val/closed_loop/{p}{v}" for p in ("cstr", "two_tank") for v in ("", "/v1", "/v2")

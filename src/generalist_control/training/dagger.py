@@ -57,7 +57,12 @@ class MixedController:
     """Executes ``beta * LQI + (1 - beta) * policy``; records the experts' integrators.
 
     ``betas`` overrides ``beta`` for the plants it names (variants share their plant's name).
-    The policy's runtime is told the executed mix
+    ``noise`` (plant name -> standard deviation, in the plant's control units) adds zero-mean
+    white noise to the executed control of that plant's rows, drawn from a generator seeded
+    with ``seed`` at every :meth:`reset`: the rollouts then visit states off the smooth
+    closed-loop curve, where the experts label how they would correct a small deviation
+    (noise injection, as in DART: Laskey et al., 2017). The policy's runtime is told the
+    executed control
     (:meth:`~generalist_control.deploy.runtime.PolicyRuntime.record_applied`), so a policy
     that reads its previous control (``model.control_history``) sees the control that moved
     the plant, as in the windows it is trained on.
@@ -72,8 +77,14 @@ class MixedController:
         runtime: PolicyRuntime | None,
         beta: float,
         betas: Mapping[str, float] | None = None,
+        noise: Mapping[str, float] | None = None,
+        seed: int = 0,
     ) -> None:
         self.betas = {k: float(v) for k, v in (betas or {}).items()}
+        self.noise = {k: float(v) for k, v in (noise or {}).items()}
+        if any(not np.isfinite(v) or v < 0 for v in self.noise.values()):
+            raise ValueError(f"control noise must be finite and >= 0, got {self.noise}")
+        self.seed = int(seed)
         if runtime is None and any(b != 1.0 for b in (beta, *self.betas.values())):
             raise ValueError("without a policy runtime, beta must be 1 (pure expert)")
         self.runtime, self.beta = runtime, float(beta)
@@ -91,6 +102,10 @@ class MixedController:
                 for p, c in zip(plants, counts, strict=True)
             ]
         )
+        self._sigma = np.concatenate(
+            [np.full(c, self.noise.get(p.name, 0.0)) for p, c in zip(plants, counts, strict=True)]
+        )
+        self._rng = np.random.default_rng(self.seed)
         self._policy = None
         if self.runtime is not None and bool(np.any(self._beta < 1.0)):
             self._policy = RuntimeAdapter(self.runtime)
@@ -105,12 +120,18 @@ class MixedController:
             u_e[rows] = ctrl.step(x[rows, :n], r[rows])
         self._z.append(z)
         if self._policy is None:
-            return u_e
+            return self._noisy(u_e)
         u_p = self._policy.step(x, r)  # NaN: a run the runtime refused (outside its range)
         u_p = np.where(np.isnan(u_p), u_e, u_p)  # the expert takes that run over
-        u = self._beta * u_e + (1.0 - self._beta) * u_p
-        self._policy.record_applied(u)  # the policy's previous-control channel: the mix
+        u = self._noisy(self._beta * u_e + (1.0 - self._beta) * u_p)
+        self._policy.record_applied(u)  # the policy's previous-control channel: what ran
         return u
+
+    def _noisy(self, u: np.ndarray) -> np.ndarray:
+        """``u`` plus the rows' control noise (unchanged where there is none)."""
+        if not self._sigma.any():
+            return u
+        return u + self._sigma * self._rng.standard_normal(u.shape[0])
 
     @property
     def z(self) -> np.ndarray:
@@ -262,6 +283,8 @@ def aggregate(
     integral: bool = False,
     controls: bool = False,
     betas: Mapping[str, float] | None = None,
+    noise: Mapping[str, float] | None = None,
+    noise_seed: int = 0,
 ) -> tuple[Windows, dict[str, int]]:
     """One DAgger round: rollouts of the mixed controller, labelled by the experts.
 
@@ -271,14 +294,14 @@ def aggregate(
     amplitudes (one rollout from rest each), or the rollouts' references (B, steps) and
     initial states (B, n) (the data's families), and ``bounds`` the largest state
     magnitude (n,) a rollout may reach (windows past the first sample outside are dropped).
-    ``takeover`` is the integrator the expert takes over with: ``"bumpless"`` sets it so
-    that the expert's law reproduces the control applied one sample earlier
-    (:func:`bumpless_integrator`), ``"tracked"`` uses the integral of ``r - y`` along the
-    rollout. With ``integral`` the windows carry that integral as a state channel
-    (``model.integral``), which requires ``"tracked"``. With ``controls`` they carry the
+    ``takeover`` is the expert's integrator: ``"bumpless"`` (:func:`bumpless_integrator`)
+    or ``"tracked"``, the integral of ``r - y`` along the rollout. With ``integral`` the
+    windows carry that integral as a state channel (``model.integral``), which requires
+    ``"tracked"``. With ``controls`` they carry the
     control executed one sample earlier (``model.control_history``), and so does the
     policy's runtime during the rollout (:class:`MixedController` tells it the executed
-    mix); ``betas`` gives some plants (by name) an expert share of their own.
+    mix); ``betas`` and ``noise`` give plants (by name) an expert share of their own and white
+    noise on the executed control (:class:`MixedController`; labels stay the experts' plans).
 
     Returns
     -------
@@ -294,7 +317,7 @@ def aggregate(
         )
     specs = _specs(plants, amplitudes)
     runs = [Run(p, *_references(spec, steps)) for p, spec in zip(plants, specs, strict=True)]
-    trajs = simulate_many(runs, ctrl := MixedController(runtime, beta, betas))
+    trajs = simulate_many(runs, ctrl := MixedController(runtime, beta, betas, noise, noise_seed))
     z_all = ctrl.z
     parts: list[tuple[Windows, np.ndarray]] = []
     counts: dict[str, int] = {}

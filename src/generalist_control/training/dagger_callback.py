@@ -120,6 +120,13 @@ class DAggerCallback(L.Callback):
         pool's rest; the others are the draw's first, as without a pool, so the rounds keep
         covering the range. None: all are the worst.
     variant_seed, variant_range, variant_tries : int / float / int
+    noise : float
+        Standard deviation of white noise added to the executed control in every rollout,
+        as a fraction of each plant's control scale (the policy's normaliser: the RMS of the
+        plant's training controls), so the rollouts leave the smooth closed-loop curve and
+        the experts label the corrections of small deviations about it, near the
+        equilibrium too (:class:`~generalist_control.training.dagger.MixedController`).
+        0: off.
     """
 
     def __init__(
@@ -147,6 +154,7 @@ class DAggerCallback(L.Callback):
         variant_seed: int = 3001,
         variant_range: float = DEFAULT_RANGE,
         variant_tries: int = 10,
+        noise: float = 0.0,
     ) -> None:
         self.plants = list(plants)
         if variants is not None:
@@ -177,8 +185,9 @@ class DAggerCallback(L.Callback):
                 f"dagger.focus must be >= 0 and dagger.focus_beta in [0, 1], "
                 f"got {focus!r} and {focus_beta!r}"
             )
-        self.done = 0
-        self.history: list[dict[str, Any]] = []
+        if not (np.isfinite(noise) and noise >= 0):
+            raise ValueError(f"dagger.noise must be a finite fraction >= 0, got {noise!r}")
+        self.noise, self.done, self.history = float(noise), 0, cast(list[dict[str, Any]], [])
 
     def _versions(self) -> list[list[Plant]]:
         """The plants grouped by name, each group its nominal version first."""
@@ -291,6 +300,13 @@ class DAggerCallback(L.Callback):
                 out[name] = float(np.clip(float(v), 0.0, 1.0))
         return out
 
+    def _noise(self, policy: Policy, plants: Sequence[Plant]) -> dict[str, float] | None:
+        """Per plant name: ``noise`` times the policy's control scale for its tag (None: off)."""
+        if not self.noise:
+            return None
+        scale = policy.normaliser.control_scale.detach().cpu().double().numpy()
+        return {p.name: self.noise * float(scale[p.tag]) for p in plants}
+
     def _due(self, epochs_done: int) -> bool:
         if self.done >= self.rounds or epochs_done < self.start_epoch:
             return False
@@ -328,6 +344,7 @@ class DAggerCallback(L.Callback):
             windows, counts = aggregate(
                 plants, runtime, beta, amps, self._bounds(dm.train_set), steps,
                 dm.history, dm.horizon, takeover, integral, runtime.controls, betas,
+                self._noise(policy, plants), self.seed + 7901 * (self.done + 1),
             )  # fmt: skip
         policy.train(was_training)
         dm.train_set.append(windows)
