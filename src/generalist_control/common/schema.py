@@ -26,6 +26,7 @@ sees only what composition left, refuses any string.
 
 from __future__ import annotations
 
+import math
 import numbers
 from dataclasses import dataclass
 from typing import Any
@@ -122,6 +123,28 @@ def require_switch(key: str, value: Any) -> int:
     if isinstance(value, numbers.Integral) and value in (0, 1):
         return int(value)
     raise ValueError(f"{key} must be 0 or 1 (false/true), got {_kind(value)}")
+
+
+def require_nonnegative(key: str, value: Any, what: str = "number") -> float:
+    """``value`` as a ``float`` if it is a finite real number ``>= 0``; else a ``ValueError``.
+
+    ``what`` names the quantity in the message (``"a finite fraction >= 0"``).
+
+    Examples
+    --------
+    >>> require_nonnegative("dagger.noise", 0.05, "fraction")
+    0.05
+    >>> require_nonnegative("dagger.noise", -1, "fraction")
+    Traceback (most recent call last):
+    ...
+    ValueError: dagger.noise must be a finite fraction >= 0, got -1 (int)
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{key} must be a finite {what} >= 0, got {_kind(value)}")
+    number = float(value)
+    if not (math.isfinite(number) and number >= 0.0):
+        raise ValueError(f"{key} must be a finite {what} >= 0, got {_kind(value)}")
+    return number
 
 
 def require_fraction(key: str, value: Any) -> float:

@@ -297,11 +297,11 @@ def aggregate(
     ``takeover`` is the expert's integrator: ``"bumpless"`` (:func:`bumpless_integrator`)
     or ``"tracked"``, the integral of ``r - y`` along the rollout. With ``integral`` the
     windows carry that integral as a state channel (``model.integral``), which requires
-    ``"tracked"``. With ``controls`` they carry the
-    control executed one sample earlier (``model.control_history``), and so does the
-    policy's runtime during the rollout (:class:`MixedController` tells it the executed
-    mix); ``betas`` and ``noise`` give plants (by name) an expert share of their own and white
-    noise on the executed control (:class:`MixedController`; labels stay the experts' plans).
+    ``"tracked"``. With ``controls`` they carry the control executed one sample earlier
+    (``model.control_history``), and so does the policy's runtime during the rollout
+    (:class:`MixedController` tells it the executed mix); ``betas`` and ``noise`` give
+    plants (by name) an expert share of their own and white noise on the executed control
+    (:class:`MixedController`; labels stay the experts' plans).
 
     Returns
     -------

@@ -10,7 +10,7 @@ import lightning as L
 import numpy as np
 import torch
 
-from generalist_control.common.schema import require_int
+from generalist_control.common.schema import require_int, require_nonnegative
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
@@ -185,9 +185,9 @@ class DAggerCallback(L.Callback):
                 f"dagger.focus must be >= 0 and dagger.focus_beta in [0, 1], "
                 f"got {focus!r} and {focus_beta!r}"
             )
-        if not (np.isfinite(noise) and noise >= 0):
-            raise ValueError(f"dagger.noise must be a finite fraction >= 0, got {noise!r}")
-        self.noise, self.done, self.history = float(noise), 0, cast(list[dict[str, Any]], [])
+        self.noise = require_nonnegative("dagger.noise", noise, "fraction")
+        self.done = 0
+        self.history: list[dict[str, Any]] = []
 
     def _versions(self) -> list[list[Plant]]:
         """The plants grouped by name, each group its nominal version first."""

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-import numbers
 from pathlib import Path
 from typing import Any, cast
 
@@ -13,7 +11,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.configs import as_dict
-from generalist_control.common.schema import require_fraction, require_int
+from generalist_control.common.schema import require_fraction, require_int, require_nonnegative
 from generalist_control.data.generation import enabled_families
 from generalist_control.model.network import MODEL_DEFAULTS, network_config
 from generalist_control.plants.catalog import plants_from_config
@@ -84,13 +82,7 @@ def identity_loss(cfg: DictConfig) -> float:
     ValueError
         If it is not a finite number >= 0.
     """
-    value = cfg.model.get("identity_loss", 0.0)
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ValueError(f"model.identity_loss must be a number >= 0, got {value!r}")
-    weight = float(value)
-    if not (math.isfinite(weight) and weight >= 0.0):
-        raise ValueError(f"model.identity_loss must be a finite number >= 0, got {value}")
-    return weight
+    return require_nonnegative("model.identity_loss", cfg.model.get("identity_loss", 0.0))
 
 
 def included_plants(cfg: DictConfig) -> list[str] | None:
