@@ -171,6 +171,13 @@ def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
         "stable_everywhere", "ess_within_0.5pct", "ISE_ratio_le_1.05", "ITAE_ratio_le_1.25",
         "RMSE_ratio_le_1.1", "GC_AW_no_worse_than_LQI_AW",
     }  # fmt: skip
+    # the set-point check: one row per plant, its verdict in the summary and in MLflow
+    setpoint = pd.read_csv(reports / "setpoint.csv").set_index("system")
+    assert set(setpoint.index) == set(PLANTS)
+    assert (setpoint["radius_LQI"] < 1).all() and (setpoint["tail_error_LQI"] < 1e-3).all()
+    unsettled = sorted(setpoint.index[~setpoint["settles"]])
+    assert summary["setpoint"]["unsettled"] == unsettled
+    assert summary["setpoint"]["n_systems"] == len(PLANTS)
     plots = {p.name for p in (reports / "plots").glob("*.png")}
     assert {"cstr_step_sine.png", "hydraulic_actuator_step_sine.png"} <= plots
     assert {"cstr_rate_limit_0.5.png", "cstr_noise_disturbance.png"} <= plots
@@ -180,6 +187,7 @@ def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
     mlflow.set_tracking_uri(mlflow_uri)
     (run,) = mlflow.search_runs(experiment_names=[tmp_path.name], output_format="list")
     assert "eval/diverged/GC" in run.data.metrics
+    assert run.data.metrics["eval/setpoint/unsettled"] == len(unsettled)
     names = {a.path for a in mlflow.MlflowClient().list_artifacts(run.info.run_id, "eval")}
     assert "eval/metrics.csv" in names and "eval/table2.md" in names
 

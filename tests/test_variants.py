@@ -353,6 +353,10 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
     assert "DAgger's fresh variants (seeds 3001..3001)" in held["disjoint"]["checked_against"]
     assert len(val[(val.metric == "ISE") & (val.controller == "GC")]) == 2 * 5
     assert held["bars"]["variants_per_plant"]["min"] == 5
+    # the set-point check on the nominal plants, in the variants report as well
+    setpoint = pd.read_csv(reports / "setpoint.csv")
+    assert sorted(setpoint.system) == sorted(set(val.system))
+    assert saved["setpoint"]["n_systems"] == len(setpoint)
 
 
 def test_dagger_rolls_out_on_the_training_variants_the_data_stage_drew():

@@ -4,7 +4,9 @@ Every scenario of ``conf/evaluation`` runs the trained policy (GC), the LQI expe
 with anti-windup on each plant (:func:`generalist_control.evaluation.runner.evaluate`).
 Outputs under ``paths.reports_dir`` (default ``reports/eval``): ``metrics.csv`` in long form
 (system, scenario, controller, run, metric, value), ``summary.json`` (the quality-bar
-figures, DVC metrics), ``table2.md`` (the paper's Table 2 layout with the paper's values
+figures, DVC metrics), ``setpoint.csv`` (each plant's loop linearised at rest and a long
+hold's tail, ``evaluation.setpoint``; :mod:`generalist_control.evaluation.setpoint`),
+``table2.md`` (the paper's Table 2 layout with the paper's values
 beside ours), ``table_all.md`` (the same for every plant), ``responses.csv`` (DVC plots)
 and PNG plots; all are logged to the MLflow run of the evaluated model.
 """
@@ -29,6 +31,7 @@ from generalist_control.evaluation.identity import identity_trace
 from generalist_control.evaluation.local_gains import local_gains
 from generalist_control.evaluation.mlflow_log import log_to_mlflow
 from generalist_control.evaluation.runner import evaluate
+from generalist_control.evaluation.setpoint import setpoint_from_config
 from generalist_control.evaluation.tag_free import check_tag_free_dir, write_tag_free_report
 from generalist_control.evaluation.variants import check_variants_dir, run_variants
 from generalist_control.evaluation.writer import check_reports_dir, write_reports
@@ -114,7 +117,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     df, trajs = evaluate(runtime, plants, scen, cf)
     plots = bool(cfg.evaluation.get("plots", True))
     bar = as_dict(cfg.evaluation.get("quality_bar") or {})
-    summary = write_reports(df, trajs, out_dir, plots, bar)
+    setpoint = setpoint_from_config(as_dict(cfg.evaluation.get("setpoint") or {}), runtime, plants)
+    summary = write_reports(df, trajs, out_dir, plots, bar, setpoint)
     if tag_free_dir:
         diagnostics = _diagnostics(cfg, runtime, plants, scen.get("step"))
         verdict = write_tag_free_report(

@@ -39,6 +39,12 @@ def log_to_mlflow(
                 flat[f"{prefix}/{scen}/{k}"] = float(v)
     for ctrl, by_scen in summary.get("diverged", {}).items():
         flat[f"{prefix}/diverged/{ctrl}"] = float(sum(by_scen.values()))
+    setpoint = summary.get("setpoint") or {}
+    if setpoint:
+        flat[f"{prefix}/setpoint/unsettled"] = float(len(setpoint["unsettled"]))
+        for k in ("worst_radius_GC", "worst_tail_error_GC"):
+            if math.isfinite(setpoint[k]):
+                flat[f"{prefix}/setpoint/{k}"] = float(setpoint[k])
     with mlflow_run(cfg.logger, resume_run_id=meta.get("mlflow_run_id")) as run:
         mlflow.log_metrics(flat)
         mlflow.log_artifacts(str(out_dir), prefix)

@@ -41,6 +41,7 @@ from generalist_control.data.variants import variants_config
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.runner import metric_rows
+from generalist_control.evaluation.setpoint import setpoint_from_config, setpoint_summary
 from generalist_control.evaluation.variant_summary import plot_variants, summarise_variants
 from generalist_control.plants.plant import Plant
 from generalist_control.plants.variants import DEFAULT_RANGE
@@ -78,6 +79,7 @@ OWNED: dict[str, str | None] = {
     "summary.json": None,
     "validation.csv": None,
     "variants.csv": None,
+    "setpoint.csv": None,
     "plots": "*.png",
 }
 
@@ -278,8 +280,13 @@ def run_variants(cfg: Any, runtime: PolicyRuntime, plants: Sequence[Plant]) -> d
             "evaluation.variants.validation.seed",
         )  # fmt: skip
         summary["validation"] = {**held, "seed": int(vcfg["seed"]), "count": int(vcfg["count"])}
+    setpoint = setpoint_from_config(as_dict(cfg.evaluation.get("setpoint") or {}), runtime, plants)
+    if setpoint is not None:  # the nominal plants' set points
+        summary["setpoint"] = setpoint_summary(setpoint)
     with staging_directory(out_dir) as staging:
         df.to_csv(staging / "metrics.csv", index=False)
+        if setpoint is not None:
+            setpoint.to_csv(staging / "setpoint.csv", index=False)
         if val is not None:
             val.to_csv(staging / "validation.csv", index=False)
         _variants_table(draws).to_csv(staging / "variants.csv", index=False)

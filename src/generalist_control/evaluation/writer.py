@@ -27,6 +27,7 @@ from generalist_control.common.jsonsafe import strict
 from generalist_control.evaluation import plots as plotting
 from generalist_control.evaluation import tables
 from generalist_control.evaluation.runner import STEP_KINDS
+from generalist_control.evaluation.setpoint import setpoint_summary
 from generalist_control.evaluation.summary import summarise
 from generalist_control.simulation.simulate import Trajectory
 
@@ -40,6 +41,7 @@ OWNED: dict[str, str | None] = {
     "table2.md": None,
     "table_all.md": None,
     "responses.csv": None,
+    "setpoint.csv": None,
     "plots": "*.png",
 }
 
@@ -82,11 +84,14 @@ def write_reports(
     out_dir: str | Path,
     plots: bool = True,
     bar: Mapping[str, Any] | None = None,
+    setpoint: pd.DataFrame | None = None,
 ) -> dict[str, Any]:
     """Write the CSV, tables, summary and plots atomically to ``out_dir``; return the summary.
 
     ``bar`` overrides thresholds of the quality bar
-    (:data:`~generalist_control.evaluation.summary.DEFAULT_BAR`).
+    (:data:`~generalist_control.evaluation.summary.DEFAULT_BAR`). ``setpoint``: the
+    set-point check (:func:`~generalist_control.evaluation.setpoint.setpoint_stability`),
+    written as ``setpoint.csv`` and summarised in ``summary.json``'s ``setpoint``.
 
     Raises
     ------
@@ -97,6 +102,9 @@ def write_reports(
     with staging_directory(out_dir) as staging:
         df.to_csv(staging / "metrics.csv", index=False)
         summary = summarise(df, bar)
+        if setpoint is not None:
+            setpoint.to_csv(staging / "setpoint.csv", index=False)
+            summary["setpoint"] = setpoint_summary(setpoint)
         (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
         scores = strict(headline_scores(summary))
         (staging / "scores.json").write_text(json.dumps(scores, indent=2) + "\n")

@@ -1,0 +1,341 @@
+"""Does the policy settle at its set point? Its closed loop linearised there.
+
+LQI's sampled loop is stable by design. A learned policy imitates the law along the data's
+trajectories, but nothing forces its loop to be stable in the small where it should rest:
+at the set point. If it is not, the policy cannot settle there; float rounding alone starts
+a growing oscillation that only the network's nonlinearity bounds (a limit cycle), and an
+actuator limit can turn it into a large one. :func:`setpoint_stability` measures it.
+
+For each plant, at the equilibrium of a constant reference ``r``: the plant's state ``x*``
+and control ``u*`` (``(Ad - I) x* + Bd u* = 0``, ``C x* = r`` for a linear plant; for a
+nonlinear plant its operating point, ``r = 0``, where ``A``, ``B`` are its linearisation),
+and the error integral ``z*`` at which the policy's control is ``u*`` (Newton on the
+network). With every sample of the window at that equilibrium, the derivative of the
+policy's first control with respect to every window entry (automatic differentiation, in
+float64) closes a linear loop with the plant sampled at ``dt`` (zero-order hold): the state
+is the window (the ``history`` newest plant states, error integrals ``z_(k+1) = z_k + dt (r -
+C x_k)`` as the runtime keeps them, and previous controls with ``model.control_history``).
+Its spectral radius is below 1 exactly when small deviations die out; beside it, the
+radius of the plant's LQI loop sampled the same way.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+from scipy.optimize import brentq
+
+from generalist_control.data.windows import validity_mask
+from generalist_control.deploy.adapter import RuntimeAdapter
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.plants.plant import MAX_ORDER, Plant
+from generalist_control.simulation.lqi import LQIController, LQIGains, design_lqi
+from generalist_control.simulation.simulate import (
+    BatchController,
+    PerPlantController,
+    Run,
+    discretise,
+    simulate_many,
+)
+
+__all__ = [
+    "closed_loop_matrix",
+    "equilibrium",
+    "hold_tail",
+    "setpoint_from_config",
+    "setpoint_stability",
+    "setpoint_summary",
+]
+
+
+def equilibrium(plant: Plant, reference: float) -> tuple[np.ndarray, float, float]:
+    """``(x*, u*, r)``: the plant at rest on ``reference`` (deviations; nonlinear: ``r = 0``).
+
+    Raises
+    ------
+    ValueError
+        If a linear plant has no unique equilibrium for the reference (a zero at s = 0).
+    """
+    n = plant.order
+    if not plant.is_linear:
+        return np.zeros(n), 0.0, 0.0
+    Ad, Bd = discretise(plant.A, plant.B, plant.dt)
+    M = np.block([[Ad - np.eye(n), Bd.reshape(n, 1)], [plant.C.reshape(1, n), np.zeros((1, 1))]])
+    try:
+        sol = np.linalg.solve(M, np.r_[np.zeros(n), float(reference)])
+    except np.linalg.LinAlgError as exc:
+        raise ValueError(f"{plant.name}: no unique equilibrium for r = {reference}") from exc
+    return sol[:n], float(sol[n]), float(reference)
+
+
+def _window(
+    runtime: PolicyRuntime, plant: Plant, x: np.ndarray, z: float, u: float, r: float
+) -> tuple[torch.Tensor, ...]:
+    """A window of ``history`` equal samples ``(x, z, u_prev = u)``, float64, batch of one."""
+    integral, controls = runtime.integral, runtime.controls
+    mask = validity_mask(np.array([plant.order]), integral, controls)[0]
+    row = np.zeros(mask.shape[0])
+    row[: plant.order] = x
+    if integral:
+        row[MAX_ORDER] = z
+    if controls:
+        row[-1] = u
+    H = runtime.history
+    state = torch.tensor(np.tile(row, (1, H, 1)))
+    return (
+        state,
+        torch.tensor(np.tile(mask, (1, H, 1)), dtype=torch.float64),
+        torch.full((1, H), float(r), dtype=torch.float64),
+        torch.tensor([runtime.tags[plant.name]]),
+    )
+
+
+def _control(policy: torch.nn.Module, window: Sequence[torch.Tensor]) -> torch.Tensor:
+    """The policy's first control for ``window`` (a scalar tensor)."""
+    u, _ = policy(*window)
+    return u[0, 0]
+
+
+def _integral_at(
+    policy: torch.nn.Module,
+    window: Sequence[torch.Tensor],
+    u_star: float,
+    z0: float,
+    points: int = 401,
+) -> tuple[float, float]:
+    """The error integral nearest ``z0`` at which the control is ``u_star``: ``(z*, residual)``.
+
+    The network need not be monotone in ``z``: the residual is tabulated on ``points``
+    integrals within ``+-max(1, |z0|)`` of ``z0`` and the sign change nearest ``z0`` is
+    refined by Brent's method. None: ``(nan, smallest |residual| seen)``.
+    """
+    width = max(1.0, abs(z0))
+    grid = z0 + np.linspace(-width, width, points)
+    state, mask, ref, tag = window
+    batch = state.detach().repeat(points, 1, 1)
+    batch[..., MAX_ORDER] = torch.as_tensor(grid)[:, None]
+    with torch.no_grad():
+        u, _ = policy(batch, mask.repeat(points, 1, 1), ref.repeat(points, 1), tag.repeat(points))
+    resid = u[:, 0].numpy() - u_star
+    flips = np.flatnonzero(np.sign(resid[:-1]) * np.sign(resid[1:]) <= 0)
+    if flips.size == 0:
+        return float("nan"), float(np.abs(resid).min())
+    i = int(flips[np.argmin(np.abs(grid[flips] - z0))])
+
+    def f(z: float) -> float:
+        s = state.detach().clone()
+        s[..., MAX_ORDER] = z
+        with torch.no_grad():
+            return float(_control(policy, (s, mask, ref, tag))) - u_star
+
+    z = float(brentq(f, grid[i], grid[i + 1], xtol=1e-14, rtol=1e-14, maxiter=200))
+    return z, abs(f(z))
+
+
+def closed_loop_matrix(
+    Ad: np.ndarray,
+    Bd: np.ndarray,
+    C: np.ndarray,
+    dt: float,
+    jx: np.ndarray,
+    jz: np.ndarray | None,
+    ju: np.ndarray | None,
+) -> np.ndarray:
+    """The linear loop of a sampled plant and a window law, on the window's samples.
+
+    ``jx`` (H, n), ``jz`` (H,) and ``ju`` (H,): the control's derivative with respect to
+    each window sample, oldest first (``jz``/``ju`` None: no such channel). State, newest
+    first: ``x_k .. x_(k-H+1)``, then ``z_k ..``, then ``u_(k-1) ..``. Steps:
+    ``u_k = sum_j jx[-1-j] x_(k-j) + ...``, ``x_(k+1) = Ad x_k + Bd u_k``,
+    ``z_(k+1) = z_k - dt C x_k``, and the previous control becomes ``u_k``.
+    """
+    H, n = jx.shape
+    blocks = [n] + [1] * (jz is not None) + [1] * (ju is not None)
+    width = sum(blocks)
+    N = H * width
+    A = np.zeros((N, N))
+    offsets = np.cumsum([0] + [H * b for b in blocks])
+
+    def idx(block: int, j: int) -> slice:  # sample k-j of a block
+        b = blocks[block]
+        return slice(offsets[block] + j * b, offsets[block] + (j + 1) * b)
+
+    law = np.zeros(N)
+    chans = [jx] + [c[:, None] for c in (jz, ju) if c is not None]
+    for block, jac in enumerate(chans):
+        for j in range(H):
+            law[idx(block, j)] = jac[H - 1 - j]
+    A[idx(0, 0), idx(0, 0)] = Ad
+    A[idx(0, 0), :] += np.outer(Bd.reshape(n), law)
+    block = 1
+    if jz is not None:
+        A[idx(block, 0), idx(block, 0)] = 1.0
+        A[idx(block, 0), idx(0, 0)] = -dt * C.reshape(n)
+        block += 1
+    if ju is not None:
+        A[idx(block, 0), :] = law
+    for b in range(len(blocks)):
+        for j in range(1, H):
+            A[idx(b, j), idx(b, j - 1)] = np.eye(blocks[b])
+    return A
+
+
+def _lqi_radius(g: LQIGains, plant: Plant, Ad: np.ndarray, Bd: np.ndarray) -> float:
+    """Spectral radius of the plant's LQI law ``g`` on the same sampled loop (window of one)."""
+    jx = -np.asarray(g.Kx, dtype=float).reshape(1, -1)
+    jz = np.array([-float(g.Ki)])
+    A = closed_loop_matrix(Ad, Bd, plant.C, plant.dt, jx, jz, None)
+    return float(np.abs(np.linalg.eigvals(A)).max())
+
+
+def hold_tail(
+    runtime: PolicyRuntime,
+    plants: Sequence[Plant],
+    reference: float = 1.0,
+    hold: float = 60.0,
+    tail: float = 20.0,
+) -> pd.DataFrame:
+    """A long step from rest; what is left of the motion over its last ``tail`` seconds.
+
+    GC and LQI hold the reference ``reference`` for ``hold`` seconds on every plant.
+    Columns ``tail_error_<c>``: the RMS tracking error over the tail relative to
+    ``|reference|``; ``tail_du_<c>``: the RMS change of the control from sample to sample
+    over the tail (zero once a loop rests); NaN for a diverged run. ``z_end_GC``: the
+    policy's error integral at the end of its hold.
+    """
+    if not 0.0 < tail < hold:
+        raise ValueError(f"need 0 < tail < hold; got tail={tail}, hold={hold}")
+    out = pd.DataFrame({"system": [p.name for p in plants]})
+    adapter = RuntimeAdapter(runtime)
+    controllers: dict[str, BatchController] = {
+        "GC": adapter,
+        "LQI": PerPlantController(LQIController),
+    }
+    for name, ctrl in controllers.items():
+        runs = [Run(p, np.full((1, int(round(hold / p.dt))), float(reference))) for p in plants]
+        errs, dus = [], []
+        trajectories = simulate_many(runs, ctrl)
+        if name == "GC":  # where the policy's integral ended (one row per plant, none refused)
+            z = runtime.z if not adapter.refused and len(runtime.z) == len(plants) else np.nan
+            out["z_end_GC"] = z
+        for p, tr in zip(plants, trajectories, strict=True):
+            k = int(round(tail / p.dt))
+            e = (tr.r[0, -k:] - tr.y[0, -k - 1 : -1]) / abs(float(reference))
+            du = np.diff(tr.u[0, -k - 1 :])
+            bad = bool(tr.diverged[0])
+            errs.append(np.nan if bad else float(np.sqrt(np.mean(e**2))))
+            dus.append(np.nan if bad else float(np.sqrt(np.mean(du**2))))
+        out[f"tail_error_{name}"], out[f"tail_du_{name}"] = errs, dus
+    return out
+
+
+def _radius_row(
+    runtime: PolicyRuntime, policy: torch.nn.Module, plant: Plant, reference: float, z0: float
+) -> tuple[object, ...]:
+    """One plant's ``(system, r, z_LQI, z*, residual, radius_GC, radius_LQI)``.
+
+    ``z*`` is searched nearest ``z0`` (where the policy's own hold ended), else nearest LQI's.
+    """
+    x_star, u_star, r = equilibrium(plant, reference)
+    gains = design_lqi(plant)
+    z_lqi = -(u_star + float(np.dot(gains.Kx, x_star))) / float(gains.Ki)
+    window = _window(runtime, plant, x_star, z_lqi, u_star, r)
+    start = z0 if np.isfinite(z0) and r == reference else z_lqi
+    z_star, resid = _integral_at(policy, window, u_star, start)
+    state = window[0].detach().clone()
+    state[..., MAX_ORDER] = z_star if np.isfinite(z_star) else z_lqi
+    state.requires_grad_(True)
+    (grad,) = torch.autograd.grad(_control(policy, (state, *window[1:])), state)
+    jac = grad[0].numpy()
+    Ad, Bd = discretise(plant.A, plant.B, plant.dt)
+    ju = jac[:, -1] if runtime.controls else None
+    A = closed_loop_matrix(Ad, Bd, plant.C, plant.dt, jac[:, : plant.order],
+                           jac[:, MAX_ORDER], ju)  # fmt: skip
+    radius = float(np.abs(np.linalg.eigvals(A)).max()) if np.isfinite(z_star) else np.nan
+    return plant.name, r, z_lqi, z_star, resid, radius, _lqi_radius(gains, plant, Ad, Bd)
+
+
+def setpoint_stability(
+    runtime: PolicyRuntime,
+    plants: Sequence[Plant],
+    reference: float = 1.0,
+    hold: float = 60.0,
+    tail: float = 20.0,
+) -> pd.DataFrame:
+    """Per plant: the spectral radius of the policy's and LQI's loops at the set point.
+
+    Columns: ``system``, ``reference`` (``r``; 0 for a nonlinear plant), ``z_LQI`` (the
+    expert's integral at rest), ``z_star`` (the policy's: for a linear plant the root
+    nearest the integral at which its own hold ended, ``z_end_GC``; else nearest ``z_LQI``),
+    ``residual`` (``|u(z*) - u*|``), ``radius_GC`` (NaN: no equilibrium near where the
+    search started), ``radius_LQI``, ``settles`` (``radius_GC < 1``), then :func:`hold_tail`'s
+    columns for ``hold`` and ``tail``. See the module docstring.
+
+    Raises
+    ------
+    ValueError
+        If the policy does not integrate the tracking error (``model.integral``): without
+        it a constant window need not be an equilibrium.
+    """
+    if not runtime.integral:
+        raise ValueError(
+            "the set-point check needs a policy trained with model.integral (its equilibrium "
+            "is the error integral at which its control holds the plant at rest)"
+        )
+    held = hold_tail(runtime, plants, reference, hold, tail)
+    policy = copy.deepcopy(runtime.policy).double().eval()
+    ends = held["z_end_GC"].to_numpy(dtype=float)
+    rows = [
+        _radius_row(runtime, policy, p, reference, z) for p, z in zip(plants, ends, strict=True)
+    ]
+    cols = ["system", "reference", "z_LQI", "z_star", "residual", "radius_GC", "radius_LQI"]
+    df = pd.DataFrame(rows, columns=cols)
+    df["settles"] = df["radius_GC"] < 1.0
+    return df.merge(held, on="system")
+
+
+def setpoint_summary(df: pd.DataFrame) -> dict[str, object]:
+    """``summary.json``'s ``setpoint`` block: the plants whose policy loop cannot settle."""
+    radius = df["radius_GC"].fillna(-np.inf)
+    tail = df["tail_error_GC"].fillna(np.inf)
+    return {
+        "unsettled": sorted(df.loc[~df["settles"], "system"].tolist()),
+        "no_equilibrium": sorted(df.loc[df["radius_GC"].isna(), "system"].tolist()),
+        "n_systems": int(len(df)),
+        "worst_radius_GC": float(radius.max()),
+        "worst_radius_system": str(df.loc[radius.idxmax(), "system"]),
+        "worst_radius_LQI": float(df["radius_LQI"].max()),
+        "worst_tail_error_GC": float(tail.max()),
+        "worst_tail_system": str(df.loc[tail.idxmax(), "system"]),
+        "worst_tail_error_LQI": float(df["tail_error_LQI"].max()),
+    }
+
+
+def setpoint_from_config(
+    spec: Mapping[str, Any] | None, runtime: PolicyRuntime, plants: Sequence[Plant]
+) -> pd.DataFrame | None:
+    """:func:`setpoint_stability` as ``evaluation.setpoint`` asks (None or ``{}``: off).
+
+    Keys ``reference``, ``hold``, ``tail`` (defaults 1.0, 60.0, 20.0). A policy without
+    the error integral has no such check: None.
+    """
+    if not spec or not runtime.integral:
+        return None
+    unknown = set(spec) - {"reference", "hold", "tail"}
+    if unknown:
+        raise ValueError(
+            f"evaluation.setpoint has unknown keys {sorted(unknown)}; it takes reference, "
+            "hold and tail"
+        )
+    return setpoint_stability(
+        runtime,
+        plants,
+        float(spec.get("reference", 1.0)),
+        float(spec.get("hold", 60.0)),
+        float(spec.get("tail", 20.0)),
+    )
