@@ -9,14 +9,16 @@ actuator limit can turn it into a large one. :func:`setpoint_stability` measures
 For each plant, at the equilibrium of a constant reference ``r``: the plant's state ``x*``
 and control ``u*`` (``(Ad - I) x* + Bd u* = 0``, ``C x* = r`` for a linear plant; for a
 nonlinear plant its operating point, ``r = 0``, where ``A``, ``B`` are its linearisation),
-and the error integral ``z*`` at which the policy's control is ``u*`` (Newton on the
-network). With every sample of the window at that equilibrium, the derivative of the
-policy's first control with respect to every window entry (automatic differentiation, in
-float64) closes a linear loop with the plant sampled at ``dt`` (zero-order hold): the state
-is the window (the ``history`` newest plant states, error integrals ``z_(k+1) = z_k + dt (r -
-C x_k)`` as the runtime keeps them, and previous controls with ``model.control_history``).
-Its spectral radius is below 1 exactly when small deviations die out; beside it, the
-radius of the plant's LQI loop sampled the same way.
+and the error integral ``z*`` at which the policy's control is ``u*`` (the root nearest
+where the policy's own long hold ended, else nearest LQI's integral at rest: a grid refined
+by Brent's method, as the network need not be monotone in ``z``). With every sample of the
+window at that equilibrium, the derivative of the policy's first control with respect to
+every window entry (automatic differentiation, in float64) closes a linear loop with the
+plant sampled at ``dt`` (zero-order hold): the state is the window (the ``history`` newest
+plant states, error integrals ``z_(k+1) = z_k + dt (r - C x_k)`` as the runtime keeps them,
+and previous controls with ``model.control_history``). Its spectral radius is below 1
+exactly when small deviations die out; beside it, the radius of the plant's LQI loop
+sampled the same way (:func:`~generalist_control.simulation.lqi.sampled_closed_loop`).
 """
 
 from __future__ import annotations
@@ -30,11 +32,11 @@ import pandas as pd
 import torch
 from scipy.optimize import brentq
 
-from generalist_control.data.windows import validity_mask
+from generalist_control.data.windows import HistoryBuffer
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.plants.plant import MAX_ORDER, Plant
-from generalist_control.simulation.lqi import LQIController, LQIGains, design_lqi
+from generalist_control.simulation.lqi import LQIController, design_lqi, sampled_closed_loop
 from generalist_control.simulation.simulate import (
     BatchController,
     PerPlantController,
@@ -76,21 +78,18 @@ def equilibrium(plant: Plant, reference: float) -> tuple[np.ndarray, float, floa
 def _window(
     runtime: PolicyRuntime, plant: Plant, x: np.ndarray, z: float, u: float, r: float
 ) -> tuple[torch.Tensor, ...]:
-    """A window of ``history`` equal samples ``(x, z, u_prev = u)``, float64, batch of one."""
-    integral, controls = runtime.integral, runtime.controls
-    mask = validity_mask(np.array([plant.order]), integral, controls)[0]
-    row = np.zeros(mask.shape[0])
-    row[: plant.order] = x
-    if integral:
-        row[MAX_ORDER] = z
-    if controls:
-        row[-1] = u
-    H = runtime.history
-    state = torch.tensor(np.tile(row, (1, H, 1)))
+    """The runtime's window after one sample ``(x, z, u_prev = u)``: float64, batch of one.
+
+    Built by the one window builder (:class:`HistoryBuffer`), which repeats a first sample
+    over the whole history, as at rest.
+    """
+    buffer = HistoryBuffer(np.array([plant.order]), runtime.history, runtime.integral,
+                           runtime.controls)  # fmt: skip
+    padded = np.zeros((1, MAX_ORDER))
+    padded[0, : plant.order] = x
+    state, mask, ref = buffer.push(padded, np.array([r]), np.array([z]), np.array([u]))
     return (
-        state,
-        torch.tensor(np.tile(mask, (1, H, 1)), dtype=torch.float64),
-        torch.full((1, H), float(r), dtype=torch.float64),
+        *(torch.tensor(a, dtype=torch.float64) for a in (state, mask, ref)),
         torch.tensor([runtime.tags[plant.name]]),
     )
 
@@ -185,14 +184,6 @@ def closed_loop_matrix(
     return A
 
 
-def _lqi_radius(g: LQIGains, plant: Plant, Ad: np.ndarray, Bd: np.ndarray) -> float:
-    """Spectral radius of the plant's LQI law ``g`` on the same sampled loop (window of one)."""
-    jx = -np.asarray(g.Kx, dtype=float).reshape(1, -1)
-    jz = np.array([-float(g.Ki)])
-    A = closed_loop_matrix(Ad, Bd, plant.C, plant.dt, jx, jz, None)
-    return float(np.abs(np.linalg.eigvals(A)).max())
-
-
 def hold_tail(
     runtime: PolicyRuntime,
     plants: Sequence[Plant],
@@ -247,8 +238,11 @@ def _radius_row(
     window = _window(runtime, plant, x_star, z_lqi, u_star, r)
     start = z0 if np.isfinite(z0) and r == reference else z_lqi
     z_star, resid = _integral_at(policy, window, u_star, start)
+    radius_lqi = float(np.abs(np.linalg.eigvals(sampled_closed_loop(plant, gains))).max())
+    if not np.isfinite(z_star):
+        return plant.name, r, z_lqi, z_star, resid, np.nan, radius_lqi
     state = window[0].detach().clone()
-    state[..., MAX_ORDER] = z_star if np.isfinite(z_star) else z_lqi
+    state[..., MAX_ORDER] = z_star
     state.requires_grad_(True)
     (grad,) = torch.autograd.grad(_control(policy, (state, *window[1:])), state)
     jac = grad[0].numpy()
@@ -256,8 +250,8 @@ def _radius_row(
     ju = jac[:, -1] if runtime.controls else None
     A = closed_loop_matrix(Ad, Bd, plant.C, plant.dt, jac[:, : plant.order],
                            jac[:, MAX_ORDER], ju)  # fmt: skip
-    radius = float(np.abs(np.linalg.eigvals(A)).max()) if np.isfinite(z_star) else np.nan
-    return plant.name, r, z_lqi, z_star, resid, radius, _lqi_radius(gains, plant, Ad, Bd)
+    radius = float(np.abs(np.linalg.eigvals(A)).max())
+    return plant.name, r, z_lqi, z_star, resid, radius, radius_lqi
 
 
 def setpoint_stability(
