@@ -310,6 +310,10 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
     assert logged["dagger/windows"] > 0
     assert logged["dagger/versions"] == 2 * 3  # per plant: nominal, 1 in turn, 1 fresh
     assert 0.0 <= logged["dagger/screened"] <= 1.0  # the chosen fresh variants' median score
+    # the stage's rest-stability term ran (experiment=variants: rest.weight 1, every 10th
+    # batch, batch 0 among them): a loop radius at rest was measured and the term logged
+    assert float(run.params["rest.weight"]) == 1.0
+    assert 0.0 < logged["train/rest_radius"] < 100.0 and logged["train/rest"] >= 0.0
     reports = tmp_path / "reports"
     ev = [
         *tiny, f"policy={objects['policy_path']}", f"paths.reports_dir={reports}",

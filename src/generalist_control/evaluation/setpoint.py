@@ -32,9 +32,9 @@ import pandas as pd
 import torch
 from scipy.optimize import brentq
 
-from generalist_control.data.windows import HistoryBuffer
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.model.rest_loop import closed_loop_matrix, equilibrium, rest_window
 from generalist_control.plants.plant import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi, sampled_closed_loop
 from generalist_control.simulation.simulate import (
@@ -53,45 +53,6 @@ __all__ = [
     "setpoint_stability",
     "setpoint_summary",
 ]
-
-
-def equilibrium(plant: Plant, reference: float) -> tuple[np.ndarray, float, float]:
-    """``(x*, u*, r)``: the plant at rest on ``reference`` (deviations; nonlinear: ``r = 0``).
-
-    Raises
-    ------
-    ValueError
-        If a linear plant has no unique equilibrium for the reference (a zero at s = 0).
-    """
-    n = plant.order
-    if not plant.is_linear:
-        return np.zeros(n), 0.0, 0.0
-    Ad, Bd = discretise(plant.A, plant.B, plant.dt)
-    M = np.block([[Ad - np.eye(n), Bd.reshape(n, 1)], [plant.C.reshape(1, n), np.zeros((1, 1))]])
-    try:
-        sol = np.linalg.solve(M, np.r_[np.zeros(n), float(reference)])
-    except np.linalg.LinAlgError as exc:
-        raise ValueError(f"{plant.name}: no unique equilibrium for r = {reference}") from exc
-    return sol[:n], float(sol[n]), float(reference)
-
-
-def _window(
-    runtime: PolicyRuntime, plant: Plant, x: np.ndarray, z: float, u: float, r: float
-) -> tuple[torch.Tensor, ...]:
-    """The runtime's window after one sample ``(x, z, u_prev = u)``: float64, batch of one.
-
-    Built by the one window builder (:class:`HistoryBuffer`), which repeats a first sample
-    over the whole history, as at rest.
-    """
-    buffer = HistoryBuffer(np.array([plant.order]), runtime.history, runtime.integral,
-                           runtime.controls)  # fmt: skip
-    padded = np.zeros((1, MAX_ORDER))
-    padded[0, : plant.order] = x
-    state, mask, ref = buffer.push(padded, np.array([r]), np.array([z]), np.array([u]))
-    return (
-        *(torch.tensor(a, dtype=torch.float64) for a in (state, mask, ref)),
-        torch.tensor([runtime.tags[plant.name]]),
-    )
 
 
 def _control(policy: torch.nn.Module, window: Sequence[torch.Tensor]) -> torch.Tensor:
@@ -134,54 +95,6 @@ def _integral_at(
 
     z = float(brentq(f, grid[i], grid[i + 1], xtol=1e-14, rtol=1e-14, maxiter=200))
     return z, abs(f(z))
-
-
-def closed_loop_matrix(
-    Ad: np.ndarray,
-    Bd: np.ndarray,
-    C: np.ndarray,
-    dt: float,
-    jx: np.ndarray,
-    jz: np.ndarray | None,
-    ju: np.ndarray | None,
-) -> np.ndarray:
-    """The linear loop of a sampled plant and a window law, on the window's samples.
-
-    ``jx`` (H, n), ``jz`` (H,) and ``ju`` (H,): the control's derivative with respect to
-    each window sample, oldest first (``jz``/``ju`` None: no such channel). State, newest
-    first: ``x_k .. x_(k-H+1)``, then ``z_k ..``, then ``u_(k-1) ..``. Steps:
-    ``u_k = sum_j jx[-1-j] x_(k-j) + ...``, ``x_(k+1) = Ad x_k + Bd u_k``,
-    ``z_(k+1) = z_k - dt C x_k``, and the previous control becomes ``u_k``.
-    """
-    H, n = jx.shape
-    blocks = [n] + [1] * (jz is not None) + [1] * (ju is not None)
-    width = sum(blocks)
-    N = H * width
-    A = np.zeros((N, N))
-    offsets = np.cumsum([0] + [H * b for b in blocks])
-
-    def idx(block: int, j: int) -> slice:  # sample k-j of a block
-        b = blocks[block]
-        return slice(offsets[block] + j * b, offsets[block] + (j + 1) * b)
-
-    law = np.zeros(N)
-    chans = [jx] + [c[:, None] for c in (jz, ju) if c is not None]
-    for block, jac in enumerate(chans):
-        for j in range(H):
-            law[idx(block, j)] = jac[H - 1 - j]
-    A[idx(0, 0), idx(0, 0)] = Ad
-    A[idx(0, 0), :] += np.outer(Bd.reshape(n), law)
-    block = 1
-    if jz is not None:
-        A[idx(block, 0), idx(block, 0)] = 1.0
-        A[idx(block, 0), idx(0, 0)] = -dt * C.reshape(n)
-        block += 1
-    if ju is not None:
-        A[idx(block, 0), :] = law
-    for b in range(len(blocks)):
-        for j in range(1, H):
-            A[idx(b, j), idx(b, j - 1)] = np.eye(blocks[b])
-    return A
 
 
 def hold_tail(
@@ -235,7 +148,8 @@ def _radius_row(
     x_star, u_star, r = equilibrium(plant, reference)
     gains = design_lqi(plant)
     z_lqi = -(u_star + float(np.dot(gains.Kx, x_star))) / float(gains.Ki)
-    window = _window(runtime, plant, x_star, z_lqi, u_star, r)
+    window = rest_window(plant, x_star, z_lqi, u_star, r, history=runtime.history,
+                         controls=runtime.controls, tag=runtime.tags[plant.name])  # fmt: skip
     start = z0 if np.isfinite(z0) and r == reference else z_lqi
     z_star, resid = _integral_at(policy, window, u_star, start)
     radius_lqi = float(np.abs(np.linalg.eigvals(sampled_closed_loop(plant, gains))).max())

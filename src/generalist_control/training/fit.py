@@ -49,6 +49,7 @@ from generalist_control.training.setup import (
     identity_loss,
     included_plants,
     model_config,
+    rest_penalty,
     tag_dropout,
     training_plants,
 )
@@ -250,6 +251,7 @@ def _prepare(cfg: DictConfig) -> tuple[DemoDataModule, dict[str, Any], Imitation
     lit = _module(cfg, dm, meta)
     if ckpt_path:
         _check_fits(cfg, ckpt_path, lit)
+    lit.rest = rest_penalty(cfg, dagger_plants(training_plants(cfg, meta), dm.manifest), meta)
     return dm, meta, lit
 
 

@@ -18,6 +18,7 @@ from lightning.pytorch.callbacks import RichProgressBar
 from torch import Tensor
 
 from generalist_control.model.policy import Policy
+from generalist_control.training.rest import RestPenalty
 
 __all__ = ["METRICS_FORMAT", "ImitationModule"]
 
@@ -49,7 +50,10 @@ class ImitationModule(L.LightningModule):
 
     Notes
     -----
-    All arguments are plain dicts, so checkpoints load with ``weights_only=True``; the
+    :attr:`rest`, set after construction (``rest`` config block;
+    :func:`~generalist_control.training.setup.rest_penalty`), adds the rest-stability term
+    to the training loss, logged as ``train/rest`` and ``train/rest_radius`` (the largest
+    loop radius at rest it saw in the epoch's last draw). All arguments are plain dicts, so checkpoints load with ``weights_only=True``; the
     normaliser's scales are buffers of ``policy`` and are saved in its ``state_dict``.
     """
 
@@ -71,6 +75,7 @@ class ImitationModule(L.LightningModule):
         if self.identity_loss > 0 and self.policy.net.identity is None:
             raise ValueError("identity_loss > 0 needs a network with identity_head")
         self._val_hits = torch.zeros((), dtype=torch.float64)
+        self.rest: RestPenalty | None = None
         tags = (meta or {}).get("tags", {})
         self.tag_names = {int(t): str(name) for name, t in tags.items()}
         n_tags = self.policy.config["n_tags"]
@@ -112,6 +117,12 @@ class ImitationModule(L.LightningModule):
             # model.transition_models: the true plant's one-step model fits its window
             identity = identity + self.policy.net.transition_fit(code, batch["tag"])
             loss = loss + self.identity_loss * identity
+        rest = self.rest.step(self.policy, batch_idx) if self.rest is not None else None
+        if rest is not None and self.rest is not None:
+            self.log("train/rest", rest, on_step=False, on_epoch=True, logger=False)
+            self.log("train/rest_radius", self.rest.last_radius, on_step=False, on_epoch=True,
+                     logger=False, reduce_fx="max")  # fmt: skip
+            loss = loss + rest
         self.log(
             "train/loss",
             loss,

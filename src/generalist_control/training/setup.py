@@ -19,6 +19,7 @@ from generalist_control.plants.plant import Plant
 from generalist_control.plants.variants import DEFAULT_RANGE, make_variant
 from generalist_control.training.callbacks import ClosedLoopValidation
 from generalist_control.training.dagger_callback import DAggerCallback
+from generalist_control.training.rest import RestPenalty
 
 __all__ = [
     "check_resume",
@@ -29,6 +30,7 @@ __all__ = [
     "included_plants",
     "model_config",
     "plant_versions",
+    "rest_penalty",
     "training_plants",
 ]
 
@@ -220,3 +222,40 @@ def check_resume(ckpt_path: str, meta: dict[str, Any]) -> None:
             f"checkpoint {ckpt_path} was trained on data {old_hash}, but "
             f"{meta['data_dir']} holds {meta['content_hash']}; resume on the same data"
         )
+
+
+def rest_penalty(
+    cfg: DictConfig, plants: list[Plant], meta: dict[str, Any]
+) -> RestPenalty | None:
+    """The rest-stability term of ``cfg.rest`` on ``plants`` (None: ``rest.weight`` is 0).
+
+    Raises
+    ------
+    ValueError
+        If the block has unknown keys, or the term is on for a policy without the error
+        integral (``model.integral``), whose rest has no integral to hold it.
+    """
+    spec = as_dict(cfg.get("rest") or {})
+    unknown = set(spec) - {"weight", "every", "per_step", "reference", "slack"}
+    if unknown:
+        raise ValueError(
+            f"rest has unknown keys {sorted(unknown)}; it takes weight, every, per_step, "
+            "reference and slack"
+        )
+    weight = require_nonnegative("rest.weight", spec.pop("weight", 0.0))
+    if weight == 0:
+        return None
+    if not cfg.model.get("integral", False):
+        raise ValueError(
+            "rest.weight > 0 needs model.integral=true: the term holds the loop at the error "
+            "integral where the policy's control keeps the plant at rest"
+        )
+    return RestPenalty(
+        plants,
+        meta["tags"],
+        int(cfg.data.history),
+        bool(cfg.model.get("control_history", False)),
+        weight=weight,
+        seed=int(cfg.seed or 0),
+        **spec,
+    )
