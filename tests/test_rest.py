@@ -1,4 +1,4 @@
-"""The rest-stability training term, against python-control's sampled loops and finite differences."""
+"""The rest-stability training term: against python-control's loops and finite differences."""
 
 from __future__ import annotations
 
@@ -9,8 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from generalist_control.model.rest_loop import integral_at_rest, loop_parts, rest_window
-from generalist_control.model.rest_loop import equilibrium
+from generalist_control.model.rest_loop import (
+    equilibrium,
+    integral_at_rest,
+    loop_parts,
+    rest_window,
+)
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import design_lqi
 from generalist_control.training.rest import RestPenalty, _excess

@@ -80,10 +80,9 @@ def rest_window(
     padded = np.zeros((1, MAX_ORDER))
     padded[0, : plant.order] = x
     state, mask, ref = buffer.push(padded, np.array([r]), np.array([z]), np.array([u]))
-    return (
-        *(torch.tensor(a, dtype=torch.float64) for a in (state, mask, ref)),
-        torch.tensor([tag]),
-    )
+    f64 = torch.float64
+    return (torch.tensor(state, dtype=f64), torch.tensor(mask, dtype=f64),
+            torch.tensor(ref, dtype=f64), torch.tensor([tag]))  # fmt: skip
 
 
 @torch.no_grad()
@@ -184,6 +183,7 @@ def closed_loop_matrix(
     ``z_(k+1) = z_k - dt C x_k``, and the previous control becomes ``u_k``.
     """
     A0, b = loop_parts(Ad, Bd, C, dt, jx.shape[0], jz is not None, ju is not None)
+
     def tensor(a: np.ndarray | None) -> Tensor | None:
         return None if a is None else torch.as_tensor(np.asarray(a, dtype=float))
 

@@ -53,8 +53,9 @@ class ImitationModule(L.LightningModule):
     :attr:`rest`, set after construction (``rest`` config block;
     :func:`~generalist_control.training.setup.rest_penalty`), adds the rest-stability term
     to the training loss, logged as ``train/rest`` and ``train/rest_radius`` (the largest
-    loop radius at rest it saw in the epoch's last draw). All arguments are plain dicts, so checkpoints load with ``weights_only=True``; the
-    normaliser's scales are buffers of ``policy`` and are saved in its ``state_dict``.
+    loop radius at rest it saw). All arguments are plain dicts, so checkpoints load with
+    ``weights_only=True``; the normaliser's scales are buffers of ``policy`` and are saved
+    in its ``state_dict``.
     """
 
     def __init__(

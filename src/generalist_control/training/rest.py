@@ -27,13 +27,20 @@ import torch
 from torch import Tensor
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from generalist_control.model.rest_loop import equilibrium, integral_at_rest, loop_parts
-from generalist_control.model.rest_loop import rest_window, window_law
+from generalist_control.model.rest_loop import (
+    equilibrium,
+    integral_at_rest,
+    loop_parts,
+    rest_window,
+    window_law,
+)
 from generalist_control.plants.plant import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import design_lqi, sampled_closed_loop
 from generalist_control.simulation.simulate import discretise
 
 __all__ = ["RestPenalty"]
+
+Window = tuple[Tensor, Tensor, Tensor, Tensor]
 
 
 @dataclass(frozen=True)
@@ -140,7 +147,7 @@ class RestPenalty:
         self.rng = np.random.default_rng(seed)
         self.last_radius = float("nan")
 
-    def _windows(self, chosen: list[_Version]) -> tuple[tuple[Tensor, ...], Tensor, Tensor]:
+    def _windows(self, chosen: list[_Version]) -> tuple[Window, Tensor, Tensor]:
         """The chosen versions' rest windows (at LQI's integral), ``u*`` and LQI's ``z``."""
         refs = self.rng.uniform(-1.0, 1.0, len(chosen)) * self.reference
         parts, u_star, z0 = [], [], []
@@ -152,8 +159,12 @@ class RestPenalty:
                                      tag=v.tag))  # fmt: skip
             u_star.append(k * v.u1)
             z0.append(k * v.z1)
-        window = tuple(torch.cat(c) for c in zip(*parts, strict=True))
-        return window, torch.tensor(u_star, dtype=torch.float64), torch.tensor(z0).double()
+        state, mask, ref, tag = (torch.cat(c) for c in zip(*parts, strict=True))
+        return (
+            (state, mask, ref, tag),
+            torch.tensor(u_star, dtype=torch.float64),
+            torch.tensor(z0).double(),
+        )
 
     def step(self, policy: torch.nn.Module, batch_idx: int) -> Tensor | None:
         """The weighted term for training batch ``batch_idx`` (None: not taken on it)."""
@@ -168,7 +179,7 @@ class RestPenalty:
         chosen = [self.versions[i] for i in self.rng.choice(len(self.versions), n, False)]
         window, u_star, z0 = self._windows(chosen)
         dtype = next(policy.parameters()).dtype
-        window = (*(w.to(dtype) for w in window[:3]), window[3])
+        window = (window[0].to(dtype), window[1].to(dtype), window[2].to(dtype), window[3])
         was = policy.training
         policy.eval()
         try:
@@ -186,7 +197,8 @@ class RestPenalty:
         finally:
             policy.train(was)
         terms, radii = [], []
-        for v, J in zip([c for c, k in zip(chosen, ok.tolist()) if k], jac, strict=True):
+        kept = [c for c, k in zip(chosen, ok.tolist(), strict=True) if k]
+        for v, J in zip(kept, jac, strict=True):
             n_x = v.plant.order
             ju = J[:, -1] if self.controls else None
             law = window_law(J[:, :n_x], J[:, MAX_ORDER], ju).double()

@@ -224,9 +224,7 @@ def check_resume(ckpt_path: str, meta: dict[str, Any]) -> None:
         )
 
 
-def rest_penalty(
-    cfg: DictConfig, plants: list[Plant], meta: dict[str, Any]
-) -> RestPenalty | None:
+def rest_penalty(cfg: DictConfig, plants: list[Plant], meta: dict[str, Any]) -> RestPenalty | None:
     """The rest-stability term of ``cfg.rest`` on ``plants`` (None: ``rest.weight`` is 0).
 
     Raises
