@@ -298,6 +298,7 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
         "dagger.variants=1", "closed_loop_val.variants=2", "closed_loop_val.duration=2.0",
         "dagger.fresh_variants=1",  # and 1 variant each, the worse of 2 drawn for the round
         "dagger.fresh_pool=2",
+        "rest.weight=1", "rest.every=10",  # the rest-stability term on variant data
     )  # fmt: skip
     _, objects = train(compose_cfg(*tiny, *over))
     run = mlflow.MlflowClient(mlflow_uri).get_run(objects["run_id"]).data
@@ -310,8 +311,8 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
     assert logged["dagger/windows"] > 0
     assert logged["dagger/versions"] == 2 * 3  # per plant: nominal, 1 in turn, 1 fresh
     assert 0.0 <= logged["dagger/screened"] <= 1.0  # the chosen fresh variants' median score
-    # the stage's rest-stability term ran (experiment=variants: rest.weight 1, every 10th
-    # batch, batch 0 among them): a loop radius at rest was measured and the term logged
+    # the rest-stability term ran (every 10th batch, batch 0 among them, on the nominal
+    # plants and the data's variants): a loop radius at rest was measured and the term logged
     assert float(run.params["rest.weight"]) == 1.0
     assert 0.0 < logged["train/rest_radius"] < 100.0 and logged["train/rest"] >= 0.0
     reports = tmp_path / "reports"
