@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from generalist_control.model.identifier import INPUT_GAIN, TransitionModels, TransitionSet
+from generalist_control.model.identifier import (
+    INPUT_GAIN,
+    INPUT_LAGS,
+    TransitionModels,
+    TransitionSet,
+)
 from generalist_control.model.network import EVIDENCE_WEIGHT, GeneralistNetwork, network_config
 from generalist_control.training.setup import model_config
 from helpers import compose_cfg
@@ -252,3 +257,158 @@ def test_the_input_gain_switch_builds_fitted_models_and_needs_them():
         network_config(**TAG_FREE, transition_input_gain=1)
     with pytest.raises(ValueError, match="input_gain must hold 1"):
         TransitionModels(state_dim=4, embedding=4, input_gain=(1.1, 2.0))
+
+
+def _lagged(plants, tags: np.ndarray, steps: int, seed: int, lag: float, offset: float):
+    """Windows whose plant sees ``gain (u + lag (u_prev - u)) + offset``: x, dx, u, u_prev."""
+    rng = np.random.default_rng(seed)
+    u_all = 2.0 * rng.standard_normal((len(tags), steps + 1))
+    u, u_prev = u_all[:, 1:], u_all[:, :-1]
+    applied = u + lag * (u_prev - u) + offset
+    x, dx, _ = _transitions(plants, tags, steps, seed + 1, scale=2.0)
+    x_np = x.numpy().astype(float)
+    dx = np.stack(
+        [
+            x_np[i] @ plants[t][0].T + applied[i, :, None] * plants[t][1] + plants[t][2]
+            for i, t in enumerate(tags)
+        ]
+    )
+    return x, *(torch.tensor(v, dtype=torch.float32) for v in (dx, u, u_prev))
+
+
+def _least_squares(x, dx, u, u_prev, plant, lags, gain_range, offset):
+    """numpy's least-squares fit of b (g u_a + d) to dx - A x - c, best over the lags.
+
+    The gain is clipped to its range and the offset then refitted: the fit is a convex
+    quadratic in (g, d) with d free, so that is its exact minimum over the range.
+    """
+    a, b, c = plant
+    r = dx - x @ a.T - c
+    best = (np.inf, 1.0)
+    for lag in lags:
+        v = u + lag * (u_prev - u)
+        cols = [np.outer(v, b).ravel()] + ([np.tile(b, len(v))] if offset else [])
+        design = np.stack(cols, 1)
+        coef = np.linalg.lstsq(design, r.ravel(), rcond=None)[0]
+        g = np.clip(coef[0], *gain_range)
+        rest = r.ravel() - g * design[:, 0]
+        d = (rest @ design[:, 1]) / (design[:, 1] @ design[:, 1]) if offset else 0.0
+        rss = ((rest - d * (design[:, 1] if offset else 0.0)) ** 2).sum() / len(v)
+        best = min(best, (rss, g))
+    return best
+
+
+@pytest.mark.parametrize(
+    ("lags", "offset"), [(INPUT_LAGS, False), ((0.0,), True), (INPUT_LAGS, True)]
+)
+def test_the_fitted_lag_and_offset_are_numpys_least_squares(lags, offset):
+    """Residual and gain equal numpy's least squares over the lags, the gain clipped."""
+    assert INPUT_LAGS == (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+    plants = _plants(3, seed=21)
+    rows = torch.eye(3, 8)
+    models = TransitionModels(
+        state_dim=4, embedding=8, input_gain=INPUT_GAIN, lags=lags, offset=offset
+    )
+    _set_models(models, plants, rows)
+    tags = np.array([0, 1, 2, 0])
+    x, dx, u, u_prev = _lagged(_scaled(plants, 1.4), tags, steps=10, seed=22, lag=0.35,
+                               offset=0.5)  # fmt: skip
+    residual = models.residual(x, dx, u, rows, u_prev).detach().numpy()
+    gain = models.gain(x, dx, u, rows, u_prev).detach().numpy()
+    for i in range(len(tags)):
+        for p, plant in enumerate(plants):
+            args = (x[i].numpy(), dx[i].numpy(), u[i].numpy(), u_prev[i].numpy(), plant)
+            rss, g = _least_squares(*args, lags, INPUT_GAIN, offset)
+            assert residual[i, p] == pytest.approx(rss, rel=1e-3, abs=1e-5)
+            assert gain[i, p] == pytest.approx(g, rel=1e-4)
+
+
+def test_a_lagged_biased_actuator_leaves_the_plant_its_evidence():
+    """A 0.4 lag and a constant input disturbance: the fixed models name the wrong plant
+    on some windows; with the lag and offset fitted the true model explains every window
+    (to the noise) and is named on each."""
+    plants = _plants(6, seed=23)
+    rows = torch.eye(6, 8)
+    fixed = TransitionModels(state_dim=4, embedding=8, input_gain=INPUT_GAIN)
+    fitted = TransitionModels(
+        state_dim=4, embedding=8, input_gain=INPUT_GAIN, lags=INPUT_LAGS, offset=True
+    )
+    _set_models(fixed, plants, rows)
+    _set_models(fitted, plants, rows)
+    tags = np.repeat(np.arange(6), 20)
+    x, dx, u, u_prev = _lagged(plants, tags, steps=12, seed=24, lag=0.4, offset=0.8)
+    true = np.arange(len(tags)), tags
+    res_fixed = fixed.residual(x, dx, u, rows).detach().numpy()[true]
+    res_fitted = fitted.residual(x, dx, u, rows, u_prev).detach().numpy()[true]
+    assert np.median(res_fitted) < 1e-6 < 1e-1 < np.median(res_fixed)
+    assert (fitted(x, dx, u, rows, u_prev).argmax(1).detach().numpy() == tags).all()
+    with pytest.raises(ValueError, match="needs u_prev"):
+        fitted.residual(x, dx, u, rows)
+
+
+def test_without_lag_or_offset_the_evidence_is_unchanged():
+    """The switches off: the same residual as the models before them (no lag, no offset)."""
+    plants = _plants(3, seed=25)
+    rows = torch.eye(3, 8)
+    base = TransitionModels(state_dim=4, embedding=8, input_gain=INPUT_GAIN)
+    explicit = TransitionModels(
+        state_dim=4, embedding=8, input_gain=INPUT_GAIN, lags=(0.0,), offset=False
+    )
+    _set_models(base, plants, rows)
+    _set_models(explicit, plants, rows)
+    x, dx, u, u_prev = _lagged(plants, np.array([0, 1, 2]), steps=8, seed=26, lag=0.2,
+                               offset=0.1)  # fmt: skip
+    torch.testing.assert_close(
+        base.residual(x, dx, u, rows), explicit.residual(x, dx, u, rows, u_prev)
+    )
+    with pytest.raises(ValueError, match="lags must be"):
+        TransitionModels(state_dim=4, embedding=4, lags=(0.0, 1.5))
+
+
+def test_the_lag_and_offset_switches_build_fitted_models_and_need_them():
+    cfg = network_config(
+        **TAG_FREE, history=12, transition_models=1, transition_input_lag=1,
+        transition_input_offset=1,
+    )  # fmt: skip
+    models = GeneralistNetwork(**cfg).identifier.models
+    assert models.lags == INPUT_LAGS and models.offset and models.input_gain is None
+    with pytest.raises(ValueError, match="model.transition_input_lag fits an input lag"):
+        network_config(**TAG_FREE, transition_input_lag=1)
+    with pytest.raises(ValueError, match="model.transition_input_offset fits an input offset"):
+        network_config(**TAG_FREE, transition_input_offset=1)
+
+
+def test_identity_noise_reaches_only_the_identifier_and_only_in_training():
+    """In training mode the identifier reads the window with noise on its unpadded plant
+    states only (integral and control channels, padding untouched), its std per window
+    at most identity_noise; in eval mode (run time) the output is the noise-free one."""
+    cfg = network_config(**TAG_FREE, history=12, transition_models=1, law_history=8)
+    torch.manual_seed(0)
+    net = GeneralistNetwork(**cfg)
+    state, mask, ref = _window(batch=64, history=12)
+    tag = torch.zeros(64, dtype=torch.long)
+    seen: list[torch.Tensor] = []
+    forward = net.identifier.forward
+    net.identifier.forward = lambda s, m, rows=None: seen.append(s) or forward(s, m, rows)
+    net.eval()
+    clean = net(state, mask, ref, tag)[0]
+    net.identity_noise = 0.5
+    torch.testing.assert_close(net(state, mask, ref, tag)[0], clean)
+    assert torch.equal(seen[-1], state)
+    net.train()
+    net(state, mask, ref, tag)
+    noise = seen[-1] - state
+    assert torch.equal(noise[..., 3:], torch.zeros_like(noise[..., 3:]))  # padding, z, u
+    std = noise[..., :3].std(dim=(1, 2))
+    assert 0.0 < std.min() < 0.1 and 0.4 < std.max() < 0.6 and 0.15 < std.mean() < 0.35
+
+
+def test_identity_noise_in_the_config_is_checked():
+    from generalist_control.training.setup import identity_noise
+
+    on = compose_cfg("experiment=tag_free", "model.identity_noise=0.02")
+    assert identity_noise(on) == 0.02
+    with pytest.raises(ValueError, match="model.identity_noise"):
+        identity_noise(compose_cfg("model.identity_noise=-1"))
+    with pytest.raises(ValueError, match="set model.control_history=true"):
+        identity_noise(compose_cfg("model.identity_noise=0.1"))

@@ -78,6 +78,9 @@ class ModelSchema:
     transition_identifier: bool = MISSING
     transition_models: bool = MISSING
     transition_input_gain: bool = MISSING
+    transition_input_lag: bool = MISSING
+    transition_input_offset: bool = MISSING
+    identity_noise: float = MISSING
     optimizer: dict[str, Any] = MISSING
     scheduler: dict[str, Any] | None = None
 

@@ -20,6 +20,15 @@ With ``model.transition_input_gain`` each model's input column ``b_p`` is scaled
 within :data:`INPUT_GAIN` that fits the window best (closed-form least squares from the same
 moments): a plant whose actuator delivers 80 % of the control is still the plant whose
 model explains its window, where a fixed ``b_p`` leaves the identity to a near neighbour.
+
+Two more mismatches of a real actuator can be fitted the same way. With
+``model.transition_input_lag`` the control a model sees is ``u_j + a (u_(j-1) - u_j)``, the
+lag ``a`` the one of :data:`INPUT_LAGS` that fits best: a first-order motor lag of time
+constant ``tau`` delivers, over a sample ``T``, about that mix with ``a`` rising to 0.5 at
+``tau = 0.6 T`` (the sim-to-real stand-in's 30-ms motor at 50-ms samples). With
+``model.transition_input_offset`` a constant ``d`` joins the control, ``b_p (g u + d)``: a
+constant input disturbance (a heavier vehicle's unbalanced weight, an actuator bias), the
+one LQI's integral rejects, which otherwise leaves the plant's model a residual at rest.
 """
 
 from __future__ import annotations
@@ -29,11 +38,16 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor, nn
 
-__all__ = ["INPUT_GAIN", "TransitionModels", "TransitionSet"]
+__all__ = ["INPUT_GAIN", "INPUT_LAGS", "TransitionModels", "TransitionSet"]
 
 #: The range of an actuator's gain the one-step models fit (``model.transition_input_gain``):
 #: +-25 %, the range the plant variants draw their parameters in (``data.variants.range``).
 INPUT_GAIN = (0.75, 1.25)
+
+#: The lags ``a`` of the control mix ``u_j + a (u_(j-1) - u_j)`` the one-step models try
+#: (``model.transition_input_lag``): from none to 0.6, which a first-order actuator of time
+#: constant about the sample period delivers.
+INPUT_LAGS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
 
 
 class TransitionSet(nn.Module):
@@ -84,7 +98,11 @@ class TransitionSet(nn.Module):
         models = None
         if config.get("transition_models"):
             gain = INPUT_GAIN if config.get("transition_input_gain") else None
-            models = TransitionModels(config["state_dim"], hidden, input_gain=gain)
+            lags = INPUT_LAGS if config.get("transition_input_lag") else (0.0,)
+            offset = bool(config.get("transition_input_offset"))
+            models = TransitionModels(
+                config["state_dim"], hidden, input_gain=gain, lags=lags, offset=offset
+            )
         return cls(config["state_dim"], hidden, models)
 
     def transitions(self, state: Tensor, mask: Tensor) -> Tensor:
@@ -110,7 +128,9 @@ class TransitionSet(nn.Module):
         if rows is None:
             raise ValueError("the transition models need the plants' embedding rows")
         n = self.state_dim
-        evidence = self.models(steps[..., :n], steps[..., n : 2 * n], steps[..., 2 * n], rows)
+        x, dx, u = steps[..., :n], steps[..., n : 2 * n], steps[..., 2 * n]
+        # the control that took sample j - 1 to j: the channel at sample j
+        evidence = self.models(x, dx, u, rows, u_prev=state[:, :-1, -1])
         return torch.cat([code, evidence], dim=-1)
 
 
@@ -126,6 +146,13 @@ class TransitionModels(nn.Module):
     eps : float
         Added to the mean squared residual (normalised units): a window without motion
         gives every plant the same evidence.
+    input_gain : tuple of float, optional
+        The range of the fitted input gain (``model.transition_input_gain``); None: 1.
+    lags : tuple of float
+        The input lags tried (``model.transition_input_lag``: :data:`INPUT_LAGS`); each
+        model keeps the one that fits its window best. ``(0.0,)``: none.
+    offset : bool
+        Fit a constant input disturbance ``d`` (``model.transition_input_offset``).
 
     Notes
     -----
@@ -149,12 +176,16 @@ class TransitionModels(nn.Module):
         embedding: int,
         eps: float = 1e-6,
         input_gain: tuple[float, float] | None = None,
+        lags: tuple[float, ...] = (0.0,),
+        offset: bool = False,
     ) -> None:
         super().__init__()
         self.state_dim, self.eps = state_dim, eps
         if input_gain is not None and not 0 < input_gain[0] <= 1 <= input_gain[1]:
             raise ValueError(f"input_gain must hold 1 and be positive, got {input_gain}")
-        self.input_gain = input_gain
+        if not lags or any(not 0.0 <= a <= 1.0 for a in lags):
+            raise ValueError(f"lags must be a non-empty tuple of values in [0, 1], got {lags}")
+        self.input_gain, self.lags, self.offset = input_gain, tuple(lags), bool(offset)
         self.params = nn.Linear(embedding, state_dim * (state_dim + 2))
         nn.init.zeros_(self.params.weight)
         nn.init.zeros_(self.params.bias)
@@ -178,7 +209,9 @@ class TransitionModels(nn.Module):
             return change
         return change + torch.einsum("bp,pi,bt->btpi", gain - 1.0, theta[:, :, self.state_dim], u)
 
-    def residual(self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor) -> Tensor:
+    def residual(
+        self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None = None
+    ) -> Tensor:
         """Each plant's mean squared residual (B, plants) over the transitions.
 
         From the window's second moments of ``z = [x; u; 1]`` and ``dx``, never forming
@@ -187,18 +220,37 @@ class TransitionModels(nn.Module):
         cancels where a model fits, where float32 would leave the rounding of the window's
         energy in place of the residual; clamped at 0. With :attr:`input_gain` each model's
         input column is scaled by the gain within that range that fits the window best
-        (:meth:`gain`).
+        (:meth:`gain`); with :attr:`lags` (``u_prev``, the control one transition earlier,
+        is then needed) the control is the best-fitting mix ``u + a (u_prev - u)``; with
+        :attr:`offset` a constant ``d`` joins it.
         """
-        return self._residual(x, dx, u, rows)[0]
+        return self._fit(x, dx, u, rows, u_prev)[0]
 
-    def gain(self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor) -> Tensor:
+    def gain(
+        self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None = None
+    ) -> Tensor:
         """Each model's input gain (B, plants) on the window: 1 without :attr:`input_gain`.
 
         The least-squares scale ``g`` of ``b_p u`` against what the rest of the model leaves,
         ``dx - A_p x - c_p``, clipped to :attr:`input_gain`: an actuator whose gain is off
-        leaves the plant's model its evidence (a window without control: 1).
+        leaves the plant's model its evidence (a window without control: 1). At the lag
+        that fits best (:attr:`lags`).
         """
-        return self._residual(x, dx, u, rows)[1]
+        return self._fit(x, dx, u, rows, u_prev)[1]
+
+    def _fit(
+        self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None
+    ) -> tuple[Tensor, Tensor]:
+        """Residual and gain at the best of :attr:`lags` (the least residual per model)."""
+        if self.lags == (0.0,):
+            return self._residual(x, dx, u, rows)
+        if u_prev is None:
+            raise ValueError("fitting an input lag needs u_prev, the control one step earlier")
+        fits = [self._residual(x, dx, u + a * (u_prev - u), rows) for a in self.lags]
+        rss = torch.stack([f[0] for f in fits])
+        best = rss.argmin(dim=0, keepdim=True)
+        gain = torch.stack([f[1] for f in fits]).gather(0, best)[0]
+        return rss.gather(0, best)[0], gain
 
     def _residual(self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
         n = self.state_dim
@@ -208,7 +260,7 @@ class TransitionModels(nn.Module):
         s_zd = torch.einsum("btk,bti->bik", z, dx) / t
         theta = self.theta(rows).double()
         b = theta[:, :, n]
-        if self.input_gain is not None:  # the model without its input column ...
+        if self.input_gain is not None or self.offset:  # the model without its input column ...
             theta = torch.cat(
                 [theta[:, :, :n], torch.zeros_like(b)[..., None], theta[:, :, n + 1 :]], 2
             )
@@ -216,17 +268,35 @@ class TransitionModels(nn.Module):
         rss = (dx**2).sum(dim=(1, 2)).unsqueeze(1) / t - 2.0 * s_zd.flatten(1) @ theta.flatten(1).T
         rss = rss + s_zz.flatten(1) @ gram.T
         gain = torch.ones_like(rss)
-        if self.input_gain is not None:  # ... and g b_p u fitted to what it leaves
-            vv = s_zz[:, n, n].unsqueeze(1) * (b**2).sum(1)
-            dv = s_zd[:, :, n] @ b.T - torch.einsum("pi,pik,bk->bp", b, theta, s_zz[:, :, n])
-            fitted = (dv / vv.clamp(min=1e-300)).clamp(*self.input_gain)
-            gain = torch.where(vv > 0, fitted, gain)
-            rss = rss - 2.0 * gain * dv + gain**2 * vv
+        if self.input_gain is None and not self.offset:
+            return rss.clamp(min=0.0).to(x.dtype), gain.to(x.dtype)
+
+        # ... and b_p (g u + d) fitted to what it leaves, r = dx - A_p x - c_p: from the
+        # moments mean(b.r u) (dv), mean(b.r) (d1), mean(u^2), mean(u) and |b|^2
+        def mean_br(k: int) -> Tensor:  # mean over the window of (b_p . r) z_k, (B, plants)
+            return s_zd[:, :, k] @ b.T - torch.einsum("pi,pik,bk->bp", b, theta, s_zz[:, :, k])
+
+        bb = (b**2).sum(1)
+        dv = mean_br(n)
+        suu, su = s_zz[:, n, n].unsqueeze(1), s_zz[:, n, n + 1].unsqueeze(1)
+        d1 = mean_br(n + 1) if self.offset else torch.zeros_like(rss)
+        offset = torch.zeros_like(rss)
+        if self.input_gain is not None:
+            var = suu - su**2 if self.offset else suu  # the control's spread the gain fits
+            cov = dv - su * d1 if self.offset else dv
+            fitted = (cov / (var * bb).clamp(min=1e-300)).clamp(*self.input_gain)
+            gain = torch.where(var * bb > 1e-12 * suu.clamp(min=1e-300) * bb, fitted, gain)
+        if self.offset:  # the best offset for that gain (a convex quadratic: exact)
+            offset = torch.where(bb > 0, d1 / bb.clamp(min=1e-300) - gain * su, offset)
+        rss = rss - 2.0 * (gain * dv + offset * d1)
+        rss = rss + bb * (gain**2 * suu + 2.0 * gain * offset * su + offset**2)
         return rss.clamp(min=0.0).to(x.dtype), gain.to(x.dtype)
 
-    def forward(self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor) -> Tensor:
+    def forward(
+        self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None = None
+    ) -> Tensor:
         """Evidence ``-1/2 log(residual + eps)`` (B, plants) of each plant's model."""
-        return -0.5 * torch.log(self.residual(x, dx, u, rows) + self.eps)
+        return -0.5 * torch.log(self.residual(x, dx, u, rows, u_prev) + self.eps)
 
     def fit_loss(self, evidence: Tensor, tag: Tensor) -> Tensor:
         """``1/2 log(1 + residual / eps)`` of the true plant's model, over a batch (>= 0)."""

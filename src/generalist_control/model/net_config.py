@@ -49,7 +49,10 @@ __all__ = ["MODEL_DEFAULTS", "input_width", "law_history", "network_config"]
 #: :mod:`~generalist_control.model.identifier`) and ``transition_input_gain`` (0 or 1, with
 #: ``transition_models``: each model's input column is scaled by the gain within
 #: :data:`~generalist_control.model.identifier.INPUT_GAIN` that fits the window best, so an
-#: actuator whose gain is off leaves the plant its evidence).
+#: actuator whose gain is off leaves the plant its evidence) and ``transition_input_lag`` and
+#: ``transition_input_offset`` (0 or 1, with ``transition_models``: each model's control is
+#: the best-fitting mix with the previous control, :data:`~generalist_control.model.
+#: identifier.INPUT_LAGS`, or gains a fitted constant input disturbance).
 MODEL_DEFAULTS: dict[str, int] = {
     "hidden": 32,
     "heads": 3,
@@ -75,6 +78,8 @@ MODEL_DEFAULTS: dict[str, int] = {
     "transition_identifier": 0,
     "transition_models": 0,
     "transition_input_gain": 0,
+    "transition_input_lag": 0,
+    "transition_input_offset": 0,
 }
 
 #: Keys that are switches (0 or 1) rather than sizes.
@@ -93,6 +98,8 @@ _SWITCHES = (
     "transition_identifier",
     "transition_models",
     "transition_input_gain",
+    "transition_input_lag",
+    "transition_input_offset",
 )
 
 #: Where a network key is set in the training config, when not at ``model.<key>``.
@@ -197,6 +204,18 @@ _NEEDS = (
         "transition_input_gain",
         ("transition_models",),
         "model.transition_input_gain fits an input gain to each plant's one-step model "
+        "(model.transition_models): turn transition_models on, or the switch off",
+    ),
+    (
+        "transition_input_lag",
+        ("transition_models",),
+        "model.transition_input_lag fits an input lag to each plant's one-step model "
+        "(model.transition_models): turn transition_models on, or the switch off",
+    ),
+    (
+        "transition_input_offset",
+        ("transition_models",),
+        "model.transition_input_offset fits an input offset to each plant's one-step model "
         "(model.transition_models): turn transition_models on, or the switch off",
     ),
 )

@@ -222,6 +222,10 @@ class GeneralistNetwork(nn.Module):
         #: Diagnostic only (``evaluation.identity_given``): with ``infer_tag``, the true
         #: plant's row instead of the head's inference. The tag is then given.
         self.identity_given = False
+        #: Training only (``model.identity_noise``, set by the training module): in training
+        #: mode the identifier's copy of each window gets white noise on its plant states,
+        #: its std drawn per window uniform in [0, identity_noise]. The law's copy is clean.
+        self.identity_noise = 0.0
 
     def features(self, state: Tensor, mask: Tensor, ref: Tensor, embedding: Tensor) -> Tensor:
         """Per-step features ``f_k`` (B, history, 2 * hidden) of the encoders.
@@ -296,6 +300,11 @@ class GeneralistNetwork(nn.Module):
 
     def identify(self, state: Tensor, mask: Tensor, ref: Tensor) -> Tensor | None:
         """The identifier's state (B, hidden; + n_tags evidence with transition_models)."""
+        if self.training and self.identity_noise > 0 and self.identifier is not None:
+            n = self.config["state_dim"]
+            std = self.identity_noise * torch.rand(state.shape[0], 1, 1, device=state.device)
+            noise = std * torch.randn_like(state[..., :n]) * mask[..., :n]
+            state = torch.cat([state[..., :n] + noise, state[..., n:]], dim=-1)
         if isinstance(self.identifier, TransitionSet):
             # detached: the models' fit moves their own layer, never the rows the law reads
             rows = self.tag_embedding.weight[: self.config["n_tags"]].detach()

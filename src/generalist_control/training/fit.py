@@ -47,6 +47,7 @@ from generalist_control.training.setup import (
     dagger_callback,
     dagger_plants,
     identity_loss,
+    identity_noise,
     included_plants,
     model_config,
     rest_penalty,
@@ -105,6 +106,7 @@ def _module(cfg: DictConfig, dm: DemoDataModule, meta: dict[str, Any]) -> Imitat
         meta=meta,
         tag_dropout=tag_dropout(cfg),
         identity_loss=identity_loss(cfg),
+        identity_noise=identity_noise(cfg),
     )
     lit.policy.normaliser.fit(**_tensors(dm.train_set))
     linear_init = cfg.model.get("linear_init", "zero")

@@ -47,6 +47,10 @@ class ImitationModule(L.LightningModule):
         Weight of the cross-entropy of the network's plant read-out against the tag, added
         to the training loss (``model.identity_loss``; the network needs ``identity_head``).
         Logged as ``train/identity`` and, its accuracy, ``val/identity_acc``.
+    identity_noise : float
+        Largest std (normalised units) of the white noise on the plant states of the
+        identifier's copy of each training window (``model.identity_noise``; see
+        :attr:`~generalist_control.model.network.GeneralistNetwork.identity_noise`).
 
     Notes
     -----
@@ -66,6 +70,7 @@ class ImitationModule(L.LightningModule):
         meta: dict[str, Any] | None = None,
         tag_dropout: float = 0.0,
         identity_loss: float = 0.0,
+        identity_noise: float = 0.0,
     ) -> None:
         super().__init__()
         # in checkpoints only: the run's params are chosen (logger.params), not the hparams
@@ -75,6 +80,7 @@ class ImitationModule(L.LightningModule):
         self.identity_loss = float(identity_loss)
         if self.identity_loss > 0 and self.policy.net.identity is None:
             raise ValueError("identity_loss > 0 needs a network with identity_head")
+        self.policy.net.identity_noise = float(identity_noise)
         self._val_hits = torch.zeros((), dtype=torch.float64)
         self.rest: RestPenalty | None = None
         tags = (meta or {}).get("tags", {})

@@ -27,6 +27,7 @@ __all__ = [
     "config_callbacks",
     "dagger_callback",
     "identity_loss",
+    "identity_noise",
     "included_plants",
     "model_config",
     "plant_versions",
@@ -85,6 +86,25 @@ def identity_loss(cfg: DictConfig) -> float:
         If it is not a finite number >= 0.
     """
     return require_nonnegative("model.identity_loss", cfg.model.get("identity_loss", 0.0))
+
+
+def identity_noise(cfg: DictConfig) -> float:
+    """``model.identity_noise``, checked: the largest std of the identifier's training noise.
+
+    Raises
+    ------
+    ValueError
+        If it is not a finite number >= 0, or is > 0 on a network without an identifier
+        (``model.control_history`` or ``model.transition_identifier``).
+    """
+    std = require_nonnegative("model.identity_noise", cfg.model.get("identity_noise", 0.0))
+    if std > 0 and not cfg.model.get("control_history", False):
+        raise ValueError(
+            "model.identity_noise perturbs what the identifier reads, and the network has "
+            "none: set model.control_history=true (and model.transition_identifier), or "
+            "identity_noise to 0"
+        )
+    return std
 
 
 def included_plants(cfg: DictConfig) -> list[str] | None:
