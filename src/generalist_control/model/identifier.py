@@ -241,26 +241,34 @@ class TransitionModels(nn.Module):
     def _fit(
         self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None
     ) -> tuple[Tensor, Tensor]:
-        """Residual and gain at the best of :attr:`lags` (the least residual per model)."""
-        if self.lags == (0.0,):
-            return self._residual(x, dx, u, rows)
-        if u_prev is None:
-            raise ValueError("fitting an input lag needs u_prev, the control one step earlier")
-        fits = [self._residual(x, dx, u + a * (u_prev - u), rows) for a in self.lags]
-        rss = torch.stack([f[0] for f in fits])
-        best = rss.argmin(dim=0, keepdim=True)
-        gain = torch.stack([f[1] for f in fits]).gather(0, best)[0]
-        return rss.gather(0, best)[0], gain
+        """Residual and gain (B, plants), at the best of :attr:`lags` (least residual).
 
-    def _residual(self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+        From the window's second moments of ``z = [x; u; 1; u_prev]`` and ``dx``, never
+        forming every plant's prediction (:meth:`predict`). Without a fitted input (gain,
+        lag or offset): ``|dx|^2 - 2 tr(Theta S_zd) + tr(Theta S_zz Theta^T)``. With one,
+        that sum for the model without its input column leaves ``r = dx - A_p x - c_p``,
+        and ``b_p (g u_a + d)`` is fitted to it in closed form; every lag's mix
+        ``u_a = u + a (u_prev - u)`` enters only through the moments of ``b_p . r`` with
+        ``u`` and ``u_prev`` and of the two controls, so all lags cost little more than one.
+        In float64: the sum cancels where a model fits, where float32 would leave the
+        rounding of the window's energy in place of the residual; clamped at 0.
+        """
         n = self.state_dim
-        z = torch.cat([x, u.unsqueeze(-1), torch.ones_like(u).unsqueeze(-1)], dim=-1).double()
+        fitted_input = self.input_gain is not None or self.offset or self.lags != (0.0,)
+        cols = [x, u.unsqueeze(-1), torch.ones_like(u).unsqueeze(-1)]
+        if self.lags != (0.0,):
+            if u_prev is None:
+                raise ValueError("fitting an input lag needs u_prev, the control one step earlier")
+            cols.append(u_prev.unsqueeze(-1))
+        z = torch.cat(cols, dim=-1).double()
         dx, t = dx.double(), z.shape[1]
         s_zz = torch.einsum("btk,btl->bkl", z, z) / t
         s_zd = torch.einsum("btk,bti->bik", z, dx) / t
         theta = self.theta(rows).double()
         b = theta[:, :, n]
-        if self.input_gain is not None or self.offset:  # the model without its input column ...
+        extra = z.shape[-1] - (n + 2)  # the u_prev column: no model reads it directly
+        theta = torch.cat([theta, theta.new_zeros(theta.shape[0], n, extra)], 2)
+        if fitted_input:  # the model without its input column ...
             theta = torch.cat(
                 [theta[:, :, :n], torch.zeros_like(b)[..., None], theta[:, :, n + 1 :]], 2
             )
@@ -268,29 +276,38 @@ class TransitionModels(nn.Module):
         rss = (dx**2).sum(dim=(1, 2)).unsqueeze(1) / t - 2.0 * s_zd.flatten(1) @ theta.flatten(1).T
         rss = rss + s_zz.flatten(1) @ gram.T
         gain = torch.ones_like(rss)
-        if self.input_gain is None and not self.offset:
+        if not fitted_input:
             return rss.clamp(min=0.0).to(x.dtype), gain.to(x.dtype)
 
-        # ... and b_p (g u + d) fitted to what it leaves, r = dx - A_p x - c_p: from the
-        # moments mean(b.r u) (dv), mean(b.r) (d1), mean(u^2), mean(u) and |b|^2
         def mean_br(k: int) -> Tensor:  # mean over the window of (b_p . r) z_k, (B, plants)
             return s_zd[:, :, k] @ b.T - torch.einsum("pi,pik,bk->bp", b, theta, s_zz[:, :, k])
 
+        # ... and b_p (g u_a + d) fitted to what it leaves, per lag a (leading axis)
+        lag = torch.tensor(self.lags, dtype=rss.dtype, device=rss.device).view(-1, 1, 1)
         bb = (b**2).sum(1)
-        dv = mean_br(n)
-        suu, su = s_zz[:, n, n].unsqueeze(1), s_zz[:, n, n + 1].unsqueeze(1)
+        dv, suu, su = mean_br(n), s_zz[:, n, n].unsqueeze(1), s_zz[:, n, n + 1].unsqueeze(1)
+        if extra:  # u_a = (1 - a) u + a u_prev
+            last = n + 2
+            dv = (1 - lag) * dv + lag * mean_br(last)
+            suu = (1 - lag) ** 2 * suu + lag**2 * s_zz[:, last, last].unsqueeze(1)
+            suu = suu + 2 * lag * (1 - lag) * s_zz[:, n, last].unsqueeze(1)
+            su = (1 - lag) * su + lag * s_zz[:, last, n + 1].unsqueeze(1)
+        else:
+            dv, suu, su = dv.unsqueeze(0), suu.unsqueeze(0), su.unsqueeze(0)
         d1 = mean_br(n + 1) if self.offset else torch.zeros_like(rss)
-        offset = torch.zeros_like(rss)
+        gain = torch.ones_like(dv)
+        offset = torch.zeros_like(dv)
         if self.input_gain is not None:
             var = suu - su**2 if self.offset else suu  # the control's spread the gain fits
             cov = dv - su * d1 if self.offset else dv
-            fitted = (cov / (var * bb).clamp(min=1e-300)).clamp(*self.input_gain)
-            gain = torch.where(var * bb > 1e-12 * suu.clamp(min=1e-300) * bb, fitted, gain)
+            g = (cov / (var * bb).clamp(min=1e-300)).clamp(*self.input_gain)
+            gain = torch.where(var * bb > 1e-12 * suu.clamp(min=1e-300) * bb, g, gain)
         if self.offset:  # the best offset for that gain (a convex quadratic: exact)
             offset = torch.where(bb > 0, d1 / bb.clamp(min=1e-300) - gain * su, offset)
-        rss = rss - 2.0 * (gain * dv + offset * d1)
-        rss = rss + bb * (gain**2 * suu + 2.0 * gain * offset * su + offset**2)
-        return rss.clamp(min=0.0).to(x.dtype), gain.to(x.dtype)
+        fit = rss - 2.0 * (gain * dv + offset * d1)
+        fit = (fit + bb * (gain**2 * suu + 2.0 * gain * offset * su + offset**2)).clamp(min=0.0)
+        best = fit.argmin(dim=0, keepdim=True)  # the lag that fits each model best
+        return fit.gather(0, best)[0].to(x.dtype), gain.gather(0, best)[0].to(x.dtype)
 
     def forward(
         self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None = None
