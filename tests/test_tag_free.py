@@ -12,7 +12,7 @@ import torch
 from omegaconf import OmegaConf, open_dict
 
 from generalist_control.evaluate import run as evaluate_run
-from generalist_control.model.identifier import INPUT_GAIN, TransitionSet
+from generalist_control.model.identifier import INPUT_GAIN, INPUT_LAGS, TransitionSet
 from generalist_control.model.network import GeneralistNetwork, network_config
 from generalist_control.model.policy import Policy, load_policy
 from generalist_control.training.fit import train
@@ -196,6 +196,9 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
         "model.infer_tag=false",
         "model.transition_models=false",
         "model.transition_input_gain=false",
+        "model.transition_input_lag=false",
+        "model.transition_input_offset=false",
+        "model.identity_noise=0.0",
         "model.tag_dropout=0.5",
     )
     cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, tmp_path / "tf", mlflow_uri, *switch))
@@ -226,10 +229,17 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
             "model.transition_identifier=false",
             "model.transition_models=false",
             "model.transition_input_gain=false",
+            "model.transition_input_lag=false",
+            "model.transition_input_offset=false",
         ),
         (),
+        (
+            "model.transition_input_lag=true",
+            "model.transition_input_offset=true",
+            "model.identity_noise=0.02",
+        ),
     ],
-    ids=["lstm", "transitions"],
+    ids=["lstm", "transitions", "fitted_lag_offset_noise"],
 )
 def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
     tiny_data_dir, tmp_path, mlflow_uri, identifier
@@ -245,13 +255,21 @@ def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
     policy, _ = load_policy(objects["policy_path"])
     assert policy.config["tag_free"] == policy.config["control_history"] == 1
     assert policy.net.identifier is not None and policy.net.state_encoder_1[0].in_features == 5
-    kind = torch.nn.LSTM if identifier else TransitionSet
+    lstm = "model.transition_identifier=false" in identifier
+    kind = torch.nn.LSTM if lstm else TransitionSet
     assert isinstance(policy.net.identifier, kind)
-    if not identifier:  # the stage's plant models: trained away from their zero start
+    if not lstm:  # the stage's plant models: trained away from their zero start
         assert policy.net.identifier.models.params.weight.abs().max() > 0
         assert policy.net.identifier.models.input_gain == INPUT_GAIN  # the stage's fitted gain
+    fitted = "model.transition_input_lag=true" in identifier
+    if not lstm:
+        models = policy.net.identifier.models
+        assert models.lags == (INPUT_LAGS if fitted else (0.0,)) and models.offset == fitted
+    # the training noise reached the identifier of the trained network (never stored)
+    trained = objects["trainer"].lightning_module.policy.net
+    assert trained.identity_noise == (0.02 if fitted else 0.0) and policy.net.identity_noise == 0
     assert (policy.config["history"], policy.config["law_history"]) == (
-        (8, 0) if identifier else (24, 8)
+        (8, 0) if lstm else (24, 8)
     )
     (cb,) = [c for c in objects["trainer"].callbacks if type(c).__name__ == "DAggerCallback"]
     assert cb.done == 1 and cb.history[0]["windows"] > 0  # a round after the first epoch
@@ -527,6 +545,7 @@ def test_identity_head_is_built_from_the_weight_only():
     assert stage["identity_head"] == stage["infer_tag"] == 1
     off = ("experiment=tag_free", "model.identity_loss=0", "model.infer_tag=false")
     off += ("model.transition_models=false", "model.transition_input_gain=false")
+    off += ("model.transition_input_lag=false", "model.transition_input_offset=false")
     assert model_config(compose_cfg(*off))["identity_head"] == 0
     with pytest.raises(ValueError, match="no identity head"):
         GeneralistNetwork().identity_logits(torch.zeros(2, 32))

@@ -38,7 +38,7 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor, nn
 
-__all__ = ["INPUT_GAIN", "INPUT_LAGS", "TransitionModels", "TransitionSet"]
+__all__ = ["INPUT_GAIN", "INPUT_LAGS", "TransitionModels", "TransitionSet", "noisy_states"]
 
 #: The range of an actuator's gain the one-step models fit (``model.transition_input_gain``):
 #: +-25 %, the range the plant variants draw their parameters in (``data.variants.range``).
@@ -48,6 +48,17 @@ INPUT_GAIN = (0.75, 1.25)
 #: (``model.transition_input_lag``): from none to 0.6, which a first-order actuator of time
 #: constant about the sample period delivers.
 INPUT_LAGS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+
+
+def noisy_states(state: Tensor, mask: Tensor, std: float, state_dim: int) -> Tensor:
+    """Windows with white noise on their unpadded plant states (``model.identity_noise``).
+
+    Each window's std is drawn uniform in ``[0, std]``; the channels after the
+    ``state_dim`` plant states (the integral, the previous control) are left as they are.
+    """
+    scale = std * torch.rand(state.shape[0], 1, 1, device=state.device, dtype=state.dtype)
+    noise = scale * torch.randn_like(state[..., :state_dim]) * mask[..., :state_dim]
+    return torch.cat([state[..., :state_dim] + noise, state[..., state_dim:]], dim=-1)
 
 
 class TransitionSet(nn.Module):
@@ -275,18 +286,29 @@ class TransitionModels(nn.Module):
         gram = torch.einsum("pik,pil->pkl", theta, theta).flatten(1)
         rss = (dx**2).sum(dim=(1, 2)).unsqueeze(1) / t - 2.0 * s_zd.flatten(1) @ theta.flatten(1).T
         rss = rss + s_zz.flatten(1) @ gram.T
-        gain = torch.ones_like(rss)
         if not fitted_input:
-            return rss.clamp(min=0.0).to(x.dtype), gain.to(x.dtype)
+            return rss.clamp(min=0.0).to(x.dtype), torch.ones_like(rss).to(x.dtype)
+        fit, gain = self._fit_input(rss, s_zz, s_zd, theta, b)
+        return fit.to(x.dtype), gain.to(x.dtype)
+
+    def _fit_input(
+        self, rss: Tensor, s_zz: Tensor, s_zd: Tensor, theta: Tensor, b: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """``b_p (g u_a + d)`` fitted to what the model without its input column leaves.
+
+        ``rss`` (B, plants): that model's mean squared residual; ``theta`` without its input
+        column, ``b`` (plants, state_dim) the column. Per lag (a leading axis), then the
+        lag with the least residual: the residual and the gain (B, plants), float64.
+        """
+        n = self.state_dim
 
         def mean_br(k: int) -> Tensor:  # mean over the window of (b_p . r) z_k, (B, plants)
             return s_zd[:, :, k] @ b.T - torch.einsum("pi,pik,bk->bp", b, theta, s_zz[:, :, k])
 
-        # ... and b_p (g u_a + d) fitted to what it leaves, per lag a (leading axis)
         lag = torch.tensor(self.lags, dtype=rss.dtype, device=rss.device).view(-1, 1, 1)
         bb = (b**2).sum(1)
         dv, suu, su = mean_br(n), s_zz[:, n, n].unsqueeze(1), s_zz[:, n, n + 1].unsqueeze(1)
-        if extra:  # u_a = (1 - a) u + a u_prev
+        if s_zz.shape[-1] > n + 2:  # u_a = (1 - a) u + a u_prev, u_prev the last column
             last = n + 2
             dv = (1 - lag) * dv + lag * mean_br(last)
             suu = (1 - lag) ** 2 * suu + lag**2 * s_zz[:, last, last].unsqueeze(1)
@@ -295,8 +317,7 @@ class TransitionModels(nn.Module):
         else:
             dv, suu, su = dv.unsqueeze(0), suu.unsqueeze(0), su.unsqueeze(0)
         d1 = mean_br(n + 1) if self.offset else torch.zeros_like(rss)
-        gain = torch.ones_like(dv)
-        offset = torch.zeros_like(dv)
+        gain, offset = torch.ones_like(dv), torch.zeros_like(dv)
         if self.input_gain is not None:
             var = suu - su**2 if self.offset else suu  # the control's spread the gain fits
             cov = dv - su * d1 if self.offset else dv
@@ -304,10 +325,12 @@ class TransitionModels(nn.Module):
             gain = torch.where(var * bb > 1e-12 * suu.clamp(min=1e-300) * bb, g, gain)
         if self.offset:  # the best offset for that gain (a convex quadratic: exact)
             offset = torch.where(bb > 0, d1 / bb.clamp(min=1e-300) - gain * su, offset)
-        fit = rss - 2.0 * (gain * dv + offset * d1)
-        fit = (fit + bb * (gain**2 * suu + 2.0 * gain * offset * su + offset**2)).clamp(min=0.0)
+        # g^2 (suu |b|^2) in this order, and the offset's terms added as exact zeros without
+        # it: the gain-only fit keeps the bits of the models before the lag and the offset
+        fit = rss - 2.0 * (gain * dv + offset * d1) + gain**2 * (suu * bb)
+        fit = (fit + bb * (2.0 * gain * offset * su + offset**2)).clamp(min=0.0)
         best = fit.argmin(dim=0, keepdim=True)  # the lag that fits each model best
-        return fit.gather(0, best)[0].to(x.dtype), gain.gather(0, best)[0].to(x.dtype)
+        return fit.gather(0, best)[0], gain.gather(0, best)[0]
 
     def forward(
         self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None = None

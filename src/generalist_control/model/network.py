@@ -13,14 +13,10 @@ One forward pass maps a window of normalised inputs to ``horizon`` normalised co
 3. *Mixture of experts*: ``experts`` three-layer MLPs (ReLU, LayerNorm after each hidden
    layer) each give ``horizon`` controls; a softmax gate on ``z_att`` weighs them.
 
-Normalisation is not part of this module: :class:`generalist_control.model.policy.Policy`
-wraps it with the :class:`~generalist_control.model.normalise.Normaliser` fitted on the training
-split, and that wrapper is what training, evaluation and deployment call.
-
-Choices where the paper is silent or inconsistent are documented in ``docs/training.md``:
-the per-head size is ``d_k = ceil(2 d_h / N_h)`` (so ``N_h = 3`` works at any ``d_h``, with
-``W_O`` mapping ``N_h d_k`` back to ``2 d_h``), and the tag enters as a one-hot vector,
-implemented as an embedding lookup (the same function as ``W_1 onehot + b_1``).
+Normalisation is not here: :class:`~generalist_control.model.policy.Policy` wraps the network
+with the fitted normaliser, and training, evaluation and deployment call that wrapper.
+Where the paper is silent (``docs/training.md``): ``d_k = ceil(2 d_h / N_h)`` per head
+(``W_O`` maps ``N_h d_k`` back to ``2 d_h``), and the one-hot tag is an embedding lookup.
 """
 
 from __future__ import annotations
@@ -32,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from generalist_control.model.identifier import TransitionSet
+from generalist_control.model.identifier import TransitionSet, noisy_states
 from generalist_control.model.net_config import (
     MODEL_DEFAULTS,
     input_width,
@@ -222,9 +218,7 @@ class GeneralistNetwork(nn.Module):
         #: Diagnostic only (``evaluation.identity_given``): with ``infer_tag``, the true
         #: plant's row instead of the head's inference. The tag is then given.
         self.identity_given = False
-        #: Training only (``model.identity_noise``, set by the training module): in training
-        #: mode the identifier's copy of each window gets white noise on its plant states,
-        #: its std drawn per window uniform in [0, identity_noise]. The law's copy is clean.
+        #: Training mode only: the identifier's noise (``model.identity_noise``, set in training).
         self.identity_noise = 0.0
 
     def features(self, state: Tensor, mask: Tensor, ref: Tensor, embedding: Tensor) -> Tensor:
@@ -300,11 +294,8 @@ class GeneralistNetwork(nn.Module):
 
     def identify(self, state: Tensor, mask: Tensor, ref: Tensor) -> Tensor | None:
         """The identifier's state (B, hidden; + n_tags evidence with transition_models)."""
-        if self.training and self.identity_noise > 0 and self.identifier is not None:
-            n = self.config["state_dim"]
-            std = self.identity_noise * torch.rand(state.shape[0], 1, 1, device=state.device)
-            noise = std * torch.randn_like(state[..., :n]) * mask[..., :n]
-            state = torch.cat([state[..., :n] + noise, state[..., n:]], dim=-1)
+        if self.training and self.identity_noise > 0:  # the law's copy stays clean
+            state = noisy_states(state, mask, self.identity_noise, self.config["state_dim"])
         if isinstance(self.identifier, TransitionSet):
             # detached: the models' fit moves their own layer, never the rows the law reads
             rows = self.tag_embedding.weight[: self.config["n_tags"]].detach()
