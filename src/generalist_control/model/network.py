@@ -21,13 +21,12 @@ Where the paper is silent (``docs/training.md``): ``d_k = ceil(2 d_h / N_h)`` pe
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
+from generalist_control.model.blocks import ExpertMLP, SummaryAttention, mlp
 from generalist_control.model.identifier import TransitionSet, noisy_states
 from generalist_control.model.net_config import (
     MODEL_DEFAULTS,
@@ -45,61 +44,6 @@ __all__ = [
     "count_parameters",
     "input_width",
 ]
-
-
-def _mlp(n_in: int, n_hidden: int, n_out: int) -> nn.Sequential:
-    """Two-layer encoder ``W_2 relu(W_1 x + b_1) + b_2`` (paper, Eq. f_1..f_4)."""
-    return nn.Sequential(nn.Linear(n_in, n_hidden), nn.ReLU(), nn.Linear(n_hidden, n_out))
-
-
-class SummaryAttention(nn.Module):
-    """Multi-head scaled dot-product attention with a residual: ``z + W_O [a_1 .. a_H]``.
-
-    Parameters
-    ----------
-    dim : int
-        Token size (``2 d_h`` in the paper).
-    heads : int
-        ``N_h``. Each head has ``d_k = ceil(dim / heads)``; the concatenated heads
-        (``heads * d_k``, which may exceed ``dim``) are projected back to ``dim`` by ``W_O``.
-
-    Notes
-    -----
-    As in the paper the tokens are the temporal summary ``z`` alone (one token per window),
-    so the softmax over a single key is identically one and the block computes
-    ``z + W_O V z``; the query and key projections are kept for fidelity with the paper
-    (and its parameter count), but receive zero gradient (up to rounding).
-    """
-
-    def __init__(self, dim: int, heads: int) -> None:
-        super().__init__()
-        self.heads = heads
-        self.d_k = math.ceil(dim / heads)
-        inner = heads * self.d_k
-        self.qkv = nn.Linear(dim, 3 * inner)
-        self.out = nn.Linear(inner, dim)
-
-    def forward(self, tokens: Tensor) -> Tensor:
-        """Attend over ``tokens`` (B, T, dim); return the same shape."""
-        B, T, _ = tokens.shape
-        qkv = self.qkv(tokens).view(B, T, 3, self.heads, self.d_k).permute(2, 0, 3, 1, 4)
-        a = F.scaled_dot_product_attention(qkv[0], qkv[1], qkv[2])  # (B, heads, T, d_k)
-        return tokens + self.out(a.transpose(1, 2).reshape(B, T, self.heads * self.d_k))
-
-
-class ExpertMLP(nn.Sequential):
-    """One expert: three linear layers, ReLU then LayerNorm after each hidden layer."""
-
-    def __init__(self, n_in: int, n_hidden: int, n_out: int) -> None:
-        super().__init__(
-            nn.Linear(n_in, n_hidden),
-            nn.ReLU(),
-            nn.LayerNorm(n_hidden),
-            nn.Linear(n_hidden, n_hidden),
-            nn.ReLU(),
-            nn.LayerNorm(n_hidden),
-            nn.Linear(n_hidden, n_out),
-        )
 
 
 #: The initial weight of each plant's evidence in its logit (``model.transition_models``).
@@ -134,9 +78,9 @@ class GeneralistNetwork(nn.Module):
         # paths see the law's own state [x; z]. With the control in their input the
         # closed-loop score collapsed in training (measured, docs/training.md).
         law_width = width - c["control_history"]
-        self.state_encoder_1 = _mlp(law_width, d, e)
-        self.state_encoder_2 = _mlp(law_width, d, e)
-        self.ref_encoder = _mlp(1, d, e)
+        self.state_encoder_1 = mlp(law_width, d, e)
+        self.state_encoder_2 = mlp(law_width, d, e)
+        self.ref_encoder = mlp(1, d, e)
         # one-hot tag -> W_1 onehot + b_1 is a row lookup: an embedding of size d. Tag-free:
         # one shared row (the network never learns who is who); with unknown_tag one more
         # row, index n_tags, for a withheld tag (trained by tag dropout).
@@ -220,6 +164,8 @@ class GeneralistNetwork(nn.Module):
         self.identity_given = False
         #: Training mode only: the identifier's noise (``model.identity_noise``, set in training).
         self.identity_noise = 0.0
+        #: The last :meth:`identify`'s evidence on clean windows under identity noise, or None.
+        self.fit_evidence: Tensor | None = None
 
     def features(self, state: Tensor, mask: Tensor, ref: Tensor, embedding: Tensor) -> Tensor:
         """Per-step features ``f_k`` (B, history, 2 * hidden) of the encoders.
@@ -294,13 +240,18 @@ class GeneralistNetwork(nn.Module):
 
     def identify(self, state: Tensor, mask: Tensor, ref: Tensor) -> Tensor | None:
         """The identifier's state (B, hidden; + n_tags evidence with transition_models)."""
-        if self.training and self.identity_noise > 0:  # the law's copy stays clean
-            state = noisy_states(state, mask, self.identity_noise, self.config["state_dim"])
+        noise = self.identity_noise if self.training else 0.0  # the law's copy stays clean
+        self.fit_evidence = None
         if isinstance(self.identifier, TransitionSet):
             # detached: the models' fit moves their own layer, never the rows the law reads
             rows = self.tag_embedding.weight[: self.config["n_tags"]].detach()
             models = self.identifier.models is not None
-            return self.identifier(state, mask, rows if models else None)
+            ident, self.fit_evidence = self.identifier.read(
+                state, mask, rows if models else None, noise
+            )
+            return ident
+        if noise > 0:
+            state = noisy_states(state, mask, noise, self.config["state_dim"])
         if self.identifier is not None:
             seq = torch.cat([state * mask, ref.unsqueeze(-1)], dim=-1)
             return self.identifier(seq)[1][0][-1]
@@ -342,7 +293,8 @@ class GeneralistNetwork(nn.Module):
         models = getattr(self.identifier, "models", None)
         if models is None:
             return code.new_zeros(())
-        return models.fit_loss(code[:, -self.config["n_tags"] :], tag)
+        clean = self.fit_evidence  # the clean windows' evidence under identity noise
+        return models.fit_loss(code[:, -self.config["n_tags"] :] if clean is None else clean, tag)
 
     def tag_index(self, tag: Tensor) -> Tensor:
         """The embedding row of each tag: row 0 for every plant when ``tag_free``.
