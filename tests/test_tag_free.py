@@ -237,6 +237,7 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
             "model.transition_input_lag=true",
             "model.transition_input_offset=true",
             "model.identity_noise=0.02",
+            "model.identity_noise_clean_fit=true",
         ),
     ],
     ids=["lstm", "transitions", "fitted_lag_offset_noise"],
@@ -268,6 +269,7 @@ def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
     # the training noise reached the identifier of the trained network (never stored)
     trained = objects["trainer"].lightning_module.policy.net
     assert trained.identity_noise == (0.02 if fitted else 0.0) and policy.net.identity_noise == 0
+    assert trained.identity_clean_fit == fitted and not policy.net.identity_clean_fit
     assert (policy.config["history"], policy.config["law_history"]) == (
         (8, 0) if lstm else (24, 8)
     )

@@ -81,6 +81,7 @@ class ModelSchema:
     transition_input_lag: bool = MISSING
     transition_input_offset: bool = MISSING
     identity_noise: float = MISSING
+    identity_noise_clean_fit: bool = MISSING
     optimizer: dict[str, Any] = MISSING
     scheduler: dict[str, Any] | None = None
 

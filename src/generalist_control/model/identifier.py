@@ -159,21 +159,26 @@ class TransitionSet(nn.Module):
         return self.models(x, dx, u, rows, u_prev=state[:, :-1, -1], frozen=frozen)
 
     def read(
-        self, state: Tensor, mask: Tensor, rows: Tensor | None, noise: float = 0.0
+        self,
+        state: Tensor,
+        mask: Tensor,
+        rows: Tensor | None,
+        noise: float = 0.0,
+        clean_fit: bool = False,
     ) -> tuple[Tensor, Tensor | None]:
         """The identifier's state of windows, and the evidence its models are fitted to.
 
         With ``noise`` > 0 (``model.identity_noise``, training only) the identifier reads
-        windows with white noise on their plant states (:func:`noisy_states`) while its
-        models are fitted to the clean ones: the second value is their clean evidence
-        (:meth:`TransitionModels.fit_loss`), and the noisy evidence passes them no gradient,
-        so noise in the regressors cannot shrink the models (errors in variables). Else
-        None: the models' fit reads the evidence in the first value.
+        windows with white noise on their plant states (:func:`noisy_states`). With
+        ``clean_fit`` its models are fitted to the clean ones: the second value is their
+        clean evidence (:meth:`TransitionModels.fit_loss`), and the noisy evidence passes
+        them no gradient, so noise in the regressors cannot shrink them (errors in
+        variables). Else None: the models' fit reads the evidence in the first value.
         """
         if noise <= 0:
             return self(state, mask, rows), None
         seen = noisy_states(state, mask, noise, self.state_dim)
-        if self.models is None:
+        if self.models is None or not clean_fit:
             return self(seen, mask, rows), None
         return self(seen, mask, rows, frozen=True), self.evidence(state, mask, rows)
 

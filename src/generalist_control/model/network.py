@@ -164,7 +164,9 @@ class GeneralistNetwork(nn.Module):
         self.identity_given = False
         #: Training mode only: the identifier's noise (``model.identity_noise``, set in training).
         self.identity_noise = 0.0
-        #: The last :meth:`identify`'s evidence on clean windows under identity noise, or None.
+        #: Under that noise, fit the one-step models to the clean windows (set in training).
+        self.identity_clean_fit = False
+        #: The last :meth:`identify`'s evidence on clean windows (``identity_clean_fit``).
         self.fit_evidence: Tensor | None = None
 
     def features(self, state: Tensor, mask: Tensor, ref: Tensor, embedding: Tensor) -> Tensor:
@@ -247,7 +249,7 @@ class GeneralistNetwork(nn.Module):
             rows = self.tag_embedding.weight[: self.config["n_tags"]].detach()
             models = self.identifier.models is not None
             ident, self.fit_evidence = self.identifier.read(
-                state, mask, rows if models else None, noise
+                state, mask, rows if models else None, noise, self.identity_clean_fit
             )
             return ident
         if noise > 0:

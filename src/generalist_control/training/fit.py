@@ -46,6 +46,7 @@ from generalist_control.training.setup import (
     config_callbacks,
     dagger_callback,
     dagger_plants,
+    identity_clean_fit,
     identity_loss,
     identity_noise,
     included_plants,
@@ -107,6 +108,7 @@ def _module(cfg: DictConfig, dm: DemoDataModule, meta: dict[str, Any]) -> Imitat
         tag_dropout=tag_dropout(cfg),
         identity_loss=identity_loss(cfg),
         identity_noise=identity_noise(cfg),
+        identity_clean_fit=identity_clean_fit(cfg),
     )
     lit.policy.normaliser.fit(**_tensors(dm.train_set))
     linear_init = cfg.model.get("linear_init", "zero")

@@ -51,6 +51,10 @@ class ImitationModule(L.LightningModule):
         Largest std (normalised units) of the white noise on the plant states of the
         identifier's copy of each training window (``model.identity_noise``; see
         :attr:`~generalist_control.model.network.GeneralistNetwork.identity_noise`).
+    identity_clean_fit : bool
+        Under that noise, fit the one-step models to the clean windows
+        (``model.identity_noise_clean_fit``; :meth:`TransitionSet.read
+        <generalist_control.model.identifier.TransitionSet.read>`).
 
     Notes
     -----
@@ -71,6 +75,7 @@ class ImitationModule(L.LightningModule):
         tag_dropout: float = 0.0,
         identity_loss: float = 0.0,
         identity_noise: float = 0.0,
+        identity_clean_fit: bool = False,
     ) -> None:
         super().__init__()
         # in checkpoints only: the run's params are chosen (logger.params), not the hparams
@@ -81,6 +86,7 @@ class ImitationModule(L.LightningModule):
         if self.identity_loss > 0 and self.policy.net.identity is None:
             raise ValueError("identity_loss > 0 needs a network with identity_head")
         self.policy.net.identity_noise = float(identity_noise)
+        self.policy.net.identity_clean_fit = bool(identity_clean_fit)
         self._val_hits = torch.zeros((), dtype=torch.float64)
         self.rest: RestPenalty | None = None
         tags = (meta or {}).get("tags", {})

@@ -26,6 +26,7 @@ __all__ = [
     "closed_loop_validation",
     "config_callbacks",
     "dagger_callback",
+    "identity_clean_fit",
     "identity_loss",
     "identity_noise",
     "included_plants",
@@ -105,6 +106,25 @@ def identity_noise(cfg: DictConfig) -> float:
             "identity_noise to 0"
         )
     return std
+
+
+def identity_clean_fit(cfg: DictConfig) -> bool:
+    """``model.identity_noise_clean_fit``, checked: fit the one-step models to clean windows.
+
+    Raises
+    ------
+    ValueError
+        If it is on without ``model.identity_noise`` > 0 or without
+        ``model.transition_models``: there is no noise to keep out of no models.
+    """
+    on = bool(cfg.model.get("identity_noise_clean_fit", False))
+    if on and not (identity_noise(cfg) > 0 and cfg.model.get("transition_models", False)):
+        raise ValueError(
+            "model.identity_noise_clean_fit keeps the identifier's training noise out of the "
+            "one-step models' fit: it needs model.identity_noise > 0 and "
+            "model.transition_models=true, or set it to false"
+        )
+    return on
 
 
 def included_plants(cfg: DictConfig) -> list[str] | None:
