@@ -50,6 +50,8 @@ MODEL_GROUP_KEYS = set(MODEL_DEFAULTS) - {
     "unknown_tag",
     "identity_head",
 }
+#: Boolean keys of the ``model`` group that set training, not the network.
+TRAINING_SWITCHES = {"identity_noise_clean_fit"}
 
 
 def _env() -> dict[str, str]:
@@ -93,7 +95,7 @@ def test_the_schema_types_exactly_the_model_group():
         assert {"optional /gc_schema@_here_": "model"} in spec["defaults"], path
         assert set(spec) - {"defaults"} == names, path
     sizes = {f.name for f in dataclasses.fields(ModelSchema) if f.type in ("int", "bool")}
-    assert sizes == MODEL_GROUP_KEYS
+    assert sizes == MODEL_GROUP_KEYS | TRAINING_SWITCHES
     cfg = compose_cfg()
     assert OmegaConf.get_type(cfg.model) is ModelSchema
     assert cfg.model.hidden == 32 and cfg.model.integral is True

@@ -168,12 +168,10 @@ class TransitionSet(nn.Module):
     ) -> tuple[Tensor, Tensor | None]:
         """The identifier's state of windows, and the evidence its models are fitted to.
 
-        With ``noise`` > 0 (``model.identity_noise``, training only) the identifier reads
-        windows with white noise on their plant states (:func:`noisy_states`). With
-        ``clean_fit`` its models are fitted to the clean ones: the second value is their
-        clean evidence (:meth:`TransitionModels.fit_loss`), and the noisy evidence passes
-        them no gradient, so noise in the regressors cannot shrink them (errors in
-        variables). Else None: the models' fit reads the evidence in the first value.
+        ``noise`` > 0: it reads windows with noise on their plant states (:func:`noisy_states`),
+        and with ``clean_fit`` the second value is its models' evidence on the clean ones,
+        to fit them to (:meth:`TransitionModels.fit_loss`; the noisy evidence then passes
+        them no gradient). Else None: the fit reads the evidence in the first value.
         """
         if noise <= 0:
             return self(state, mask, rows), None
@@ -392,10 +390,7 @@ class TransitionModels(nn.Module):
         u_prev: Tensor | None = None,
         frozen: bool = False,
     ) -> Tensor:
-        """Evidence ``-1/2 log(residual + eps)`` (B, plants) of each plant's model.
-
-        ``frozen``: no gradient to the models' layer (:meth:`theta`).
-        """
+        """Evidence ``-1/2 log(residual + eps)`` (B, plants); ``frozen``: see :meth:`theta`."""
         residual = self._fit(x, dx, u, rows, u_prev, frozen)[0]
         return -0.5 * torch.log(residual + self.eps)
 
