@@ -389,9 +389,7 @@ def test_identity_noise_reaches_only_the_identifier_and_only_in_training():
     tag = torch.zeros(64, dtype=torch.long)
     seen: list[torch.Tensor] = []
     forward = net.identifier.forward
-    net.identifier.forward = lambda s, m, rows=None, frozen=False: (
-        seen.append(s) or forward(s, m, rows, frozen)
-    )
+    net.identifier.forward = lambda s, m, rows=None: seen.append(s) or forward(s, m, rows)
     net.eval()
     clean = net(state, mask, ref, tag)[0]
     net.identity_noise = 0.5

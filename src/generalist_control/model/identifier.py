@@ -124,14 +124,11 @@ class TransitionSet(nn.Module):
         order = mask[:, 1:, :n]
         return torch.cat([x[:, :-1], x[:, 1:] - x[:, :-1], u, order], dim=-1)
 
-    def forward(
-        self, state: Tensor, mask: Tensor, rows: Tensor | None = None, frozen: bool = False
-    ) -> Tensor:
+    def forward(self, state: Tensor, mask: Tensor, rows: Tensor | None = None) -> Tensor:
         """The identifier's state (B, hidden) of windows (B, history, width).
 
         With :attr:`models`, the plants' evidence (B, plants) follows it: (B, hidden +
-        plants); ``rows`` (plants, embedding) are the plants' embedding rows. ``frozen``:
-        the evidence passes no gradient to the models' layer (:meth:`read`).
+        plants); ``rows`` (plants, embedding) are the plants' embedding rows.
         """
         if state.shape[1] < 2:
             raise ValueError("the transition identifier needs a window of at least 2 samples")
@@ -139,14 +136,13 @@ class TransitionSet(nn.Module):
         code = torch.tanh(self.rho(self.phi(steps).mean(dim=1)))
         if self.models is None:
             return code
-        return torch.cat([code, self.evidence(state, mask, rows, frozen, steps)], dim=-1)
+        return torch.cat([code, self.evidence(state, mask, rows, steps)], dim=-1)
 
     def evidence(
         self,
         state: Tensor,
         mask: Tensor,
         rows: Tensor | None,
-        frozen: bool = False,
         steps: Tensor | None = None,
     ) -> Tensor:
         """Each plant's evidence (B, plants) on windows (B, history, width) (:attr:`models`)."""
@@ -156,7 +152,7 @@ class TransitionSet(nn.Module):
         n = self.state_dim
         x, dx, u = steps[..., :n], steps[..., n : 2 * n], steps[..., 2 * n]
         # the control that took sample j - 1 to j: the channel at sample j
-        return self.models(x, dx, u, rows, u_prev=state[:, :-1, -1], frozen=frozen)
+        return self.models(x, dx, u, rows, u_prev=state[:, :-1, -1])
 
     def read(
         self,
@@ -176,9 +172,13 @@ class TransitionSet(nn.Module):
         if noise <= 0:
             return self(state, mask, rows), None
         seen = noisy_states(state, mask, noise, self.state_dim)
-        if self.models is None or not clean_fit:
-            return self(seen, mask, rows), None
-        return self(seen, mask, rows, frozen=True), self.evidence(state, mask, rows)
+        ident = self(seen, mask, rows)
+        if self.models is None or not clean_fit or rows is None:
+            return ident, None
+        # the noisy evidence, of data and (detached) rows, keeps no gradient to the models
+        plants = rows.shape[0]
+        ident = torch.cat([ident[:, :-plants], ident[:, -plants:].detach()], dim=-1)
+        return ident, self.evidence(state, mask, rows)
 
 
 class TransitionModels(nn.Module):
@@ -237,17 +237,10 @@ class TransitionModels(nn.Module):
         nn.init.zeros_(self.params.weight)
         nn.init.zeros_(self.params.bias)
 
-    def theta(self, rows: Tensor, frozen: bool = False) -> Tensor:
-        """Each plant's ``[A_p, b_p, c_p]`` (plants, state_dim, state_dim + 2).
-
-        ``frozen``: computed from the layer's parameters detached (no gradient to them).
-        """
+    def theta(self, rows: Tensor) -> Tensor:
+        """Each plant's ``[A_p, b_p, c_p]`` (plants, state_dim, state_dim + 2)."""
         n = self.state_dim
-        if frozen:
-            weight, bias = self.params.weight.detach(), self.params.bias.detach()
-            theta = nn.functional.linear(rows, weight, bias)
-        else:
-            theta = self.params(rows)
+        theta = self.params(rows)
         a = theta[:, : n * n].reshape(-1, n, n)
         return torch.cat([a, theta[:, n * n :].reshape(-1, 2, n).transpose(1, 2)], dim=2)
 
@@ -293,13 +286,7 @@ class TransitionModels(nn.Module):
         return self._fit(x, dx, u, rows, u_prev)[1]
 
     def _fit(
-        self,
-        x: Tensor,
-        dx: Tensor,
-        u: Tensor,
-        rows: Tensor,
-        u_prev: Tensor | None,
-        frozen: bool = False,
+        self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None
     ) -> tuple[Tensor, Tensor]:
         """Residual and gain (B, plants), at the best of :attr:`lags` (least residual).
 
@@ -324,7 +311,7 @@ class TransitionModels(nn.Module):
         dx, t = dx.double(), z.shape[1]
         s_zz = torch.einsum("btk,btl->bkl", z, z) / t
         s_zd = torch.einsum("btk,bti->bik", z, dx) / t
-        theta = self.theta(rows, frozen).double()
+        theta = self.theta(rows).double()
         b = theta[:, :, n]
         extra = z.shape[-1] - (n + 2)  # the u_prev column: no model reads it directly
         theta = torch.cat([theta, theta.new_zeros(theta.shape[0], n, extra)], 2)
@@ -382,17 +369,10 @@ class TransitionModels(nn.Module):
         return fit.gather(0, best)[0], gain.gather(0, best)[0]
 
     def forward(
-        self,
-        x: Tensor,
-        dx: Tensor,
-        u: Tensor,
-        rows: Tensor,
-        u_prev: Tensor | None = None,
-        frozen: bool = False,
+        self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None = None
     ) -> Tensor:
-        """Evidence ``-1/2 log(residual + eps)`` (B, plants); ``frozen``: see :meth:`theta`."""
-        residual = self._fit(x, dx, u, rows, u_prev, frozen)[0]
-        return -0.5 * torch.log(residual + self.eps)
+        """Evidence ``-1/2 log(residual + eps)`` (B, plants) of each plant's model."""
+        return -0.5 * torch.log(self.residual(x, dx, u, rows, u_prev) + self.eps)
 
     def fit_loss(self, evidence: Tensor, tag: Tensor) -> Tensor:
         """``1/2 log(1 + residual / eps)`` of the true plant's model, over a batch (>= 0)."""
