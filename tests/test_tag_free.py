@@ -238,6 +238,8 @@ def test_tiny_tag_dropout_training_evaluates_with_the_tag_withheld(
             "model.transition_input_offset=true",
             "model.identity_noise=0.02",
             "model.identity_noise_clean_fit=true",
+            "dagger.actuator_lag=1.0",
+            "dagger.actuator_offset=0.3",
         ),
     ],
     ids=["lstm", "transitions", "fitted_lag_offset_noise"],
@@ -275,6 +277,7 @@ def test_tiny_tag_free_training_keeps_its_controls_and_ignores_the_tag(
     )
     (cb,) = [c for c in objects["trainer"].callbacks if type(c).__name__ == "DAggerCallback"]
     assert cb.done == 1 and cb.history[0]["windows"] > 0  # a round after the first epoch
+    assert (cb.actuator_lag, cb.actuator_offset) == ((1.0, 0.3) if fitted else (0.0, 0.0))
     frames = _evaluate_both_ways(
         tiny_data_dir, tmp_path, mlflow_uri, switch, objects["policy_path"]
     )

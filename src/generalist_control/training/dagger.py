@@ -29,6 +29,7 @@ training; :func:`aggregate` is one round.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -44,6 +45,7 @@ from generalist_control.simulation.simulate import (
     row_slices,
     simulate_many,
 )
+from generalist_control.training.actuator import Actuator
 
 __all__ = [
     "MixedController",
@@ -67,6 +69,12 @@ class MixedController:
     that reads its previous control (``model.control_history``) sees the control that moved
     the plant, as in the windows it is trained on.
 
+    ``actuator`` (plant name -> (lag, offset), :class:`~generalist_control.training.actuator.
+    Actuator`) puts a random first-order lag and constant offset of each row's own between
+    the (noisy) mixed command and that plant's rows, drawn from the same generator at
+    :meth:`reset`. The runtime is then told the command, which is all a deployed policy
+    knows, and :attr:`commanded` holds it for the windows.
+
     A :class:`~generalist_control.simulation.simulate.BatchController` for
     :func:`~generalist_control.simulation.simulate.simulate_many`. After a run, :attr:`z` holds the
     expert integrator *before* each sample's control, shape (rows, N).
@@ -79,7 +87,9 @@ class MixedController:
         betas: Mapping[str, float] | None = None,
         noise: Mapping[str, float] | None = None,
         seed: int = 0,
+        actuator: Mapping[str, tuple[float, float]] | None = None,
     ) -> None:
+        self.actuator = dict(actuator or {})
         self.betas = {k: float(v) for k, v in (betas or {}).items()}
         self.noise = {k: float(v) for k, v in (noise or {}).items()}
         if any(not np.isfinite(v) or v < 0 for v in self.noise.values()):
@@ -106,11 +116,16 @@ class MixedController:
             [np.full(c, self.noise.get(p.name, 0.0)) for p, c in zip(plants, counts, strict=True)]
         )
         self._rng = np.random.default_rng(self.seed)
+        self._act = None
+        if self.actuator:
+            names = [p.name for p in plants]
+            self._act = Actuator.for_rows(names, counts, self.actuator, self._rng)
         self._policy = None
         if self.runtime is not None and bool(np.any(self._beta < 1.0)):
             self._policy = RuntimeAdapter(self.runtime)
             self._policy.reset(plants, counts)
         self._z: list[np.ndarray] = []
+        self._cmd: list[np.ndarray] = []
 
     def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Mixed control for zero-padded states ``x`` (rows, MAX_ORDER)."""
@@ -120,12 +135,22 @@ class MixedController:
             u_e[rows] = ctrl.step(x[rows, :n], r[rows])
         self._z.append(z)
         if self._policy is None:
-            return self._noisy(u_e)
+            return self._actuate(self._noisy(u_e))
         u_p = self._policy.step(x, r)  # NaN: a run the runtime refused (outside its range)
         u_p = np.where(np.isnan(u_p), u_e, u_p)  # the expert takes that run over
         u = self._noisy(self._beta * u_e + (1.0 - self._beta) * u_p)
         self._policy.record_applied(u)  # the policy's previous-control channel: what ran
-        return u
+        return self._actuate(u)
+
+    def _actuate(self, u: np.ndarray) -> np.ndarray:
+        """What the plants receive for the command ``u`` (``u`` itself without an actuator)."""
+        self._cmd.append(u)
+        return u if self._act is None else self._act(u)
+
+    @property
+    def commanded(self) -> np.ndarray:
+        """The (noisy) mixed command of each sample, (rows, N): before any actuator."""
+        return np.stack(self._cmd, axis=1)
 
     def _noisy(self, u: np.ndarray) -> np.ndarray:
         """``u`` plus the rows' control noise (unchanged where there is none)."""
@@ -285,6 +310,7 @@ def aggregate(
     betas: Mapping[str, float] | None = None,
     noise: Mapping[str, float] | None = None,
     noise_seed: int = 0,
+    actuator: Mapping[str, tuple[float, float]] | None = None,
 ) -> tuple[Windows, dict[str, int]]:
     """One DAgger round: rollouts of the mixed controller, labelled by the experts.
 
@@ -301,7 +327,9 @@ def aggregate(
     (``model.control_history``), and so does the policy's runtime during the rollout
     (:class:`MixedController` tells it the executed mix); ``betas`` and ``noise`` give
     plants (by name) an expert share of their own and white noise on the executed control
-    (:class:`MixedController`; labels stay the experts' plans).
+    (:class:`MixedController`; labels stay the experts' plans); ``actuator`` gives them a
+    random lag and offset between command and plant, and the windows then carry the
+    command (:class:`MixedController`).
 
     Returns
     -------
@@ -317,7 +345,11 @@ def aggregate(
         )
     specs = _specs(plants, amplitudes)
     runs = [Run(p, *_references(spec, steps)) for p, spec in zip(plants, specs, strict=True)]
-    trajs = simulate_many(runs, ctrl := MixedController(runtime, beta, betas, noise, noise_seed))
+    ctrl = MixedController(runtime, beta, betas, noise, noise_seed, actuator)
+    trajs = simulate_many(runs, ctrl)
+    if actuator:  # the windows carry what was commanded, as a deployed policy's do
+        sl = row_slices([len(r.r) for r in runs])
+        trajs = [replace(tr, u=ctrl.commanded[rows]) for tr, rows in zip(trajs, sl, strict=True)]
     z_all = ctrl.z
     parts: list[tuple[Windows, np.ndarray]] = []
     counts: dict[str, int] = {}

@@ -127,6 +127,12 @@ class DAggerCallback(L.Callback):
         the experts label the corrections of small deviations about it, near the
         equilibrium too (:class:`~generalist_control.training.dagger.MixedController`).
         0: off.
+    actuator_lag, actuator_offset : float
+        Each rollout row's actuator lags the command by a first-order time constant
+        uniform in ``[0, actuator_lag]`` sample periods and adds a constant offset uniform
+        in ``+-actuator_offset`` times the plant's control scale
+        (:class:`~generalist_control.training.actuator.Actuator`); the windows carry the
+        command. 0, 0: off.
     """
 
     def __init__(
@@ -155,6 +161,8 @@ class DAggerCallback(L.Callback):
         variant_range: float = DEFAULT_RANGE,
         variant_tries: int = 10,
         noise: float = 0.0,
+        actuator_lag: float = 0.0,
+        actuator_offset: float = 0.0,
     ) -> None:
         self.plants = list(plants)
         if variants is not None:
@@ -186,6 +194,12 @@ class DAggerCallback(L.Callback):
                 f"got {focus!r} and {focus_beta!r}"
             )
         self.noise = require_nonnegative("dagger.noise", noise, "fraction")
+        self.actuator_lag = require_nonnegative(
+            "dagger.actuator_lag", actuator_lag, "time constant (sample periods)"
+        )
+        self.actuator_offset = require_nonnegative(
+            "dagger.actuator_offset", actuator_offset, "fraction"
+        )
         self.done = 0
         self.history: list[dict[str, Any]] = []
 
@@ -307,6 +321,16 @@ class DAggerCallback(L.Callback):
         scale = policy.normaliser.control_scale.detach().cpu().double().numpy()
         return {p.name: self.noise * float(scale[p.tag]) for p in plants}
 
+    def _actuator(
+        self, policy: Policy, plants: Sequence[Plant]
+    ) -> dict[str, tuple[float, float]] | None:
+        """Per plant name: the lag, and the offset in its control units (None: off)."""
+        if not (self.actuator_lag or self.actuator_offset):
+            return None
+        scale = policy.normaliser.control_scale.detach().cpu().double().numpy()
+        off = self.actuator_offset
+        return {p.name: (self.actuator_lag, off * float(scale[p.tag])) for p in plants}
+
     def _due(self, epochs_done: int) -> bool:
         if self.done >= self.rounds or epochs_done < self.start_epoch:
             return False
@@ -345,6 +369,7 @@ class DAggerCallback(L.Callback):
                 plants, runtime, beta, amps, self._bounds(dm.train_set), steps,
                 dm.history, dm.horizon, takeover, integral, runtime.controls, betas,
                 self._noise(policy, plants), self.seed + 7901 * (self.done + 1),
+                self._actuator(policy, plants),
             )  # fmt: skip
         policy.train(was_training)
         dm.train_set.append(windows)
