@@ -55,7 +55,7 @@ def test_exact_command_logs_an_mlflow_run(tiny_data_dir, tmp_path, mlflow_uri):
     assert params["experts"] == "5"
     assert int(params["n_parameters"]) > 0
     # what shaped the training, not evaluation/report/paths/logger/Hydra settings
-    assert 20 < len(params) < 80, sorted(params)
+    assert 20 < len(params) < 90, sorted(params)  # under one log_batch of 100 (test_tracking_runs)
     assert not [k for k in params if k.startswith(("evaluation.", "report.", "paths."))]
     assert not [k for k in params if k.startswith(("logger.", "hydra.", "_"))]
     assert {"seed", "loader.batch_size", "trainer.max_epochs", "dagger.enabled"} <= set(params)

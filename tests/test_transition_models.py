@@ -531,7 +531,7 @@ def test_the_clean_fit_switch_is_checked():
     assert identity_clean_fit(compose_cfg(*noisy, "model.identity_noise_clean_fit=true"))
     assert not identity_clean_fit(compose_cfg(*noisy))
     for bad in (
-        ("experiment=tag_free",),
+        ("experiment=tag_free", "model.identity_noise=0"),
         (*noisy, "model.transition_models=false", "model.transition_input_gain=false"),
     ):
         with pytest.raises(ValueError, match="needs model.identity_noise > 0 and model.transi"):

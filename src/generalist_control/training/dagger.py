@@ -295,6 +295,21 @@ def _labelled_windows(
     return Windows(w.state, w.mask, w.ref, w.tag, target, w.traj), keep
 
 
+def _check_takeover(takeover: str, integral: bool) -> None:
+    """A policy that sees the error integral is labelled from that integrator."""
+    if integral and takeover != "tracked":
+        raise ValueError(
+            "a policy that sees the error integral is labelled from that integrator: "
+            "use dagger.takeover=tracked (or auto)"
+        )
+
+
+def _commanded(trajs: Sequence[Trajectory], commanded: np.ndarray) -> list[Trajectory]:
+    """The rollouts with the commands (rows, N) in place of what reached their plants."""
+    rows = row_slices([len(tr.r) for tr in trajs])
+    return [replace(tr, u=commanded[sl]) for tr, sl in zip(trajs, rows, strict=True)]
+
+
 def aggregate(
     plants: Sequence[Plant],
     runtime: PolicyRuntime | None,
@@ -325,11 +340,9 @@ def aggregate(
     windows carry that integral as a state channel (``model.integral``), which requires
     ``"tracked"``. With ``controls`` they carry the control executed one sample earlier
     (``model.control_history``), and so does the policy's runtime during the rollout
-    (:class:`MixedController` tells it the executed mix); ``betas`` and ``noise`` give
-    plants (by name) an expert share of their own and white noise on the executed control
-    (:class:`MixedController`; labels stay the experts' plans); ``actuator`` gives them a
-    random lag and offset between command and plant, and the windows then carry the
-    command (:class:`MixedController`).
+    (:class:`MixedController` tells it the executed mix). ``betas``, ``noise``, ``actuator``:
+    per plant name, an expert share, noise on the executed control, a random actuator lag
+    and offset (windows carry the command; :class:`MixedController`), labels unchanged.
 
     Returns
     -------
@@ -338,18 +351,13 @@ def aggregate(
     counts : dict
         Windows kept per plant.
     """
-    if integral and takeover != "tracked":
-        raise ValueError(
-            "a policy that sees the error integral is labelled from that integrator: "
-            "use dagger.takeover=tracked (or auto)"
-        )
+    _check_takeover(takeover, integral)
     specs = _specs(plants, amplitudes)
     runs = [Run(p, *_references(spec, steps)) for p, spec in zip(plants, specs, strict=True)]
     ctrl = MixedController(runtime, beta, betas, noise, noise_seed, actuator)
     trajs = simulate_many(runs, ctrl)
     if actuator:  # the windows carry what was commanded, as a deployed policy's do
-        sl = row_slices([len(r.r) for r in runs])
-        trajs = [replace(tr, u=ctrl.commanded[rows]) for tr, rows in zip(trajs, sl, strict=True)]
+        trajs = _commanded(trajs, ctrl.commanded)
     z_all = ctrl.z
     parts: list[tuple[Windows, np.ndarray]] = []
     counts: dict[str, int] = {}

@@ -57,6 +57,23 @@ def _fresh_counts(fresh: Any, pool: Any, worst: Any) -> tuple[int, int, int]:
     return m, n, k
 
 
+def _takeover(takeover: str) -> str:
+    """``dagger.takeover``, checked."""
+    if takeover not in ("auto", "bumpless", "tracked"):
+        raise ValueError(
+            f"dagger.takeover must be 'auto', 'bumpless' or 'tracked', got {takeover!r}"
+        )
+    return takeover
+
+
+def _actuator_spread(lag: float, offset: float) -> tuple[float, float]:
+    """``dagger.actuator_lag`` and ``dagger.actuator_offset``, checked."""
+    return (
+        require_nonnegative("dagger.actuator_lag", lag, "time constant (sample periods)"),
+        require_nonnegative("dagger.actuator_offset", offset, "fraction"),
+    )
+
+
 class DAggerCallback(L.Callback):
     """Aggregate expert-labelled policy rollouts into the training set during training.
 
@@ -180,11 +197,7 @@ class DAggerCallback(L.Callback):
         self.rounds, self.rollouts, self.duration = int(rounds), int(rollouts), float(duration)
         self.beta, self.beta_decay = float(beta), float(beta_decay)
         self.bound_factor, self.seed = float(bound_factor), int(seed)
-        if takeover not in ("auto", "bumpless", "tracked"):
-            raise ValueError(
-                f"dagger.takeover must be 'auto', 'bumpless' or 'tracked', got {takeover!r}"
-            )
-        self.takeover = takeover
+        self.takeover = _takeover(takeover)
         self.families = {k: dict(v) for k, v in (families or {}).items()}
         self.family_count = int(family_count)
         self.focus, self.focus_beta = float(focus), float(focus_beta)
@@ -194,12 +207,7 @@ class DAggerCallback(L.Callback):
                 f"got {focus!r} and {focus_beta!r}"
             )
         self.noise = require_nonnegative("dagger.noise", noise, "fraction")
-        self.actuator_lag = require_nonnegative(
-            "dagger.actuator_lag", actuator_lag, "time constant (sample periods)"
-        )
-        self.actuator_offset = require_nonnegative(
-            "dagger.actuator_offset", actuator_offset, "fraction"
-        )
+        self.actuator_lag, self.actuator_offset = _actuator_spread(actuator_lag, actuator_offset)
         self.done = 0
         self.history: list[dict[str, Any]] = []
 
