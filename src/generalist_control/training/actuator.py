@@ -11,11 +11,19 @@ unbalanced weight), as a real one does. The plants in the data are untouched.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-
 import numpy as np
 
-__all__ = ["Actuator", "lag_mix"]
+from generalist_control.common.schema import require_nonnegative
+
+__all__ = ["Actuator", "checked_spread", "lag_mix"]
+
+
+def checked_spread(lag: float, offset: float) -> tuple[float, float]:
+    """``dagger.actuator_lag`` and ``dagger.actuator_offset`` as floats, checked (>= 0)."""
+    return (
+        require_nonnegative("dagger.actuator_lag", lag, "time constant (sample periods)"),
+        require_nonnegative("dagger.actuator_offset", offset, "fraction"),
+    )
 
 
 def lag_mix(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,19 +90,6 @@ class Actuator:
         self.d = offset * rng.uniform(-1.0, 1.0, offset.shape[0])
         self.mix, self.decay = lag_mix(self.tau)
         self.s = np.zeros(lag.shape[0])
-
-    @classmethod
-    def for_rows(
-        cls,
-        names: Sequence[str],
-        counts: Sequence[int],
-        spread: Mapping[str, tuple[float, float]],
-        rng: np.random.Generator,
-    ) -> Actuator:
-        """Rows grouped by plant (``names``, ``counts``); ``spread``: name -> (lag, offset)."""
-        per = [(spread.get(n, (0.0, 0.0)), c) for n, c in zip(names, counts, strict=True)]
-        lag = np.concatenate([np.full(c, float(s[0])) for s, c in per])
-        return cls(lag, np.concatenate([np.full(c, float(s[1])) for s, c in per]), rng)
 
     def __call__(self, u: np.ndarray) -> np.ndarray:
         """What the plants receive over this sample for commands ``u`` (rows,)."""

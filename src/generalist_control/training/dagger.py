@@ -55,6 +55,14 @@ __all__ = [
 ]
 
 
+def _per_row(
+    plants: Sequence[Plant], counts: Sequence[int], values: Mapping[str, float], default: float
+) -> np.ndarray:
+    """Each row's value: its plant's entry in ``values`` (by name), else ``default``."""
+    per = zip(plants, counts, strict=True)
+    return np.concatenate([np.full(c, float(values.get(p.name, default))) for p, c in per])
+
+
 class MixedController:
     """Executes ``beta * LQI + (1 - beta) * policy``; records the experts' integrators.
 
@@ -106,20 +114,14 @@ class MixedController:
             ctrl = LQIController(plant)
             ctrl.reset(count)
             self._parts.append((ctrl, plant.order, rows))
-        self._beta = np.concatenate(
-            [
-                np.full(c, self.betas.get(p.name, self.beta))
-                for p, c in zip(plants, counts, strict=True)
-            ]
-        )
-        self._sigma = np.concatenate(
-            [np.full(c, self.noise.get(p.name, 0.0)) for p, c in zip(plants, counts, strict=True)]
-        )
+        self._beta = _per_row(plants, counts, self.betas, self.beta)
+        self._sigma = _per_row(plants, counts, self.noise, 0.0)
         self._rng = np.random.default_rng(self.seed)
         self._act = None
         if self.actuator:
-            names = [p.name for p in plants]
-            self._act = Actuator.for_rows(names, counts, self.actuator, self._rng)
+            lag = _per_row(plants, counts, {k: v[0] for k, v in self.actuator.items()}, 0.0)
+            off = _per_row(plants, counts, {k: v[1] for k, v in self.actuator.items()}, 0.0)
+            self._act = Actuator(lag, off, self._rng)
         self._policy = None
         if self.runtime is not None and bool(np.any(self._beta < 1.0)):
             self._policy = RuntimeAdapter(self.runtime)
@@ -144,12 +146,14 @@ class MixedController:
 
     def _actuate(self, u: np.ndarray) -> np.ndarray:
         """What the plants receive for the command ``u`` (``u`` itself without an actuator)."""
+        if self._act is None:
+            return u
         self._cmd.append(u)
-        return u if self._act is None else self._act(u)
+        return self._act(u)
 
     @property
     def commanded(self) -> np.ndarray:
-        """The (noisy) mixed command of each sample, (rows, N): before any actuator."""
+        """The (noisy) mixed command of each sample, (rows, N), before the actuator (with one)."""
         return np.stack(self._cmd, axis=1)
 
     def _noisy(self, u: np.ndarray) -> np.ndarray:
@@ -304,9 +308,10 @@ def _check_takeover(takeover: str, integral: bool) -> None:
         )
 
 
-def _commanded(trajs: Sequence[Trajectory], commanded: np.ndarray) -> list[Trajectory]:
+def _commanded(
+    trajs: Sequence[Trajectory], commanded: np.ndarray, rows: Sequence[slice]
+) -> list[Trajectory]:
     """The rollouts with the commands (rows, N) in place of what reached their plants."""
-    rows = row_slices([len(tr.r) for tr in trajs])
     return [replace(tr, u=commanded[sl]) for tr, sl in zip(trajs, rows, strict=True)]
 
 
@@ -355,13 +360,13 @@ def aggregate(
     specs = _specs(plants, amplitudes)
     runs = [Run(p, *_references(spec, steps)) for p, spec in zip(plants, specs, strict=True)]
     ctrl = MixedController(runtime, beta, betas, noise, noise_seed, actuator)
-    trajs = simulate_many(runs, ctrl)
+    trajs, slices = simulate_many(runs, ctrl), row_slices([len(r.r) for r in runs])
     if actuator:  # the windows carry what was commanded, as a deployed policy's do
-        trajs = _commanded(trajs, ctrl.commanded)
+        trajs = _commanded(trajs, ctrl.commanded, slices)
     z_all = ctrl.z
     parts: list[tuple[Windows, np.ndarray]] = []
     counts: dict[str, int] = {}
-    for p, tr, rows in zip(plants, trajs, row_slices([len(r.r) for r in runs]), strict=True):
+    for p, tr, rows in zip(plants, trajs, slices, strict=True):
         w, keep = _labelled_windows(
             p, tr, z_all[rows], bounds[p.name], history, horizon, takeover, integral, controls
         )

@@ -20,6 +20,7 @@ from generalist_control.simulation.comparison import closed_loop_score
 from generalist_control.simulation.references import family_references
 from generalist_control.simulation.simulate import BatchController
 from generalist_control.simulation.variants import Variant, sample_variants
+from generalist_control.training.actuator import checked_spread
 from generalist_control.training.dagger import RolloutSpec, aggregate
 
 __all__ = ["DAggerCallback"]
@@ -66,12 +67,9 @@ def _takeover(takeover: str) -> str:
     return takeover
 
 
-def _actuator_spread(lag: float, offset: float) -> tuple[float, float]:
-    """``dagger.actuator_lag`` and ``dagger.actuator_offset``, checked."""
-    return (
-        require_nonnegative("dagger.actuator_lag", lag, "time constant (sample periods)"),
-        require_nonnegative("dagger.actuator_offset", offset, "fraction"),
-    )
+def _control_scales(policy: Policy) -> np.ndarray:
+    """The policy's control scale per tag (its normaliser: the RMS of the training controls)."""
+    return policy.normaliser.control_scale.detach().cpu().double().numpy()
 
 
 class DAggerCallback(L.Callback):
@@ -207,7 +205,7 @@ class DAggerCallback(L.Callback):
                 f"got {focus!r} and {focus_beta!r}"
             )
         self.noise = require_nonnegative("dagger.noise", noise, "fraction")
-        self.actuator_lag, self.actuator_offset = _actuator_spread(actuator_lag, actuator_offset)
+        self.actuator_lag, self.actuator_offset = checked_spread(actuator_lag, actuator_offset)
         self.done = 0
         self.history: list[dict[str, Any]] = []
 
@@ -326,7 +324,7 @@ class DAggerCallback(L.Callback):
         """Per plant name: ``noise`` times the policy's control scale for its tag (None: off)."""
         if not self.noise:
             return None
-        scale = policy.normaliser.control_scale.detach().cpu().double().numpy()
+        scale = _control_scales(policy)
         return {p.name: self.noise * float(scale[p.tag]) for p in plants}
 
     def _actuator(
@@ -335,8 +333,7 @@ class DAggerCallback(L.Callback):
         """Per plant name: the lag, and the offset in its control units (None: off)."""
         if not (self.actuator_lag or self.actuator_offset):
             return None
-        scale = policy.normaliser.control_scale.detach().cpu().double().numpy()
-        off = self.actuator_offset
+        scale, off = _control_scales(policy), self.actuator_offset
         return {p.name: (self.actuator_lag, off * float(scale[p.tag])) for p in plants}
 
     def _due(self, epochs_done: int) -> bool:
