@@ -19,79 +19,24 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-import pandas as pd
 from omegaconf import DictConfig
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.deploy.resolve import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.handover import handover_table
-from generalist_control.evaluation.identity import identity_trace
-from generalist_control.evaluation.local_gains import local_gains
 from generalist_control.evaluation.mlflow_log import log_to_mlflow
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.setpoint import setpoint_from_config
-from generalist_control.evaluation.tag_free import check_tag_free_dir, write_tag_free_report
 from generalist_control.evaluation.variants import check_variants_dir, run_variants
 from generalist_control.evaluation.writer import check_reports_dir, write_reports
 from generalist_control.model.policy import POLICY_FILE, load_policy
 from generalist_control.plants.catalog import plants_from_config
-from generalist_control.plants.plant import Plant
 from generalist_control.tracking import mlflow_utils
 
 __all__ = ["main", "run"]
 
 log = logging.getLogger(__name__)
-
-
-def _runtime(source: str, cfg: DictConfig) -> PolicyRuntime:
-    """The policy's runtime; with ``evaluation.withhold_tag`` its network never gets the tag.
-
-    With ``evaluation.identity_given`` (a diagnostic) an ``infer_tag`` network gets the
-    true plant's embedding row instead of the one its identity head infers.
-
-    Raises
-    ------
-    ValueError
-        If the tag is to be withheld from a policy trained with its tag always given, or
-        the identity given to a policy that does not infer it.
-    """
-    policy, meta = load_policy(resolve(source))
-    if cfg.evaluation.get("withhold_tag", False):
-        if not (policy.config["tag_free"] or policy.config["unknown_tag"]):
-            raise ValueError(
-                f"evaluation.withhold_tag=true, but the policy {source} was trained with its "
-                "tag always given; train it with model.tag_dropout > 0 or model.tag_free=true "
-                "(experiment=tag_free)"
-            )
-        policy.withhold_tag = True
-    if cfg.evaluation.get("identity_given", False):
-        if not policy.config["infer_tag"]:
-            raise ValueError(
-                f"evaluation.identity_given=true, but the policy {source} does not infer its "
-                "plant (model.infer_tag); it is a diagnostic of experiment=tag_free policies"
-            )
-        policy.net.identity_given = True
-    return PolicyRuntime(policy, meta, backend=cfg.evaluation.get("backend", "torch"))
-
-
-def _diagnostics(
-    cfg: DictConfig, runtime: PolicyRuntime, plants: list[Plant], step: dict[str, Any] | None
-) -> dict[str, pd.DataFrame | None]:
-    """The tag-free report's hand-over table, local gains and identity trace (None: off)."""
-    if step is None:
-        return {}
-    samples = cfg.evaluation.get("handover_samples")
-    handover = (
-        handover_table(runtime, plants, step, [int(n) for n in samples]) if samples else None
-    )
-    after = cfg.evaluation.get("gain_samples")
-    gains = local_gains(runtime, plants, step, int(after)) if after is not None else None
-    trace = None
-    if runtime.policy.net.identity is not None:  # from the start, and after the gains' N
-        trace = identity_trace(runtime, plants, step, [0] + ([int(after)] if after else []))
-    return {"handover": handover, "gains": gains, "identity_trace": trace}
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -100,12 +45,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     variants = bool((cfg.evaluation.get("variants") or {}).get("enabled", False))
     # refuse a folder of someone else's files before any work
     (check_variants_dir if variants else check_reports_dir)(out_dir)
-    tag_free_dir = cfg.evaluation.get("tag_free_report")
-    if tag_free_dir:
-        check_tag_free_dir(tag_free_dir)
     source = cfg.get("policy") or str(Path(cfg.paths.models_dir) / POLICY_FILE)
     mlflow_utils.set_tracking(cfg.logger)  # for runs:/ and models:/ policy URIs
-    runtime = _runtime(source, cfg)
+    policy, meta = load_policy(resolve(source))
+    runtime = PolicyRuntime(policy, meta, backend=cfg.evaluation.get("backend", "torch"))
     plants = plants_from_config(cfg.systems)
     if variants:  # unseen plant variants instead (evaluation.variants, experiment=variants)
         summary = run_variants(cfg, runtime, plants)
@@ -119,14 +62,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     bar = as_dict(cfg.evaluation.get("quality_bar") or {})
     setpoint = setpoint_from_config(as_dict(cfg.evaluation.get("setpoint") or {}), runtime, plants)
     summary = write_reports(df, trajs, out_dir, plots, bar, setpoint)
-    if tag_free_dir:
-        diagnostics = _diagnostics(cfg, runtime, plants, scen.get("step"))
-        verdict = write_tag_free_report(
-            df, runtime.policy, plants, tag_free_dir, trajectories=trajs, **diagnostics
-        )
-        log.info("tag-free bar written to %s: met=%s", tag_free_dir, verdict["met"])
-    extra = {"tag_free_bar": Path(tag_free_dir)} if tag_free_dir else None
-    log_to_mlflow(cfg, runtime.meta, summary, out_dir, extra)
+    log_to_mlflow(cfg, runtime.meta, summary, out_dir)
     log.info("evaluation written to %s: %s", out_dir, json.dumps(summary["quality_bar"]))
     return summary
 

@@ -27,11 +27,11 @@ log = logging.getLogger(__name__)
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Validate the config, generate the demonstrations and write them; return the manifest.
 
-    Every plant's tag must be one the policy takes, ``0..model.n_tags-1``: a dataset with
-    another would only fail at training time.
+    Every plant's tag must be one the policy takes, ``0..model.plant.n_tags-1``: a dataset
+    with another would only fail at training time.
     """
     plants = plants_from_config(cfg.systems)
-    check_tags(plants, cfg.model.n_tags)
+    check_tags(plants, cfg.model.plant.n_tags)
     if "OPENBLAS_CORETYPE" not in os.environ:
         log.warning(
             "numerics not pinned: the data's last bits depend on this CPU's BLAS kernels, so "

@@ -3,11 +3,11 @@
 A window at sample ``k`` holds the last ``history`` samples ``k - history + 1 .. k`` of the
 state (zero-padded to :data:`~generalist_control.plants.plant.MAX_ORDER` and masked) and of the
 reference, the plant's tag, and, for training, the next ``horizon`` expert controls
-``u[k] .. u[k + horizon - 1]``. Optionally (``model.integral``, our recipe) the state gets one
-more channel after the padded plant state: the integral of the tracking error
+``u[k] .. u[k + horizon - 1]``. Optionally (the ``integral`` channel, our recipe) the state
+gets one more channel after the padded plant state: the integral of the tracking error
 ``z[k] = z[k-1] + dt (r[k-1] - y[k-1])``, ``z[0] = 0``, exactly the LQI expert's own
 integrator (:func:`integral_of_error`), so the window holds the expert's augmented state
-``[x; z]``. Optionally (``model.control_history``, issue 13's tag-free policy) one more
+``[x; z]``. Optionally (the ``previous_control`` channel, issue 13's tag-free policy) one more
 channel after that holds the control applied one sample earlier, ``u[k-1]`` (zero at
 ``k = 0``, :func:`previous_controls`), so the window pairs each state change with the
 control that caused it and the plant can be identified from the history. Before the first

@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from generalist_control.model.network import input_width
 from generalist_control.model.policy import Policy
 
 __all__ = ["Backend", "backend", "export_onnx", "export_torchscript"]
@@ -36,8 +35,7 @@ def _torch_backend(policy: Policy) -> Backend:
 
 
 def _example(policy: Policy, batch: int = 2) -> tuple[torch.Tensor, ...]:
-    c = policy.config
-    T, n = c["history"], input_width(c)
+    T, n = policy.history, policy.width
     return (
         torch.zeros(batch, T, n),
         torch.ones(batch, T, n),

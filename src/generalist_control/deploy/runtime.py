@@ -10,14 +10,14 @@ and applies the first of the ``horizon`` predicted controls each sample::
     u = rt.step(x, r)                                     # once per dt
 
 On the first step after ``reset`` the buffer is filled with that first sample, exactly as
-the window builder pads the start of a training trajectory. A policy trained with
-``model.integral`` also sees the integral of the tracking error, which the runtime keeps
-exactly as the LQI expert does (``z += dt (r - y)`` after each sample's control, from zero
+the window builder pads the start of a training trajectory. A policy with the ``integral``
+channel (``model.channels``) also sees the integral of the tracking error, which the runtime
+keeps exactly as the LQI expert does (``z += dt (r - y)`` after each sample's control, from zero
 at ``reset``); ``y`` is the plant's output ``C x`` (rows stored with the policy), or the
 measured output passed as ``step(x, r, y)``. Like LQI, such a policy winds up against an
 actuator limit; given the limits (:meth:`PolicyRuntime.set_actuator_limits`) the runtime
 integrates conditionally, as :class:`~generalist_control.simulation.lqi.AntiWindupLQIController`
-does. A policy trained with ``model.control_history`` also sees the control applied one
+does. A policy with the ``previous_control`` channel also sees the control applied one
 sample earlier: the runtime keeps the control it issued (the actuated one, once actuator
 limits are known), zero at ``reset``, or the one it is told the plant received instead
 (:meth:`PolicyRuntime.record_applied`). Many plants can be stepped at once
@@ -66,7 +66,7 @@ class PolicyRuntime:
 
     * state entry ``i`` (padding beyond the plant's order included): ``|x_i| <= L s_x[i]``;
     * reference and measured output: ``|r|, |y| <= L s_r``;
-    * error integral after the sample (``model.integral``): ``|z| <= L s_x[z]``;
+    * error integral after the sample (the ``integral`` channel): ``|z| <= L s_x[z]``;
     * every predicted control (the network's output): ``|u| <= L s_u``; NaN and inf never.
 
     Parameters
@@ -95,8 +95,8 @@ class PolicyRuntime:
         self.orders: dict[str, int] = {str(k): int(v) for k, v in meta["orders"].items()}
         self.history, self.horizon = int(meta["history"]), int(meta["horizon"])
         self.dt = float(meta["dt"])
-        self.integral = bool(policy.config.get("integral", 0))
-        self.controls = bool(policy.config.get("control_history", 0))
+        self.integral = "integral" in policy.channels
+        self.controls = "previous_control" in policy.channels
         self.outputs: dict[str, np.ndarray] = {
             str(k): np.asarray(v, dtype=np.float64) for k, v in meta.get("outputs", {}).items()
         }
@@ -319,7 +319,7 @@ class PolicyRuntime:
         r : float or array_like
             Reference deviation, scalar or (B,).
         y : float or array_like, optional
-            Measured output deviation, for a policy trained with ``model.integral``;
+            Measured output deviation, for a policy with the ``integral`` channel;
             default ``C x`` with the output rows stored with the policy.
         """
         x, r = self._check(x, r)
@@ -346,7 +346,7 @@ class PolicyRuntime:
 
         For when another controller's control replaced the runtime's own (a fallback
         controller, the expert during a hand-over, a DAgger rollout's mix of expert and
-        policy). A policy trained with ``model.control_history`` reads it as the previous
+        policy). A policy with the ``previous_control`` channel reads it as the previous
         control at the next step, and a known rate limit starts from it; the error integral
         does not depend on it. ``u``: a scalar for one plant, (B,) for a batch; finite.
         """

@@ -19,19 +19,13 @@ def log_to_mlflow(
     meta: Mapping[str, Any],
     summary: Mapping[str, Any],
     out_dir: Path,
-    extra: Mapping[str, Path] | None = None,
 ) -> str | None:
     """Log the summary figures and the report folder to the evaluated model's MLflow run.
 
     Names start with ``evaluation.mlflow_prefix`` (default ``eval``), so that two
-    evaluations of one policy (e.g. with and without its tag) keep apart in its run;
-    ``extra`` maps artifact sub-folders to further folders to log (the tag-free bar). With
-    ``evaluation.identity_given`` (a diagnostic with the tag given) the prefix ends in
-    ``_identity_given``, so it never stands in for the policy's own evaluation.
+    evaluations of one policy (e.g. on other scenarios) keep apart in its run.
     """
     prefix = str(cfg.evaluation.get("mlflow_prefix") or "eval")
-    if cfg.evaluation.get("identity_given", False):
-        prefix += "_identity_given"
     flat: dict[str, float] = {}
     for scen, vals in summary.get("ratios", {}).items():
         for k, v in vals.items():
@@ -48,6 +42,4 @@ def log_to_mlflow(
     with mlflow_run(cfg.logger, resume_run_id=meta.get("mlflow_run_id")) as run:
         mlflow.log_metrics(flat)
         mlflow.log_artifacts(str(out_dir), prefix)
-        for name, folder in (extra or {}).items():
-            mlflow.log_artifacts(str(folder), f"{prefix}/{name}")
         return run.info.run_id

@@ -3,7 +3,7 @@
 Every scenario of ``conf/evaluation`` runs three controllers on each plant it applies to:
 the learned Generalist Controller (GC), the LQI expert, and LQI with anti-windup
 (LQI-AW, conditional integration against the scenario's actuator limits). A policy that
-integrates the tracking error (``model.integral``) winds up like LQI, so in scenarios with
+integrates the tracking error (the ``integral`` channel) winds up like LQI, so in scenarios with
 actuator limits it also runs as GC-AW: the same policy, its runtime told the limits that
 LQI-AW knows (:meth:`~generalist_control.deploy.runtime.PolicyRuntime.set_actuator_limits`).
 All plants of a scenario are simulated in lockstep so the policy is called once per sample

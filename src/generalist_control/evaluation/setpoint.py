@@ -16,7 +16,7 @@ window at that equilibrium, the derivative of the policy's first control with re
 every window entry (automatic differentiation, in float64) closes a linear loop with the
 plant sampled at ``dt`` (zero-order hold): the state is the window (the ``history`` newest
 plant states, error integrals ``z_(k+1) = z_k + dt (r - C x_k)`` as the runtime keeps them,
-and previous controls with ``model.control_history``). Its spectral radius is below 1
+and previous controls with the ``previous_control`` channel). Its spectral radius is below 1
 exactly when small deviations die out; beside it, the radius of the plant's LQI loop
 sampled the same way (:func:`~generalist_control.simulation.lqi.sampled_closed_loop`).
 """
@@ -187,13 +187,13 @@ def setpoint_stability(
     Raises
     ------
     ValueError
-        If the policy does not integrate the tracking error (``model.integral``): without
-        it a constant window need not be an equilibrium.
+        If the policy does not integrate the tracking error (no ``integral`` channel):
+        without it a constant window need not be an equilibrium.
     """
     if not runtime.integral:
         raise ValueError(
-            "the set-point check needs a policy trained with model.integral (its equilibrium "
-            "is the error integral at which its control holds the plant at rest)"
+            "the set-point check needs a policy with the integral channel (model.channels; its "
+            "equilibrium is the error integral at which its control holds the plant at rest)"
         )
     held = hold_tail(runtime, plants, reference, hold, tail)
     policy = copy.deepcopy(runtime.policy).double().eval()

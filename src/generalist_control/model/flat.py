@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
-from generalist_control.model.network import input_width
 from generalist_control.model.policy import Policy
 
 __all__ = ["FlatPolicy", "flat_columns"]
@@ -18,8 +17,8 @@ __all__ = ["FlatPolicy", "flat_columns"]
 def flat_columns(history: int, state_dim: int) -> list[str]:
     """Column names of :class:`FlatPolicy`'s input (``k = 0`` is the oldest sample).
 
-    ``state_dim`` is the state input's width (with ``model.integral`` entry ``MAX_ORDER`` is
-    the error integral, with ``model.control_history`` the last entry the previous control).
+    ``state_dim`` is the state input's width (the padded plant state, then the channels of
+    ``model.channels``: the error integral, the previous control).
     """
     cols = [f"state_{k}_{i}" for k in range(history) for i in range(state_dim)]
     cols += [f"mask_{k}_{i}" for k in range(history) for i in range(state_dim)]
@@ -31,7 +30,7 @@ class FlatPolicy(nn.Module):
     """One-tensor view of a :class:`Policy` for MLflow's PyTorch flavour.
 
     Input: float32 (B, 2 * history * width + history + 1) (``width``:
-    :func:`~generalist_control.model.network.input_width`), columns
+    :attr:`Policy.width <generalist_control.model.policy.Policy.width>`), columns
     :func:`flat_columns` (state, mask, reference, tag). Output: controls (B, horizon).
     """
 
@@ -41,8 +40,7 @@ class FlatPolicy(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """Controls in plant units for flat rows ``x``."""
-        c = self.policy.config
-        T, n = c["history"], input_width(c)
+        T, n = self.policy.history, self.policy.width
         state = x[:, : T * n].reshape(-1, T, n)
         mask = x[:, T * n : 2 * T * n].reshape(-1, T, n)
         ref = x[:, 2 * T * n : 2 * T * n + T]

@@ -1,4 +1,4 @@
-"""The transition-set identifier (``model.transition_identifier``, issue 13).
+"""The transition-set identifier of :class:`~generalist_control.model.plant.InferredPlant`.
 
 Reads the plant from the window's one-step transitions ``(x_j, u_j, x_(j+1) - x_j)``, each
 encoded alone by a shared MLP and averaged over the window (a DeepSets encoder, Zaheer et
@@ -8,7 +8,7 @@ of the expert's closed loop, which the policy's own loop does not reproduce. The
 over every transition of the window, so a few odd samples move it little; a longer window
 (``data.history``, the law reading only the newest ``model.law_history``) holds more.
 
-With ``model.transition_models`` the identifier also weighs each plant's hypothesis against
+With one-step models (``models``) the identifier also weighs each plant's hypothesis against
 the window: every plant has a linear one-step model ``x_(j+1) - x_j = A_p x_j + b_p u_j +
 c_p``, its parameters a shared linear map of the plant's learned embedding row (nothing in
 it is indexed by plant but through the embedding, and nothing is fitted to an expert), and
@@ -16,42 +16,33 @@ its evidence is ``-1/2 log`` of the model's mean squared residual over the windo
 transitions: Gaussian residuals of unknown variance give a likelihood that falls with that
 residual, whoever chose the controls. The models are trained to fit the true plant's
 transitions (:meth:`TransitionModels.fit_loss`) beside the identity head's cross-entropy.
-With ``model.transition_input_gain`` each model's input column ``b_p`` is scaled by the gain
-within :data:`INPUT_GAIN` that fits the window best (closed-form least squares from the same
+With ``input_gain`` each model's input column ``b_p`` is scaled by the gain
+within that range that fits the window best (closed-form least squares from the same
 moments): a plant whose actuator delivers 80 % of the control is still the plant whose
 model explains its window, where a fixed ``b_p`` leaves the identity to a near neighbour.
 
 Two more mismatches of a real actuator can be fitted the same way. With
-``model.transition_input_lag`` the control a model sees is ``u_j + a (u_(j-1) - u_j)``, the
-lag ``a`` the one of :data:`INPUT_LAGS` that fits best: a first-order motor lag of time
+``lags`` the control a model sees is ``u_j + a (u_(j-1) - u_j)``, the
+lag ``a`` the one of ``lags`` that fits best: a first-order motor lag of time
 constant ``tau`` delivers, over a sample ``T``, about that mix with ``a`` rising to 0.5 at
 ``tau = 0.6 T`` (the sim-to-real stand-in's 30-ms motor at 50-ms samples). With
-``model.transition_input_offset`` a constant ``d`` joins the control, ``b_p (g u + d)``: a
+``offset`` a constant ``d`` joins the control, ``b_p (g u + d)``: a
 constant input disturbance (a heavier vehicle's unbalanced weight, an actuator bias), the
 one LQI's integral rejects, which otherwise leaves the plant's model a residual at rest.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor, nn
 
-__all__ = ["INPUT_GAIN", "INPUT_LAGS", "TransitionModels", "TransitionSet", "noisy_states"]
-
-#: The range of an actuator's gain the one-step models fit (``model.transition_input_gain``):
-#: +-25 %, the range the plant variants draw their parameters in (``data.variants.range``).
-INPUT_GAIN = (0.75, 1.25)
-
-#: The lags ``a`` of the control mix ``u_j + a (u_(j-1) - u_j)`` the one-step models try
-#: (``model.transition_input_lag``): from none to 0.6, which a first-order actuator of time
-#: constant about the sample period delivers.
-INPUT_LAGS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+__all__ = ["TransitionModels", "TransitionSet", "noisy_states"]
 
 
 def noisy_states(state: Tensor, mask: Tensor, std: float, state_dim: int) -> Tensor:
-    """Windows with white noise on their unpadded plant states (``model.identity_noise``).
+    """Windows with white noise on their unpadded plant states (the identifier's noise).
 
     Each window's std is drawn uniform in ``[0, std]``; the channels after the
     ``state_dim`` plant states (the integral, the previous control) are left as they are.
@@ -70,14 +61,15 @@ class TransitionSet(nn.Module):
         Padded plant state entries at the front of each sample (``MAX_ORDER``).
     hidden : int
         Size of ``phi``'s layers and of the output.
-    models : TransitionModels, optional
-        Each plant's one-step model (``model.transition_models``): its evidence on the
-        window follows the encoder's output.
+    models : callable, optional
+        Builds each plant's one-step models (``models(state_dim=..., embedding=hidden)``, a
+        :class:`TransitionModels`): their evidence on the window follows the encoder's output.
 
     Notes
     -----
     The window's last channel is the control applied one sample earlier
-    (``model.control_history``), so the control that took sample ``j`` to ``j + 1`` is that
+    (``previous_control`` in ``model.channels``), so the control that took sample ``j`` to
+    ``j + 1`` is that
     channel at ``j + 1``. ``m`` is the plant's order mask (padding and the mask carry the
     order). Samples the history repeats before the first one give ``x_(j+1) = x_j`` under
     the control 0: seen identically in training and at run time (the one window builder).
@@ -90,11 +82,14 @@ class TransitionSet(nn.Module):
     """
 
     def __init__(
-        self, state_dim: int, hidden: int, models: TransitionModels | None = None
+        self,
+        state_dim: int,
+        hidden: int,
+        models: Callable[..., TransitionModels] | None = None,
     ) -> None:
         super().__init__()
         self.state_dim = state_dim
-        self.models = models
+        self.models = None if models is None else models(state_dim=state_dim, embedding=hidden)
         self.phi = nn.Sequential(
             nn.Linear(3 * state_dim + 1, hidden),
             nn.ReLU(),
@@ -102,19 +97,6 @@ class TransitionSet(nn.Module):
             nn.ReLU(),
         )
         self.rho = nn.Linear(hidden, hidden)
-
-    @classmethod
-    def from_config(cls, config: Mapping[str, int], hidden: int) -> TransitionSet:
-        """The identifier of a network config (its ``transition_*`` switches)."""
-        models = None
-        if config.get("transition_models"):
-            gain = INPUT_GAIN if config.get("transition_input_gain") else None
-            lags = INPUT_LAGS if config.get("transition_input_lag") else (0.0,)
-            offset = bool(config.get("transition_input_offset"))
-            models = TransitionModels(
-                config["state_dim"], hidden, input_gain=gain, lags=lags, offset=offset
-            )
-        return cls(config["state_dim"], hidden, models)
 
     def transitions(self, state: Tensor, mask: Tensor) -> Tensor:
         """Inputs of ``phi`` (B, history - 1, 3 state_dim + 1) of a masked window."""
@@ -154,31 +136,15 @@ class TransitionSet(nn.Module):
         # the control that took sample j - 1 to j: the channel at sample j
         return self.models(x, dx, u, rows, u_prev=state[:, :-1, -1])
 
-    def read(
-        self,
-        state: Tensor,
-        mask: Tensor,
-        rows: Tensor | None,
-        noise: float = 0.0,
-        clean_fit: bool = False,
-    ) -> tuple[Tensor, Tensor | None]:
-        """The identifier's state of windows, and the evidence its models are fitted to.
+    def read(self, state: Tensor, mask: Tensor, rows: Tensor | None, noise: float = 0.0) -> Tensor:
+        """The identifier's state of windows; with ``noise`` > 0 of noisy copies of them.
 
-        ``noise`` > 0: it reads windows with noise on their plant states (:func:`noisy_states`),
-        and with ``clean_fit`` the second value is its models' evidence on the clean ones,
-        to fit them to (:meth:`TransitionModels.fit_loss`; the noisy evidence then passes
-        them no gradient). Else None: the fit reads the evidence in the first value.
+        The copies get white noise on their plant states (:func:`noisy_states`); the
+        models' fit (:meth:`TransitionModels.fit_loss`) reads their evidence on those copies.
         """
-        if noise <= 0:
-            return self(state, mask, rows), None
-        seen = noisy_states(state, mask, noise, self.state_dim)
-        ident = self(seen, mask, rows)
-        if self.models is None or not clean_fit or rows is None:
-            return ident, None
-        # the noisy evidence, of data and (detached) rows, keeps no gradient to the models
-        plants = rows.shape[0]
-        ident = torch.cat([ident[:, :-plants], ident[:, -plants:].detach()], dim=-1)
-        return ident, self.evidence(state, mask, rows)
+        if noise > 0:
+            state = noisy_states(state, mask, noise, self.state_dim)
+        return self(state, mask, rows)
 
 
 class TransitionModels(nn.Module):
@@ -193,13 +159,15 @@ class TransitionModels(nn.Module):
     eps : float
         Added to the mean squared residual (normalised units): a window without motion
         gives every plant the same evidence.
-    input_gain : tuple of float, optional
-        The range of the fitted input gain (``model.transition_input_gain``); None: 1.
-    lags : tuple of float
-        The input lags tried (``model.transition_input_lag``: :data:`INPUT_LAGS`); each
-        model keeps the one that fits its window best. ``(0.0,)``: none.
+    input_gain : sequence of two floats, optional
+        The range of the fitted input gain (e.g. ``[0.75, 1.25]``: the variants' +-25 %);
+        None: 1.
+    lags : sequence of float
+        The input lags tried (e.g. 0, 0.1, ..., 0.6: a first-order actuator of time constant
+        up to about the sample period); each model keeps the one that fits its window best.
+        ``(0.0,)``: none.
     offset : bool
-        Fit a constant input disturbance ``d`` (``model.transition_input_offset``).
+        Fit a constant input disturbance ``d``.
 
     Notes
     -----
@@ -222,17 +190,25 @@ class TransitionModels(nn.Module):
         state_dim: int,
         embedding: int,
         eps: float = 1e-6,
-        input_gain: tuple[float, float] | None = None,
-        lags: tuple[float, ...] = (0.0,),
+        input_gain: Sequence[float] | None = None,
+        lags: Sequence[float] = (0.0,),
         offset: bool = False,
     ) -> None:
         super().__init__()
         self.state_dim, self.eps = state_dim, eps
-        if input_gain is not None and not 0 < input_gain[0] <= 1 <= input_gain[1]:
-            raise ValueError(f"input_gain must hold 1 and be positive, got {input_gain}")
+        gain = None if input_gain is None else tuple(float(g) for g in input_gain)
+        if gain is not None and not (len(gain) == 2 and 0 < gain[0] <= 1 <= gain[1]):
+            raise ValueError(
+                f"model.plant.identifier.models.input_gain must be a range [low, high] with "
+                f"0 < low <= 1 <= high, or null; got {input_gain}"
+            )
         if not lags or any(not 0.0 <= a <= 1.0 for a in lags):
-            raise ValueError(f"lags must be a non-empty tuple of values in [0, 1], got {lags}")
-        self.input_gain, self.lags, self.offset = input_gain, tuple(lags), bool(offset)
+            raise ValueError(
+                "model.plant.identifier.models.lags must be a non-empty list of values in "
+                f"[0, 1] ([0.0]: no lag), got {lags}"
+            )
+        self.input_gain = None if gain is None else (gain[0], gain[1])
+        self.lags, self.offset = tuple(float(a) for a in lags), bool(offset)
         self.params = nn.Linear(embedding, state_dim * (state_dim + 2))
         nn.init.zeros_(self.params.weight)
         nn.init.zeros_(self.params.bias)

@@ -81,7 +81,7 @@ class Normaliser(nn.Module):
             raise ValueError("cannot fit the normaliser on zero windows")
         if int(tag.min()) < 0 or int(tag.max()) >= n_tags:
             raise ValueError(
-                f"system tags must lie in 0..{n_tags - 1} (model.n_tags = {n_tags}); "
+                f"system tags must lie in 0..{n_tags - 1} (model.plant.n_tags = {n_tags}); "
                 f"got {int(tag.min())}..{int(tag.max())}"
             )
         d = torch.float64

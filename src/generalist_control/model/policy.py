@@ -1,22 +1,24 @@
 """The deployable policy: normaliser + network, and its checkpoint file.
 
 :class:`Policy` is the single preprocessing path of the project: training computes its
-loss on :meth:`Policy.normalised`, and evaluation and deployment call :meth:`Policy.forward`
+loss on :meth:`Policy.output`, and evaluation and deployment call :meth:`Policy.forward`
 (raw plant units in and out) or :meth:`Policy.predict_windows` on
 :class:`~generalist_control.data.windows.Windows` built by the one window builder.
 
 A policy file (``models/policy.ckpt``) holds plain types and tensors only, so it loads with
 ``torch.load(path, weights_only=True)``::
 
-    {"format_version": 1, "model": {...network config...}, "state_dict": {...},
-     "meta": {"tags": {plant: tag}, "orders": {plant: n}, "dt": ..., "history": ...,
-              "horizon": ..., "content_hash": "sha256:...", "metrics": {...}, ...}}
+    {"format_version": 2, "model": {...the network's config, _target_ and parts...},
+     "state_dict": {...}, "meta": {"tags": {plant: tag}, "orders": {plant: n}, "dt": ...,
+     "history": ..., "horizon": ..., "content_hash": "sha256:...", "metrics": {...}, ...}}
 
-:func:`load_policy` reads such a file or a Lightning checkpoint written by training.
+:func:`load_policy` reads such a file or a Lightning checkpoint written by training, and
+refuses anything else with :class:`PolicyFileError`, naming the file and how to remake it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -25,24 +27,33 @@ import torch
 from torch import Tensor, nn
 
 from generalist_control.data.windows import Windows
-from generalist_control.model.network import GeneralistNetwork, input_width, network_config
+from generalist_control.model.build import build_network
+from generalist_control.model.linear import linear_features
+from generalist_control.model.meta import check_meta
 from generalist_control.model.normalise import Normaliser
+from generalist_control.model.output import NetOutput
 
 __all__ = [
     "POLICY_FILE",
     "POLICY_FORMAT_VERSION",
+    "RETRAIN",
     "Policy",
+    "PolicyFileError",
     "load_policy",
     "save_policy",
 ]
 
-POLICY_FORMAT_VERSION = 1
+POLICY_FORMAT_VERSION = 2
 
 #: File name of a policy: ``models/policy.ckpt`` and the MLflow artifact ``policy/policy.ckpt``.
 POLICY_FILE = "policy.ckpt"
 
-#: Smallest window scale (normalised units): a window at rest maps to inputs near zero.
-WINDOW_SCALE_FLOOR = 1e-3
+#: How a policy file is made again.
+RETRAIN = "`dvc repro train` (the pipeline's models/policy.ckpt) or `python train.py` (any run)"
+
+
+class PolicyFileError(ValueError):
+    """A file that is not a policy of this project (or of this version): nothing is loaded."""
 
 
 class Policy(nn.Module):
@@ -50,161 +61,57 @@ class Policy(nn.Module):
 
     Parameters
     ----------
-    model : dict
-        Network config (see :data:`generalist_control.model.network.MODEL_DEFAULTS`).
+    model : mapping
+        The network's config (``conf/model``, resolved to plain types):
+        :func:`~generalist_control.model.build.build_network` builds it.
     """
 
-    def __init__(self, model: dict[str, Any]) -> None:
+    def __init__(self, model: Mapping[str, Any]) -> None:
         super().__init__()
-        self.config = network_config(**model)
-        self.normaliser = Normaliser(self.config["n_tags"], input_width(self.config))
-        self.net = GeneralistNetwork(**self.config)
-        #: Run with the tag withheld (evaluation.withhold_tag): the network gets the
-        #: "unknown" row instead of the plant's tag; the per-plant data scales still apply.
-        self.withhold_tag = False
+        self.config: dict[str, Any] = dict(model)
+        net = build_network(self.config)
+        self.normaliser = Normaliser(net.n_tags, net.width)
+        self.net = net
 
-    def network_tags(self, tag: Tensor, withheld: Tensor | None = None) -> Tensor:
-        """The tags the network receives: ``n_tags`` (withheld) where ``withheld`` is true.
+    @property
+    def history(self) -> int:
+        """Samples per window (``T_h``)."""
+        return self.net.history
 
-        Parameters
-        ----------
-        tag : Tensor of int, shape (B,)
-        withheld : Tensor of bool, shape (B,), optional
-            Which samples go without their tag (tag dropout in training); None: all of them
-            when :attr:`withhold_tag` is set, none otherwise.
+    @property
+    def horizon(self) -> int:
+        """Controls per window (``K``)."""
+        return self.net.horizon
 
-        Raises
-        ------
-        ValueError
-            If a tag is withheld from a network trained with its tag always given.
-        """
-        if withheld is None:
-            if not self.withhold_tag:
-                return tag
-            withheld = torch.ones_like(tag, dtype=torch.bool)
-        if self.config["tag_free"]:
-            return tag  # the network ignores it anyway
-        if not self.config["unknown_tag"]:
-            raise ValueError(
-                "cannot withhold the tag: this policy was trained with its tag always given; "
-                "train with model.tag_dropout > 0 (or model.tag_free=true)"
-            )
-        return torch.where(withheld, torch.full_like(tag, self.config["n_tags"]), tag)
+    @property
+    def width(self) -> int:
+        """Entries per window sample: the padded plant state and the channels."""
+        return self.net.width
 
-    def scaled(
-        self,
-        state: Tensor,
-        mask: Tensor,
-        ref: Tensor,
-        tag: Tensor,
-        withheld: Tensor | None = None,
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
-        """Output (window-scaled units), gates, window scales (B, 1), identity-head input.
-
-        The last is what the identity head reads (None without a skip path; see
-        ``model.identity_loss``). With ``window_scale`` on, each window's normalised
-        state and reference are divided by their largest magnitude ``s`` (at least
-        :data:`WINDOW_SCALE_FLOOR`) and the network's output is multiplied by it. The
-        LQI law is linear, so its step responses from rest are exactly proportional to
-        the step: scaled windows of every amplitude coincide, the network learns one
-        shape per plant, and its error is relative to the signal, as precise for a unit
-        step as for a step of 20. With it off, ``s = 1``. The data scales use the
-        plant's tag; the network gets :meth:`network_tags`.
-        """
-        state, mask, ref, tag, s = self.network_inputs(state, mask, ref, tag)
-        u, gates, code = self.net.forward_code(state, mask, ref, self.network_tags(tag, withheld))
-        return u, gates, s, code
-
-    def identity_logits(
-        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """The network's output (window-scaled units) and its plant logits (B, n_tags).
-
-        The logits are the identity head's read-out of the skip gains' context, or with
-        ``infer_tag`` of the identifier's state (``model.identity_loss``); the tag only
-        scales the data, as in :meth:`scaled`.
-
-        Raises
-        ------
-        ValueError
-            If the network has no skip path or no identity head.
-        """
-        u, _, _, code = self.scaled(state, mask, ref, tag)
-        if code is None:
-            raise ValueError("the network has no skip path, so no identity context")
-        return u, self.net.identity_logits(code)
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """The window's extra channels (``model.channels``)."""
+        return self.net.channels
 
     def network_inputs(
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """Raw windows -> the network's inputs (normalised, window-scaled) and the scales s."""
+        """Raw windows as the network's layers see them: normalised, window-scaled; and s."""
         state, mask, ref, tag = self.normaliser.normalise_inputs(state, mask, ref, tag)
-        if self.config["window_scale"]:
-            peak = torch.maximum(state.abs().amax(dim=(1, 2)), ref.abs().amax(dim=1))
-            s = peak.clamp(min=WINDOW_SCALE_FLOOR).unsqueeze(1)
-            return state / s.unsqueeze(2), mask, ref / s, tag, s
-        return state, mask, ref, tag, torch.ones_like(ref[:, :1])
+        state, ref, s = self.net.scaled_inputs(state, ref)
+        return state, mask, ref, tag, s
 
-    @torch.no_grad()
-    def fit_linear_head(
-        self,
-        state: Tensor,
-        mask: Tensor,
-        ref: Tensor,
-        tag: Tensor,
-        target: Tensor,
-        ridge: float = 1e-8,
-    ) -> dict[int, float]:
-        """Set the linear head to the per-tag least-squares fit of ``target``; zero the experts.
-
-        A closed-form start for training (``model.linear_init: lstsq``): for each tag, the
-        head's weights solve the ridge-regularised least-squares problem from its features
-        (:meth:`GeneralistNetwork.linear_features` of the network's inputs) to the
-        targets in the units the loss uses, and each expert's last layer is zeroed so that
-        the policy starts as exactly that linear law; the experts then learn the remainder
-        (for a nonlinear plant) by gradient descent. For a linear plant with
-        ``model.integral`` and ``linear_samples = 1`` the fit recovers the LQI law
-        ``-Kx x - Ki z`` from the data alone.
-
-        Returns
-        -------
-        dict
-            Per tag, the fit's relative RMS residual.
-        """
-        if self.net.linear is None:
-            raise ValueError("the policy has no linear head (model.linear_head=false)")
-        x, m, r, t, s = self.network_inputs(state, mask, ref, tag)
-        feats = self.net.linear_features(x, m, r).double()
-        y = (self.normaliser.normalise_controls(target, tag) / s).double()
-        weight = self.net.linear.weight
-        residuals = {}
-        for tg in torch.unique(t).tolist():
-            sel = t == tg
-            X, Y = feats[sel], y[sel]
-            G = X.T @ X
-            G += (
-                ridge
-                * (torch.trace(G) / G.shape[0] + 1e-30)
-                * torch.eye(G.shape[0], dtype=G.dtype)
-            )
-            W = torch.linalg.solve(G, X.T @ Y)  # (F, K)
-            weight[tg] = W.T.reshape(-1).to(weight.dtype)
-            res = Y - X @ W
-            residuals[int(tg)] = float(
-                res.pow(2).mean().sqrt() / Y.pow(2).mean().sqrt().clamp(min=1e-30)
-            )
-        for expert in self.net.experts:
-            last = expert[-1]  # type: ignore[index]  # an ExpertMLP (nn.Sequential)
-            last.weight.zero_()
-            last.bias.zero_()
-        return residuals
+    def output(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor) -> NetOutput:
+        """The network's output for raw windows (normalised by the plant's tag)."""
+        state, mask, ref, tag = self.normaliser.normalise_inputs(state, mask, ref, tag)
+        return self.net(state, mask, ref, tag)
 
     def normalised(
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
     ) -> tuple[Tensor, Tensor]:
         """Network output in normalised units and gate weights."""
-        u, gates, s, _ = self.scaled(state, mask, ref, tag)
-        return u * s, gates
+        out = self.output(state, mask, ref, tag)
+        return out.control * out.scale, out.gates
 
     def forward(
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
@@ -215,6 +122,36 @@ class Policy(nn.Module):
         """
         u, gates = self.normalised(state, mask, ref, tag)
         return self.normaliser.denormalise_controls(u, tag), gates
+
+    @torch.no_grad()
+    def fit_table(
+        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor, target: Tensor
+    ) -> dict[int, float]:
+        """Start the per-tag table at the least-squares fit of ``target``; zero the experts.
+
+        The hybrid's start (``model.table``): per tag, the table's gains solve the
+        ridge-regularised least-squares problem from its features of the windows the
+        network sees to the targets in the units of the loss, and each expert's last layer
+        is zeroed, so the policy starts as exactly that linear law; the experts then learn
+        the remainder.
+
+        Returns
+        -------
+        dict
+            Per tag, the fit's relative RMS residual.
+        """
+        table = self.net.table
+        if table is None:
+            raise ValueError("the policy has no per-tag table (model.table is null)")
+        x, m, r, t, s = self.network_inputs(state, mask, ref, tag)
+        n = self.net.law_history
+        feats = linear_features(self.net.law_state(x[:, -n:], m[:, -n:]), r[:, -n:], table.samples)
+        residuals = table.fit(feats, self.normaliser.normalise_controls(target, tag) / s, t)
+        for expert in self.net.experts:
+            last = expert[-1]  # type: ignore[index]  # an ExpertMLP (nn.Sequential)
+            last.weight.zero_()
+            last.bias.zero_()
+        return residuals
 
     @torch.no_grad()
     def predict_windows(
@@ -233,9 +170,9 @@ class Policy(nn.Module):
             u, g = self(*args)
             us.append(u.cpu().numpy())
             gs.append(g.cpu().numpy())
-        horizon, experts = self.config["horizon"], self.config["experts"]
         if not us:
-            return np.zeros((0, horizon), np.float32), np.zeros((0, experts), np.float32)
+            empty = np.zeros((0, self.horizon), np.float32)
+            return empty, np.zeros((0, self.net.n_experts), np.float32)
         return np.concatenate(us), np.concatenate(gs)
 
 
@@ -256,25 +193,82 @@ def save_policy(path: str | Path, policy: Policy, meta: dict[str, Any]) -> Path:
     return path
 
 
+def _read(path: Path, map_location: str | torch.device) -> dict[str, Any]:
+    """The file's contents, or :class:`PolicyFileError` naming what it is not."""
+    if not path.is_file():
+        raise PolicyFileError(f"no policy file at {path}; make one with {RETRAIN}")
+    try:
+        blob = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # truncated, empty, random bytes, ONNX, pickled code, ...
+        raise PolicyFileError(
+            f"{path} is not a policy file of this project (torch could not read it as one: "
+            f"{type(exc).__name__}); a policy is the policy.ckpt (or a training checkpoint) "
+            f"that training writes; make it again with {RETRAIN}"
+        ) from None
+    if not isinstance(blob, dict):
+        raise PolicyFileError(f"{path} holds a {type(blob).__name__}, not a policy; {RETRAIN}")
+    return blob
+
+
+def _parts(path: Path, blob: dict[str, Any]) -> tuple[Any, Any, Any]:
+    """The network config, meta and weights of a policy file or a Lightning checkpoint."""
+    if "pytorch-lightning_version" in blob:  # a checkpoint of the training module
+        hp = blob.get("hyper_parameters", {})
+        state = {
+            k[len("policy.") :]: v
+            for k, v in blob.get("state_dict", {}).items()
+            if k.startswith("policy.")
+        }
+        return hp.get("model"), dict(hp.get("meta", {})), state
+    version = blob.get("format_version")
+    if version != POLICY_FORMAT_VERSION:
+        raise PolicyFileError(
+            f"{path}: policy format {version!r}; this code reads format "
+            f"{POLICY_FORMAT_VERSION}. Retrain it with this version: {RETRAIN}"
+        )
+    return blob.get("model"), blob.get("meta"), blob.get("state_dict")
+
+
 def load_policy(
     path: str | Path, map_location: str | torch.device = "cpu"
 ) -> tuple[Policy, dict[str, Any]]:
     """Load a policy file or a training (Lightning) checkpoint; return it with its meta.
 
-    The policy is in eval mode. Loading uses ``weights_only=True``: no code is unpickled.
+    The policy is in eval mode. Loading uses ``weights_only=True``: no code is unpickled,
+    and the network is built from the project's own classes only.
+
+    Raises
+    ------
+    PolicyFileError
+        If the file is missing, unreadable, not a policy, of an older format (a network
+        config without ``_target_``), its weights do not fit its config, or its meta is
+        inconsistent (unknown tag, order out of range, dt not positive, ...); the message
+        names the file and the command that remakes it.
     """
-    blob = torch.load(path, map_location=map_location, weights_only=True)
-    if "pytorch-lightning_version" in blob:  # a checkpoint of LitController
-        hp = blob["hyper_parameters"]
-        model, meta = hp["model"], dict(hp.get("meta", {}))
-        state = {k[len("policy.") :]: v for k, v in blob["state_dict"].items()}
-    else:
-        version = blob.get("format_version")
-        if version != POLICY_FORMAT_VERSION:
-            raise ValueError(
-                f"{path}: policy format {version}, this code reads {POLICY_FORMAT_VERSION}"
-            )
-        model, meta, state = blob["model"], blob["meta"], blob["state_dict"]
-    policy = Policy(model)
-    policy.load_state_dict(state)
-    return policy.eval(), meta
+    path = Path(path)
+    model, meta, state = _parts(path, _read(path, map_location))
+    if not isinstance(model, Mapping) or "_target_" not in model:
+        raise PolicyFileError(
+            f"{path} was written by an older version of this project (its network config "
+            f"has no _target_: a flat list of switches); retrain it: {RETRAIN}"
+        )
+    try:
+        policy = Policy(model)
+    except ValueError as exc:
+        raise PolicyFileError(f"{path}: its network config is refused: {exc}") from None
+    if not isinstance(state, Mapping) or not isinstance(meta, Mapping):
+        raise PolicyFileError(f"{path} has no weights or no meta; {RETRAIN}")
+    try:
+        policy.load_state_dict(state)
+    except RuntimeError as exc:
+        first = str(exc).strip().splitlines()[:3]
+        raise PolicyFileError(
+            f"{path}: its weights do not fit the network its config describes "
+            f"({' '.join(s.strip() for s in first)}); the file was altered or mixed up. "
+            f"Remake it with {RETRAIN}"
+        ) from None
+    try:
+        check_meta(dict(meta), policy)
+    except ValueError as exc:
+        raise PolicyFileError(f"{path}: {exc}; remake it with {RETRAIN}") from None
+    return policy.eval(), dict(meta)

@@ -7,7 +7,7 @@ window at that equilibrium (:func:`rest_window`, built by the one window builder
 derivative of the policy's first control with respect to every window entry closes a linear
 loop with the plant sampled at ``dt`` (:func:`closed_loop_matrix`): the state is the window
 (the newest plant states, error integrals ``z_(k+1) = z_k + dt (r - C x_k)`` as the runtime
-keeps them, and previous controls with ``model.control_history``). Its spectral radius is
+keeps them, and previous controls with the ``previous_control`` channel). Its spectral radius is
 below 1 exactly when small deviations from rest die out.
 
 The matrix is ``A0 + b law^T``: ``A0`` and ``b`` depend on the plant and the window's

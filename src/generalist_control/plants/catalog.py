@@ -97,18 +97,18 @@ def plants_from_config(systems: DictConfig | Mapping[str, Any]) -> list[Plant]:
 def check_tags(plants: Iterable[Plant], n_tags: Any) -> None:
     """Refuse plants whose tag the policy cannot take: tags must lie in ``0..n_tags-1``.
 
-    ``n_tags`` is ``model.n_tags``, the size of the policy's one-hot tag input.
+    ``n_tags`` is ``model.plant.n_tags``, the size of the policy's one-hot tag input.
 
     Raises
     ------
     PlantConfigError
         Naming every such plant, its tag, the allowed range and the fixes, e.g. "plant
-        'cstr' (tag 10) is outside the policy's tags 0..9 (model.n_tags=10); raise
-        model.n_tags to at least 11 (...) or give it a free tag in 0..9 (...)".
+        'cstr' (tag 10) is outside the policy's tags 0..9 (model.plant.n_tags=10); raise
+        model.plant.n_tags to at least 11 (...) or give it a free tag in 0..9 (...)".
     ValueError
         If ``n_tags`` is not a positive integer.
     """
-    n = require_int("model.n_tags", n_tags)
+    n = require_int("model.plant.n_tags", n_tags)
     bad = [p for p in plants if not 0 <= p.tag < n]
     if not bad:
         return
@@ -119,11 +119,11 @@ def check_tags(plants: Iterable[Plant], n_tags: Any) -> None:
     if top >= n:
         fixes.insert(
             0,
-            f"raise model.n_tags to at least {top + 1} (conf/model/, the same for generate "
+            f"raise model.plant.n_tags to at least {top + 1} (conf/model/, the same for generate "
             "and train)",
         )
     raise PlantConfigError(
         f"{'plant' if one else 'plants'} {which} {'is' if one else 'are'} outside the "
-        f"policy's tags 0..{n - 1} (model.n_tags={n}); {' or '.join(fixes)} "
+        f"policy's tags 0..{n - 1} (model.plant.n_tags={n}); {' or '.join(fixes)} "
         "(conf/plants/<name>.yaml, field 'tag')"
     )

@@ -43,9 +43,9 @@ def _mean_gates(policy: Policy, tr: Trajectory, p: Plant, tag: int, history: int
     x = pad_states(tr.x[:, :steps])
     order = np.full(x.shape[0], p.order)
     z = None
-    if policy.config.get("integral", 0):
+    if "integral" in policy.channels:
         z = integral_of_error(tr.r, tr.y[:, :steps], p.dt)
-    u_prev = previous_controls(tr.u) if policy.config.get("control_history", 0) else None
+    u_prev = previous_controls(tr.u) if "previous_control" in policy.channels else None
     state, mask, ref = history_windows(x, tr.r, order, history, z, u_prev)
     B, N = tr.r.shape
     windows = Windows(
@@ -102,7 +102,7 @@ def gate_weights(
     loaded = [load_plant(name) for name in plants]
     runtime = PolicyRuntime(policy, dict(meta))
     history = int(meta["history"])
-    experts = int(policy.config["experts"])
+    experts = policy.net.n_experts
     spec = {"kind": "step", "amplitude": 1.0, "duration": float(duration)}
     out: dict[str, np.ndarray] = {}
     by_dt: dict[float, list[Any]] = {}

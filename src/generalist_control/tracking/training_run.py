@@ -65,26 +65,33 @@ def _select(cfg: Mapping[str, Any], key: str) -> tuple[bool, Any]:
 def training_params(cfg: Mapping[str, Any], keys: Sequence[str]) -> dict[str, str]:
     """The params of a training run: the config ``keys`` (each with its subtree), flattened.
 
-    A group switched off (``enabled: false``, e.g. ``dagger``) is logged as its switch
-    alone; Hydra's ``_partial_`` markers are left out; values are redacted as in
+    A part chosen in config (a node with ``_target_``) is logged under its own key as its
+    class name, followed by its settings; Hydra's ``_partial_`` markers and settings that
+    are null (a part or option not chosen) are left out, but a chosen key that is null
+    itself (``dagger: null``) is logged as ``None``. Values are redacted as in
     :func:`~.mlflow_utils.flatten_params`. Keys the config does not hold are skipped.
 
     Examples
     --------
-    >>> cfg = {"model": {"hidden": 64}, "dagger": {"enabled": False, "rounds": 5}, "x": 1}
+    >>> cfg = {"model": {"_target_": "pkg.Net", "hidden": 64, "skip": None}, "dagger": None}
     >>> training_params(cfg, ["model", "dagger", "nowhere"])
-    {'model.hidden': '64', 'dagger.enabled': 'False'}
+    {'model': 'Net', 'model.hidden': '64', 'dagger': 'None'}
     """
     out: dict[str, str] = {}
     for key in keys:
         found, node = _select(cfg, key)
         if not found:
             continue
-        if isinstance(node, Mapping) and node.get("enabled") is False:
-            node = {"enabled": False}
+        if node is None:
+            out[key] = "None"
+            continue
         flat = mlflow_utils.flatten_params({"_": node}, exclude=())
         for name, value in flat.items():
-            if not name.endswith("._partial_"):
+            if name.endswith("._partial_") or value == "None":
+                continue
+            if name.endswith("._target_"):
+                out[key + name[1 : -len("._target_")]] = value.rsplit(".", 1)[-1]
+            else:
                 out[key + name[1:]] = value
     return out
 

@@ -1,29 +1,19 @@
 """An actuator that is not the model's, between DAgger's rollouts and their plants.
 
-``dagger.actuator_lag`` and ``dagger.actuator_offset`` (issue 13, sim-to-real without the
-tag): each rollout row gets a first-order lag and a constant input disturbance of its own,
-drawn at random, between the control the policy commands and the control the plant
-receives. The policy's windows keep the *commanded* control (the one a deployed policy
-knows), the experts label what they would command, and the identifier learns to name a
-plant whose actuator lags or is offset (a motor's time constant, a heavier vehicle's
-unbalanced weight), as a real one does. The plants in the data are untouched.
+``dagger.sampler.actuator`` (sim-to-real without the tag): each rollout row gets a
+first-order lag and a constant input disturbance of its own, drawn at random, between the
+control the policy commands and the control the plant receives. The policy's windows keep
+the *commanded* control (the one a deployed policy knows), the experts label what they
+would command, and the identifier learns to name a plant whose actuator lags or is offset
+(a motor's time constant, a heavier vehicle's unbalanced weight), as a real one does. The
+plants in the data are untouched.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from generalist_control.common.schema import require_nonnegative
-
-__all__ = ["Actuator", "checked_spread", "lag_mix"]
-
-
-def checked_spread(lag: float, offset: float) -> tuple[float, float]:
-    """``dagger.actuator_lag`` and ``dagger.actuator_offset`` as floats, checked (>= 0)."""
-    return (
-        require_nonnegative("dagger.actuator_lag", lag, "time constant (sample periods)"),
-        require_nonnegative("dagger.actuator_offset", offset, "fraction"),
-    )
+__all__ = ["Actuator", "lag_mix"]
 
 
 def lag_mix(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

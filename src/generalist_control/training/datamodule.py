@@ -26,9 +26,10 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from generalist_control.common.schema import require_fraction, require_int
+from generalist_control.common.schema import require_int
 from generalist_control.data.demos import MissingDataError, load_demos
 from generalist_control.data.windows import Windows
+from generalist_control.training.settings import LoaderSettings
 
 __all__ = [
     "BatchIndexSampler",
@@ -71,7 +72,7 @@ def split_by_trajectory(plant: np.ndarray, val_fraction: float, seed: int) -> np
 
 
 class MissingPlantError(MissingDataError):
-    """A plant asked for (``systems.include``) that the dataset does not hold."""
+    """A plant of the config's set (``systems``) that the dataset does not hold."""
 
 
 class WindowTensors(Dataset):
@@ -130,28 +131,18 @@ class DemoDataModule(L.LightningDataModule):
         Directory written by the ``generate`` stage.
     history, horizon : int
         Window sizes (the policy's ``T_h`` and ``K``).
-    val_fraction : float
-        Fraction of each plant's trajectories held out for validation.
-    batch_size, val_batch_size : int
+    loader : LoaderSettings
+        The validation fraction (of each plant's trajectories) and the batch sizes.
     seed : int
         Seeds the split and the per-epoch shuffling.
-    integral : bool
-        Windows carry the tracking-error integral as a state channel
-        (``model.integral``; see :func:`~generalist_control.windows.integral_of_error`).
-    controls : bool
-        Windows carry the control one sample earlier as the last channel
-        (``model.control_history``).
     plants : sequence of str, optional
-        Train and validate on these plants only (``systems.include``); None or empty: all
-        the dataset holds. The split is made over the whole dataset first, so a plant kept
-        has the same training and validation trajectories as without ``plants``.
-
-    Raises
-    ------
-    ValueError
-        If a size is not a positive integer (``10.5`` is refused, not truncated) or
-        ``val_fraction`` is not a number in ``[0, 1)``; the message names the
-        ``loader.*`` or ``data.*`` key, the value and its type.
+        Train and validate on these plants only (the config's set); None: all the dataset
+        holds. The split is made over the whole dataset first, so a plant kept has the same
+        training and validation trajectories whatever else is kept.
+    channels : sequence of str
+        The window's extra channels (``model.channels``): ``integral`` (the tracking-error
+        integral, :func:`~generalist_control.data.windows.integral_of_error`) and
+        ``previous_control`` (the control one sample earlier, the last channel).
 
     Attributes
     ----------
@@ -167,22 +158,20 @@ class DemoDataModule(L.LightningDataModule):
         data_dir: str | Path,
         history: int,
         horizon: int,
-        val_fraction: float = 0.1,
-        batch_size: int = 512,
-        val_batch_size: int = 8192,
+        loader: LoaderSettings | None = None,
         seed: int = 0,
-        integral: bool = False,
         plants: Sequence[str] | None = None,
-        controls: bool = False,
+        channels: Sequence[str] = (),
     ) -> None:
         super().__init__()
         self.data_dir = Path(data_dir)
-        self.integral, self.controls = bool(integral), bool(controls)
+        self.integral = "integral" in channels
+        self.controls = "previous_control" in channels
         self.history = require_int("data.history", history)
         self.horizon = require_int("data.horizon", horizon)
-        self.val_fraction = require_fraction("loader.val_fraction", val_fraction)
-        self.batch_size = require_int("loader.batch_size", batch_size)
-        self.val_batch_size = require_int("loader.val_batch_size", val_batch_size)
+        loader = loader or LoaderSettings()
+        self.val_fraction = loader.val_fraction
+        self.batch_size, self.val_batch_size = loader.batch_size, loader.val_batch_size
         self.seed = int(seed)
         self.plants = [str(p) for p in plants] if plants else None
         self.manifest: dict[str, Any] = {}
@@ -228,11 +217,11 @@ class DemoDataModule(L.LightningDataModule):
         missing = [p for p in self.plants if p not in held]
         if missing:
             raise MissingPlantError(
-                f"systems.include names {missing}, but the dataset at {self.data_dir} holds "
-                f"only {held}; generate one that holds them, e.g. "
-                "python -m generalist_control.generate "
-                f"systems.include=[{','.join(sorted(set(held) | set(self.plants)))}] "
-                f"paths.data_dir={self.data_dir}"
+                f"the plant set (systems) names {missing}, but the dataset at {self.data_dir} "
+                f"holds only {held}: generate one that holds them (python -m "
+                "generalist_control.generate with the same systems and "
+                f"paths.data_dir={self.data_dir}), or train on the plants it holds "
+                f"(systems.include=[{','.join(held)}])"
             )
         return np.isin(plant, self.plants)
 

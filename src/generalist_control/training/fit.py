@@ -28,7 +28,7 @@ import mlflow
 import numpy as np
 import torch
 from lightning.pytorch.loggers import MLFlowLogger
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.secrets import redact
@@ -37,22 +37,17 @@ from generalist_control.model.network import count_parameters
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy, save_policy
 from generalist_control.tracking import training_run
 from generalist_control.training import outputs
-from generalist_control.training.dagger_callback import DAggerCallback
+from generalist_control.training.dagger import DAggerCallback
 from generalist_control.training.datamodule import DemoDataModule, WindowTensors
 from generalist_control.training.lit_module import ImitationModule
+from generalist_control.training.settings import TrainingSettings, read_training
 from generalist_control.training.setup import (
     check_resume,
     closed_loop_validation,
     config_callbacks,
     dagger_callback,
     dagger_plants,
-    identity_clean_fit,
-    identity_loss,
-    identity_noise,
     included_plants,
-    model_config,
-    rest_penalty,
-    tag_dropout,
     training_plants,
 )
 
@@ -63,28 +58,21 @@ log = logging.getLogger(__name__)
 METRICS_FILE = "metrics.json"
 
 
-def _data(cfg: DictConfig) -> tuple[DemoDataModule, dict[str, Any]]:
-    """The loaded, split data (``systems.include``'s plants only) and the policy's meta."""
+def _data(
+    cfg: DictConfig, settings: TrainingSettings, channels: tuple[str, ...]
+) -> tuple[DemoDataModule, dict[str, Any]]:
+    """The loaded, split data (the set's plants only) and the policy's meta."""
     dm = DemoDataModule(
         cfg.paths.data_dir,
-        cfg.data.history,
-        cfg.data.horizon,
-        seed=int(cfg.seed or 0),
-        integral=bool(cfg.model.get("integral", False)),
+        settings.history,
+        settings.horizon,
+        settings.loader,
+        seed=settings.seed,
         plants=included_plants(cfg),
-        controls=bool(cfg.model.get("control_history", False)),
-        **cfg.loader,
+        channels=channels,
     )
     dm.setup("fit")
     return dm, {**dm.meta(), **integral_facts(list(dm.tags))}
-
-
-def _plain(node: Any) -> dict[str, Any]:
-    """A config node as a plain, resolved dict."""
-    out = OmegaConf.to_container(node, resolve=True)
-    if not isinstance(out, dict):
-        raise TypeError(f"expected a mapping, got {node!r}")
-    return {str(k): v for k, v in out.items()}
 
 
 def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
@@ -94,35 +82,24 @@ def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
     return split.tensors
 
 
-def _module(cfg: DictConfig, dm: DemoDataModule, meta: dict[str, Any]) -> ImitationModule:
-    """The Lightning module, its normaliser fitted, its linear head started as configured."""
-    model_cfg = model_config(cfg)
-    scheduler = cfg.model.get("scheduler")
-    if scheduler is not None and "T_max" in scheduler and scheduler.T_max is None:
-        scheduler = OmegaConf.merge(scheduler, {"T_max": int(cfg.trainer.max_epochs)})
+def _module(
+    settings: TrainingSettings, dm: DemoDataModule, meta: dict[str, Any], resume: bool
+) -> ImitationModule:
+    """The Lightning module, its normaliser fitted, a per-tag table started by least squares."""
     lit = ImitationModule(
-        model=model_cfg,
-        optimizer=_plain(cfg.model.optimizer),
-        scheduler=_plain(scheduler) if scheduler else None,
+        model=settings.model,
+        optimizer=settings.optimizer,
+        scheduler=settings.scheduler,
         meta=meta,
-        tag_dropout=tag_dropout(cfg),
-        identity_loss=identity_loss(cfg),
-        identity_noise=identity_noise(cfg),
-        identity_clean_fit=identity_clean_fit(cfg),
     )
     lit.policy.normaliser.fit(**_tensors(dm.train_set))
-    linear_init = cfg.model.get("linear_init", "zero")
-    if linear_init not in ("zero", "lstsq"):
-        raise ValueError(f"model.linear_init must be 'zero' or 'lstsq', got {linear_init!r}")
-    if linear_init == "lstsq" and model_cfg["linear_head"] and not cfg.get("ckpt_path"):
+    if lit.policy.net.table is not None and not resume:
         t = _tensors(dm.train_set)
-        residuals = lit.policy.fit_linear_head(
-            t["state"], t["mask"], t["ref"], t["tag"], t["target"]
-        )
+        residuals = lit.policy.fit_table(t["state"], t["mask"], t["ref"], t["tag"], t["target"])
         names = {t: n for n, t in dm.tags.items()}
         worst = max(residuals, key=residuals.__getitem__)
         log.info(
-            "linear head: least-squares start, worst relative residual %.3g (%s)",
+            "per-tag table: least-squares start, worst relative residual %.3g (%s)",
             residuals[worst],
             names.get(worst, worst),
         )
@@ -130,15 +107,20 @@ def _module(cfg: DictConfig, dm: DemoDataModule, meta: dict[str, Any]) -> Imitat
 
 
 def _callbacks(
-    cfg: DictConfig, run_dir: Path, meta: dict[str, Any], manifest: dict[str, Any]
+    cfg: DictConfig,
+    settings: TrainingSettings,
+    run_dir: Path,
+    lit: ImitationModule,
+    dm: DemoDataModule,
 ) -> tuple[list[L.Callback], L.pytorch.callbacks.ModelCheckpoint]:
-    """The config's callbacks, DAgger and closed-loop validation (checked before any run)."""
+    """The config's callbacks, DAgger and the closed-loop validation."""
     callbacks = config_callbacks(cfg, run_dir)
     ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
-    plants = training_plants(cfg, meta)
+    plants = training_plants(cfg, dm.meta())
+    channels = lit.policy.channels
     own = [
-        dagger_callback(cfg, dagger_plants(plants, manifest)),
-        closed_loop_validation(cfg, plants, manifest),
+        dagger_callback(cfg, settings, dagger_plants(plants, dm.manifest), channels),
+        closed_loop_validation(settings, plants),
     ]
     return [*callbacks, *(c for c in own if c is not None)], ckpt_cb
 
@@ -191,7 +173,7 @@ def _fit(
     return best, metrics
 
 
-def _check_fits(cfg: DictConfig, ckpt_path: str, lit: ImitationModule) -> None:
+def _check_fits(settings: TrainingSettings, ckpt_path: str, lit: ImitationModule) -> None:
     """Refuse, before any run is touched, a checkpoint whose weights do not fit ``lit``."""
     blob = torch.load(ckpt_path, map_location="cpu", weights_only=True)
     saved, own = blob.get("state_dict", {}), lit.state_dict()
@@ -200,18 +182,16 @@ def _check_fits(cfg: DictConfig, ckpt_path: str, lit: ImitationModule) -> None:
     if not bad:
         return
     old = blob.get("hyper_parameters", {}).get("model", {})
-    names = {"experts": "experts", "history": "data.history", "horizon": "data.horizon"}
     diff = {
-        names.get(k, f"model.{k}"): (old[k], v)
-        for k, v in model_config(cfg).items()
-        if k in old and old[k] != v
+        f"model.{k}": (old[k], v)
+        for k, v in settings.model.items()
+        if isinstance(old, dict) and k in old and old[k] != v
     }
-    settings = "; ".join(f"{k}: checkpoint {a}, config {b}" for k, (a, b) in diff.items())
-    fix = " ".join(f"{k}={a}" for k, (a, _) in diff.items()) or "the checkpoint's model config"
+    shown = "; ".join(f"{k}: checkpoint {a}, config {b}" for k, (a, b) in diff.items())
     raise ValueError(
         f"checkpoint {ckpt_path} does not fit the model this config builds"
-        f" ({settings or 'same model config'}); parameters that differ: {', '.join(bad[:6])}"
-        f"{' ...' if len(bad) > 6 else ''}. Resume with the checkpoint's settings ({fix}), "
+        f" ({shown or 'same model config'}); parameters that differ: {', '.join(bad[:6])}"
+        f"{' ...' if len(bad) > 6 else ''}. Resume with the checkpoint's model settings, "
         "or drop ckpt_path to start a new run"
     )
 
@@ -241,22 +221,24 @@ def _publish(
     return policy, policy_path
 
 
-def _prepare(cfg: DictConfig) -> tuple[DemoDataModule, dict[str, Any], ImitationModule]:
-    """Threads and seed set, data loaded, module built; a resume checked before any run."""
+def _prepare(
+    cfg: DictConfig,
+) -> tuple[TrainingSettings, DemoDataModule, dict[str, Any], ImitationModule]:
+    """Config checked, threads and seed set, data loaded, module built; nothing logged yet."""
     outputs.scrub_hydra_files()
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    if cfg.get("seed") is not None:
-        L.seed_everything(int(cfg.seed), workers=True)
-    dm, meta = _data(cfg)
+    settings = read_training(cfg)
+    torch.set_num_threads(settings.threads)
+    L.seed_everything(settings.seed, workers=True)
     ckpt_path = cfg.get("ckpt_path")
+    with torch.random.fork_rng():  # the model config checked before the data is read
+        channels = Policy(settings.model).channels
+    dm, meta = _data(cfg, settings, channels)
     if ckpt_path:
         check_resume(ckpt_path, meta)
-    lit = _module(cfg, dm, meta)
+    lit = _module(settings, dm, meta, resume=bool(ckpt_path))
     if ckpt_path:
-        _check_fits(cfg, ckpt_path, lit)
-    lit.rest = rest_penalty(cfg, dagger_plants(training_plants(cfg, meta), dm.manifest), meta)
-    return dm, meta, lit
+        _check_fits(settings, ckpt_path, lit)
+    return settings, dm, meta, lit
 
 
 def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -284,12 +266,12 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     ValueError
         Before any run is opened, if ``ckpt_path`` holds other data or another model.
     """
-    dm, meta, lit = _prepare(cfg)
+    settings, dm, meta, lit = _prepare(cfg)
     ckpt_path = cfg.get("ckpt_path")
     n_params = count_parameters(lit.policy)
     run_dir = outputs.run_dir(cfg)
     resume_id = training_run.run_id_from_checkpoint(ckpt_path) if ckpt_path else None
-    callbacks, ckpt_cb = _callbacks(cfg, run_dir, meta, dm.manifest)
+    callbacks, ckpt_cb = _callbacks(cfg, settings, run_dir, lit, dm)
     mlf = training_run.training_logger(cfg.logger, resume_run_id=resume_id)
     trainer = _trainer(cfg, run_dir, callbacks, mlf)
     with mlflow.start_run(run_id=mlf.run_id) as run:  # the fluent API on the logger's run

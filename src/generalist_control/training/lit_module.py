@@ -17,8 +17,9 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import RichProgressBar
 from torch import Tensor
 
+from generalist_control.model.output import NetOutput
+from generalist_control.model.plant import InferredPlant
 from generalist_control.model.policy import Policy
-from generalist_control.training.rest import RestPenalty
 
 __all__ = ["METRICS_FORMAT", "ImitationModule"]
 
@@ -32,7 +33,8 @@ class ImitationModule(L.LightningModule):
     Parameters
     ----------
     model : dict
-        Network config (:func:`generalist_control.model.controller_config`).
+        The network's config (``conf/model``, plain types; see
+        :class:`~generalist_control.model.policy.Policy`).
     optimizer : dict
         Hydra config of a partial optimiser (``_target_``, ``_partial_: true``, ...).
     scheduler : dict, optional
@@ -40,28 +42,13 @@ class ImitationModule(L.LightningModule):
     meta : dict, optional
         Plain-typed data facts (``tags`` plant -> tag, ``dt``, ``content_hash``, ...),
         stored in every checkpoint with the hyper-parameters.
-    tag_dropout : float
-        In training steps, each window goes without its tag with this probability
-        (``model.tag_dropout``; the network needs ``unknown_tag``). Validation keeps tags.
-    identity_loss : float
-        Weight of the cross-entropy of the network's plant read-out against the tag, added
-        to the training loss (``model.identity_loss``; the network needs ``identity_head``).
-        Logged as ``train/identity`` and, its accuracy, ``val/identity_acc``.
-    identity_noise : float
-        Largest std (normalised units) of the white noise on the plant states of the
-        identifier's copy of each training window (``model.identity_noise``; see
-        :attr:`~generalist_control.model.network.GeneralistNetwork.identity_noise`).
-    identity_clean_fit : bool
-        Under that noise, fit the one-step models to the clean windows
-        (``model.identity_noise_clean_fit``; :meth:`TransitionSet.read
-        <generalist_control.model.identifier.TransitionSet.read>`).
 
     Notes
     -----
-    :attr:`rest`, set after construction (``rest`` config block;
-    :func:`~generalist_control.training.setup.rest_penalty`), adds the rest-stability term
-    to the training loss, logged as ``train/rest`` and ``train/rest_radius`` (the largest
-    loop radius at rest it saw). All arguments are plain dicts, so checkpoints load with
+    A plant part that infers the plant (``model.plant``: an
+    :class:`~generalist_control.model.plant.InferredPlant`) adds its identity loss, weighed
+    by its ``loss_weight``, logged as ``train/identity`` (its cross-entropy) and, its
+    accuracy, ``val/identity_acc``. All arguments are plain dicts, so checkpoints load with
     ``weights_only=True``; the normaliser's scales are buffers of ``policy`` and are saved
     in its ``state_dict``.
     """
@@ -72,26 +59,15 @@ class ImitationModule(L.LightningModule):
         optimizer: dict[str, Any],
         scheduler: dict[str, Any] | None = None,
         meta: dict[str, Any] | None = None,
-        tag_dropout: float = 0.0,
-        identity_loss: float = 0.0,
-        identity_noise: float = 0.0,
-        identity_clean_fit: bool = False,
     ) -> None:
         super().__init__()
         # in checkpoints only: the run's params are chosen (logger.params), not the hparams
         self.save_hyperparameters(logger=False)
         self.policy = Policy(model)
-        self.tag_dropout = float(tag_dropout)
-        self.identity_loss = float(identity_loss)
-        if self.identity_loss > 0 and self.policy.net.identity is None:
-            raise ValueError("identity_loss > 0 needs a network with identity_head")
-        self.policy.net.identity_noise = float(identity_noise)
-        self.policy.net.identity_clean_fit = bool(identity_clean_fit)
         self._val_hits = torch.zeros((), dtype=torch.float64)
-        self.rest: RestPenalty | None = None
         tags = (meta or {}).get("tags", {})
         self.tag_names = {int(t): str(name) for name, t in tags.items()}
-        n_tags = self.policy.config["n_tags"]
+        n_tags = self.policy.net.n_tags
         self._val_sse = torch.zeros(n_tags, dtype=torch.float64)
         self._val_count = torch.zeros(n_tags, dtype=torch.float64)
 
@@ -101,41 +77,25 @@ class ImitationModule(L.LightningModule):
         """Controls in plant units and gate weights (see :meth:`Policy.forward`)."""
         return self.policy(state, mask, ref, tag)
 
-    def _errors(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor | None, Tensor | None]:
-        """Squared errors (B, horizon), the identity head's plant logits and what it read.
+    def _errors(self, batch: dict[str, Tensor]) -> tuple[Tensor, NetOutput]:
+        """Squared errors (B, horizon) and the network's output.
 
-        Errors in normalised units, relative to the window scale; logits (B, n_tags).
-        Without ``window_scale`` the scale is one: the paper's MSE in normalised units.
+        Errors in normalised units, relative to the window scale; without window scaling
+        the scale is one: the paper's MSE in normalised units.
         """
-        tag = batch["tag"]
-        withheld = None
-        if self.training and self.tag_dropout > 0:
-            withheld = torch.rand(tag.shape, device=tag.device) < self.tag_dropout
-        u, _, s, code = self.policy.scaled(
-            batch["state"], batch["mask"], batch["ref"], tag, withheld
-        )
+        out = self.policy.output(batch["state"], batch["mask"], batch["ref"], batch["tag"])
         target = self.policy.normaliser.normalise_controls(batch["target"], batch["tag"])
-        logits = None
-        if self.identity_loss > 0 and code is not None:
-            logits = self.policy.net.identity_logits(code)
-        return (u - target / s) ** 2, logits, code
+        return (out.control - target / out.scale) ** 2, out
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        """MSE on the control sequence of one batch (plus the weighted identity loss)."""
-        errors, logits, code = self._errors(batch)
+        """MSE on the control sequence of one batch (plus an inferred plant's identity loss)."""
+        errors, out = self._errors(batch)
         loss = errors.mean()
-        if logits is not None and code is not None:
-            identity = torch.nn.functional.cross_entropy(logits, batch["tag"])
-            self.log("train/identity", identity, on_step=False, on_epoch=True, logger=False)
-            # model.transition_models: the true plant's one-step model fits its window
-            identity = identity + self.policy.net.transition_fit(code, batch["tag"])
-            loss = loss + self.identity_loss * identity
-        rest = self.rest.step(self.policy, batch_idx) if self.rest is not None else None
-        if rest is not None and self.rest is not None:
-            self.log("train/rest", rest, on_step=False, on_epoch=True, logger=False)
-            self.log("train/rest_radius", self.rest.last_radius, on_step=False, on_epoch=True,
-                     logger=False, reduce_fx="max")  # fmt: skip
-            loss = loss + rest
+        plant = self.policy.net.plant
+        if out.plant is not None and isinstance(plant, InferredPlant):
+            cross_entropy, identity = plant.loss(out.plant, batch["tag"])
+            self.log("train/identity", cross_entropy, on_step=False, on_epoch=True, logger=False)
+            loss = loss + plant.loss_weight * identity
         self.log(
             "train/loss",
             loss,
@@ -155,10 +115,10 @@ class ImitationModule(L.LightningModule):
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         """Accumulate squared errors per system tag."""
-        err, logits, _ = self._errors(batch)
+        err, out = self._errors(batch)
         err = err.to(torch.float64)
-        if logits is not None:
-            self._val_hits += (logits.argmax(1) == batch["tag"]).sum()
+        if out.plant is not None:
+            self._val_hits += (out.plant.logits.argmax(1) == batch["tag"]).sum()
         self._val_sse.index_add_(0, batch["tag"], err.sum(1))
         self._val_count.index_add_(0, batch["tag"], torch.full_like(err[:, 0], err.shape[1]))
 
@@ -168,8 +128,8 @@ class ImitationModule(L.LightningModule):
         if total == 0:
             return
         self.log("val/loss", (self._val_sse.sum() / total).float(), prog_bar=True, logger=False)
-        if self.identity_loss > 0:  # windows = count / horizon
-            share = self._val_hits * self.policy.config["horizon"] / total
+        if isinstance(self.policy.net.plant, InferredPlant):  # windows = count / horizon
+            share = self._val_hits * self.policy.horizon / total
             self.log("val/identity_acc", share.float(), logger=False)
         for tag in torch.nonzero(self._val_count).flatten().tolist():
             name = self.tag_names.get(tag, f"tag{tag}")

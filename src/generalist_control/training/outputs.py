@@ -28,7 +28,6 @@ from generalist_control.common.secrets import redact
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.flat import FlatPolicy, flat_columns
-from generalist_control.model.network import input_width
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.simulation.comparison import output_mse
@@ -172,7 +171,6 @@ def log_model(
     ).numpy()
     with torch.no_grad():
         y = flat(torch.from_numpy(x)).numpy()
-    c = policy.config
     with warnings.catch_warnings():
         # torch.export notes that nn.LSTM re-assigns its flat weight list while tracing
         warnings.filterwarnings("ignore", message=".*were assigned during export.*")
@@ -182,7 +180,7 @@ def log_model(
             signature=infer_signature(x, y),
             input_example=x,
             serialization_format="pt2",  # a traced graph: loading runs no pickled code
-            metadata={"columns": flat_columns(c["history"], input_width(c))},
+            metadata={"columns": flat_columns(policy.history, policy.width)},
             pip_requirements=[f"torch=={torch.__version__.split('+')[0]}", "numpy"],
             registered_model_name=registered_name or None,
         )

@@ -73,13 +73,13 @@ def network_views(
 
 def step_windows(policy: Policy, plants: Sequence[Plant], duration: float) -> list[Windows]:
     """Each plant's LQI unit step from rest, as the policy's window builder cuts it."""
-    cfg = policy.config
     steps = int(round(duration / plants[0].dt))
     runs = [Run(p, np.full((1, steps), p.amplitude_scale)) for p in plants]
     trajs = simulate_many(runs, PerPlantController(LQIController))
     out = []
     for p, tr in zip(plants, trajs, strict=True):
-        z = integral_of_error(tr.r, tr.y[:, :steps], p.dt) if cfg["integral"] else None
+        integral = "integral" in policy.channels
+        z = integral_of_error(tr.r, tr.y[:, :steps], p.dt) if integral else None
         out.append(
             build_windows(
                 pad_states(tr.x[:, :steps]),
@@ -87,10 +87,10 @@ def step_windows(policy: Policy, plants: Sequence[Plant], duration: float) -> li
                 tr.u,
                 np.array([p.tag]),
                 np.array([p.order]),
-                cfg["history"],
+                policy.history,
                 1,
                 z,
-                bool(cfg.get("control_history", 0)),
+                "previous_control" in policy.channels,
             )
         )
     return out

@@ -5,12 +5,12 @@ error integral ``z_k``) as the expert's law does, ``du = -Kx dx - Ki dz``, wheth
 learned the law in position form or in velocity form (``u_k = u_(k-1) - Kx (x_k -
 x_(k-1)) - ...``): either way the derivative of its control with respect to the newest
 sample is ``-Kx`` (``-Ki``). :func:`local_gains` measures that derivative where the policy
-would take over from the expert (:mod:`~generalist_control.evaluation.handover`): after
+would take over from the expert (:mod:`~analysis.handover`): after
 ``samples`` samples of the plant's LQI on a unit step from rest, by automatic
 differentiation of the network on the window its runtime holds, and sets it beside LQI's
 gains, in physical units and in the policy's normalised units (gain times the state's
 scale over the control's), where plants of very different physics become comparable.
-With the previous control as a channel (``model.control_history``) its derivative is
+With the previous control as a channel (the ``previous_control`` channel) its derivative is
 listed too (in physical units 1 for the velocity form, 0 for the position form).
 """
 
@@ -23,8 +23,8 @@ import numpy as np
 import pandas as pd
 import torch
 
+from analysis.handover import Handover
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.handover import Handover
 from generalist_control.plants.plant import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import design_lqi
 from generalist_control.simulation.scenarios import references

@@ -1,15 +1,14 @@
-"""What a tag-free policy's identity head makes of the plant (``model.identity_loss``).
+"""What a tag-free policy's identity head makes of the plant (``model.plant: inferred``).
 
-A policy trained with an identity head reads the plant from its window (a softmax over the
-training plants; with ``model.infer_tag`` that softmax weighs the embedding rows the law
-sees). Two views of it, both with the tag withheld:
+An inferred plant's identity head reads the plant from the window (a softmax over the
+training plants that weighs the embedding rows the law sees). Two views of it, both with the tag withheld:
 
 * :func:`identity_table`: along each plant's own LQI unit step from rest (the expert's
-  closed loop, as in :mod:`~generalist_control.evaluation.separation`), at a few times:
+  closed loop, as in :mod:`~analysis.separation`), at a few times:
   does the history name the plant, and how soon?
 * :func:`identity_trace`: along the policy's own closed loop on the unit step, from the
   start or after its expert made the first ``N`` samples' controls
-  (:class:`~generalist_control.evaluation.handover.Handover`): does the policy keep
+  (:class:`~analysis.handover.Handover`): does the policy keep
   naming the plant once its own controls shape the window?
 """
 
@@ -22,9 +21,9 @@ import numpy as np
 import pandas as pd
 import torch
 
+from analysis.handover import Handover
+from analysis.separation import step_windows
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.handover import Handover
-from generalist_control.evaluation.separation import step_windows
 from generalist_control.model.policy import Policy
 from generalist_control.plants.plant import Plant
 from generalist_control.simulation.scenarios import references
@@ -39,7 +38,10 @@ def _probabilities(
     """The head's softmax over ``plants`` (B, P) for raw windows ``(state, mask, ref, tag)``."""
     args = [torch.as_tensor(np.asarray(a)) for a in windows]
     with torch.no_grad():
-        _, logits = policy.identity_logits(*args)
+        reading = policy.output(*args).plant
+    if reading is None:
+        raise ValueError("the policy's plant part reads nothing from the window (a tag)")
+    logits = reading.logits
     return torch.softmax(logits[:, [p.tag for p in plants]], dim=1).double().numpy()
 
 

@@ -8,14 +8,14 @@ From the long-form metrics of an evaluation run with the tag withheld
   (20) of the plants;
 
 and, for the plants that miss, :func:`write_tag_free_report` adds how soon the history tells
-each plant apart (:func:`~generalist_control.evaluation.separation.separation_table`), a
+each plant apart (:func:`~analysis.separation.separation_table`), a
 figure of the first samples the network sees for the plant and its nearest neighbour, and,
 given the evaluation's trajectories, when each diverged run left its expert
-(:func:`~generalist_control.evaluation.departures.departure_table`, ``departures.csv``)
+(:func:`~analysis.departures.departure_table`, ``departures.csv``)
 and, given a hand-over table, whether the plant's own expert making the first controls
-saves the missed plants (:mod:`~generalist_control.evaluation.handover`, ``handover.csv``),
+saves the missed plants (:mod:`~analysis.handover`, ``handover.csv``),
 and given local gains, how the policy's feedback compares with LQI's
-(:mod:`~generalist_control.evaluation.local_gains`, ``gains.csv``).
+(:mod:`~analysis.local_gains`, ``gains.csv``).
 """
 
 from __future__ import annotations
@@ -31,26 +31,27 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from analysis.departures import (  # noqa: E402
+    departure_summary,
+    departure_table,
+)
+from analysis.handover import handover_summary  # noqa: E402
+from analysis.identity import (  # noqa: E402
+    identity_summary,
+    identity_table,
+)
+from analysis.local_gains import gain_summary  # noqa: E402
+from analysis.separation import (  # noqa: E402
+    network_views,
+    separation_table,
+)
 from generalist_control.common.atomic import (  # noqa: E402
     check_replaceable,
     publish_directory,
     staging_directory,
 )
 from generalist_control.common.jsonsafe import write_json  # noqa: E402
-from generalist_control.evaluation.departures import (  # noqa: E402
-    departure_summary,
-    departure_table,
-)
-from generalist_control.evaluation.handover import handover_summary  # noqa: E402
-from generalist_control.evaluation.identity import (  # noqa: E402
-    identity_summary,
-    identity_table,
-)
-from generalist_control.evaluation.local_gains import gain_summary  # noqa: E402
-from generalist_control.evaluation.separation import (  # noqa: E402
-    network_views,
-    separation_table,
-)
+from generalist_control.model.plant import InferredPlant  # noqa: E402
 from generalist_control.model.policy import Policy  # noqa: E402
 from generalist_control.plants.plant import Plant  # noqa: E402
 from generalist_control.simulation.simulate import Trajectory  # noqa: E402
@@ -192,7 +193,8 @@ def _diagnostic_tables(
         verdict["handover"] = handover_summary(handover, verdict["ise_ratio_bar"])
     if gains is not None:
         verdict["local_gains"] = gain_summary(gains)
-    named = identity_table(policy, plants) if policy.net.identity is not None else None
+    inferred = isinstance(policy.net.plant, InferredPlant)
+    named = identity_table(policy, plants) if inferred else None
     return {
         "departures.csv": left,
         "handover.csv": handover,
@@ -217,23 +219,19 @@ def write_tag_free_report(
     ``bar`` overrides ``ise_ratio`` and ``min_plants`` of :func:`tag_free_bar`. With the
     evaluation's ``trajectories`` it also writes ``departures.csv`` (when each diverged GC
     run left its expert) and its counts as ``departures`` in the bar; with a ``handover``
-    table (:func:`~generalist_control.evaluation.handover.handover_table`) ``handover.csv``,
+    table (:func:`~analysis.handover.handover_table`) ``handover.csv``,
     its summary as ``handover`` in the bar and a figure of the missed plants' ISE ratios;
-    with ``gains`` (:func:`~generalist_control.evaluation.local_gains.local_gains`)
+    with ``gains`` (:func:`~analysis.local_gains.local_gains`)
     ``gains.csv`` and, per plant,
-    :func:`~generalist_control.evaluation.local_gains.gain_summary` as ``local_gains`` in
-    the bar. A policy with an identity head (``model.identity_loss``) also gets
-    ``identity.csv`` (:func:`~generalist_control.evaluation.identity.identity_table`) and
-    its :func:`~generalist_control.evaluation.identity.identity_summary` as ``identity`` in
+    :func:`~analysis.local_gains.gain_summary` as ``local_gains`` in
+    the bar. A policy with an identity head (``model.plant: inferred``) also gets
+    ``identity.csv`` (:func:`~analysis.identity.identity_table`) and
+    its :func:`~analysis.identity.identity_summary` as ``identity`` in
     the bar; with an ``identity_trace``
-    (:func:`~generalist_control.evaluation.identity.identity_trace`) ``identity_trace.csv``.
-    A policy evaluated with its identity given (``evaluation.identity_given``) gets
-    ``identity_given: true`` and ``met: false`` in the bar: it is not a tag-free result.
+    (:func:`~analysis.identity.identity_trace`) ``identity_trace.csv``.
     """
     check_tag_free_dir(out_dir)
     verdict = tag_free_bar(df, **(bar or {}))
-    if policy.net.identity_given:  # a diagnostic with the tag given: no tag-free verdict
-        verdict.update(identity_given=True, met=False)
     views = network_views(policy, plants, duration=2.0)
     table = separation_table(policy, plants, duration=2.0, views=views)
     ratio = verdict["step_ise_ratio"]

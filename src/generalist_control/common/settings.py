@@ -1,0 +1,132 @@
+"""Config sections read once into typed, frozen dataclasses (:func:`read_section`).
+
+Hydra composes ``conf/`` untyped: ``trainer.max_epochs=-1`` or ``loader.batch_size=10.5``
+would arrive as given. A stage reads each section it uses into a dataclass before anything is
+logged or trained, and every part receives its own section. The reading is strict:
+
+* an ``int`` field takes an integer only (``32.0``, ``true`` and ``"32"`` are refused, never
+  rounded); a ``float`` field takes any real number but a boolean; ``bool`` a boolean only;
+* ``X | None`` takes ``null``; ``tuple[X, ...]`` a list of X; a dataclass field a mapping;
+* keys the dataclass does not have are refused, naming the ones it has;
+* a dataclass checks its ranges in ``__post_init__`` by raising :class:`SettingError` with
+  the field's name, and the message gets the section's path (``trainer.max_epochs``).
+
+Examples
+--------
+>>> from dataclasses import dataclass
+>>> @dataclass(frozen=True)
+... class Loader:
+...     batch_size: int = 512
+>>> read_section(Loader, {"batch_size": 256}, "loader")
+Loader(batch_size=256)
+>>> read_section(Loader, {"batch_size": 10.5}, "loader")
+Traceback (most recent call last):
+...
+ValueError: loader.batch_size must be an integer, got 10.5 (float)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+import types
+import typing
+from collections.abc import Mapping
+from typing import Any, TypeVar, Union
+
+__all__ = ["SettingError", "positive", "read_section"]
+
+T = TypeVar("T")
+
+
+class SettingError(ValueError):
+    """A value out of its range, raised by a section's ``__post_init__`` for one field."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(f"{field} {message}")
+        self.field, self.message = field, message
+
+
+def positive(name: str, value: float, strict: bool = True) -> None:
+    """Raise :class:`SettingError` unless ``value`` is finite and > 0 (>= 0: ``strict=False``)."""
+    ok = math.isfinite(value) and (value > 0 if strict else value >= 0)
+    if not ok:
+        raise SettingError(
+            name, f"must be a finite number {'>' if strict else '>='} 0, got {value}"
+        )
+
+
+def _kind(value: Any) -> str:
+    return f"{value!r} ({type(value).__name__})"
+
+
+def _convert(kind: Any, value: Any, key: str) -> Any:
+    """``value`` as ``kind`` (a type annotation), strictly; else a ValueError naming ``key``."""
+    origin, args = typing.get_origin(kind), typing.get_args(kind)
+    if origin in (Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        if len(inner) == 1:
+            return _convert(inner[0], value, key)
+        raise TypeError(f"{key}: unions of several types are not supported")
+    if value is None:
+        raise ValueError(f"{key} must be set (null is not allowed here)")
+    if origin is tuple:
+        if isinstance(value, str | bytes) or not isinstance(value, list | tuple):
+            raise ValueError(f"{key} must be a list, got {_kind(value)}")
+        return tuple(_convert(args[0], v, f"{key}[{i}]") for i, v in enumerate(value))
+    if dataclasses.is_dataclass(kind):
+        return read_section(kind, value, key)  # type: ignore[arg-type]
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"{key} must be true or false, got {_kind(value)}")
+        return value
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise ValueError(f"{key} must be an integer, got {_kind(value)}")
+        return int(value)
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise ValueError(f"{key} must be a number, got {_kind(value)}")
+        return float(value)
+    if kind is str:
+        if not isinstance(value, str):
+            raise ValueError(f"{key} must be a string, got {_kind(value)}")
+        return value
+    if kind is Any:
+        return value
+    raise TypeError(f"{key}: unsupported setting type {kind!r}")
+
+
+def read_section(cls: type[T], node: Any, key: str) -> T:
+    """The dataclass ``cls`` read from the mapping ``node`` (config section ``key``).
+
+    Missing fields take the dataclass's defaults; a field without one must be given.
+
+    Raises
+    ------
+    ValueError
+        Naming the section's key: an unknown key, a missing one, a value of another type,
+        or one that ``cls`` refuses (:class:`SettingError`).
+    """
+    if node is None:
+        node = {}
+    if not isinstance(node, Mapping):
+        raise ValueError(f"{key} must be a mapping of settings, got {_kind(node)}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(map(str, node)) - set(fields))
+    if unknown:
+        raise ValueError(f"{key} has unknown keys {unknown}; it takes {sorted(fields)}")
+    hints = typing.get_type_hints(cls)
+    values: dict[str, Any] = {}
+    for name, field in fields.items():
+        if name in node:
+            values[name] = _convert(hints[name], node[name], f"{key}.{name}")
+        elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
+            raise ValueError(f"{key}.{name} must be set")
+    try:
+        return cls(**values)
+    except SettingError as exc:
+        raise ValueError(f"{key}.{exc.field} {exc.message}") from None

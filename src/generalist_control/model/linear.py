@@ -1,0 +1,194 @@
+"""Linear paths added to the experts' output (ours): ``model.skip`` and ``model.table``.
+
+Both read the newest ``samples`` samples of the law's window (:func:`linear_features`: the
+state ``[x; z]`` and the reference). With the error-integral channel the LQI law is linear
+in the newest augmented state alone, so one sample lets such a path carry the feedback
+exactly and leaves the experts the rest.
+
+* :class:`LinearSkip` (the default): gains computed from the plant's code by one layer
+  shared by every plant, so nothing in it is indexed by plant.
+* :class:`ContextSkip` (without the tag): the gains' input also sees a projection of the
+  window's summary, and the gains are scaled by ``exp(s)``, ``s`` learned from that input,
+  so a plant inferred from its history gets gains over the ~200x range LQI's span.
+* :class:`TagTable` (the hybrid baseline ``experiment=lqi_head``, never the default): a
+  per-tag linear map, a table of gains started at each plant's least-squares LQI law.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from generalist_control.common.schema import require_int, require_nonnegative
+
+__all__ = ["ContextSkip", "LinearSkip", "TagTable", "linear_features"]
+
+
+def linear_features(state: Tensor, ref: Tensor, samples: int) -> Tensor:
+    """The newest ``samples`` of the law's state ``[x; z]`` (B, T, w) and reference (B, T).
+
+    Returns (B, samples * (w + 1)): the states, flattened sample by sample, then the
+    references.
+    """
+    return torch.cat([state[:, -samples:].flatten(1), ref[:, -samples:]], dim=1)
+
+
+def _samples(key: str, samples: int, history: int) -> int:
+    n = require_int(key, samples)
+    if n > history:
+        raise ValueError(
+            f"{key} ({n}) exceeds the samples the law reads ({history}: model.law_history or "
+            "data.history): lower it"
+        )
+    return n
+
+
+class LinearSkip(nn.Module):
+    """``u += G(code) w``: gains ``G = A code + b`` from the plant's code, ``A, b`` shared.
+
+    Parameters
+    ----------
+    dim, horizon, width, history, summary : int
+        Given by the network: code size, controls, law state width, samples the law reads,
+        size of the window's summary (not read here: see :class:`ContextSkip`).
+    samples : int
+        How many of the newest samples ``w`` holds (1 with the error integral).
+
+    Notes
+    -----
+    Zero at initialisation: training starts from the paper's network.
+    """
+
+    def __init__(
+        self, dim: int, horizon: int, width: int, history: int, summary: int = 0, samples: int = 1
+    ) -> None:
+        super().__init__()
+        self.samples = _samples("model.skip.samples", samples, history)
+        self.horizon = horizon
+        self.gains = nn.Linear(dim, horizon * self.samples * (width + 1))
+        nn.init.zeros_(self.gains.weight)
+        nn.init.zeros_(self.gains.bias)
+
+    def gain_input(self, code: Tensor, summary: Tensor) -> Tensor:
+        """What the gains are computed from: the plant's code."""
+        return code
+
+    def scaled(self, gains: Tensor, source: Tensor) -> Tensor:
+        """The gains as they are applied (unscaled here)."""
+        return gains
+
+    def forward(self, code: Tensor, state: Tensor, ref: Tensor, summary: Tensor) -> Tensor:
+        """The path's controls (B, horizon) for the law's window ``state``, ``ref``."""
+        window = linear_features(state, ref, self.samples)
+        source = self.gain_input(code, summary)
+        gains = self.scaled(self.gains(source).view(-1, self.horizon, window.shape[1]), source)
+        return torch.einsum("bkf,bf->bk", gains, window)
+
+
+class ContextSkip(LinearSkip):
+    """A :class:`LinearSkip` whose gains also read the window's summary, scaled by ``exp(s)``.
+
+    Parameters
+    ----------
+    dim, horizon, width, history, samples
+        As :class:`LinearSkip`.
+    summary : int
+        Size of the summary the gains read (given by the network: the law's ``2 hidden``
+        and what the plant part read).
+    gain_range : float
+        ``s = gain_range tanh(s' / gain_range)``, ``s'`` a learned linear function of the
+        gains' input (zero at first): the gains move within a factor ``e^gain_range``.
+    """
+
+    def __init__(
+        self,
+        dim: int,
+        horizon: int,
+        width: int,
+        history: int,
+        summary: int,
+        samples: int = 1,
+        gain_range: float = 6.0,
+    ) -> None:
+        super().__init__(dim, horizon, width, history, summary, samples)
+        self.gain_range = require_nonnegative("model.skip.gain_range", gain_range)
+        if self.gain_range == 0:
+            raise ValueError("model.skip.gain_range must be > 0 (use a linear skip instead)")
+        self.scale = nn.Linear(dim, 1)
+        nn.init.zeros_(self.scale.weight)
+        nn.init.zeros_(self.scale.bias)
+        self.context = nn.Linear(summary, dim)
+
+    def gain_input(self, code: Tensor, summary: Tensor) -> Tensor:
+        """The plant's code plus a projection of the window's summary."""
+        return code + self.context(summary)
+
+    def scaled(self, gains: Tensor, source: Tensor) -> Tensor:
+        """The gains times ``exp(s)`` (:attr:`gain_range`)."""
+        exponent = self.gain_range * torch.tanh(self.scale(source) / self.gain_range)
+        return gains * torch.exp(exponent).unsqueeze(-1)
+
+
+class TagTable(nn.Module):
+    """A per-tag linear map of the window (the hybrid's table of gains; not the default).
+
+    Parameters
+    ----------
+    n_tags, horizon, width, history : int
+        Given by the network.
+    samples : int
+        How many of the newest samples it reads (1 with the error integral: the LQI law's
+        own form).
+
+    Notes
+    -----
+    Zero at initialisation; training starts it at the per-tag least-squares fit of the
+    training windows (:meth:`fit`) when the run does not resume.
+    """
+
+    def __init__(self, n_tags: int, horizon: int, width: int, history: int, samples: int = 1):
+        super().__init__()
+        self.samples = _samples("model.table.samples", samples, history)
+        self.horizon = horizon
+        self.weight = nn.Embedding(n_tags, horizon * self.samples * (width + 1))
+        nn.init.zeros_(self.weight.weight)
+
+    def forward(self, tag: Tensor, state: Tensor, ref: Tensor) -> Tensor:
+        """The table's controls (B, horizon) for the law's window ``state``, ``ref``."""
+        window = linear_features(state, ref, self.samples)
+        gains = self.weight(tag).view(-1, self.horizon, window.shape[1])
+        return torch.einsum("bkf,bf->bk", gains, window)
+
+    @torch.no_grad()
+    def fit(
+        self, features: Tensor, target: Tensor, tag: Tensor, ridge: float = 1e-8
+    ) -> dict[int, float]:
+        """Set each tag's row to the ridge least-squares fit of ``target`` on ``features``.
+
+        ``features`` (W, F) are :func:`linear_features` of the windows, ``target`` (W,
+        horizon) in the units the network outputs. For a linear plant with the error
+        integral and one sample the fit recovers the LQI law ``-Kx x - Ki z``.
+
+        Returns
+        -------
+        dict
+            Per tag, the fit's relative RMS residual.
+        """
+        feats, y = features.double(), target.double()
+        weight = self.weight.weight
+        residuals = {}
+        for tg in torch.unique(tag).tolist():
+            X, Y = feats[tag == tg], y[tag == tg]
+            G = X.T @ X
+            G += (
+                ridge
+                * (torch.trace(G) / G.shape[0] + 1e-30)
+                * torch.eye(G.shape[0], dtype=G.dtype)
+            )
+            W = torch.linalg.solve(G, X.T @ Y)  # (F, K)
+            weight[tg] = W.T.reshape(-1).to(weight.dtype)
+            res = Y - X @ W
+            residuals[int(tg)] = float(
+                res.pow(2).mean().sqrt() / Y.pow(2).mean().sqrt().clamp(min=1e-30)
+            )
+        return residuals

@@ -1,0 +1,52 @@
+"""What the network returns: :class:`NetOutput`, and :class:`PlantReading` of an inferred plant."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torch import Tensor
+
+__all__ = ["NetOutput", "PlantReading"]
+
+
+@dataclass(frozen=True)
+class PlantReading:
+    """What a plant part that infers the plant read from the window.
+
+    Attributes
+    ----------
+    logits : Tensor, shape (B, n_tags)
+        The identity head's logits over the training plants.
+    summary : Tensor, shape (B, features)
+        The identifier's state (its one-step models' evidence last, where it has them):
+        what a context skip reads beside the law's summary.
+    evidence : Tensor or None, shape (B, n_tags)
+        Each plant's one-step model's evidence on the window (None without models).
+    """
+
+    logits: Tensor
+    summary: Tensor
+    evidence: Tensor | None
+
+
+@dataclass(frozen=True)
+class NetOutput:
+    """One forward pass of :class:`~generalist_control.model.network.GeneralistNetwork`.
+
+    Attributes
+    ----------
+    control : Tensor, shape (B, horizon)
+        The control sequence in normalised units divided by the window scale: what the
+        imitation loss compares with the target divided by :attr:`scale`.
+    gates : Tensor, shape (B, experts)
+        The mixture's softmax gate weights (rows sum to one).
+    scale : Tensor, shape (B, 1)
+        Each window's scale (its peak; ones without window scaling).
+    plant : PlantReading or None
+        What an inferred plant part read (None when the plant is given by its tag).
+    """
+
+    control: Tensor
+    gates: Tensor
+    scale: Tensor
+    plant: PlantReading | None

@@ -1,0 +1,149 @@
+"""Where the plant reaches the network: its code, one row of the learned tag embedding.
+
+A plant part maps a window and the system tag to the plant's code (B, hidden), the only
+way the plant enters the network (``model.plant`` in config):
+
+* :class:`TagEmbedding`, the paper's: the tag's row of a learned embedding (the one-hot tag
+  times ``W_1``, Section 4).
+* :class:`InferredPlant`, without the tag (``experiment=tag_free``): the same rows, weighed
+  by an identity head's softmax over the training plants, read from the window by an
+  identifier (:mod:`~generalist_control.model.identifier`). The tag is a training label
+  only (:meth:`InferredPlant.loss`); the code never depends on it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from generalist_control.common.schema import require_int, require_nonnegative
+from generalist_control.model.identifier import TransitionSet
+from generalist_control.model.output import PlantReading
+from generalist_control.plants.plant import MAX_ORDER
+
+__all__ = ["EVIDENCE_WEIGHT", "InferredPlant", "TagEmbedding"]
+
+#: The initial weight of each plant's one-step-model evidence in its identity logit.
+EVIDENCE_WEIGHT = 4.0
+
+
+class TagEmbedding(nn.Module):
+    """The tag's row of a learned embedding (the paper's system-tag input).
+
+    Parameters
+    ----------
+    dim : int
+        Size of a row (the network's ``hidden``); given by the network.
+    n_tags : int
+        System tags ``0 .. n_tags - 1``.
+
+    Examples
+    --------
+    >>> part = TagEmbedding(dim=4, n_tags=3)
+    >>> code, reading = part(None, None, None, torch.tensor([2, 0]))
+    >>> tuple(code.shape), reading
+    ((2, 4), None)
+    """
+
+    #: Window channels the part reads (see ``GeneralistNetwork.channels``).
+    needs: tuple[str, ...] = ()
+    #: Size of what it adds to a context skip's summary.
+    summary_size = 0
+
+    def __init__(self, dim: int, n_tags: int = 25) -> None:
+        super().__init__()
+        self.n_tags = require_int("model.plant.n_tags", n_tags)
+        self.rows = nn.Embedding(self.n_tags, dim)
+
+    def forward(
+        self, state: Tensor | None, mask: Tensor | None, ref: Tensor | None, tag: Tensor
+    ) -> tuple[Tensor, PlantReading | None]:
+        """The rows (B, dim) of ``tag``; nothing read from the window."""
+        return self.rows(tag), None
+
+
+class InferredPlant(nn.Module):
+    """The plant inferred from the window: the embedding's rows weighed by an identity head.
+
+    Parameters
+    ----------
+    dim : int
+        Size of a row (the network's ``hidden``); given by the network.
+    identifier : callable
+        Builds the identifier (``identifier(state_dim=..., hidden=dim)``, a
+        :class:`~generalist_control.model.identifier.TransitionSet`); its models, if any,
+        get the rows (detached) and their evidence joins the identity logits.
+    n_tags : int
+        The training plants (rows).
+    noise : float
+        Training only: the identifier's copy of each window gets white noise on its plant
+        states, std per window uniform in ``[0, noise]`` (normalised units); the law's
+        copy stays clean. 0: none.
+    loss_weight : float
+        Weight of :meth:`loss` beside the imitation loss (> 0: the head must be trained).
+    state_dim : int
+        Padded plant state entries at the front of each sample.
+
+    Notes
+    -----
+    The identifier reads the window's one-step transitions, so the window must carry the
+    previous control (``model.channels`` with ``previous_control``: :attr:`needs`).
+    """
+
+    needs: tuple[str, ...] = ("previous_control",)
+
+    def __init__(
+        self,
+        dim: int,
+        identifier: Callable[..., TransitionSet],
+        n_tags: int = 25,
+        noise: float = 0.0,
+        loss_weight: float = 1.0,
+        state_dim: int = MAX_ORDER,
+    ) -> None:
+        super().__init__()
+        self.n_tags = require_int("model.plant.n_tags", n_tags)
+        self.noise = require_nonnegative("model.plant.noise", noise)
+        self.loss_weight = require_nonnegative("model.plant.loss_weight", loss_weight)
+        if self.loss_weight == 0:
+            raise ValueError(
+                "model.plant.loss_weight must be > 0: the identity head that weighs the rows "
+                "is trained by this loss alone"
+            )
+        self.rows = nn.Embedding(self.n_tags, dim)
+        self.identifier = identifier(state_dim=state_dim, hidden=dim)
+        evidence = self.n_tags if self.identifier.models is not None else 0
+        self.summary_size = dim + evidence
+        self.head = nn.Linear(dim + evidence, self.n_tags)
+        if evidence:  # each plant's evidence starts as its logit (x EVIDENCE_WEIGHT)
+            with torch.no_grad():
+                self.head.weight[:, dim:] = EVIDENCE_WEIGHT * torch.eye(evidence)
+
+    def forward(
+        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
+    ) -> tuple[Tensor, PlantReading]:
+        """The inferred code (B, dim) and what was read; ``tag`` is not used."""
+        noise = self.noise if self.training else 0.0
+        # detached: the models' fit moves their own layer, never the rows the law reads
+        rows = self.rows.weight.detach() if self.identifier.models is not None else None
+        summary = self.identifier.read(state, mask, rows, noise)
+        logits = self.head(summary)
+        code = torch.softmax(logits, dim=-1) @ self.rows.weight
+        evidence = summary[:, -self.n_tags :] if rows is not None else None
+        return code, PlantReading(logits=logits, summary=summary, evidence=evidence)
+
+    def loss(self, reading: PlantReading, tag: Tensor) -> tuple[Tensor, Tensor]:
+        """The identity head's cross-entropy against ``tag``, and the whole identity term.
+
+        The term adds how badly the true plants' one-step models fit their windows
+        (:meth:`~generalist_control.model.identifier.TransitionModels.fit_loss`); it is
+        weighed by :attr:`loss_weight` in the training loss.
+        """
+        cross_entropy = F.cross_entropy(reading.logits, tag)
+        models = self.identifier.models
+        if models is None or reading.evidence is None:
+            return cross_entropy, cross_entropy
+        return cross_entropy, cross_entropy + models.fit_loss(reading.evidence, tag)

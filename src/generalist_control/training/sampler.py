@@ -1,0 +1,280 @@
+"""DAgger's rollout sampler: which rollouts a round runs, and the loop that runs them.
+
+A round rolls the current policy out on every training plant version (the plants, and with
+variant data their variants; ``dagger.sampler.variants``) from rest on steps of random
+amplitude within the data's range, and on references of the data's families from random
+initial states (``dagger.sampler.families`` of each). The executed control is the mix
+``beta * LQI + (1 - beta) * policy`` (:class:`MixedController`), with, as options of the
+sampler, white noise on it (``noise``) and a random actuator between it and the plant
+(``actuator``). :class:`~generalist_control.training.labeller.ExpertLabeller` then labels
+what the rollouts visited.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from generalist_control.deploy.adapter import RuntimeAdapter
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.plants.plant import Plant
+from generalist_control.simulation.lqi import LQIController
+from generalist_control.simulation.references import family_references
+from generalist_control.simulation.simulate import Run, Trajectory, row_slices, simulate_many
+from generalist_control.simulation.variants import sample_variants
+from generalist_control.training.actuator import Actuator
+from generalist_control.training.settings import SamplerSettings
+
+__all__ = ["MixedController", "RolloutSampler", "Rollouts", "run_rollouts"]
+
+
+def _per_row(
+    plants: Sequence[Plant], counts: Sequence[int], values: Mapping[str, float], default: float
+) -> np.ndarray:
+    """Each row's value: its plant's entry in ``values`` (by name), else ``default``."""
+    per = zip(plants, counts, strict=True)
+    return np.concatenate([np.full(c, float(values.get(p.name, default))) for p, c in per])
+
+
+class MixedController:
+    """Executes ``beta * LQI + (1 - beta) * policy``; records the experts' integrators.
+
+    ``noise`` (plant name -> standard deviation, in the plant's control units) adds zero-mean
+    white noise to the executed control of that plant's rows, drawn from a generator seeded
+    with ``seed`` at every :meth:`reset`: the rollouts then visit states off the smooth
+    closed-loop curve, where the experts label how they would correct a small deviation
+    (noise injection, as in DART: Laskey et al., 2017). The policy's runtime is told the
+    executed control (:meth:`~generalist_control.deploy.runtime.PolicyRuntime.record_applied`),
+    so a policy that reads its previous control sees the control that moved the plant.
+
+    ``actuator`` (plant name -> (lag, offset), :class:`~generalist_control.training.actuator.
+    Actuator`) puts a random first-order lag and constant offset of each row's own between
+    the mixed command and that plant's rows, drawn from the same generator at :meth:`reset`.
+    The runtime is then told the command, which is all a deployed policy knows, and
+    :attr:`commanded` holds it for the windows.
+
+    A :class:`~generalist_control.simulation.simulate.BatchController`. After a run, :attr:`z`
+    holds the expert integrator *before* each sample's control, shape (rows, N).
+    """
+
+    def __init__(
+        self,
+        runtime: PolicyRuntime | None,
+        beta: float,
+        noise: Mapping[str, float] | None = None,
+        seed: int = 0,
+        actuator: Mapping[str, tuple[float, float]] | None = None,
+    ) -> None:
+        self.actuator = dict(actuator or {})
+        self.noise = {k: float(v) for k, v in (noise or {}).items()}
+        if any(not np.isfinite(v) or v < 0 for v in self.noise.values()):
+            raise ValueError(f"control noise must be finite and >= 0, got {self.noise}")
+        self.seed = int(seed)
+        if runtime is None and beta != 1.0:
+            raise ValueError("without a policy runtime, beta must be 1 (pure expert)")
+        self.runtime, self.beta = runtime, float(beta)
+
+    def reset(self, plants: Sequence[Plant], counts: Sequence[int]) -> None:
+        """One LQI expert per plant group; the policy over all rows."""
+        self._parts = []
+        for plant, count, rows in zip(plants, counts, row_slices(counts), strict=True):
+            ctrl = LQIController(plant)
+            ctrl.reset(count)
+            self._parts.append((ctrl, plant.order, rows))
+        self._sigma = _per_row(plants, counts, self.noise, 0.0)
+        self._rng = np.random.default_rng(self.seed)
+        self._act = None
+        if self.actuator:
+            lag = _per_row(plants, counts, {k: v[0] for k, v in self.actuator.items()}, 0.0)
+            off = _per_row(plants, counts, {k: v[1] for k, v in self.actuator.items()}, 0.0)
+            self._act = Actuator(lag, off, self._rng)
+        self._policy = None
+        if self.runtime is not None and self.beta < 1.0:
+            self._policy = RuntimeAdapter(self.runtime)
+            self._policy.reset(plants, counts)
+        self._z: list[np.ndarray] = []
+        self._cmd: list[np.ndarray] = []
+
+    def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Mixed control for zero-padded states ``x`` (rows, MAX_ORDER)."""
+        u_e, z = np.empty(x.shape[0]), np.empty(x.shape[0])
+        for ctrl, n, rows in self._parts:
+            z[rows] = ctrl.z
+            u_e[rows] = ctrl.step(x[rows, :n], r[rows])
+        self._z.append(z)
+        if self._policy is None:
+            return self._actuate(self._noisy(u_e))
+        u_p = self._policy.step(x, r)  # NaN: a run the runtime refused (outside its range)
+        u_p = np.where(np.isnan(u_p), u_e, u_p)  # the expert takes that run over
+        u = self._noisy(self.beta * u_e + (1.0 - self.beta) * u_p)
+        self._policy.record_applied(u)  # the policy's previous-control channel: what ran
+        return self._actuate(u)
+
+    def _actuate(self, u: np.ndarray) -> np.ndarray:
+        """What the plants receive for the command ``u`` (``u`` itself without an actuator)."""
+        if self._act is None:
+            return u
+        self._cmd.append(u)
+        return self._act(u)
+
+    @property
+    def commanded(self) -> np.ndarray:
+        """The (noisy) mixed command of each sample, (rows, N), before the actuator (with one)."""
+        return np.stack(self._cmd, axis=1)
+
+    def _noisy(self, u: np.ndarray) -> np.ndarray:
+        """``u`` plus the rows' control noise (unchanged where there is none)."""
+        if not self._sigma.any():
+            return u
+        return u + self._sigma * self._rng.standard_normal(u.shape[0])
+
+    @property
+    def z(self) -> np.ndarray:
+        """Expert integrator before each sample's control, (rows, N)."""
+        return np.stack(self._z, axis=1)
+
+
+#: One plant's rollouts: references (B, steps) and initial states (B, n) or None (rest).
+RolloutSpec = tuple[np.ndarray, np.ndarray | None]
+
+
+@dataclass(frozen=True)
+class Rollouts:
+    """A round's rollouts: per plant version its trajectories and the experts' integrators.
+
+    ``trajectories[i].u`` is the control the windows carry: the executed mix, or with an
+    actuator the command (what a deployed policy knows). ``z[i]`` (B, N) is plant ``i``'s
+    expert integrator before each sample's control.
+    """
+
+    plants: list[Plant]
+    trajectories: list[Trajectory]
+    z: list[np.ndarray]
+
+
+def run_rollouts(
+    plants: Sequence[Plant],
+    specs: Sequence[RolloutSpec],
+    runtime: PolicyRuntime | None,
+    beta: float,
+    noise: Mapping[str, float] | None = None,
+    seed: int = 0,
+    actuator: Mapping[str, tuple[float, float]] | None = None,
+) -> Rollouts:
+    """Run every plant's rollouts (``specs``, in order) under the :class:`MixedController`.
+
+    ``runtime`` is the current policy (None with ``beta = 1``: pure expert rollouts).
+    """
+    runs = [Run(p, r, x0) for p, (r, x0) in zip(plants, specs, strict=True)]
+    ctrl = MixedController(runtime, beta, noise, seed, actuator)
+    trajs, slices = simulate_many(runs, ctrl), row_slices([len(r.r) for r in runs])
+    if actuator:  # the windows carry what was commanded, as a deployed policy's do
+        cmd = ctrl.commanded
+        trajs = [replace(tr, u=cmd[sl]) for tr, sl in zip(trajs, slices, strict=True)]
+    z = ctrl.z
+    return Rollouts(list(plants), trajs, [z[sl] for sl in slices])
+
+
+class RolloutSampler:
+    """The rollouts of each DAgger round (``dagger.sampler``; see the module docstring).
+
+    Parameters
+    ----------
+    plants : sequence of Plant
+        The training plant versions: each plant, then (with variant data) its variants.
+    settings : SamplerSettings
+    limit : float
+        Largest step amplitude, before each plant's ``amplitude_scale`` (``data.amplitudes``).
+    families : mapping
+        The data's enabled families (name -> spec); rolled out ``settings.families`` each.
+    seed : int
+        Seeds the round's draws (round ``i``: amplitudes from ``seed + i``).
+    variant_range, variant_tries : float, int
+        Parameter range and draws per variant of the fresh variants (``data.variants``).
+    """
+
+    def __init__(
+        self,
+        plants: Sequence[Plant],
+        settings: SamplerSettings,
+        limit: float,
+        families: Mapping[str, Mapping[str, Any]],
+        seed: int,
+        variant_range: float,
+        variant_tries: int,
+    ) -> None:
+        self.plants, self.settings = list(plants), settings
+        self.limit, self.seed = float(limit), int(seed)
+        self.families = {k: dict(v) for k, v in families.items()} if settings.families else {}
+        self.variant_range, self.variant_tries = float(variant_range), int(variant_tries)
+        #: per plant name, the factors of every fresh variant rolled out so far
+        self.fresh: dict[str, list[dict[str, float]]] = {}
+
+    def steps(self) -> int:
+        """Samples per rollout."""
+        return int(round(self.settings.duration / self.plants[0].dt))
+
+    def _versions(self) -> list[list[Plant]]:
+        """The plants grouped by name, each group its nominal version first."""
+        groups: dict[str, list[Plant]] = {}
+        for p in self.plants:
+            groups.setdefault(p.name, []).append(p)
+        return list(groups.values())
+
+    def round_plants(self, round_index: int) -> list[Plant]:
+        """The round's plant versions: the data's (all, or in turn), then fresh variants."""
+        variants = self.settings.variants
+        if variants is None or variants.data is None:
+            out = list(self.plants)
+        else:
+            out = []
+            for nominal, *rest in self._versions():
+                k = min(variants.data, len(rest))
+                out.append(nominal)
+                out.extend(rest[(round_index * k + j) % len(rest)] for j in range(k))
+        if variants is None or not variants.fresh:
+            return out
+        for nominal, *_ in self._versions():
+            draw = sample_variants(
+                nominal, variants.fresh, variants.seed + round_index, self.variant_range,
+                (self.limit, -self.limit), self.steps(), self.variant_tries,
+            )  # fmt: skip
+            for v in draw.kept:
+                self.fresh.setdefault(v.plant.name, []).append(v.factors)
+                out.append(v.plant)
+        return out
+
+    def specs(self, round_index: int, plants: Sequence[Plant]) -> list[RolloutSpec]:
+        """Per plant version, in order: the round's references and initial states."""
+        steps, n = self.steps(), self.settings.families
+        rng = np.random.default_rng(self.seed + round_index)
+        out: list[RolloutSpec] = []
+        for p in plants:
+            amps = rng.uniform(-self.limit, self.limit, self.settings.rollouts)
+            amps = amps * p.amplitude_scale
+            rs, x0s = [np.repeat(amps[:, None], steps, axis=1)], [np.zeros((len(amps), p.order))]
+            for i, spec in enumerate(self.families.values()):
+                seed = int(spec.get("seed", 0)) + 7919 * (round_index + 1) + 31 * i + self.seed
+                r, x0 = family_references(p, {**spec, "count": n, "seed": seed}, steps)
+                rs.append(r)
+                x0s.append(x0)
+            out.append((np.concatenate(rs), np.concatenate(x0s)))
+        return out
+
+    def run(self, round_index: int, runtime: PolicyRuntime, beta: float) -> Rollouts:
+        """Round ``round_index``'s rollouts of ``runtime``'s policy, the expert's share beta."""
+        plants = self.round_plants(round_index)
+        specs = self.specs(round_index, plants)
+        scale = runtime.policy.normaliser.control_scale.detach().cpu().double().numpy()
+        noise = None
+        if self.settings.noise:
+            noise = {p.name: self.settings.noise * float(scale[p.tag]) for p in plants}
+        act = self.settings.actuator
+        actuator = None
+        if act is not None and (act.lag or act.offset):
+            actuator = {p.name: (act.lag, act.offset * float(scale[p.tag])) for p in plants}
+        seed = self.seed + 7901 * (round_index + 1)
+        return run_rollouts(plants, specs, runtime, beta, noise, seed, actuator)
