@@ -27,7 +27,7 @@ data: setup
 ## process took 14.5-16 min on 2 cores; CI has 2. PYTEST_WORKERS=0 runs in this process.
 PYTEST_WORKERS ?= 2
 test: setup
-	$(VENV)/ruff check src tests benchmarks scripts train.py tune.py
+	$(VENV)/ruff check src analysis tests benchmarks scripts train.py tune.py
 	$(VENV)/mypy
 	$(VENV)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
 
@@ -36,8 +36,8 @@ test-fast: setup
 	$(VENV)/python -m pytest -q -m "not slow" -n $(PYTEST_WORKERS) --dist loadfile
 
 lint: setup
-	$(VENV)/ruff check src tests benchmarks scripts train.py tune.py
-	$(VENV)/ruff format --check src tests benchmarks scripts train.py tune.py
+	$(VENV)/ruff check src analysis tests benchmarks scripts train.py tune.py
+	$(VENV)/ruff format --check src analysis tests benchmarks scripts train.py tune.py
 	$(VENV)/mypy
 
 ## The type checker alone (mypy on src/, settings in pyproject.toml).
@@ -45,8 +45,8 @@ typecheck: setup
 	$(VENV)/mypy
 
 format: setup
-	$(VENV)/ruff format src tests benchmarks scripts train.py tune.py
-	$(VENV)/ruff check --fix src tests benchmarks scripts train.py tune.py
+	$(VENV)/ruff format src analysis tests benchmarks scripts train.py tune.py
+	$(VENV)/ruff check --fix src analysis tests benchmarks scripts train.py tune.py
 
 bench: setup
 	$(VENV)/python benchmarks/bench_generate.py

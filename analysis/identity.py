@@ -1,7 +1,7 @@
 """What a tag-free policy's identity head makes of the plant (``model.plant: inferred``).
 
 An inferred plant's identity head reads the plant from the window (a softmax over the
-training plants that weighs the embedding rows the law sees). Two views of it, both with the tag withheld:
+training plants that weighs the embedding rows the law sees). Two views of it:
 
 * :func:`identity_table`: along each plant's own LQI unit step from rest (the expert's
   closed loop, as in :mod:`~analysis.separation`), at a few times:

@@ -103,8 +103,13 @@ def main() -> None:
         policy, meta = load_policy(resolve(args.policy))
     else:
         torch.manual_seed(0)
-        policy = Policy({"hidden": 32, "experts": 3, "window_scale": 1, "linear_head": 1,
-                         "integral": 1, "linear_samples": 1})  # fmt: skip
+        from hydra import compose, initialize_config_dir
+
+        from generalist_control.common.paths import conf_dir
+        from generalist_control.training.settings import model_config
+
+        with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+            policy = Policy(model_config(compose("config")))  # the default network, untrained
         meta = {"tags": {plant.name: plant.tag}, "orders": {plant.name: plant.order},
                 "dt": plant.dt, "history": 8, "horizon": 3,
                 "outputs": {plant.name: plant.C[0].tolist()}}  # fmt: skip

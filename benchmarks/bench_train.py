@@ -46,7 +46,7 @@ from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import design_lqi
 from generalist_control.training.datamodule import DemoDataModule
 from generalist_control.training.lit_module import ImitationModule
-from generalist_control.training.setup import model_config
+from generalist_control.training.settings import read_training
 
 PLANTS = (
     "cstr",
@@ -86,22 +86,9 @@ def make_data(cfg, out: Path) -> Path:
     return write_demos(out / "demos", demos, manifest)
 
 
-def _scheduler(cfg) -> dict:
-    """The scheduler config, ``T_max: null`` resolved to the epoch count as train.py does."""
-    sched = OmegaConf.to_container(cfg.model.scheduler, resolve=True)
-    if sched.get("T_max") is None:
-        sched["T_max"] = int(cfg.trainer.max_epochs)
-    return sched
-
-
 def build(cfg, dm: DemoDataModule) -> ImitationModule:
-    model = model_config(cfg)  # the training config's network, as train.py builds it
-    lit = ImitationModule(
-        model,
-        OmegaConf.to_container(cfg.model.optimizer),
-        _scheduler(cfg),
-        dm.meta(),
-    )
+    settings = read_training(cfg)  # the training config's sections, as train.py reads them
+    lit = ImitationModule(settings.model, settings.optimizer, settings.scheduler, dm.meta())
     lit.policy.normaliser.fit(**dm.train_set.tensors)
     return lit
 
@@ -210,14 +197,14 @@ def main(argv: list[str] | None = None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         data_dir = args.data or make_data(cfg, Path(tmp))
+        settings = read_training(cfg)
         dm = DemoDataModule(
             data_dir,
-            cfg.data.history,
-            cfg.data.horizon,
-            seed=int(cfg.seed),
-            integral=bool(cfg.model.get("integral", False)),
-            controls=bool(cfg.model.get("control_history", False)),
-            **cfg.loader,
+            settings.history,
+            settings.horizon,
+            settings.loader,
+            seed=settings.seed,
+            channels=list(cfg.model.channels),
         )
         dm.setup("fit")
         result.update(

@@ -6,9 +6,8 @@ With the trained default policy on all 25 plants, times (median of ``--repeats``
 
 * ``closed_loop_val``: one ``val/closed_loop`` score (``closed_loop_val`` of the config:
   steps of each amplitude from rest, every training plant), run after every validation;
-* ``dagger_round``: one DAgger round as the default config runs it (``dagger.rollouts``
-  steps and ``dagger.family_count`` references of each family per plant, labelled by the
-  experts), at the last round's beta.
+* ``dagger_round``: one DAgger round as the default config runs it (``dagger.sampler``'s
+  rollouts, labelled by the experts: ``dagger.labeller``), at the last round's beta.
 
 The epochs are the rest of the training's wall time (MLflow's ``time/epoch_s``). Figures are
 printed and written to ``benchmarks/results/training_parts.json``.
@@ -34,8 +33,9 @@ from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.simulation.comparison import closed_loop_score
-from generalist_control.training.dagger import aggregate
-from generalist_control.training.dagger_callback import DAggerCallback
+from generalist_control.training.labeller import ExpertLabeller
+from generalist_control.training.sampler import RolloutSampler
+from generalist_control.training.settings import read_training
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -68,28 +68,27 @@ def main() -> None:
             ),
             args.repeats,
         )
-    d = cfg.dagger
-    cb = DAggerCallback(
-        plants, limit=float(cfg.data.amplitudes.limit), rollouts=int(d.rollouts),
-        duration=float(d.duration), families=enabled_families(as_dict(cfg.data)),
-        family_count=int(d.family_count),
+    d = read_training(cfg).dagger
+    assert d is not None, "the default config runs DAgger"
+    sampler = RolloutSampler(
+        plants, d.sampler, float(cfg.data.amplitudes.limit),
+        enabled_families(as_dict(cfg.data)), 0, 0.25, 10,
     )  # fmt: skip
-    steps = int(round(float(d.duration) / plants[0].dt))
-    rollouts = cb._rollouts(steps)
+    labeller = ExpertLabeller(d.labeller, int(meta["history"]), int(meta["horizon"]),
+                              policy.channels)  # fmt: skip
     bounds = {p.name: np.full(p.order, np.inf) for p in plants}
-    beta = float(d.beta) * float(d.beta_decay) ** (int(d.rounds) - 1)
+    beta = d.beta_at(d.rounds - 1)
 
     def one_round() -> None:
         with torch.inference_mode():
-            aggregate(plants, runtime, beta, rollouts, bounds, steps, int(meta["history"]),
-                      int(meta["horizon"]), "tracked", True)  # fmt: skip
+            labeller.label(sampler.run(d.rounds - 1, runtime, beta), bounds)
 
     t_dagger = _median_time(one_round, args.repeats)
     out = {
         "closed_loop_val_s": t_val,
         "dagger_round_s": t_dagger,
         "plants": len(plants),
-        "dagger_rollouts_per_plant": len(next(iter(rollouts.values()))[0]),
+        "dagger_rollouts_per_plant": len(sampler.specs(0, plants[:1])[0][0]),
         "repeats": args.repeats,
     }
     print(f"closed-loop validation: {t_val:.2f} s per validation ({len(plants)} plants)")

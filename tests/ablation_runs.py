@@ -11,6 +11,7 @@ import mlflow
 from generalist_control.model.network import count_parameters
 from generalist_control.model.policy import Policy, save_policy
 from generalist_control.plants.catalog import load_plant
+from helpers import net_config
 
 PLANTS = ("double_integrator", "cstr")
 #: (d, M) -> (final train loss, {plant: mse}); d = 16 is left out on purpose.
@@ -57,7 +58,7 @@ def log_runs(
     ids = {}
     tags = {"mlflow.parentRunId": parent} if parent else None
     for (d, m), (loss, mse) in (configs or CONFIGS).items():
-        policy = Policy({"hidden": d, "experts": m, "heads": 2})
+        policy = Policy(net_config(hidden=d, experts=m, heads=2))
         with mlflow.start_run(experiment_id=exp_id, run_name=f"d{d}-M{m}", tags=tags) as r:
             mlflow.log_params(
                 {"model.hidden": d, "experts": m, "n_parameters": count_parameters(policy)}

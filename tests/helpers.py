@@ -46,6 +46,7 @@ def tiny_train_overrides(data_dir, out, uri: str, *extra: str) -> list[str]:
         "trainer.max_epochs=1",
         "trainer.enable_progress_bar=false",
         "trainer.enable_model_summary=false",
+        "systems.include=[cstr,hydraulic_actuator]",
         *extra,
     ]
 
@@ -78,13 +79,13 @@ def policy_meta(names, history: int = 8, horizon: int = 3) -> dict:
     }
 
 
-def lqi_law_policy(names, gains_of, linear_samples: int = 0):
-    """A real integrating policy whose linear head is the law ``-Kx x - Ki z``, and its meta.
+def lqi_law_policy(names, gains_of, samples: int = 1):
+    """A real integrating policy whose per-tag table is the law ``-Kx x - Ki z``, and its meta.
 
     ``gains_of(plant)`` gives each plant's gains (e.g. ``design_lqi``). The experts' last
-    layers are zero, so the output is the head alone; the head's weights on the newest sample
+    layers are zero, so the output is the table alone; the table's weights on the newest sample
     are the gains in the normaliser's units (non-trivial scales, seeded), the same on every
-    step of the horizon. ``linear_samples``: what the head sees (0: the whole window).
+    step of the horizon. ``samples``: how many of the newest samples the table reads.
     """
     import numpy as np
     import torch
@@ -94,18 +95,21 @@ def lqi_law_policy(names, gains_of, linear_samples: int = 0):
     from generalist_control.plants.plant import MAX_ORDER
 
     torch.manual_seed(0)
-    config = {"hidden": 16, "experts": 2, "window_scale": 1, "linear_head": 1, "integral": 1}
-    pol = Policy({**config, "linear_samples": linear_samples})
+    config = net_config(
+        hidden=16, experts=2, window_scale=True, channels=["integral"], table=samples
+    )
+    pol = Policy(config)
     g = torch.Generator().manual_seed(3)
-    width, T, K = MAX_ORDER + 1, pol.config["history"], pol.config["horizon"]
-    n = linear_samples or T
+    width, T, K = MAX_ORDER + 1, pol.history, pol.horizon
+    n = samples
     with torch.no_grad():
         for expert in pol.net.experts:
             expert[-1].weight.zero_()
             expert[-1].bias.zero_()
         pol.normaliser.state_scale.uniform_(0.5, 3.0, generator=g)
         pol.normaliser.control_scale.uniform_(0.5, 3.0, generator=g)
-        pol.net.linear.weight.zero_()
+        table = pol.net.table.weight
+        table.weight.zero_()
         for name in names:
             plant = load_plant(name)
             gains = gains_of(plant)
@@ -115,5 +119,63 @@ def lqi_law_policy(names, gains_of, linear_samples: int = 0):
             newest = (n - 1) * width
             row[newest : newest + plant.order] = -gains.Kx * sx[: plant.order] / su
             row[newest + MAX_ORDER] = -gains.Ki * sx[MAX_ORDER] / su
-            pol.net.linear.weight[plant.tag] = torch.tensor(np.tile(row, K))
+            table.weight[plant.tag] = torch.tensor(np.tile(row, K))
     return pol.eval(), policy_meta(list(names), T, K)
+
+
+def net_config(
+    hidden: int = 32,
+    experts: int = 3,
+    heads: int = 3,
+    stride: int = 2,
+    history: int = 8,
+    horizon: int = 3,
+    channels=(),
+    window_scale: bool = False,
+    skip=None,
+    table=None,
+    plant: str = "tag",
+    law_history=None,
+    n_tags: int = 25,
+    **plant_options,
+) -> dict:
+    """A network config (the shape of ``conf/model``) in plain types; the paper's by default.
+
+    ``skip``: None, ``"linear"`` or ``"context"`` (one sample each); ``table``: None or the
+    samples of a per-tag table; ``plant``: ``"tag"`` or ``"inferred"`` (``plant_options``:
+    ``noise``, ``loss_weight``, ``models`` -- a dict of TransitionModels settings, or None).
+    """
+    base = "generalist_control.model."
+    if plant == "tag":
+        part = {"_target_": base + "plant.TagEmbedding", "_partial_": True, "n_tags": n_tags}
+    else:
+        models = plant_options.pop("models", {})
+        identifier = {"_target_": base + "identifier.TransitionSet", "_partial_": True}
+        if models is not None:
+            identifier["models"] = {
+                "_target_": base + "identifier.TransitionModels",
+                "_partial_": True,
+                **models,
+            }
+        part = {"_target_": base + "plant.InferredPlant", "_partial_": True, "n_tags": n_tags,
+                "identifier": identifier, **plant_options}  # fmt: skip
+    config = {
+        "_target_": base + "network.GeneralistNetwork",
+        "hidden": hidden, "heads": heads, "stride": stride, "experts": experts,
+        "history": history, "horizon": horizon, "law_history": law_history,
+        "channels": list(channels), "window_scale": window_scale, "plant": part,
+    }  # fmt: skip
+    if skip is not None:
+        kind = {"linear": "LinearSkip", "context": "ContextSkip"}[skip]
+        config["skip"] = {"_target_": base + f"linear.{kind}", "_partial_": True, "samples": 1}
+    if table is not None:
+        config["table"] = {"_target_": base + "linear.TagTable", "_partial_": True,
+                           "samples": table}  # fmt: skip
+    return config
+
+
+def build_net(**kwargs):
+    """The :class:`GeneralistNetwork` of :func:`net_config`."""
+    from generalist_control.model.build import build_network
+
+    return build_network(net_config(**kwargs))

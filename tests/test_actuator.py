@@ -1,17 +1,26 @@
-"""DAgger's rollouts through an actuator that is not the model's (dagger.actuator_*)."""
+"""DAgger's rollouts through an actuator that is not the model's (dagger.sampler.actuator)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
-from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.simulate import plant_stepper
 from generalist_control.training.actuator import Actuator, lag_mix
-from generalist_control.training.dagger import aggregate
+from generalist_control.training.labeller import ExpertLabeller
+from generalist_control.training.sampler import run_rollouts
+from generalist_control.training.settings import LabellerSettings
+
+
+def aggregate(plant, amps, steps, seed=0, actuator=None):
+    """A pure-expert round on ``plant`` whose windows carry the previous control."""
+    refs = (np.repeat(amps[:, None], steps, axis=1), None)
+    rollouts = run_rollouts([plant], [refs], None, 1.0, None, seed, actuator)
+    labeller = ExpertLabeller(LabellerSettings(), 8, 3, ["previous_control"])
+    return labeller.label(rollouts, {plant.name: np.full(plant.order, np.inf)})
+
 
 FINE = 20000  # Euler steps per sample of the reference lag
 
@@ -67,9 +76,7 @@ def test_rollouts_through_the_actuator_move_the_plant_and_keep_the_command():
     steps, seed, spread = 40, 5, {plant.name: (1.0, 0.4)}
     amps = np.array([1.0, -2.0])
     refs = np.repeat(amps[:, None], steps, axis=1)
-    big = {plant.name: np.full(plant.order, np.inf)}
-    w, _ = aggregate([plant], None, 1.0, {plant.name: amps}, big, steps, 8, 3, "tracked",
-                     controls=True, noise_seed=seed, actuator=spread)  # fmt: skip
+    w, _ = aggregate(plant, amps, steps, seed, spread)
     act = Actuator(np.full(2, 1.0), np.full(2, 0.4), np.random.default_rng(seed))
     advance, lqi = plant_stepper(plant), LQIController(plant)
     lqi.reset(2)
@@ -88,30 +95,7 @@ def test_rollouts_through_the_actuator_move_the_plant_and_keep_the_command():
     g = design_lqi(plant)
     law = -(xs_ @ g.Kx) - g.Ki * zs_
     np.testing.assert_allclose(w.target[:, 0], law[:, :per].reshape(-1), rtol=1e-5, atol=1e-5)
-    plain, _ = aggregate([plant], None, 1.0, {plant.name: amps}, big, steps, 8, 3, "tracked",
-                         controls=True)  # fmt: skip
+    plain, _ = aggregate(plant, amps, steps)
     assert np.abs(plain.state - w.state).max() > 0.05  # the actuator moved the rollouts
-    still, _ = aggregate([plant], None, 1.0, {plant.name: amps}, big, steps, 8, 3, "tracked",
-                         controls=True, actuator={plant.name: (0.0, 0.0)})  # fmt: skip
+    still, _ = aggregate(plant, amps, steps, actuator={plant.name: (0.0, 0.0)})
     assert np.array_equal(still.state, plain.state)  # none at all: the plain rollouts
-
-
-def test_dagger_actuator_offset_is_a_fraction_of_each_plants_control_scale():
-    from generalist_control.training.dagger_callback import DAggerCallback
-
-    plants = [load_plant("dc_servo"), load_plant("unstable")]
-    cb = DAggerCallback(plants, rollouts=4, families=None, actuator_lag=0.8, actuator_offset=0.2)
-    policy = Policy({"hidden": 8, "experts": 1})
-    with torch.no_grad():
-        policy.normaliser.control_scale.copy_(
-            torch.arange(1.0, 1.0 + len(policy.normaliser.control_scale))
-        )
-    got = cb._actuator(policy, plants)
-    assert got is not None and set(got) == {p.name for p in plants}
-    for p in plants:
-        assert got[p.name] == pytest.approx((0.8, 0.2 * (1.0 + p.tag)))
-    assert DAggerCallback(plants, families=None)._actuator(policy, plants) is None  # 0: off
-    with pytest.raises(ValueError, match="dagger.actuator_lag must be a finite time constant"):
-        DAggerCallback(plants, families=None, actuator_lag=-1.0)
-    with pytest.raises(ValueError, match="dagger.actuator_offset must be a finite fraction"):
-        DAggerCallback(plants, families=None, actuator_offset=float("nan"))

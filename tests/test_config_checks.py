@@ -1,15 +1,16 @@
-"""Config values are taken as typed, never rounded or ignored (issue 10, items 7 and 8).
+"""Config values are taken as typed, never rounded or ignored, and checked before a run.
 
-* integer keys of ``model``, ``experts`` and ``loader`` refuse non-integers (schema at
-  composition, strict checks at run time), before anything is logged or trained;
-* ``generate`` refuses a plant tag outside ``0..model.n_tags-1`` before writing;
-* ``systems.include`` selects the training plants even with DAgger and the closed-loop
-  check off.
+* the training's sections are read once into typed settings (``training.settings``) and the
+  network's parts check their own arguments: non-integers, negative epochs, a learning rate
+  the optimiser refuses, sections that do not fit together are refused before anything is
+  logged or trained;
+* ``generate`` refuses a plant tag outside ``0..model.plant.n_tags-1`` before writing;
+* the plant set (``systems``, ``systems.include``) selects the training plants even with
+  DAgger and the closed-loop check off, and data without one of them is refused.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import subprocess
 import sys
@@ -19,14 +20,12 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
 from generalist_control.common.paths import conf_dir
-from generalist_control.common.schema import ModelSchema, require_fraction, require_int
+from generalist_control.common.schema import require_int
 from generalist_control.generate import run as generate_run
-from generalist_control.model.network import MODEL_DEFAULTS, network_config
-from generalist_control.model.policy import load_policy
+from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.catalog import UnknownPlantError
 from generalist_control.plants.plant import PlantConfigError
 from generalist_control.training.datamodule import (
@@ -36,22 +35,10 @@ from generalist_control.training.datamodule import (
     split_by_trajectory,
 )
 from generalist_control.training.fit import train
+from generalist_control.training.settings import LoaderSettings, read_training
 from helpers import compose_cfg, tiny_train_overrides
 
 REPO = Path(__file__).resolve().parents[1]
-#: Network keys set in the ``model`` group (the others come from ``experts`` and ``data``;
-#: ``unknown_tag`` follows from ``model.tag_dropout``, ``identity_head`` from
-#: ``model.identity_loss``).
-MODEL_GROUP_KEYS = set(MODEL_DEFAULTS) - {
-    "experts",
-    "state_dim",
-    "history",
-    "horizon",
-    "unknown_tag",
-    "identity_head",
-}
-#: Boolean keys of the ``model`` group that set training, not the network.
-TRAINING_SWITCHES = {"identity_noise_clean_fit"}
 
 
 def _env() -> dict[str, str]:
@@ -65,89 +52,75 @@ def _train_cfg(data_dir: Path, out: Path, *extra: str):
     return compose_cfg(*tiny_train_overrides(data_dir, out, uri, "logger.log_model=false", *extra))
 
 
-# ------------------------------------------------------------------ item 7: integer sizes
+# ------------------------------------------------------------- typed once, before a run
+def _refused(*overrides: str) -> str:
+    """The message of the ValueError with which the training config is refused."""
+    cfg = compose_cfg(*overrides)
+    with pytest.raises(ValueError) as err:
+        Policy(read_training(cfg).model)
+    return str(err.value)
+
+
 @pytest.mark.parametrize(
-    "override",
+    ("override", "message"),
     [
-        "model.hidden=32.9",
-        "model.hidden=32.0",
-        "model.hidden='32.5'",
-        "model.hidden=true",
-        "model.heads=2.5",
-        "model.stride=1.5",
-        "model.n_tags=25.5",
-        "model.linear_samples=0.5",
+        ("model.hidden=32.9", "model.hidden must be an integer, got 32.9 (float)"),
+        ("model.hidden=32.0", "model.hidden must be an integer, got 32.0 (float)"),
+        ("model.hidden='32'", "model.hidden must be an integer, got '32' (str)"),
+        ("model.hidden=true", "model.hidden must be an integer, got True (bool)"),
+        ("model.heads=2.5", "model.heads must be an integer, got 2.5 (float)"),
+        ("model.stride=1.5", "model.stride must be an integer, got 1.5 (float)"),
+        ("model.plant.n_tags=25.5", "model.plant.n_tags must be an integer, got 25.5"),
+        ("model.skip.samples=0.5", "model.skip.samples must be an integer, got 0.5"),
+        ("model.law_history=2.5", "model.law_history must be an integer, got 2.5"),
+        ("data.history=8.5", "data.history must be an integer, got 8.5 (float)"),
+        ("model.window_scale=0.5", "model.window_scale must be 0 or 1 (false/true), got 0.5"),
+        ("experts=2.5", "experts must be an integer, got 2.5 (float)"),
+        ("experts=0", "experts must be a positive integer, got 0"),
+        ("trainer.max_epochs=-1", "trainer.max_epochs must be a positive integer, got -1"),
+        ("trainer.max_epochs=0", "trainer.max_epochs must be a positive integer, got 0"),
+        ("threads=0", "threads must be a positive integer, got 0"),
+        ("optimizer.lr=-0.1", "optimizer/scheduler refused: Invalid learning rate: -0.1"),
+        ("loader.batch_size=10.5", "loader.batch_size must be an integer, got 10.5 (float)"),
+        ("loader.val_fraction=1.5", "loader.val_fraction must lie in [0, 1), got 1.5"),
+        ("dagger.beta=1.5", "dagger.beta must lie in [0, 1], got 1.5"),
+        ("dagger.rounds=2.0", "dagger.rounds must be an integer, got 2.0"),
+        ("+dagger.focus=2", "dagger has unknown keys ['focus']"),
+        ("dagger.sampler.noise=-1", "dagger.sampler.noise must be a finite number >= 0"),
+        ("+dagger.sampler.actuator.lag=nan", "dagger.sampler.actuator.lag must be a finite"),
+        ("closed_loop_val=null", "monitor=val/closed_loop needs the closed-loop validation"),
+        ("monitor=val/acc", "monitor must be val/loss or val/closed_loop"),
     ],
 )
-def test_a_non_integer_model_size_fails_at_composition(override):
-    key, value = override.split("=")
-    with pytest.raises(ConfigCompositionException) as err:
-        compose_cfg(override)
-    cause = str(err.value.__cause__)
-    assert f"full_key: {key}" in cause and "could not be converted to Integer" in cause
-    assert value.strip("'").lower() in cause.lower()
+def test_a_bad_training_value_is_refused_naming_its_key(override, message):
+    assert message in _refused(override)
 
 
-def test_the_schema_types_exactly_the_model_group():
-    names = {f.name for f in dataclasses.fields(ModelSchema)}
-    for path in sorted((conf_dir() / "model").glob("*.yaml")):
-        spec = yaml.safe_load(path.read_text())
-        assert {"optional /gc_schema@_here_": "model"} in spec["defaults"], path
-        assert set(spec) - {"defaults"} == names, path
-    sizes = {f.name for f in dataclasses.fields(ModelSchema) if f.type in ("int", "bool")}
-    assert sizes == MODEL_GROUP_KEYS | TRAINING_SWITCHES
-    cfg = compose_cfg()
-    assert OmegaConf.get_type(cfg.model) is ModelSchema
-    assert cfg.model.hidden == 32 and cfg.model.integral is True
+def test_the_typed_settings_take_integers_of_any_kind_and_keep_the_config():
+    cfg = compose_cfg("experiment=variants")
+    settings = read_training(cfg)
+    assert settings.dagger is not None and settings.dagger.sampler.variants is not None
+    assert settings.dagger.sampler.variants.fresh == 8 and settings.dagger.sampler.families == 0
+    assert settings.closed_loop_val is not None and settings.closed_loop_val.duration == 30.0
+    assert settings.scheduler is not None and settings.scheduler["T_max"] == 30
+    assert settings.model["experts"] == 3 and settings.model["history"] == 8
+    assert read_training(compose_cfg("experiment=paper")).dagger is None
+    assert require_int("x", np.int64(0), minimum=0) == 0
 
 
 def test_a_composition_without_the_package_still_works(tmp_path):
-    """DVC's Hydra composes conf/ without importing the package: the schema is optional."""
+    """DVC's Hydra composes conf/ without importing the package."""
     code = (
         "from hydra import compose, initialize_config_dir\n"
         f"with initialize_config_dir({str(conf_dir())!r}, version_base='1.3'):\n"
         "    cfg = compose('config', overrides=['model.hidden=16', 'experiment=paper'])\n"
-        "print(cfg.model.hidden, cfg.model.integral)\n"
+        "print(cfg.model.hidden, len(cfg.model.channels))\n"
     )
     proc = subprocess.run(
         [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert proc.stdout.split() == ["16", "False"]
-
-
-@pytest.mark.parametrize(
-    ("kwargs", "message"),
-    [
-        ({"hidden": 32.9}, "model.hidden must be an integer, got 32.9 (float)"),
-        ({"hidden": 32.0}, "model.hidden must be an integer, got 32.0 (float)"),
-        ({"hidden": "32"}, "model.hidden must be an integer, got '32' (str)"),
-        ({"hidden": True}, "model.hidden must be an integer, got True (bool)"),
-        ({"heads": 2.5}, "model.heads must be an integer, got 2.5 (float)"),
-        ({"stride": 1.5}, "model.stride must be an integer, got 1.5 (float)"),
-        ({"experts": 2.5}, "experts must be an integer, got 2.5 (float)"),
-        ({"n_tags": 25.5}, "model.n_tags must be an integer, got 25.5 (float)"),
-        ({"linear_samples": 1.5}, "model.linear_samples must be an integer, got 1.5"),
-        ({"history": 8.5}, "data.history must be an integer, got 8.5 (float)"),
-        ({"integral": 0.5}, "model.integral must be 0 or 1 (false/true), got 0.5 (float)"),
-        ({"experts": 0}, "experts must be a positive integer, got 0"),
-    ],
-)
-def test_network_config_refuses_what_it_would_have_rounded(kwargs, message):
-    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
-        network_config(**kwargs)
-
-
-def test_network_config_takes_integers_of_any_kind_and_boolean_switches():
-    cfg = network_config(hidden=np.int64(16), experts=np.int32(2), integral=True)
-    assert cfg["hidden"] == 16 and cfg["experts"] == 2 and cfg["integral"] == 1
-    assert all(type(v) is int for v in cfg.values())
-    assert require_int("x", 0, minimum=0) == 0
-    assert require_fraction("loader.val_fraction", 0) == 0.0
-    with pytest.raises(ValueError, match=r"loader.val_fraction must lie in \[0, 1\), got 1.0"):
-        require_fraction("loader.val_fraction", 1.0)
-    with pytest.raises(ValueError, match=r"must be a number in \[0, 1\), got True \(bool\)"):
-        require_fraction("loader.val_fraction", True)
+    assert proc.stdout.split() == ["16", "0"]
 
 
 def test_train_py_with_a_fractional_size_fails_and_logs_nothing(tiny_data_dir, tmp_path):
@@ -158,8 +131,7 @@ def test_train_py_with_a_fractional_size_fails_and_logs_nothing(tiny_data_dir, t
     cmd.append(f"hydra.run.dir={tmp_path / 'hydra'}")
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=_env(), timeout=300)
     assert proc.returncode != 0
-    assert "Value '32.9' of type 'float' could not be converted to Integer" in proc.stderr
-    assert "full_key: model.hidden" in proc.stderr
+    assert "model.hidden must be an integer, got 32.9 (float)" in proc.stderr
     assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "models").exists()
 
 
@@ -168,23 +140,19 @@ def test_train_py_with_a_fractional_size_fails_and_logs_nothing(tiny_data_dir, t
     [
         ("experts=2.5", r"experts must be an integer, got 2\.5 \(float\)"),
         ("loader.batch_size=10.5", r"loader\.batch_size must be an integer, got 10\.5 \(float\)"),
-        ("loader.val_batch_size=64.0", r"loader\.val_batch_size must be an integer, got 64\.0"),
-        ("loader.val_fraction=1.5", r"loader\.val_fraction must lie in \[0, 1\), got 1\.5"),
+        ("trainer.max_epochs=-1", r"trainer\.max_epochs must be a positive integer, got -1"),
+        ("optimizer.lr=nan", r"Invalid learning rate: nan"),
     ],
 )
-def test_train_refuses_a_fractional_size_before_logging(
-    tiny_data_dir, tmp_path, override, message
-):
+def test_train_refuses_a_bad_value_before_logging(tiny_data_dir, tmp_path, override, message):
     cfg = _train_cfg(tiny_data_dir, tmp_path, override)
     with pytest.raises(ValueError, match=message):
         train(cfg)
     assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "models").exists()
 
 
-def test_train_refuses_a_fractional_model_size_composed_without_the_schema(
-    tiny_data_dir, tmp_path
-):
-    """Whatever composed the config (no schema: a plain copy), the run-time check holds."""
+def test_train_refuses_a_fractional_model_size_composed_elsewhere(tiny_data_dir, tmp_path):
+    """Whatever composed the config (a plain copy), the run-time check holds."""
     cfg = OmegaConf.create(OmegaConf.to_container(_train_cfg(tiny_data_dir, tmp_path)))
     cfg.model.hidden = 32.9
     with pytest.raises(ValueError, match=r"model\.hidden must be an integer, got 32\.9"):
@@ -198,15 +166,16 @@ def test_train_refuses_a_fractional_model_size_composed_without_the_schema(
     [
         (
             ["systems.plants.cstr.tag=25"],
-            r"plant 'cstr' \(tag 25\) is outside the policy's tags 0\.\.24 \(model\.n_tags=25\)"
-            r"; raise model\.n_tags to at least 26 .* or give it a free tag in 0\.\.24 "
+            r"plant 'cstr' \(tag 25\) is outside the policy's tags 0\.\.24 \(model\.plant\."
+            r"n_tags=25\); raise model\.plant\.n_tags to at least 26 .* or give it a free tag "
+            r"in 0\.\.24 "
             r"\(conf/plants/<name>\.yaml",
         ),
         (["systems.plants.cstr.tag=-1"], r"plant 'cstr' \(tag -1\) is outside .* 0\.\.24"),
         (
-            ["model.n_tags=10", "systems.include=[cstr,unstable]"],
+            ["model.plant.n_tags=10", "systems.include=[cstr,unstable]"],
             r"plants 'cstr' \(tag 10\), 'unstable' \(tag 11\) are outside the policy's tags "
-            r"0\.\.9 \(model\.n_tags=10\); raise model\.n_tags to at least 12",
+            r"0\.\.9 \(model\.plant\.n_tags=10\); raise model\.plant\.n_tags to at least 12",
         ),
     ],
 )
@@ -233,13 +202,14 @@ def test_generate_command_with_a_new_plant_past_n_tags_writes_nothing(tmp_path):
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode != 0
     assert "plant 'my_plant' (tag 25) is outside the policy's tags 0..24" in proc.stderr
-    assert "raise model.n_tags to at least 26" in proc.stderr
+    assert "raise model.plant.n_tags to at least 26" in proc.stderr
     assert not out.exists()
 
 
 def test_data_module_keeps_the_included_plants_with_the_same_split(tiny_data_dir):
-    full = DemoDataModule(tiny_data_dir, 8, 3, batch_size=64)
-    one = DemoDataModule(tiny_data_dir, 8, 3, batch_size=64, plants=["cstr"])
+    loader = LoaderSettings(batch_size=64)
+    full = DemoDataModule(tiny_data_dir, 8, 3, loader)
+    one = DemoDataModule(tiny_data_dir, 8, 3, loader, plants=["cstr"])
     full.setup()
     one.setup()
     assert one.tags == {"cstr": 10} and one.orders == {"cstr": 2}
@@ -266,17 +236,23 @@ def test_data_module_without_plants_is_the_previous_split(tiny_data_dir, tiny_de
 
 def test_data_module_names_an_included_plant_the_data_lacks(tiny_data_dir):
     dm = DemoDataModule(tiny_data_dir, 8, 3, plants=["cstr", "unstable"])
-    with pytest.raises(MissingPlantError, match=r"systems\.include names \['unstable'\]") as e:
+    with pytest.raises(MissingPlantError, match=r"\(systems\) names \['unstable'\]") as e:
         dm.setup()
-    assert (
-        "python -m generalist_control.generate "
-        f"systems.include=[cstr,hydraulic_actuator,unstable] paths.data_dir={tiny_data_dir}"
-    ) in str(e.value)
+    assert f"paths.data_dir={tiny_data_dir}" in str(e.value)
+    assert "systems.include=[cstr,hydraulic_actuator]" in str(e.value)
+
+
+def test_training_on_a_set_the_data_lacks_is_refused_before_logging(tiny_data_dir, tmp_path):
+    """systems=paper on data of other plants: refused, not trained on the data's plants."""
+    cfg = _train_cfg(tiny_data_dir, tmp_path, "systems=paper", "~systems.include")
+    with pytest.raises(MissingPlantError, match=r"the plant set \(systems\) names \["):
+        train(cfg)
+    assert not (tmp_path / "mlflow.db").exists()
 
 
 def test_training_with_include_trains_on_those_plants_only(tiny_data_dir, tmp_path):
     """DAgger and the closed-loop check off: include alone selects the plants."""
-    off = ["dagger.enabled=false", "closed_loop_val.enabled=false", "monitor=val/loss"]
+    off = ["dagger=null", "closed_loop_val=null", "monitor=val/loss"]
     off.append("closed_loop.systems=[]")
     cfg = _train_cfg(tiny_data_dir, tmp_path, "systems.include=[cstr]", *off)
     metrics, objects = train(cfg)

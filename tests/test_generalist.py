@@ -9,18 +9,19 @@ import pytest
 import torch
 
 from generalist_control.model.network import GeneralistNetwork
+from generalist_control.model.plant import TagEmbedding
 from generalist_control.model.policy import Policy, load_policy
-from generalist_control.training.setup import model_config
+from generalist_control.training.settings import read_training
 from helpers import compose_cfg
 
 REPO = Path(__file__).resolve().parents[1]
 #: The one trainable parameter a plant may index: the paper's learned tag embedding.
-TAG_EMBEDDING = "net.tag_embedding.weight"
+TAG_EMBEDDING = "net.plant.rows.weight"
 
 
 def _indexed_by_plant(policy: Policy) -> set[str]:
     """Trainable parameters with an axis of length n_tags (a block per plant)."""
-    n_tags = policy.config["n_tags"]
+    n_tags = policy.net.n_tags
     return {name for name, p in policy.named_parameters() if p.requires_grad and n_tags in p.shape}
 
 
@@ -28,34 +29,33 @@ def _tag_only_through_embedding(net: GeneralistNetwork) -> bool:
     """Two tags whose embedding rows are equal give equal outputs on equal inputs."""
     torch.manual_seed(0)
     with torch.no_grad():
-        net.tag_embedding.weight[1] = net.tag_embedding.weight[0]
+        rows = net.plant.rows.weight
+        rows[1] = rows[0]
         for p in net.parameters():  # non-zero everywhere, so every path is live
             if p.abs().sum() == 0:
                 p.normal_(0.0, 0.1)
-        net.tag_embedding.weight[1] = net.tag_embedding.weight[0]
-    c = net.config
-    width = c["state_dim"] + c["integral"]
-    state = torch.randn(6, c["history"], width)
+        rows[1] = rows[0]
+    state = torch.randn(6, net.history, net.width)
     mask = torch.ones_like(state)
-    ref = torch.randn(6, c["history"])
-    u0, g0 = net(state, mask, ref, torch.zeros(6, dtype=torch.long))
-    u1, g1 = net(state, mask, ref, torch.ones(6, dtype=torch.long))
-    return torch.equal(u0, u1) and torch.equal(g0, g1)
+    ref = torch.randn(6, net.history)
+    a = net(state, mask, ref, torch.zeros(6, dtype=torch.long))
+    b = net(state, mask, ref, torch.ones(6, dtype=torch.long))
+    return torch.equal(a.control, b.control) and torch.equal(a.gates, b.gates)
 
 
 def test_the_default_recipe_indexes_nothing_by_plant_but_the_tag_embedding():
     cfg = compose_cfg()
-    assert not cfg.model.linear_head and cfg.model.linear_init == "zero"
-    policy = Policy(model_config(cfg))
+    assert "table" not in cfg.model
+    policy = Policy(read_training(cfg).model)
+    assert isinstance(policy.net.plant, TagEmbedding) and policy.net.table is None
     assert _indexed_by_plant(policy) == {TAG_EMBEDDING}
     assert _tag_only_through_embedding(policy.net)
 
 
 def test_the_hybrid_carries_a_per_plant_gain_table_and_the_check_sees_it():
     cfg = compose_cfg("experiment=lqi_head")
-    assert cfg.model.linear_head and cfg.model.linear_init == "lstsq"
-    policy = Policy(model_config(cfg))
-    assert _indexed_by_plant(policy) == {TAG_EMBEDDING, "net.linear.weight"}
+    policy = Policy(read_training(cfg).model)
+    assert _indexed_by_plant(policy) == {TAG_EMBEDDING, "net.table.weight.weight"}
     assert not _tag_only_through_embedding(policy.net)
 
 

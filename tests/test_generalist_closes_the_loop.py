@@ -42,9 +42,9 @@ TRAIN = (
     "dagger.start_epoch=4",
     "dagger.every=4",
     "dagger.rounds=4",
-    "dagger.rollouts=4",
-    "dagger.duration=6.0",
-    "dagger.family_count=1",
+    "dagger.sampler.rollouts=4",
+    "dagger.sampler.duration=6.0",
+    "dagger.sampler.families=1",
 )
 SCENARIOS = {
     "step": {"kind": "step", "amplitude": 1.0, "duration": 10.0},
@@ -73,7 +73,7 @@ def test_a_short_training_of_the_default_recipe_closes_the_loop(tmp_path):
     generate(compose_cfg(*DATA, f"paths.data_dir={data}"))
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     cfg = compose_cfg(*tiny_train_overrides(data, tmp_path / "run", uri), *TRAIN)
-    assert not cfg.model.linear_head  # the learned generalist, not the hybrid
+    assert "table" not in cfg.model  # the learned generalist, not the hybrid
     _, objects = train(cfg)
     runtime = PolicyRuntime(objects["policy"], objects["datamodule"].meta())
     df, _ = evaluate(runtime, [load_plant(p) for p in PLANTS], SCENARIOS)

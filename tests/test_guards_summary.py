@@ -50,7 +50,7 @@ def _half_gains(plant) -> LQIGains:
 
 def _half_lqi_policy(names) -> tuple[Policy, dict]:
     """An integrating policy (newest-sample head) whose law is ``-(Kx x + Ki z) / 2``."""
-    return lqi_law_policy(names, _half_gains, linear_samples=1)
+    return lqi_law_policy(names, _half_gains)
 
 
 def _hand_errors(plant, gains, r) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

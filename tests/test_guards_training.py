@@ -20,7 +20,7 @@ from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import Run, simulate, simulate_many
 from generalist_control.training.fit import train
-from generalist_control.training.setup import model_config
+from generalist_control.training.settings import model_config
 from helpers import compose_cfg, tiny_train_overrides
 
 EPOCHS = 5
@@ -31,13 +31,12 @@ EPOCHS = 5
 #: best checkpoint and the last one can be told apart.
 EXTRA = (
     "logger.log_model=false",
-    "model.linear_init=zero",
-    "dagger.enabled=false",
+    "dagger=null",
     "closed_loop.systems=[]",
     "closed_loop_val.duration=2.0",
     "loader.batch_size=64",
-    "model.optimizer.lr=3e-3",  # a constant, large step: the score is not monotone
-    "model.scheduler=null",
+    "optimizer.lr=3e-3",  # a constant, large step: the score is not monotone
+    "scheduler=null",
     f"trainer.max_epochs={EPOCHS}",
 )
 
@@ -91,7 +90,8 @@ def test_short_training_imitates_the_expert_and_saves_the_best_checkpoint(
     tiny_data_dir, tmp_path, mlflow_uri
 ):
     cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, tmp_path, mlflow_uri, *EXTRA))
-    assert cfg.monitor == "val/closed_loop" and cfg.model.integral and not cfg.model.linear_head
+    assert cfg.monitor == "val/closed_loop" and "integral" in cfg.model.channels
+    assert "table" not in cfg.model
     _, objs = train(cfg)
 
     # --- imitation, measured independently of the module's loss ---------------------------

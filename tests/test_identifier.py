@@ -1,4 +1,4 @@
-"""Issue 13: the transition-set identifier and a law that reads part of the window."""
+"""The transition-set identifier of an inferred plant, and a law that reads part of the window."""
 
 from __future__ import annotations
 
@@ -6,13 +6,9 @@ import pytest
 import torch
 
 from generalist_control.model.identifier import TransitionSet
-from generalist_control.model.network import GeneralistNetwork, network_config
-from generalist_control.training.setup import model_config
-from helpers import compose_cfg
+from helpers import build_net
 
-TAG_FREE = dict.fromkeys(
-    ("integral", "linear_skip", "tag_free", "history_context", "control_history"), 1
-)
+CHANNELS = ["integral", "previous_control"]
 
 
 def _window(batch: int, history: int, seed: int = 0) -> tuple[torch.Tensor, ...]:
@@ -57,61 +53,43 @@ def test_transition_identifier_is_a_mean_over_transitions_in_any_order():
         enc(state[:, :1], mask[:, :1])
 
 
-def test_law_history_reads_the_newest_samples_the_identifier_the_whole_window():
+def test_law_history_reads_the_newest_samples_of_the_window():
     """A law on the newest 8 of 24 samples is the 8-sample network with the same weights."""
     torch.manual_seed(0)
-    short = GeneralistNetwork(**network_config(**TAG_FREE)).eval()
-    long = GeneralistNetwork(**network_config(**TAG_FREE, history=24, law_history=8)).eval()
+    short = build_net(channels=CHANNELS, skip="linear").eval()
+    long = build_net(channels=CHANNELS, skip="linear", history=24, law_history=8).eval()
+    torch.nn.init.normal_(short.skip.gains.weight)
     long.load_state_dict(short.state_dict())
-    torch.nn.init.normal_(long.skip.weight)
-    short.load_state_dict(long.state_dict())
     state, mask, ref = _window(4, 24)
-    tag = torch.zeros(4, dtype=torch.long)
-    # without an identifier reading the old samples the two agree exactly; an LSTM
-    # identifier reads the whole window, so compare the law's part with the identifier off
+    tag = torch.tensor([0, 3, 7, 24])
     with torch.no_grad():
-        ident_short = short.identify(state[:, -8:], mask[:, -8:], ref[:, -8:])
-        ident_long = long.identify(state, mask, ref)
-        assert not torch.allclose(ident_short, ident_long)  # the identifier sees all 24
-        long.identify = lambda *a: ident_short  # type: ignore[method-assign]
         torch.testing.assert_close(
-            long(state, mask, ref, tag)[0], short(state[:, -8:], mask[:, -8:], ref[:, -8:], tag)[0]
+            long(state, mask, ref, tag).control,
+            short(state[:, -8:], mask[:, -8:], ref[:, -8:], tag).control,
         )
 
 
-def test_transition_identifier_reads_samples_the_law_does_not():
+def test_an_inferred_plant_reads_samples_the_law_does_not():
     torch.manual_seed(0)
-    cfg = network_config(**TAG_FREE, history=24, law_history=8, transition_identifier=1)
-    net = GeneralistNetwork(**cfg).eval()
-    assert isinstance(net.identifier, TransitionSet)
-    torch.nn.init.normal_(net.skip.weight)
+    net = build_net(channels=CHANNELS, skip="context", history=24, law_history=8,
+                    plant="inferred", models=None).eval()  # fmt: skip
+    assert isinstance(net.plant.identifier, TransitionSet)
+    torch.nn.init.normal_(net.skip.gains.weight)
     state, mask, ref = _window(4, 24)
     tag = torch.zeros(4, dtype=torch.long)
     old = state.clone()
     old[:, :16, :3] += torch.randn(4, 16, 3)  # only samples older than the law's 8
     with torch.no_grad():
-        u, u_old = net(state, mask, ref, tag)[0], net(old, mask, ref, tag)[0]
-        assert not torch.allclose(u, u_old)  # through the identifier's state alone
-        net.context.weight.zero_()  # cut that path: the law alone ignores the old samples
-        torch.testing.assert_close(net(state, mask, ref, tag)[0], net(old, mask, ref, tag)[0])
+        u, u_old = net(state, mask, ref, tag).control, net(old, mask, ref, tag).control
+        assert not torch.allclose(u, u_old)  # through the identifier alone
+        # cut both paths: the head weighs every row alike, the skip ignores the summary
+        net.plant.head.weight.zero_()
+        net.skip.context.weight.zero_()
+        torch.testing.assert_close(
+            net(state, mask, ref, tag).control, net(old, mask, ref, tag).control
+        )
 
 
-@pytest.mark.parametrize(
-    ("kwargs", "message"),
-    [
-        ({"history": 8, "law_history": 12}, r"model.law_history \(12\) exceeds the history"),
-        (
-            {"history": 12, "law_history": 4, "linear_samples": 6},
-            r"linear_samples \(6\) exceeds the samples the law reads",
-        ),
-        ({"control_history": 0, "transition_identifier": 1}, "turn control_history on"),
-    ],
-)
-def test_bad_identifier_settings_are_refused(kwargs, message):
-    with pytest.raises(ValueError, match=message):
-        network_config(**{**TAG_FREE, **kwargs})
-
-
-def test_transition_identifier_from_the_config_needs_the_previous_control():
-    with pytest.raises(ValueError, match="model.transition_identifier reads each state change"):
-        model_config(compose_cfg("model.transition_identifier=true"))
+def test_an_inferred_plant_without_the_previous_control_is_refused():
+    with pytest.raises(ValueError, match=r"reads the window's \['previous_control'\] channel"):
+        build_net(channels=["integral"], plant="inferred")

@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 import torch
 
+from generalist_control.model.build import build_network
 from generalist_control.model.flat import FlatPolicy
-from generalist_control.model.network import GeneralistNetwork, count_parameters, network_config
+from generalist_control.model.network import GeneralistNetwork, count_parameters
 from generalist_control.model.normalise import Normaliser
 from generalist_control.model.policy import Policy, load_policy, save_policy
 from generalist_control.training.datamodule import BatchIndexSampler, split_by_trajectory
+from helpers import build_net, net_config, policy_meta
 
 
 def _tensors(windows):
@@ -30,20 +32,21 @@ def windows(tiny_demos):
 @pytest.fixture(scope="module")
 def policy(windows):
     torch.manual_seed(0)
-    pol = Policy(network_config(hidden=16, experts=3))
+    pol = Policy(net_config(hidden=16, experts=3))
     pol.normaliser.fit(*_tensors(windows)[:4], torch.from_numpy(windows.target))
     return pol.eval()
 
 
 @pytest.mark.parametrize(("hidden", "experts", "heads"), [(16, 1, 3), (32, 3, 3), (64, 5, 4)])
 def test_output_shapes(hidden, experts, heads):
-    net = GeneralistNetwork(hidden=hidden, experts=experts, heads=heads)
+    net = build_net(hidden=hidden, experts=experts, heads=heads)
     B = 7
-    u, gates = net(
+    out = net(
         torch.randn(B, 8, 4), torch.ones(B, 8, 4), torch.randn(B, 8), torch.randint(0, 25, (B,))
     )
-    assert u.shape == (B, 3)
-    assert gates.shape == (B, experts)
+    assert out.control.shape == (B, 3)
+    assert out.gates.shape == (B, experts)
+    assert out.scale.shape == (B, 1) and out.plant is None
 
 
 def test_gate_weights_sum_to_one(policy, windows):
@@ -60,8 +63,8 @@ def test_padded_state_entries_do_not_change_the_output(policy, windows):
     with torch.no_grad():
         u0, g0 = policy(state, mask, ref, tag)
         u1, g1 = policy(noisy, mask, ref, tag)
-        n0, _ = policy.net(state, mask, ref, tag)
-        n1, _ = policy.net(noisy, mask, ref, tag)
+        n0 = policy.net(state, mask, ref, tag).control
+        n1 = policy.net(noisy, mask, ref, tag).control
     torch.testing.assert_close(u1, u0, rtol=0, atol=0)
     torch.testing.assert_close(g1, g0, rtol=0, atol=0)
     torch.testing.assert_close(n1, n0, rtol=0, atol=0)  # the network masks on its own too
@@ -76,7 +79,7 @@ def _lstm_inputs(net, *args):
     ]
     try:
         with torch.no_grad():
-            u, _ = net(*args)
+            u = net(*args).control
     finally:
         for h in hooks:
             h.remove()
@@ -101,7 +104,7 @@ def test_slow_lstm_ends_at_the_newest_sample():
     B = 3
     for (history, stride), idx in expected_slow.items():
         torch.manual_seed(0)
-        net = GeneralistNetwork(hidden=8, history=history, stride=stride).eval()
+        net = build_net(hidden=8, history=history, stride=stride).eval()
         state, mask, ref = (
             torch.randn(B, history, 4),
             torch.ones(B, history, 4),
@@ -135,15 +138,15 @@ def test_slow_lstm_ends_at_the_newest_sample():
 
 
 def test_heads_that_do_not_divide_the_width():
-    net = GeneralistNetwork(hidden=32, heads=3)  # 2 d_h = 64, d_k = ceil(64 / 3) = 22
+    net = build_net(hidden=32, heads=3)  # 2 d_h = 64, d_k = ceil(64 / 3) = 22
     assert net.attention.d_k == 22
     assert net.attention.out.in_features == 66 and net.attention.out.out_features == 64
 
 
 def test_attention_over_one_token_leaves_query_and_key_without_gradient():
     # docs/training.md: the paper's attention runs over the single vector z
-    net = GeneralistNetwork(hidden=16, heads=3)
-    u, _ = net(torch.randn(4, 8, 4), torch.ones(4, 8, 4), torch.randn(4, 8), torch.arange(4))
+    net = build_net(hidden=16, heads=3)
+    u = net(torch.randn(4, 8, 4), torch.ones(4, 8, 4), torch.randn(4, 8), torch.arange(4)).control
     u.sum().backward()
     inner = net.attention.heads * net.attention.d_k
     grad = net.attention.qkv.weight.grad
@@ -156,8 +159,7 @@ def _documented_parameter_parts(
     M: int,
     heads: int = 3,
     integral: int = 0,
-    linear_head: int = 0,
-    linear_samples: int = 0,
+    table: int = 0,
     history: int = 8,
     horizon: int = 3,
     n_tags: int = 25,
@@ -185,9 +187,7 @@ def _documented_parameter_parts(
         "attention": linear(2 * d, 3 * heads * d_k) + linear(heads * d_k, 2 * d),
         "expert": linear(2 * d, d) + 2 * d + linear(d, d) + 2 * d + linear(d, horizon),
         "gate": linear(2 * d, M),
-        "linear_head": (
-            n_tags * horizon * (linear_samples or history) * (width + 1) if linear_head else 0
-        ),
+        "table": n_tags * horizon * table * (width + 1),
     }
 
 
@@ -201,12 +201,12 @@ def _module_parts(net: GeneralistNetwork) -> dict[str, int]:
     return {
         "state_encoder": count_parameters(net.state_encoder_1),
         "ref_encoder": count_parameters(net.ref_encoder),
-        "tag_encoder": count_parameters(net.tag_embedding) + count_parameters(net.tag_encoder),
+        "tag_encoder": count_parameters(net.plant) + count_parameters(net.plant_encoder),
         "lstm": count_parameters(net.lstm_slow),
         "attention": count_parameters(net.attention),
         "expert": count_parameters(net.experts[0]),
         "gate": count_parameters(net.gate),
-        "linear_head": count_parameters(net.linear) if net.linear is not None else 0,
+        "table": count_parameters(net.table) if net.table is not None else 0,
     }
 
 
@@ -217,15 +217,18 @@ def _module_parts(net: GeneralistNetwork) -> dict[str, int]:
         {"hidden": 64, "experts": 3},
         {"hidden": 16, "experts": 1},
         {"hidden": 64, "experts": 5, "heads": 4},
-        {"hidden": 32, "experts": 3, "integral": 1, "linear_head": 1, "linear_samples": 1},
-        {"hidden": 32, "experts": 3, "linear_head": 1},  # whole-window head, no integral
+        {"hidden": 32, "experts": 3, "integral": 1, "table": 1},
+        {"hidden": 32, "experts": 3, "table": 8},  # whole-window table, no integral
         {"hidden": 8, "experts": 2, "heads": 5, "integral": 1},
-        {"hidden": 24, "experts": 4, "heads": 7, "linear_head": 1, "linear_samples": 3},
-        {"hidden": 16, "experts": 2, "history": 6, "horizon": 5, "n_tags": 10, "linear_head": 1},
+        {"hidden": 24, "experts": 4, "heads": 7, "table": 3},
+        {"hidden": 16, "experts": 2, "history": 6, "horizon": 5, "n_tags": 10, "table": 6},
     ],
 )
 def test_parameter_count_follows_the_documented_architecture(config):
-    net = GeneralistNetwork(**config)
+    kwargs = {k: v for k, v in config.items() if k not in ("integral", "table")}
+    kwargs["channels"] = ["integral"] if config.get("integral") else []
+    kwargs["table"] = config.get("table") or None
+    net = build_net(**kwargs)
     rest = {k: v for k, v in config.items() if k not in ("hidden", "experts")}
     d, M = config["hidden"], config["experts"]
     assert count_parameters(net) == _documented_parameter_count(d, M, **rest)
@@ -235,7 +238,7 @@ def test_parameter_count_follows_the_documented_architecture(config):
     assert count_parameters(net.lstm_fast) == count_parameters(net.lstm_slow)
     assert len(net.experts) == M
     # the policy adds only the normaliser's buffers, no trainable parameter
-    assert count_parameters(Policy(network_config(**config))) == count_parameters(net)
+    assert count_parameters(Policy(net_config(**kwargs))) == count_parameters(net)
 
 
 def test_parameter_counts_in_docs_follow_the_documented_architecture():
@@ -259,11 +262,9 @@ def test_parameter_counts_in_docs_follow_the_documented_architecture():
     assert 2 * (64 * 66 + 66) == 8_580  # the Q and K projections, 64 -> 66 each
     baseline = _documented_parameter_count(32, 3)
     assert baseline == 55_826
-    # our default recipe: + d per state encoder (integral) + 25 x 3 x 6 (newest-sample head)
-    ours = _documented_parameter_count(32, 3, integral=1, linear_head=1, linear_samples=1)
-    assert ours == baseline + 2 * 32 + 25 * 3 * 6 == 56_340 and "**56,340**" in text
-    whole_window = _documented_parameter_count(32, 3, linear_head=1)
-    assert whole_window == baseline + 25 * 3 * 8 * 5 == 58_826 and "58,826" in text
+    # the hybrid's table: + d per state encoder (integral) + 25 x 3 x 6 (newest-sample table)
+    hybrid = _documented_parameter_count(32, 3, integral=1, table=1)
+    assert hybrid == baseline + 2 * 32 + 25 * 3 * 6 == 56_340
     # the paper states 59,180 for its baseline (M = 3, d = 32): ours is 5.7 % below, as the
     # paper leaves the encoder and expert widths open (docs/training.md)
     assert 0.05 < (59_180 - baseline) / 59_180 < 0.07
@@ -271,14 +272,14 @@ def test_parameter_counts_in_docs_follow_the_documented_architecture():
 
 
 def test_integral_adds_one_state_channel_that_padding_never_reaches(tiny_demos):
-    """model.integral: one more encoder input (+ the linear head's), masks still hold."""
-    base = count_parameters(GeneralistNetwork(hidden=32, experts=3, linear_head=1))
-    with_z = count_parameters(GeneralistNetwork(hidden=32, experts=3, linear_head=1, integral=1))
-    # two state encoders gain a d-wide input column each; the head gains T * K weights per tag
+    """The integral channel: one more encoder input (+ the table's), masks still hold."""
+    base = count_parameters(build_net(hidden=32, experts=3, table=8))
+    with_z = count_parameters(build_net(hidden=32, experts=3, table=8, channels=["integral"]))
+    # two state encoders gain a d-wide input column each; the table gains T * K weights per tag
     assert with_z - base == 2 * 32 + 25 * 8 * 3
     windows = tiny_demos.windows(8, 3, integral=True)
     torch.manual_seed(0)
-    pol = Policy(network_config(hidden=16, experts=3, window_scale=1, integral=1))
+    pol = Policy(net_config(hidden=16, experts=3, window_scale=True, channels=["integral"]))
     pol.normaliser.fit(*_tensors(windows)[:4], torch.from_numpy(windows.target))
     assert pol.normaliser.state_scale.shape == (25, 5)
     state, mask, ref, tag = _tensors(windows)
@@ -291,21 +292,20 @@ def test_integral_adds_one_state_channel_that_padding_never_reaches(tiny_demos):
         assert not torch.allclose(pol(moved, mask, ref, tag)[0], pol(state, mask, ref, tag)[0])
 
 
-def test_least_squares_head_recovers_the_lqi_law_from_the_data(tiny_demos):
-    """linear_init=lstsq: from the demonstrations alone, the head's first control is
+def test_least_squares_table_recovers_the_lqi_law_from_the_data(tiny_demos):
+    """The hybrid's start: from the demonstrations alone, the table's first control is
     -Kx x - Ki z of each plant's LQI design, at any augmented state (not only on the data)."""
     from generalist_control.plants.catalog import load_plant
     from generalist_control.simulation.lqi import design_lqi
 
     windows = tiny_demos.windows(8, 3, integral=True)
-    cfg = network_config(hidden=16, experts=2, window_scale=1, linear_head=1, integral=1,
-                            linear_samples=1)  # fmt: skip
+    cfg = net_config(hidden=16, experts=2, window_scale=True, table=1, channels=["integral"])
     torch.manual_seed(0)
     pol = Policy(cfg)
     tensors = dict(zip(("state", "mask", "ref", "tag"), _tensors(windows), strict=True))
     tensors["target"] = torch.from_numpy(windows.target)
     pol.normaliser.fit(**tensors)
-    residuals = pol.fit_linear_head(**tensors)
+    residuals = pol.fit_table(**tensors)
     assert set(residuals) == {load_plant(n).tag for n in ("cstr", "hydraulic_actuator")}
     assert max(residuals.values()) < 1e-4  # linear plants: the whole plan is linear
     rng = np.random.default_rng(0)
@@ -324,17 +324,38 @@ def test_least_squares_head_recovers_the_lqi_law_from_the_data(tiny_demos):
             u, _ = pol(torch.from_numpy(x), torch.from_numpy(mask), torch.from_numpy(r), tag)
         law = -(x[:, -1, : plant.order].astype(float) @ g.Kx) - g.Ki * x[:, -1, 4]
         np.testing.assert_allclose(u[:, 0].numpy(), law, rtol=1e-3, atol=1e-3 * np.abs(law).max())
-    with pytest.raises(ValueError, match="no linear head"):
-        Policy(network_config(hidden=16)).fit_linear_head(**tensors)
+    with pytest.raises(ValueError, match="no per-tag table"):
+        Policy(net_config(hidden=16)).fit_table(**tensors)
 
 
-def test_model_config_is_checked():
-    with pytest.raises(ValueError, match=r"linear_samples \(9\) exceeds the history \(data.hist"):
-        network_config(linear_samples=9)
-    with pytest.raises(ValueError, match="unknown model config keys"):
-        network_config(hiden=32)
-    with pytest.raises(ValueError, match="must be even"):
-        network_config(hidden=33)
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"table": 9}, r"model.table.samples \(9\) exceeds the samples the law reads \(8"),
+        ({"law_history": 9}, r"model.law_history \(9\) exceeds the window \(data.history = 8"),
+        ({"hidden": 33}, "model.hidden must be even"),
+        ({"hidden": 32.0}, r"model.hidden must be an integer, got 32.0 \(float\)"),
+        ({"experts": True}, "experts must be an integer"),
+        ({"channels": ["integral", "speed"]}, r"unknown \['speed'\]"),
+        ({"window_scale": 2}, "model.window_scale must be 0 or 1"),
+        ({"plant": "inferred", "models": None}, "add it to model.channels"),
+        ({"plant": "inferred", "channels": ["previous_control"], "loss_weight": 0}, "> 0"),
+    ],
+)
+def test_model_config_is_checked(change, message):
+    with pytest.raises(ValueError, match=message):
+        build_net(**change)
+
+
+def test_model_config_names_only_the_project_s_classes():
+    config = net_config()
+    config["plant"] = {"_target_": "os.system", "_partial_": True}
+    with pytest.raises(ValueError, match=r"outside generalist_control.model: \{'model.plant'"):
+        build_network(config)
+    with pytest.raises(ValueError, match="names no network"):
+        build_network({"hidden": 32})
+    with pytest.raises(ValueError, match="unexpected keyword argument 'hiden'"):
+        build_network({**net_config(), "hiden": 32})
 
 
 def test_normalisation_round_trips(policy, windows):
@@ -372,7 +393,7 @@ def test_normaliser_rejects_out_of_range_tags():
 
 
 def test_policy_file_round_trips_with_weights_only(policy, windows, tmp_path):
-    meta = {"tags": {"cstr": 10, "hydraulic_actuator": 13}, "dt": 0.05, "content_hash": "x"}
+    meta = {**policy_meta(["cstr", "hydraulic_actuator"]), "content_hash": "x"}
     path = save_policy(tmp_path / "policy.ckpt", policy, meta)
     torch.load(path, weights_only=True)  # plain types and tensors only
     loaded, loaded_meta = load_policy(path)
@@ -419,27 +440,95 @@ def test_batch_sampler_reshuffles_per_epoch_and_covers_all():
     assert torch.equal(torch.cat(list(s)), first)
 
 
-def test_linear_head_adds_a_per_tag_linear_map_of_the_window(windows):
+def test_table_adds_a_per_tag_linear_map_of_the_window(windows):
     """Zero at start (the paper's network); then exactly W[tag] @ [state*mask, ref]."""
     torch.manual_seed(0)
-    base = GeneralistNetwork(**network_config(hidden=8))
+    base = build_net(hidden=8)
     torch.manual_seed(0)
-    head = GeneralistNetwork(**network_config(hidden=8, linear_head=1))
+    head = build_net(hidden=8, table=8)
     args = [
         torch.as_tensor(np.asarray(a))
         for a in (windows.state, windows.mask, windows.ref, windows.tag)
     ]
-    u0, _ = base(*args)
-    u1, _ = head(*args)
+    u0 = base(*args).control
+    u1 = head(*args).control
     torch.testing.assert_close(u1, u0)
     with torch.no_grad():
-        head.linear.weight.normal_()
-    u2, _ = head(*args)
+        head.table.weight.weight.normal_()
+    u2 = head(*args).control
     state, mask, ref, tag = args
     window = torch.cat([(state * mask).flatten(1), ref], dim=1)
-    w = head.linear.weight[tag].view(len(tag), 3, -1)
+    w = head.table.weight.weight[tag].view(len(tag), 3, -1)
     torch.testing.assert_close(
         u2 - u0, torch.einsum("bkf,bf->bk", w, window), rtol=1e-4, atol=1e-4
     )
-    with pytest.raises(ValueError, match="linear_head must be 0 or 1"):
-        network_config(linear_head=2)
+
+
+def test_linear_skip_gains_are_a_shared_map_of_the_tag_s_row(windows):
+    """The default's skip: zero at start, then exactly (A e_tag + b) @ [x*m; z, r] (newest)."""
+    torch.manual_seed(0)
+    base = build_net(hidden=8, channels=["integral"])
+    torch.manual_seed(0)
+    skip = build_net(hidden=8, channels=["integral"], skip="linear")
+    state = torch.randn(6, 8, 5)
+    mask = torch.ones(6, 8, 5)
+    ref, tag = torch.randn(6, 8), torch.tensor([0, 3, 3, 7, 24, 1])
+    torch.testing.assert_close(
+        skip(state, mask, ref, tag).control, base(state, mask, ref, tag).control
+    )
+    with torch.no_grad():
+        skip.skip.gains.weight.normal_()
+        skip.skip.gains.bias.normal_()
+    u = skip(state, mask, ref, tag).control - base(state, mask, ref, tag).control
+    rows = skip.plant.rows.weight[tag]
+    gains = (rows @ skip.skip.gains.weight.T + skip.skip.gains.bias).view(6, 3, 6)
+    newest = torch.cat([state[:, -1], ref[:, -1:]], dim=1)
+    torch.testing.assert_close(u, torch.einsum("bkf,bf->bk", gains, newest), rtol=1e-4, atol=1e-5)
+    assert sum(p.numel() for p in skip.skip.parameters()) == 8 * 18 + 18  # nothing per plant
+
+
+def _bad_files(policy, tmp_path):
+    """Files a user could pass as a policy, and what the loader must say of each."""
+    good = save_policy(tmp_path / "good.ckpt", policy, policy_meta(["cstr", "hydraulic_actuator"]))
+    data = good.read_bytes()
+    cases = {
+        "empty": (b"", "is not a policy file of this project"),
+        "truncated": (data[: len(data) // 2], "is not a policy file of this project"),
+        "random": (np.random.default_rng(0).bytes(4096), "is not a policy file of this project"),
+        "onnx": (b"\x08\x07\x12\x07pytorch" + bytes(100), "is not a policy file of this project"),
+    }
+    out = {name: (tmp_path / f"{name}.ckpt", msg) for name, (_, msg) in cases.items()}
+    for name, (raw, _) in cases.items():
+        out[name][0].write_bytes(raw)
+    blob = torch.load(good, weights_only=True)
+
+    def variant(name, change, message):
+        b = {**blob, "meta": dict(blob["meta"]), "model": dict(blob["model"])}
+        change(b)
+        torch.save(b, tmp_path / f"{name}.ckpt")
+        out[name] = (tmp_path / f"{name}.ckpt", message)
+
+    variant("format1", lambda b: b.update(format_version=1), "policy format 1")
+    variant("flat_config", lambda b: b.update(model={"hidden": 16}), "older version")
+    variant("bigger", lambda b: b["model"].update(hidden=32), "weights do not fit")
+    variant("order7", lambda b: b["meta"].update(orders={"cstr": 7, "hydraulic_actuator": 3}),
+            "order 7, outside 1..4")  # fmt: skip
+    variant("tag999", lambda b: b["meta"].update(tags={"cstr": 999, "hydraulic_actuator": 13}),
+            "tag 999, outside 0..24")  # fmt: skip
+    variant("dt", lambda b: b["meta"].update(dt=-0.05), "dt = -0.05 is not a positive")
+    variant("history", lambda b: b["meta"].update(history=24), "history = 24, its network 8")
+    variant("target", lambda b: b["model"].update(_target_="os.system"), "outside generalist")
+    return out
+
+
+def test_a_file_that_is_not_a_policy_is_refused_naming_it_and_the_fix(policy, tmp_path):
+    from generalist_control.model.policy import PolicyFileError
+
+    for name, (path, message) in _bad_files(policy, tmp_path).items():
+        with pytest.raises(PolicyFileError, match=message) as info:
+            load_policy(path)
+        text = str(info.value)
+        assert str(path) in text and "dvc repro train" in text, name
+        assert "weights_only=False" not in text, name  # never torch's advice to unpickle
+    with pytest.raises(PolicyFileError, match="no policy file at"):
+        load_policy(tmp_path / "missing.ckpt")

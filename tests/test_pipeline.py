@@ -53,7 +53,7 @@ TINY = [
     "conf/report/default.yaml:gate.duration=3.0",
     # the primary config and the model config are edited the same way (no interpolations)
     "conf/model/generalist.yaml:hidden=16",
-    "conf/config.yaml:dagger.enabled=false",
+    "conf/config.yaml:dagger=null",
     "conf/config.yaml:closed_loop_val.duration=2.0",
 ]
 

@@ -14,7 +14,7 @@ from generalist_control.plants.catalog import load_plant
 from generalist_control.training.callbacks import ClosedLoopValidation
 from generalist_control.training.datamodule import DemoDataModule
 from generalist_control.training.lit_module import ImitationModule
-from generalist_control.training.setup import model_config
+from generalist_control.training.settings import LoaderSettings, model_config
 from helpers import compose_cfg
 
 
@@ -34,11 +34,10 @@ def _readable(text: str, value: float) -> bool:
 def fitted(tiny_data_dir):
     """A tiny fit (two batches, one epoch) with Lightning's default progress bar."""
     cfg = compose_cfg("trainer.accelerator=cpu")
-    dm = DemoDataModule(
-        tiny_data_dir, 8, 3, integral=True, val_fraction=0.25, batch_size=64, val_batch_size=512
-    )
+    loader = LoaderSettings(val_fraction=0.25, batch_size=64, val_batch_size=512)
+    dm = DemoDataModule(tiny_data_dir, 8, 3, loader, channels=["integral"])
     dm.setup("fit")
-    optimizer = OmegaConf.to_container(cfg.model.optimizer, resolve=True)
+    optimizer = OmegaConf.to_container(cfg.optimizer, resolve=True)
     lit = ImitationModule(model=model_config(cfg), optimizer=optimizer, meta=dm.meta())
     plants = [load_plant("cstr"), load_plant("hydraulic_actuator")]
     trainer = L.Trainer(

@@ -24,6 +24,7 @@ from generalist_control.reports.runs import (
     select_sweeps,
 )
 from generalist_control.reports.selection import MixedRunsError
+from helpers import net_config
 
 
 def _cfg(uri: str, experiment: str | None, out: Path, *extra: str):
@@ -135,7 +136,7 @@ def test_newest_run_of_a_configuration_wins():
 
 
 def test_gate_weights_follow_the_plants_asked_for():
-    policy = Policy({"hidden": 16, "experts": 3, "heads": 2})
+    policy = Policy(net_config(hidden=16, experts=3, heads=2))
     gates = gate_weights(policy, policy_meta(), ["cstr"], duration=1.0)
     assert list(gates.index) == ["cstr"] and list(gates.columns) == [
         "expert_1",

@@ -32,7 +32,7 @@ from helpers import compose_cfg, tiny_train_overrides
 REPO = Path(__file__).resolve().parents[1]
 SECRET = "hunter2"
 #: Short trainings: no MLflow model, no DAgger, no closed-loop scoring after training.
-QUICK = ("logger.log_model=false", "dagger.enabled=false", "closed_loop.systems=[]")
+QUICK = ("logger.log_model=false", "dagger=null", "closed_loop.systems=[]")
 
 
 def _overrides(data_dir: Path, out: Path, uri: str, *extra: str) -> list[str]:
@@ -194,7 +194,7 @@ def test_last_checkpoint_is_the_last_epoch_so_a_resume_repeats_none(
     tiny_data_dir, tmp_path, mlflow_uri
 ):
     # lr 0: val/loss is the same every epoch, so only epoch 0 is ever a new best
-    flat = ("model.optimizer.lr=0.0", "monitor=val/loss", "closed_loop_val.enabled=false")
+    flat = ("optimizer.lr=0.0", "monitor=val/loss", "closed_loop_val=null")
     first = _overrides(tiny_data_dir, tmp_path / "a", mlflow_uri, *flat, "trainer.max_epochs=3")
     _, objs1 = train(compose_cfg(*first))
     ckpts = tmp_path / "a" / "run" / "checkpoints"

@@ -12,12 +12,12 @@ from generalist_control.data.windows import build_windows, integral_of_error
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.resolve import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.model.policy import Policy, load_policy, save_policy
+from generalist_control.model.policy import Policy, PolicyFileError, load_policy, save_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.plant import MAX_ORDER, pad_states
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.simulate import Run, simulate, simulate_many
-from helpers import lqi_law_policy
+from helpers import lqi_law_policy, net_config
 
 PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
 
@@ -40,33 +40,36 @@ def _meta(history: int = 8) -> dict:
 def policy(request) -> Policy:
     """A random policy with non-trivial normaliser scales (no training needed here).
 
-    ``ours-no-integral``: window scaling and the linear head on, the head's weights made
-    non-zero; ``ours``: the same and the tracking-error integral as a state channel;
-    ``tag-free-controls``: that, without the tag and with the previous control as a channel,
-    the plant's embedding inferred from the window (``infer_tag``, the tag-free stage's);
+    ``ours-no-integral``: window scaling and a whole-window per-tag table on, the table's
+    weights made non-zero; ``ours``: the same and the tracking-error integral as a state
+    channel; ``tag-free-controls``: that, without the tag and with the previous control as
+    a channel, the plant inferred from the window (an inferred plant and a context skip);
     ``tag-free-transitions``: that with a 12-sample window read by the transition
-    identifier and each plant's one-step model with its fitted input gain
-    (``transition_models``, ``transition_input_gain``), the law reading
-    the newest 8 (``law_history``).
+    identifier and each plant's one-step model with its fitted input gain, the law reading
+    the newest 8.
     """
     torch.manual_seed(0)
-    on, integral = int(request.param > 0), int(request.param > 1)
-    cfg = {"hidden": 16, "experts": 3, "window_scale": on, "linear_head": on}
-    if request.param == 4:
-        cfg |= {"history": 12, "law_history": 8, "transition_identifier": 1}
-        cfg |= {"transition_models": 1, "transition_input_gain": 1}
+    integral = request.param > 1
+    cfg = {"hidden": 16, "experts": 3, "window_scale": request.param > 0}
+    cfg["channels"] = ["integral"] if integral else []
+    if request.param in (1, 2):
+        cfg["table"] = 8
     if request.param >= 3:
-        cfg |= {"tag_free": 1, "control_history": 1, "linear_head": 0, "linear_skip": 1}
-        cfg |= {"history_context": 1, "identity_head": 1, "infer_tag": 1}
-    pol = Policy({**cfg, "integral": integral}).eval()
+        cfg |= {"channels": ["integral", "previous_control"], "skip": "context"}
+        cfg |= {"plant": "inferred", "models": None}
+    if request.param == 4:
+        cfg |= {"history": 12, "law_history": 8, "models": {"input_gain": [0.75, 1.25]}}
+    pol = Policy(net_config(**cfg)).eval()
     g = torch.Generator().manual_seed(1)
     with torch.no_grad():
-        models = getattr(pol.net.identifier, "models", None)
+        identifier = getattr(pol.net.plant, "identifier", None)
+        models = getattr(identifier, "models", None)
         if models is not None:  # each plant's one-step model: non-zero, so evidence differs
             models.params.weight.normal_(0.0, 0.1, generator=g)
-        for path, std in ((pol.net.linear, 0.1), (pol.net.skip, 0.02)):
-            if path is not None:  # the skip's own control fed back: small, or it runs away
-                path.weight.normal_(0.0, std, generator=g)
+        if pol.net.table is not None:
+            pol.net.table.weight.weight.normal_(0.0, 0.1, generator=g)
+        if pol.net.skip is not None:  # the skip's own control fed back: small, or it runs away
+            pol.net.skip.gains.weight.normal_(0.0, 0.02, generator=g)
     pol.normaliser.state_scale.uniform_(0.5, 3.0, generator=g)
     pol.normaliser.ref_scale.uniform_(0.5, 3.0, generator=g)
     pol.normaliser.control_scale.uniform_(0.5, 3.0, generator=g)
@@ -84,7 +87,7 @@ def _lqi_trajectory(name: str, amplitude: float, steps: int = 60):
 
 def test_stepping_equals_the_batch_forward_on_built_windows(policy):
     """Each step's plan equals the network on the window the one window builder makes."""
-    runtime = PolicyRuntime(policy, _meta(policy.config["history"]))
+    runtime = PolicyRuntime(policy, _meta(policy.history))
     for name, amp in (("cstr", 1.5), ("hydraulic_actuator", -3.0)):
         plant, tr = _lqi_trajectory(name, amp)
         runtime.reset(name)
@@ -110,7 +113,7 @@ def test_stepping_equals_the_batch_forward_on_built_windows(policy):
 
 
 def test_batched_stepping_equals_single_runs(policy):
-    runtime = PolicyRuntime(policy, _meta(policy.config["history"]))
+    runtime = PolicyRuntime(policy, _meta(policy.history))
     runs = [_lqi_trajectory("cstr", 2.0), _lqi_trajectory("hydraulic_actuator", 0.5)]
     singles = []
     for plant, tr in runs:
@@ -129,8 +132,8 @@ def test_batched_stepping_equals_single_runs(policy):
 @pytest.mark.parametrize("backend", ["torchscript", "onnx"])
 def test_exports_equal_pytorch_within_1e_5(policy, backend):
     rng = np.random.default_rng(0)
-    reference = PolicyRuntime(policy, _meta(policy.config["history"]), backend="torch")
-    exported = PolicyRuntime(policy, _meta(policy.config["history"]), backend=backend)
+    reference = PolicyRuntime(policy, _meta(policy.history), backend="torch")
+    exported = PolicyRuntime(policy, _meta(policy.history), backend=backend)
     names = ["cstr", "hydraulic_actuator", "cstr", "hydraulic_actuator", "cstr"]
     for rt in (reference, exported):
         rt.reset(names)
@@ -143,7 +146,7 @@ def test_exports_equal_pytorch_within_1e_5(policy, backend):
 
 
 def test_bad_input_gets_clear_errors(policy):
-    runtime = PolicyRuntime(policy, _meta(policy.config["history"]))
+    runtime = PolicyRuntime(policy, _meta(policy.history))
     with pytest.raises(RuntimeError, match="reset"):
         runtime.step([0.0, 0.0], 1.0)
     with pytest.raises(KeyError, match="unknown plant 'pendulum'.*cstr, hydraulic_actuator"):
@@ -159,7 +162,7 @@ def test_bad_input_gets_clear_errors(policy):
     with pytest.raises(ValueError, match="expected \\(2, 4\\)"):
         runtime.step(np.zeros((3, 4)), np.zeros(3))
     with pytest.raises(ValueError, match="unknown backend 'tensorrt'"):
-        PolicyRuntime(policy, _meta(policy.config["history"]), backend="tensorrt")
+        PolicyRuntime(policy, _meta(policy.history), backend="tensorrt")
     with pytest.raises(FileNotFoundError, match="python train.py"):
         resolve("no/such/policy.ckpt")
 
@@ -170,10 +173,10 @@ class _Evil:
 
 
 def test_loading_is_weights_only(policy, tmp_path):
-    path = save_policy(tmp_path / "policy.ckpt", policy, _meta(policy.config["history"]))
+    path = save_policy(tmp_path / "policy.ckpt", policy, _meta(policy.history))
     loaded = PolicyRuntime.load(path)
     loaded.reset("cstr")
-    ref = PolicyRuntime(policy, _meta(policy.config["history"]))
+    ref = PolicyRuntime(policy, _meta(policy.history))
     ref.reset("cstr")
     assert loaded.step([0.3, -0.1], 1.0) == pytest.approx(ref.step([0.3, -0.1], 1.0), abs=1e-7)
     evil = tmp_path / "evil.ckpt"
@@ -181,12 +184,12 @@ def test_loading_is_weights_only(policy, tmp_path):
     blob["meta"]["payload"] = _Evil()
     with evil.open("wb") as fh:
         torch.save(blob, fh, pickle_module=pickle)
-    with pytest.raises(pickle.UnpicklingError):
+    with pytest.raises(PolicyFileError, match="is not a policy file of this project"):
         load_policy(evil)
 
 
 def _lqi_law_policy(names) -> tuple[Policy, dict]:
-    """A real integrating policy whose whole-window linear head *is* the LQI law.
+    """A real integrating policy whose per-tag table *is* the LQI law.
 
     Through window scaling (the head is linear) and the runtime's own integrator, it must
     reproduce LQI exactly (:func:`helpers.lqi_law_policy`).
@@ -265,8 +268,9 @@ def test_the_previous_control_channel_holds_the_actuated_control():
     """Without limits the window's newest control entry is the last command; with limits,
     what the actuator applied (``Perturbation.actuate``); zero on the first step."""
     torch.manual_seed(3)
-    on = {"control_history": 1, "linear_skip": 1, "history_context": 1}
-    pol = Policy({"hidden": 16, "integral": 1, "tag_free": 1, **on}).eval()
+    config = net_config(hidden=16, channels=["integral", "previous_control"], skip="context",
+                        plant="inferred", models=None)  # fmt: skip
+    pol = Policy(config).eval()
     with torch.no_grad():
         pol.net.experts[0][-1].bias.fill_(5.0)  # commands well beyond the limit below
     runtime = PolicyRuntime(pol, _meta())

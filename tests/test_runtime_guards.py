@@ -25,7 +25,7 @@ from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.plant import MAX_ORDER, pad_states
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import Run, simulate, simulate_many
-from helpers import policy_meta
+from helpers import net_config, policy_meta
 
 PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
 T, K = 8, 3
@@ -54,13 +54,14 @@ def demo():
 
 @pytest.fixture(scope="module")
 def trained(demo) -> tuple[Policy, dict]:
-    """An integrating policy: normaliser fitted on the demonstrations, head = LQI by lstsq."""
+    """An integrating policy: normaliser fitted on the demonstrations, table = LQI by lstsq."""
     torch.manual_seed(0)
-    config = {"hidden": 8, "experts": 2, "window_scale": 1, "linear_head": 1, "integral": 1}
-    policy = Policy({**config, "linear_samples": 1, "history": T, "horizon": K})
+    config = net_config(hidden=8, experts=2, window_scale=True, table=1, channels=["integral"],
+                        history=T, horizon=K)  # fmt: skip
+    policy = Policy(config)
     tensors = {k: torch.from_numpy(v) for k, v in demo.items()}
     policy.normaliser.fit(**tensors)
-    policy.fit_linear_head(**tensors)
+    policy.fit_table(**tensors)
     meta = policy_meta(PLANTS, T, K)
     return policy.eval(), meta
 

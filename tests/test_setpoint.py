@@ -19,7 +19,7 @@ from generalist_control.evaluation.setpoint import (
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import design_lqi
-from helpers import lqi_law_policy, policy_meta
+from helpers import lqi_law_policy, net_config, policy_meta
 
 PLANTS = ("cstr", "hydraulic_actuator", "two_tank")  # orders 2, 3 and a nonlinear plant
 
@@ -153,9 +153,9 @@ def test_an_unstable_law_is_reported_and_its_hold_does_not_rest():
 
 
 def test_bad_requests_are_refused_with_the_reason():
-    pol = Policy({"hidden": 16, "experts": 2}).eval()
+    pol = Policy(net_config(hidden=16, experts=2)).eval()
     rt = PolicyRuntime(pol, policy_meta(["cstr"]))
-    with pytest.raises(ValueError, match="model.integral"):
+    with pytest.raises(ValueError, match="integral channel"):
         setpoint_stability(rt, [load_plant("cstr")])
     pol, meta = lqi_law_policy(("cstr",), design_lqi)
     with pytest.raises(ValueError, match="0 < tail < hold"):

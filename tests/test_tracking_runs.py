@@ -28,23 +28,35 @@ def _resolved(*overrides: str) -> dict:
 def test_training_params_are_what_shaped_the_training():
     resolved, keys = _resolved("model.hidden=64", "experts=5")
     params = training_run.training_params(resolved, keys)
-    # + data.content_hash and n_parameters; a bound on the growth, under the 100 params of
-    # one MLflow log_batch (80 since the rest-stability block joined them, 90 since DAgger's
-    # actuator draws did)
-    assert len(params) + 2 < 90
+    # + data.content_hash and n_parameters: fewer than 60 (the parts the run was built from
+    # and their settings, nothing that is off)
+    assert len(params) + 2 < 60, sorted(params)
     assert params["model.hidden"] == "64" and params["experts"] == "5"
-    assert params["model.optimizer.lr"] == "0.001" and params["seed"] == "42"
+    assert params["optimizer.lr"] == "0.001" and params["seed"] == "42"
+    # a part is logged as its class, its settings under it; nulls (parts not chosen) never
+    assert params["model"] == "GeneralistNetwork" and params["model.plant"] == "TagEmbedding"
+    assert params["model.skip"] == "LinearSkip" and params["optimizer"] == "AdamW"
+    assert params["dagger.sampler.rollouts"] == "8"
+    assert not [k for k in params if k.startswith(("model.table", "dagger.sampler.actuator"))]
+    assert [k for k, v in params.items() if v == "None"] == ["systems.include"]  # a chosen key
     assert params["trainer.max_epochs"] == "30" and params["dagger.rounds"] == "5"
     assert params["monitor"] == "val/closed_loop"
     # independent reference: every param is a config key of a chosen group, none of the others
     banned = ("evaluation.", "report.", "paths.", "logger.", "hydra.", "callbacks.model_")
     assert not [k for k in params if k.startswith(banned) or k.endswith("._partial_")]
     assert all(k == g or k.startswith(g + ".") for k in params for g in [_group(k, keys)])
-    # a group that is off is logged as its switch alone
-    off, _ = _resolved("dagger.enabled=false")
+    # a section that is off is logged as None alone
+    off, _ = _resolved("dagger=null")
     params = training_run.training_params(off, keys)
-    assert [k for k in params if k.startswith("dagger")] == ["dagger.enabled"]
-    assert params["dagger.enabled"] == "False"
+    assert [k for k in params if k.startswith("dagger")] == ["dagger"]
+    assert params["dagger"] == "None"
+    # the tag-free recipe: its parts, and still fewer than 60
+    tag_free, _ = _resolved("experiment=tag_free")
+    params = training_run.training_params(tag_free, keys)
+    assert len(params) + 2 < 60, sorted(params)
+    assert params["model.plant"] == "InferredPlant" and params["model.skip"] == "ContextSkip"
+    assert params["model.plant.identifier.models"] == "TransitionModels"
+    assert params["dagger.sampler.actuator.lag"] == "1.0"
 
 
 def _group(key: str, groups: list[str]) -> str:

@@ -1,4 +1,4 @@
-"""Issue 13: each plant's one-step model weighed against the window (model.transition_models)."""
+"""Each plant's one-step model weighed against the window (an inferred plant's ``models``)."""
 
 from __future__ import annotations
 
@@ -6,30 +6,29 @@ import numpy as np
 import pytest
 import torch
 
-from generalist_control.model.identifier import (
-    INPUT_GAIN,
-    INPUT_LAGS,
-    TransitionModels,
-    TransitionSet,
-)
-from generalist_control.model.network import EVIDENCE_WEIGHT, GeneralistNetwork, network_config
-from generalist_control.training.setup import model_config
-from helpers import compose_cfg
+from generalist_control.model.identifier import TransitionModels, TransitionSet
+from generalist_control.model.plant import EVIDENCE_WEIGHT
+from helpers import build_net, compose_cfg
 from test_identifier import _window  # windows of order 3 with the previous control
 
-TAG_FREE = dict.fromkeys(
-    (
-        "integral",
-        "linear_skip",
-        "tag_free",
-        "history_context",
-        "control_history",
-        "identity_head",
-        "infer_tag",
-        "transition_identifier",
-    ),
-    1,
-)
+#: The actuator gain range and the lags the tag-free recipe fits (conf/model/plant/inferred).
+INPUT_GAIN = (0.75, 1.25)
+INPUT_LAGS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+
+
+def _inferred(**models):
+    """A tag-free network (history 12) whose identifier has one-step models ``models``."""
+    return build_net(channels=["integral", "previous_control"], skip="context", history=12,
+                     plant="inferred", models=models)  # fmt: skip
+
+
+def test_the_tag_free_recipe_fits_that_range_and_those_lags():
+    from omegaconf import OmegaConf
+
+    cfg = compose_cfg("experiment=tag_free")
+    models = OmegaConf.to_container(cfg.model.plant.identifier.models)
+    assert tuple(models["input_gain"]) == INPUT_GAIN and tuple(models["lags"]) == INPUT_LAGS
+    assert models["offset"] is True and cfg.model.plant.noise == 0.02
 
 
 def _plants(n_plants: int, seed: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -143,42 +142,43 @@ def test_models_trained_by_their_fit_tell_plants_apart_on_unseen_windows():
 
 def test_the_network_adds_each_plants_evidence_to_its_identity_logit():
     torch.manual_seed(0)
-    net = GeneralistNetwork(**network_config(**TAG_FREE, history=12, transition_models=1))
-    assert isinstance(net.identifier, TransitionSet) and net.identifier.models is not None
+    net = _inferred()
+    plant = net.plant
+    assert isinstance(plant.identifier, TransitionSet) and plant.identifier.models is not None
     state, mask, ref = _window(3, 12)
     tag = torch.tensor([0, 4, 7])
-    _, _, code = net.forward_code(state, mask, ref, tag)
-    d, n_tags = net.config["hidden"], net.config["n_tags"]
-    assert code.shape == (3, d + n_tags)
-    evidence = code[:, d:]
+    reading = net(state, mask, ref, tag).plant
+    d, n_tags = 32, plant.n_tags
+    assert reading.summary.shape == (3, d + n_tags) and reading.evidence.shape == (3, n_tags)
+    evidence = reading.evidence
     assert torch.allclose(evidence, evidence[:, :1].expand_as(evidence))  # zero models: equal
-    torch.nn.init.normal_(net.identifier.models.params.weight, std=0.1)
-    _, _, code = net.forward_code(state, mask, ref, tag)
-    head = net.identity.weight[:, :d] @ code[:, :d].T + net.identity.bias[:, None]
-    torch.testing.assert_close(net.identity_logits(code), head.T + EVIDENCE_WEIGHT * code[:, d:])
-    fit = net.transition_fit(code, tag)
-    torch.testing.assert_close(fit, net.identifier.models.fit_loss(code[:, d:], tag))
-    fit.backward()  # the models' fit never moves the embedding rows the law reads
-    assert net.tag_embedding.weight.grad is None or net.tag_embedding.weight.grad.abs().max() == 0
-    assert net.identifier.models.params.weight.grad.abs().max() > 0
+    torch.nn.init.normal_(plant.identifier.models.params.weight, std=0.1)
+    reading = net(state, mask, ref, tag).plant
+    code = reading.summary
+    head = plant.head.weight[:, :d] @ code[:, :d].T + plant.head.bias[:, None]
+    torch.testing.assert_close(reading.logits, head.T + EVIDENCE_WEIGHT * code[:, d:])
+    cross_entropy, identity = plant.loss(reading, tag)
+    fit = identity - cross_entropy
+    torch.testing.assert_close(fit, plant.identifier.models.fit_loss(code[:, d:], tag))
+    net.zero_grad()
+    plant.identifier.models.fit_loss(reading.evidence, tag).backward()
+    # the models' fit never moves the embedding rows the law reads
+    assert plant.rows.weight.grad is None or plant.rows.weight.grad.abs().max() == 0
+    assert plant.identifier.models.params.weight.grad.abs().max() > 0
 
 
-def test_without_the_models_the_fit_is_zero():
-    net = GeneralistNetwork(**network_config(**TAG_FREE, history=12))
+def test_without_the_models_the_identity_term_is_the_cross_entropy():
+    net = build_net(channels=["integral", "previous_control"], history=12, plant="inferred",
+                    models=None)  # fmt: skip
     state, mask, ref = _window(2, 12)
-    _, _, code = net.forward_code(state, mask, ref, torch.zeros(2, dtype=torch.long))
-    assert float(net.transition_fit(code, torch.zeros(2, dtype=torch.long))) == 0.0
-
-
-@pytest.mark.parametrize("off", ["transition_identifier", "infer_tag"])
-def test_the_models_need_the_transition_identifier_and_the_inferred_tag(off):
-    with pytest.raises(ValueError, match="model.transition_models weighs each plant"):
-        network_config(**{**TAG_FREE, off: 0, "transition_models": 1})
-
-
-def test_the_models_from_the_config_are_refused_alone():
-    with pytest.raises(ValueError, match="set model.transition_identifier=true"):
-        model_config(compose_cfg("model.transition_models=true"))
+    tag = torch.zeros(2, dtype=torch.long)
+    reading = net(state, mask, ref, tag).plant
+    assert reading.evidence is None
+    cross_entropy, identity = net.plant.loss(reading, tag)
+    assert torch.equal(cross_entropy, identity)
+    torch.testing.assert_close(
+        cross_entropy, torch.nn.functional.cross_entropy(reading.logits, tag)
+    )
 
 
 def _scaled(plants, gain: float):
@@ -246,16 +246,10 @@ def test_a_window_without_control_leaves_the_gain_at_one():
     torch.testing.assert_close(models.residual(x, dx, u, rows), fixed.residual(x, dx, u, rows))
 
 
-def test_the_input_gain_switch_builds_fitted_models_and_needs_them():
-    net = GeneralistNetwork(
-        **network_config(**TAG_FREE, history=12, transition_models=1, transition_input_gain=1)
-    )
-    assert net.identifier.models.input_gain == INPUT_GAIN
-    plain = GeneralistNetwork(**network_config(**TAG_FREE, history=12, transition_models=1))
-    assert plain.identifier.models.input_gain is None
-    with pytest.raises(ValueError, match="model.transition_input_gain fits an input gain"):
-        network_config(**TAG_FREE, transition_input_gain=1)
-    with pytest.raises(ValueError, match="input_gain must hold 1"):
+def test_the_models_config_builds_fitted_models_and_refuses_a_bad_range():
+    assert _inferred(input_gain=list(INPUT_GAIN)).plant.identifier.models.input_gain == INPUT_GAIN
+    assert _inferred().plant.identifier.models.input_gain is None
+    with pytest.raises(ValueError, match=r"input_gain must be a range \[low, high\]"):
         TransitionModels(state_dim=4, embedding=4, input_gain=(1.1, 2.0))
 
 
@@ -365,53 +359,43 @@ def test_without_lag_or_offset_the_evidence_is_unchanged():
         TransitionModels(state_dim=4, embedding=4, lags=(0.0, 1.5))
 
 
-def test_the_lag_and_offset_switches_build_fitted_models_and_need_them():
-    cfg = network_config(
-        **TAG_FREE, history=12, transition_models=1, transition_input_lag=1,
-        transition_input_offset=1,
-    )  # fmt: skip
-    models = GeneralistNetwork(**cfg).identifier.models
+def test_the_lag_and_offset_settings_build_fitted_models():
+    models = _inferred(lags=list(INPUT_LAGS), offset=True).plant.identifier.models
     assert models.lags == INPUT_LAGS and models.offset and models.input_gain is None
-    with pytest.raises(ValueError, match="model.transition_input_lag fits an input lag"):
-        network_config(**TAG_FREE, transition_input_lag=1)
-    with pytest.raises(ValueError, match="model.transition_input_offset fits an input offset"):
-        network_config(**TAG_FREE, transition_input_offset=1)
 
 
 def test_identity_noise_reaches_only_the_identifier_and_only_in_training():
     """In training mode the identifier reads the window with noise on its unpadded plant
     states only (integral and control channels, padding untouched), its std per window
-    at most identity_noise; in eval mode (run time) the output is the noise-free one."""
-    cfg = network_config(**TAG_FREE, history=12, transition_models=1, law_history=8)
+    at most the plant part's noise; in eval mode (run time) the output is the noise-free one."""
     torch.manual_seed(0)
-    net = GeneralistNetwork(**cfg)
+    quiet = build_net(channels=["integral", "previous_control"], skip="context", history=12,
+                      law_history=8, plant="inferred")  # fmt: skip
+    net = build_net(channels=["integral", "previous_control"], skip="context", history=12,
+                    law_history=8, plant="inferred", noise=0.5)  # fmt: skip
+    net.load_state_dict(quiet.state_dict())
     state, mask, ref = _window(batch=64, history=12)
     tag = torch.zeros(64, dtype=torch.long)
     seen: list[torch.Tensor] = []
-    forward = net.identifier.forward
-    net.identifier.forward = lambda s, m, rows=None: seen.append(s) or forward(s, m, rows)
+    identifier = net.plant.identifier
+    forward = identifier.forward
+    identifier.forward = lambda s, m, rows=None: seen.append(s) or forward(s, m, rows)
     net.eval()
-    clean = net(state, mask, ref, tag)[0]
-    net.identity_noise = 0.5
-    torch.testing.assert_close(net(state, mask, ref, tag)[0], clean)
+    quiet.eval()
+    clean = quiet(state, mask, ref, tag).control
+    torch.testing.assert_close(net(state, mask, ref, tag).control, clean)
     assert torch.equal(seen[-1], state)
     net.train()
     net(state, mask, ref, tag)
     noise = seen[-1] - state
     assert torch.equal(noise[..., 3:], torch.zeros_like(noise[..., 3:]))  # padding, z, u
     std = noise[..., :3].std(dim=(1, 2))
-    assert 0.0 < std.min() < 0.1 and 0.4 < std.max() < 0.6 and 0.15 < std.mean() < 0.35
+    assert 0.0 < std.min() < 0.1 and 0.4 < std.max() < 0.7 and 0.15 < std.mean() < 0.35
 
 
-def test_identity_noise_in_the_config_is_checked():
-    from generalist_control.training.setup import identity_noise
-
-    on = compose_cfg("experiment=tag_free", "model.identity_noise=0.02")
-    assert identity_noise(on) == 0.02
-    with pytest.raises(ValueError, match="model.identity_noise"):
-        identity_noise(compose_cfg("model.identity_noise=-1"))
-    with pytest.raises(ValueError, match="set model.control_history=true"):
-        identity_noise(compose_cfg("model.identity_noise=0.1"))
+def test_the_plant_part_s_noise_is_checked():
+    with pytest.raises(ValueError, match="model.plant.noise must be a finite number >= 0"):
+        build_net(channels=["previous_control"], plant="inferred", noise=-1.0)
 
 
 def _trajectory_windows(plants, tags: np.ndarray, history: int, seed: int):
@@ -443,96 +427,3 @@ def _stable_plants(n_plants: int, seed: int):
         a[:3, :3] = -0.3 * np.eye(3) + 0.5 * a[:3, :3]
         plants.append((a, b, c))
     return plants
-
-
-def test_with_clean_fit_the_models_fit_the_clean_windows_and_stay_unbiased():
-    """Fitted to noisy windows, least squares with noise in its regressors biases the
-    models (errors in variables): noise ``n_j`` on ``x_j`` enters ``x_(j+1) - x_j`` as
-    ``-n_j``, so the diagonal of ``A`` shrinks towards -1. With ``clean_fit``
-    :meth:`TransitionSet.read` fits them to the clean windows and recovers each plant's
-    one-step model to 3e-3; without it the same training misses by more than 2e-2
-    (4.2e-2 to 6.9e-2 measured over 4 seeds), the diagonal lower by more than 1e-2."""
-    plants = _stable_plants(3, seed=0)
-    tags = np.repeat(np.arange(3), 32)
-    state, mask = _trajectory_windows(plants, tags, history=12, seed=1)
-    tag, rows = torch.tensor(tags), torch.eye(3, 8)
-    truth = torch.tensor(np.stack([np.concatenate([a.ravel(), b, c]) for a, b, c in plants]))
-    seen = [4 * i + j for i in range(3) for j in range(3)] + [16, 17, 18, 20, 21, 22]
-    errors, shrink = {}, {}
-    for fitted_to in ("clean", "noisy"):
-        torch.manual_seed(0)
-        ident = TransitionSet(4, 8, TransitionModels(4, 8))
-        opt = torch.optim.Adam(ident.parameters(), lr=0.02)
-        sched = torch.optim.lr_scheduler.ExponentialLR(opt, 0.99)
-        for _ in range(300):
-            code, fit = ident.read(state, mask, rows, 1.0, clean_fit=fitted_to == "clean")
-            if fitted_to == "noisy":  # the fit reads the evidence the head reads
-                assert fit is None
-                fit = code[:, -3:]
-            loss = ident.models.fit_loss(fit, tag)
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            sched.step()
-        error = ident.models.params(rows).detach().double() - truth
-        errors[fitted_to] = float(error[:, seen].abs().max())
-        shrink[fitted_to] = float(error[:, [0, 5, 10]].mean())  # A's diagonal
-    assert errors["clean"] < 3e-3 and abs(shrink["clean"]) < 1e-3
-    assert errors["noisy"] > 2e-2 and shrink["noisy"] < -1e-2
-
-
-def test_with_clean_fit_the_head_reads_noisy_evidence_and_the_fit_clean():
-    """In training with identity noise and ``identity_clean_fit`` the network's fit
-    evidence is the models' evidence on the clean window (recomputed here), the evidence
-    the head reads is another (the noisy window's) and passes the models no gradient;
-    without the switch, without noise or in eval mode the fit reads the head's evidence
-    (``fit_evidence`` None), and under noise the head's loss reaches the models."""
-    cfg = network_config(**TAG_FREE, history=12, transition_models=1, law_history=8)
-    torch.manual_seed(0)
-    net = GeneralistNetwork(**cfg)
-    with torch.no_grad():
-        net.identifier.models.params.weight.normal_(0.0, 0.1)
-    state, mask, ref = _window(batch=16, history=12)
-    tag = torch.arange(16) % cfg["n_tags"]
-    rows = net.tag_embedding.weight[: cfg["n_tags"]].detach()
-    net.train()
-    net.identity_noise, net.identity_clean_fit = 0.1, True
-    _, _, code = net.forward_code(state, mask, ref, tag)
-    clean = net.identifier.evidence(state, mask, rows)
-    torch.testing.assert_close(net.fit_evidence, clean)
-    assert not torch.allclose(code[:, -cfg["n_tags"] :], clean)
-    net.identity_logits(code).logsumexp(1).sum().backward()
-    grad = net.identifier.models.params.weight.grad
-    assert grad is None or torch.count_nonzero(grad) == 0
-    net.zero_grad()
-    net.transition_fit(code, tag).backward()
-    assert torch.count_nonzero(net.identifier.models.params.weight.grad) > 0
-    for training, noise in ((True, 0.0), (False, 0.1)):
-        net.train(training)
-        net.identity_noise = noise
-        _, _, code = net.forward_code(state, mask, ref, tag)
-        assert net.fit_evidence is None
-        evidence = code[:, -cfg["n_tags"] :]
-        torch.testing.assert_close(evidence, net.identifier.evidence(state, mask, rows))
-    net.train()
-    net.identity_noise, net.identity_clean_fit = 0.1, False
-    net.zero_grad()
-    _, _, code = net.forward_code(state, mask, ref, tag)
-    assert net.fit_evidence is None
-    assert not torch.allclose(code[:, -cfg["n_tags"] :], clean)  # the noisy window's
-    net.identity_logits(code).logsumexp(1).sum().backward()
-    assert torch.count_nonzero(net.identifier.models.params.weight.grad) > 0
-
-
-def test_the_clean_fit_switch_is_checked():
-    from generalist_control.training.setup import identity_clean_fit
-
-    noisy = ("experiment=tag_free", "model.identity_noise=0.02")
-    assert identity_clean_fit(compose_cfg(*noisy, "model.identity_noise_clean_fit=true"))
-    assert not identity_clean_fit(compose_cfg(*noisy))
-    for bad in (
-        ("experiment=tag_free", "model.identity_noise=0"),
-        (*noisy, "model.transition_models=false", "model.transition_input_gain=false"),
-    ):
-        with pytest.raises(ValueError, match="needs model.identity_noise > 0 and model.transi"):
-            identity_clean_fit(compose_cfg(*bad, "model.identity_noise_clean_fit=true"))

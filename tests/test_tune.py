@@ -78,7 +78,7 @@ def test_unknown_search_key_is_named_with_a_suggestion(tmp_path):
         run(cfg)
     assert not storage.exists()  # checked before the storage is touched
     with pytest.raises(ValueError, match="names a config section"):
-        parse_space({"model": {"optimizer": {"type": "categorical", "choices": [1]}}}, cfg)
+        parse_space({"optimizer": {"type": "categorical", "choices": [1]}}, cfg)
     with pytest.raises(ValueError, match=r"needs low < high"):
         parse_space({"experts": {"type": "int", "low": 5, "high": 1}}, cfg)
     with pytest.raises(ValueError, match=r"type must be one of"):

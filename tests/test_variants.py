@@ -23,7 +23,6 @@ from generalist_control.plants.plant import PlantConfigError
 from generalist_control.plants.variants import (
     VariantError,
     make_variant,
-    nominal_parameters,
     parameter_ranges,
 )
 from generalist_control.simulation.lqi import LQIController
@@ -264,7 +263,7 @@ def test_evaluation_variants_must_differ_from_the_training_ones(tmp_path):
     got = check_disjoint({"cstr": other}, [plant], data, tmp_path, seed=8)
     assert got["checked_against"].startswith("seed stream") and got["min_factor_distance"] > 0
     # DAgger's fresh variants (seeds 11, 12: one per round) count as training variants too
-    dagger = {"enabled": True, "fresh_variants": 2, "variant_seed": 11, "rounds": 2}
+    dagger = {"rounds": 2, "sampler": {"variants": {"fresh": 2, "seed": 11}}}
     fresh = sample_variants(plant, 2, seed=12, default_range=0.25, steps=40)  # round 1's
     with pytest.raises(ValueError, match=r"equals a training variant \(.*DAgger's fresh"):
         check_disjoint({"cstr": fresh}, [plant], data, tmp_path, 8, dagger)
@@ -272,7 +271,7 @@ def test_evaluation_variants_must_differ_from_the_training_ones(tmp_path):
         check_disjoint({"cstr": other}, [plant], data, tmp_path, 12, dagger)
     got = check_disjoint({"cstr": other}, [plant], data, tmp_path, 8, dagger)
     assert "DAgger's fresh variants (seeds 11..12)" in got["checked_against"]
-    off = check_disjoint({"cstr": fresh}, [plant], data, tmp_path, 8, {**dagger, "enabled": 0})
+    off = check_disjoint({"cstr": fresh}, [plant], data, tmp_path, 8, {})  # dagger: null
     assert "DAgger" not in off["checked_against"]
 
 
@@ -292,36 +291,30 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
     over = tiny_train_overrides(
         tmp_path / "data", tmp_path, mlflow_uri, "logger.log_model=false", "model.hidden=8",
         "experts=2", "closed_loop.systems=[cstr]", "closed_loop.duration=2.0",
-        # one DAgger round on the nominal plants and 1 variant each; the closed-loop
-        # validation on the nominal plants and 2 variants each
-        "dagger.start_epoch=0", "dagger.every=1", "dagger.rounds=1", "dagger.duration=2.0",
-        "dagger.variants=1", "closed_loop_val.variants=2", "closed_loop_val.duration=2.0",
-        "dagger.fresh_variants=1",  # and 1 variant each, the worse of 2 drawn for the round
-        "dagger.fresh_pool=2",
-        "rest.weight=1", "rest.every=10",  # the rest-stability term on variant data
+        # one DAgger round on the nominal plants, 1 data variant each and 1 fresh one
+        "dagger.start_epoch=0", "dagger.every=1", "dagger.rounds=1",
+        "dagger.sampler.duration=2.0", "dagger.sampler.variants.data=1",
+        "dagger.sampler.variants.fresh=1", "closed_loop_val.duration=2.0",
+        "systems.include=[cstr,two_tank]",
     )  # fmt: skip
     _, objects = train(compose_cfg(*tiny, *over))
     run = mlflow.MlflowClient(mlflow_uri).get_run(objects["run_id"]).data
-    assert float(run.params["dagger.noise"]) == 0.05  # the stage's recipe: noisy rollouts
+    assert float(run.params["dagger.sampler.noise"]) == 0.05  # the recipe: noisy rollouts
     logged = run.metrics
     scored = {k for k in logged if k.startswith("val/closed_loop/")}
-    assert scored == {
-        f"val/closed_loop/{p}{v}" for p in ("cstr", "two_tank") for v in ("", "/v1", "/v2")
-    }
+    assert scored == {f"val/closed_loop/{p}" for p in ("cstr", "two_tank")}
     assert logged["dagger/windows"] > 0
-    assert logged["dagger/versions"] == 2 * 3  # per plant: nominal, 1 in turn, 1 fresh
-    assert 0.0 <= logged["dagger/screened"] <= 1.0  # the chosen fresh variants' median score
-    # the rest-stability term ran (every 10th batch, batch 0 among them, on the nominal
-    # plants and the data's variants): a loop radius at rest was measured and the term logged
-    assert float(run.params["rest.weight"]) == 1.0
-    assert 0.0 < logged["train/rest_radius"] < 100.0 and logged["train/rest"] >= 0.0
+    (cb,) = [c for c in objects["trainer"].callbacks if type(c).__name__ == "DAggerCallback"]
+    assert {k: len(v) for k, v in cb.sampler.fresh.items()} == {"cstr": 1, "two_tank": 1}
+    # per plant and round: the nominal version, 1 data variant in turn, 1 fresh variant
+    assert [p.name for p in cb.sampler.round_plants(0)].count("cstr") == 3
     reports = tmp_path / "reports"
     ev = [
         *tiny, f"policy={objects['policy_path']}", f"paths.reports_dir={reports}",
         f"logger.tracking_uri={mlflow_uri}", f"logger.experiment_name={tmp_path.name}",
         "evaluation.scenarios.step.duration=3.0", "evaluation.variants.count=5",
-        "evaluation.backend=torch", "dagger.start_epoch=0", "dagger.rounds=1",
-        "dagger.fresh_variants=1", "dagger.fresh_pool=2", "evaluation.variants.validation.count=5",
+        "evaluation.backend=torch", "evaluation.variants.validation.count=5",
+        "dagger.rounds=1",  # the training's: its fresh variants are checked against
     ]  # fmt: skip
     cfg, clash = compose_cfg(*ev), compose_cfg(*ev, "evaluation.variants.validation.seed=2027")
     with pytest.raises(ValueError, match="validation.seed = 2027 is the test variants' seed"):
@@ -419,32 +412,3 @@ def test_closed_loop_score_keys_variants_by_label_against_their_own_lqi():
     assert got["cstr/v1"] == pytest.approx(want, rel=1e-6) and 0.0 < want < 1.0
     with pytest.raises(ValueError, match="one distinct label per plant"):
         closed_loop_score(nominal_law, [plant, variant], [1.0], 1.0)  # both named cstr
-
-
-def test_closed_loop_validation_adds_the_first_k_training_variants(tmp_path):
-    from generalist_control.training.setup import closed_loop_validation
-
-    nominal = [_fast_plant(), load_plant("two_tank")]
-    on = {**TINY, "variants": {"enabled": True, "count": 3, "seed": 7, "range": 0.25}}
-    demos = generate_demos(nominal, on, progress=False)
-    manifest = build_manifest(nominal, demos, on, _config(on))
-    off = closed_loop_validation(compose_cfg(), nominal, manifest)
-    assert off is not None and off.labels == ["fast", "two_tank"] and off.plants == nominal
-    cb = closed_loop_validation(compose_cfg("closed_loop_val.variants=2"), nominal, manifest)
-    assert cb is not None
-    assert cb.labels == ["fast", "fast/v1", "fast/v2", "two_tank", "two_tank/v1", "two_tank/v2"]
-    for label, q in zip(cb.labels, cb.plants, strict=True):
-        name, _, index = label.partition("/v")
-        kept = manifest["variants"][name]["kept"]
-        factors = kept[int(index) - 1]["factors"] if index else {}
-        p = nominal[0 if name == "fast" else 1]
-        assert q.name == name and q.tag == p.tag
-        scaled = {k: v * factors.get(k, 1.0) for k, v in nominal_parameters(p).items()}
-        assert nominal_parameters(q) == pytest.approx(scaled)
-        if name == "fast":  # A = [[20 * factor]], B = [[factor]]: by hand
-            assert q.A[0, 0] == pytest.approx(20.0 * factors.get("A[0,0]", 1.0))
-            assert q.B[0, 0] == pytest.approx(factors.get("B[0]", 1.0))
-    with pytest.raises(ValueError, match="holds no plant variants.*data.variants.enabled"):
-        closed_loop_validation(compose_cfg("closed_loop_val.variants=2"), nominal, {})
-    with pytest.raises(ValueError, match="closed_loop_val.variants must be"):
-        closed_loop_validation(compose_cfg("closed_loop_val.variants=-1"), nominal, manifest)

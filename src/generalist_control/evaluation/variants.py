@@ -133,20 +133,21 @@ def _candidates(
 def _dagger_factors(
     plants: Sequence[Plant], data: Mapping[str, Any], dagger: Mapping[str, Any]
 ) -> tuple[range, dict[str, list[dict[str, float]]]]:
-    """The seeds and candidate factors of DAgger's fresh variants (``dagger.fresh_variants``).
+    """The seeds and candidate factors of DAgger's fresh variants (``variants.fresh``).
 
     Every candidate a round may have drawn (kept or refused), from its seed stream
-    (:meth:`~generalist_control.training.dagger_callback.DAggerCallback._fresh_plants`;
-    range and tries as :func:`~generalist_control.training.setup.dagger_callback` sets them).
+    (:meth:`~generalist_control.training.sampler.RolloutSampler.round_plants`; range and
+    tries the data's, as :func:`~generalist_control.training.setup.dagger_callback` sets
+    them). ``dagger``: the ``dagger`` config section ({} when it is off).
     """
-    fresh = int(dagger.get("fresh_variants", 0) or 0)
-    if not dagger.get("enabled", False) or fresh < 1:
+    spec = (dagger.get("sampler") or {}).get("variants") or {}
+    fresh = int(spec.get("fresh", 0) or 0)
+    if fresh < 1:
         return range(0), {}
-    fresh = max(fresh, int(dagger.get("fresh_pool", 0) or 0))  # a screened pool draws more
     block = data.get("variants") or {}
-    rng = float(dagger.get("variant_range", block.get("range", DEFAULT_RANGE)))
-    tries = int(dagger.get("variant_tries", block.get("max_tries", 10)))
-    seed = int(dagger.get("variant_seed", 0))
+    rng = float(block.get("range", DEFAULT_RANGE))
+    tries = int(block.get("max_tries", 10))
+    seed = int(spec.get("seed", 3001))
     seeds = range(seed, seed + int(dagger.get("rounds", 0)))
     return seeds, {p.name: _candidates(p, seeds, rng, fresh * tries) for p in plants}
 
@@ -162,7 +163,7 @@ def check_disjoint(
 ) -> dict[str, Any]:
     """Refuse evaluation variants equal to a training variant; return what was checked.
 
-    The training variants are the data's and, with ``dagger.fresh_variants``, every
+    The training variants are the data's and, with ``dagger.sampler.variants.fresh``, every
     candidate DAgger's rounds may have drawn. ``key`` names the seed in the messages.
 
     Raises
@@ -180,7 +181,8 @@ def check_disjoint(
     if seed in seeds:
         raise ValueError(
             f"{key} = {seed} is one of DAgger's fresh-variant seeds "
-            f"({seeds.start}..{seeds.stop - 1}): choose another, or move dagger.variant_seed"
+            f"({seeds.start}..{seeds.stop - 1}): choose another, or move "
+            "dagger.sampler.variants.seed"
         )
     source, train = _training_factors(plants, data, data_dir)
     if fresh:

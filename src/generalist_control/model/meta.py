@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import math
 import numbers
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any, cast
 
-if TYPE_CHECKING:
-    from generalist_control.model.policy import Policy
+from generalist_control.model.network import GeneralistNetwork
 
 __all__ = ["check_meta"]
 
@@ -16,7 +15,7 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
-def check_meta(meta: dict[str, Any], policy: Policy) -> None:
+def check_meta(meta: dict[str, Any], net: GeneralistNetwork) -> None:
     """Refuse meta the network cannot serve: tags, orders, ``dt``, window sizes.
 
     Raises
@@ -29,7 +28,7 @@ def check_meta(meta: dict[str, Any], policy: Policy) -> None:
     tags, orders = meta.get("tags"), meta.get("orders")
     if not isinstance(tags, dict) or not tags or not isinstance(orders, dict):
         raise ValueError("its meta lists no plants (tags and orders)")
-    n_tags, state_dim = policy.net.n_tags, policy.net.state_dim
+    n_tags, state_dim = net.n_tags, net.state_dim
     for name, tag in tags.items():
         if not _is_int(tag) or not 0 <= int(tag) < n_tags:
             raise ValueError(f"plant {name!r} has tag {tag!r}, outside 0..{n_tags - 1}")
@@ -46,7 +45,7 @@ def check_meta(meta: dict[str, Any], policy: Policy) -> None:
     ):
         raise ValueError(f"its sample time dt = {dt!r} is not a positive number")
     for key in ("history", "horizon"):
-        if meta.get(key) != getattr(policy, key):
+        if meta.get(key) != getattr(net, key):
             raise ValueError(
-                f"its meta says {key} = {meta.get(key)!r}, its network {getattr(policy, key)}"
+                f"its meta says {key} = {meta.get(key)!r}, its network {getattr(net, key)}"
             )

@@ -255,7 +255,9 @@ def load_policy(
     try:
         policy = Policy(model)
     except ValueError as exc:
-        raise PolicyFileError(f"{path}: its network config is refused: {exc}") from None
+        raise PolicyFileError(
+            f"{path}: its network config is refused ({exc}); remake it with {RETRAIN}"
+        ) from None
     if not isinstance(state, Mapping) or not isinstance(meta, Mapping):
         raise PolicyFileError(f"{path} has no weights or no meta; {RETRAIN}")
     try:
@@ -268,7 +270,7 @@ def load_policy(
             f"Remake it with {RETRAIN}"
         ) from None
     try:
-        check_meta(dict(meta), policy)
+        check_meta(dict(meta), policy.net)
     except ValueError as exc:
         raise PolicyFileError(f"{path}: {exc}; remake it with {RETRAIN}") from None
     return policy.eval(), dict(meta)

@@ -188,10 +188,11 @@ def _check_fits(settings: TrainingSettings, ckpt_path: str, lit: ImitationModule
         if isinstance(old, dict) and k in old and old[k] != v
     }
     shown = "; ".join(f"{k}: checkpoint {a}, config {b}" for k, (a, b) in diff.items())
+    fix = " ".join(f"{k}={a}" for k, (a, _) in diff.items()) or "the checkpoint's model config"
     raise ValueError(
         f"checkpoint {ckpt_path} does not fit the model this config builds"
         f" ({shown or 'same model config'}); parameters that differ: {', '.join(bad[:6])}"
-        f"{' ...' if len(bad) > 6 else ''}. Resume with the checkpoint's model settings, "
+        f"{' ...' if len(bad) > 6 else ''}. Resume with the checkpoint's settings ({fix}), "
         "or drop ckpt_path to start a new run"
     )
 

@@ -28,6 +28,7 @@ __all__ = [
     "SamplerSettings",
     "TrainingSettings",
     "VariantSettings",
+    "model_config",
     "read_training",
 ]
 
@@ -186,6 +187,19 @@ def _optimizer(spec: Any, scheduler: Any, max_epochs: int) -> tuple[dict, dict |
     return spec, scheduler
 
 
+def model_config(cfg: DictConfig) -> dict[str, Any]:
+    """The network's config: ``model`` with ``experts`` and the data's window sizes.
+
+    ``experts`` is a top-level key (``experts=5`` works as typed); ``history`` and
+    ``horizon`` come from the data config, so the network always matches its windows.
+    """
+    model = _plain(cfg, "model")
+    if not isinstance(model, dict):
+        raise ValueError("model must be a network config (conf/model)")
+    keys = {"experts": "experts", "history": "data.history", "horizon": "data.horizon"}
+    return {**model, **{k: _plain(cfg, key) for k, key in keys.items()}}
+
+
 def read_training(cfg: DictConfig) -> TrainingSettings:
     """The training config ``cfg`` (``conf/config.yaml`` composed), checked and typed.
 
@@ -211,17 +225,16 @@ def read_training(cfg: DictConfig) -> TrainingSettings:
     optimizer, scheduler = _optimizer(
         _plain(cfg, "optimizer"), _plain(cfg, "scheduler"), max_epochs
     )
-    model = _plain(cfg, "model")
-    if not isinstance(model, dict):
-        raise ValueError("model must be a network config (conf/model)")
+    history = require_int("data.history", _plain(cfg, "data.history"))
+    horizon = require_int("data.horizon", _plain(cfg, "data.horizon"))
     return TrainingSettings(
         seed=require_int("seed", _plain(cfg, "seed"), minimum=0),
         threads=require_int("threads", _plain(cfg, "threads")),
         max_epochs=max_epochs,
         monitor=str(monitor),
-        history=require_int("data.history", _plain(cfg, "data.history")),
-        horizon=require_int("data.horizon", _plain(cfg, "data.horizon")),
-        model=model,
+        history=history,
+        horizon=horizon,
+        model=model_config(cfg),
         optimizer=optimizer,
         scheduler=scheduler,
         loader=read_section(LoaderSettings, _plain(cfg, "loader"), "loader"),

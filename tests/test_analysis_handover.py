@@ -1,4 +1,4 @@
-"""The hand-over diagnostic and the runtime's record of the control another controller applied."""
+"""The hand-over diagnostic (analysis/) and the runtime's record of the control applied."""
 
 from __future__ import annotations
 
@@ -6,17 +6,17 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from analysis.handover import Handover, handover_summary, handover_table
 
 from generalist_control.data.windows import build_windows, integral_of_error
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.handover import Handover, handover_summary, handover_table
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.plant import pad_states
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.simulate import Run, simulate, simulate_many
-from helpers import lqi_law_policy, policy_meta
+from helpers import lqi_law_policy, net_config, policy_meta
 
 PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
 STEPS = 60
@@ -25,11 +25,12 @@ STEPS = 60
 def _controls_policy() -> Policy:
     """A random tag-free policy that reads its previous control (the skip gains given weight)."""
     torch.manual_seed(0)
-    on = {"tag_free": 1, "control_history": 1, "linear_skip": 1, "history_context": 1}
-    pol = Policy({"hidden": 16, "experts": 2, "integral": 1, **on}).eval()
+    config = net_config(hidden=16, experts=2, channels=["integral", "previous_control"],
+                        skip="context", plant="inferred", models=None)  # fmt: skip
+    pol = Policy(config).eval()
     g = torch.Generator().manual_seed(1)
     with torch.no_grad():
-        pol.net.skip.weight.normal_(0.0, 0.02, generator=g)
+        pol.net.skip.gains.weight.normal_(0.0, 0.02, generator=g)
         pol.normaliser.state_scale[:, -1] = 10.0  # its feedback on its own control: bounded
     return pol
 
@@ -139,7 +140,7 @@ def test_handover_summary_names_the_diverged_and_counts_the_ratios_by_hand():
 
 def test_local_gains_of_the_lqi_law_are_lqis_gains():
     """For a policy that is the LQI law the derivative at the newest sample is -Kx, -Ki."""
-    from generalist_control.evaluation.local_gains import local_gains
+    from analysis.local_gains import local_gains
 
     pol, meta = lqi_law_policy(PLANTS, design_lqi)
     plants = [load_plant(n) for n in PLANTS]
@@ -159,7 +160,7 @@ def test_local_gains_of_the_lqi_law_are_lqis_gains():
 
 
 def test_local_gains_list_the_previous_control_and_the_summary_flags_a_wrong_sign():
-    from generalist_control.evaluation.local_gains import gain_summary, local_gains
+    from analysis.local_gains import gain_summary, local_gains
 
     spec = {"kind": "step", "amplitude": 1.0, "duration": 5.0}
     gains = local_gains(
