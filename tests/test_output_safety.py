@@ -99,13 +99,14 @@ def test_report_refuses_a_folder_of_user_files(tmp_path):
 
 
 def test_a_file_inside_an_owned_subfolder_is_foreign(tmp_path):
-    out = tmp_path / "eval"
+    out, owned = tmp_path / "eval", {"summary.json": None, "plots": "*.png"}
     (out / "plots").mkdir(parents=True)
     (out / "plots" / "a.png").write_bytes(b"png")
-    atomic.check_replaceable(out, {"plots": "*.png"})  # only outputs: fine
+    (out / "summary.json").write_text("{}")
+    atomic.check_replaceable(out, owned)  # only outputs (a folder from before markers): fine
     (out / "plots" / "keep.txt").write_text("mine")
     with pytest.raises(ForeignDirectoryError, match=r"plots/keep\.txt"):
-        atomic.check_replaceable(out, {"plots": "*.png"})
+        atomic.check_replaceable(out, owned)
 
 
 _KILL = textwrap.dedent(

@@ -48,7 +48,8 @@ MANIFEST = "manifest.json"
 FORMAT_VERSION = 2  # 2: a family per trajectory
 
 
-#: What a dataset folder holds: the only entries that may be replaced by a new dataset.
+#: What a dataset folder holds; without the outputs marker (a dataset written before markers,
+#: :mod:`generalist_control.common.atomic`), a folder of only these may be replaced.
 OWNED: dict[str, str | None] = {TRAJECTORIES: None, MANIFEST: None}
 
 

@@ -125,13 +125,24 @@ def runs_table(sweeps: Mapping[str, Mapping[int, RunPoint | None]]) -> pd.DataFr
     return pd.DataFrame(rows)
 
 
-#: What a report folder holds: the only entries a new report may replace.
-OWNED: dict[str, str | None] = {
-    "*.png": None,
-    "*.csv": None,
-    "comparison.md": None,
-    "summary.json": None,
-}
+_EXT = ("csv", "png")
+
+#: The exact names a report writes: a folder without the outputs marker that holds only
+#: these (one written before markers, :mod:`generalist_control.common.atomic`) may be replaced.
+OWNED: dict[str, str | None] = dict.fromkeys(
+    [
+        *(f"{kind}_{sweep}.{ext}" for kind in ("mse", "loss") for sweep in SWEEPS for ext in _EXT),
+        "params_vs_mse.csv",
+        "params_vs_mse.png",
+        "gate_weights.csv",
+        "gate_weights.png",
+        "fig_hidden_ablation.png",
+        "fig_expert_ablation.png",
+        "runs.csv",
+        "comparison.md",
+        "summary.json",
+    ]
+)
 
 
 def _gate_model(
