@@ -37,6 +37,7 @@ from generalist_control.common.atomic import (
 )
 from generalist_control.common.configs import as_dict
 from generalist_control.common.jsonsafe import strict
+from generalist_control.data.demos import read_manifest
 from generalist_control.data.variants import variants_config
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
@@ -109,7 +110,7 @@ def _training_factors(
     """The training variants' factors, from the data's manifest or its config's seed stream."""
     manifest = data_dir / "manifest.json"
     if manifest.is_file():
-        recorded = json.loads(manifest.read_text()).get("variants")
+        recorded = read_manifest(data_dir).get("variants")  # checked against its digest
         if recorded:
             return f"manifest {manifest}", {
                 name: [v["factors"] for v in rec["kept"]] for name, rec in recorded.items()
