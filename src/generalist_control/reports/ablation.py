@@ -62,6 +62,7 @@ from generalist_control.common.atomic import (
     staging_directory,
 )
 from generalist_control.common.configs import as_dict
+from generalist_control.common.secrets import redact
 from generalist_control.reports.comparison import comparison_markdown
 from generalist_control.reports.figures import (
     draw_gate_heatmap,
@@ -320,7 +321,7 @@ def _log_to_mlflow(
     """
     rcfg = cfg.report
     exp_id = mlflow_utils.experiment_id(as_dict(cfg.logger), kind="report")
-    run_name = rcfg.get("run_name") or "ablation-report"
+    run_name = redact(rcfg.get("run_name") or "ablation-report")
     with mlflow.start_run(experiment_id=exp_id, run_name=run_name) as active:
         mlflow.set_tags(
             {
