@@ -13,8 +13,10 @@ and PNG plots; all are logged to the MLflow run of the evaluated model.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +26,7 @@ from omegaconf import DictConfig
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
+from generalist_control.common.secrets import redact
 from generalist_control.deploy.resolve import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.handover import handover_table
@@ -40,12 +43,27 @@ from generalist_control.plants.catalog import plants_from_config
 from generalist_control.plants.plant import Plant
 from generalist_control.tracking import mlflow_utils
 
-__all__ = ["main", "run"]
+__all__ = ["main", "policy_record", "run"]
 
 log = logging.getLogger(__name__)
 
 
-def _runtime(source: str, cfg: DictConfig) -> PolicyRuntime:
+def policy_record(source: str, path: Path, meta: Mapping[str, Any]) -> dict[str, Any]:
+    """What ``summary.json`` says of the evaluated policy: where it came from, which file.
+
+    ``source`` as given (``policy`` or the default file; credentials masked), the MLflow
+    run that trained it (None if unknown) and the SHA-256 of the file evaluated.
+    """
+    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    run_id = meta.get("mlflow_run_id")
+    return {
+        "source": redact(str(source)),
+        "mlflow_run_id": str(run_id) if run_id else None,
+        "sha256": f"sha256:{digest}",
+    }
+
+
+def _runtime(source: str, path: Path, cfg: DictConfig) -> PolicyRuntime:
     """The policy's runtime; with ``evaluation.withhold_tag`` its network never gets the tag.
 
     With ``evaluation.identity_given`` (a diagnostic) an ``infer_tag`` network gets the
@@ -57,7 +75,7 @@ def _runtime(source: str, cfg: DictConfig) -> PolicyRuntime:
         If the tag is to be withheld from a policy trained with its tag always given, or
         the identity given to a policy that does not infer it.
     """
-    policy, meta = load_policy(resolve(source))
+    policy, meta = load_policy(path)
     if cfg.evaluation.get("withhold_tag", False):
         if not (policy.config["tag_free"] or policy.config["unknown_tag"]):
             raise ValueError(
@@ -105,10 +123,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         check_tag_free_dir(tag_free_dir)
     source = cfg.get("policy") or str(Path(cfg.paths.models_dir) / POLICY_FILE)
     mlflow_utils.set_tracking(cfg.logger)  # for runs:/ and models:/ policy URIs
-    runtime = _runtime(source, cfg)
+    path = resolve(source)
+    runtime = _runtime(source, path, cfg)
+    policy = policy_record(source, path, runtime.meta)
     plants = plants_from_config(cfg.systems)
     if variants:  # unseen plant variants instead (evaluation.variants, experiment=variants)
-        summary = run_variants(cfg, runtime, plants)
+        summary = run_variants(cfg, runtime, plants, policy)
         log_to_mlflow(cfg, runtime.meta, summary, out_dir)
         log.info("variants evaluation written to %s: pass=%s", out_dir, summary["pass"])
         return summary
@@ -118,7 +138,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     plots = bool(cfg.evaluation.get("plots", True))
     bar = as_dict(cfg.evaluation.get("quality_bar") or {})
     setpoint = setpoint_from_config(as_dict(cfg.evaluation.get("setpoint") or {}), runtime, plants)
-    summary = write_reports(df, trajs, out_dir, plots, bar, setpoint)
+    summary = write_reports(df, trajs, out_dir, plots, bar, setpoint, policy)
     if tag_free_dir:
         diagnostics = _diagnostics(cfg, runtime, plants, scen.get("step"))
         verdict = write_tag_free_report(
