@@ -78,7 +78,7 @@ OWNED: dict[str, str | None] = {
 
 def check_tag_free_dir(out_dir: str | Path) -> None:
     """Refuse (before any work) a report folder that holds other files."""
-    check_replaceable(out_dir, OWNED, "evaluation.tag_free_report")
+    check_replaceable(out_dir, OWNED, "+analysis.out")
 
 
 def _values(df: pd.DataFrame, scenario: str | None, controller: str, metric: str) -> pd.Series:
@@ -255,5 +255,5 @@ def write_tag_free_report(
         _figure(views, plants, pairs, staging / "plots" / "tag_free_missed.png")
         if handover is not None:
             _handover_figure(handover, verdict, staging / "plots" / "tag_free_handover.png")
-        publish_directory(staging, out_dir, OWNED, "evaluation.tag_free_report")
+        publish_directory(staging, out_dir, OWNED, "+analysis.out")
     return verdict

@@ -24,6 +24,7 @@ from generalist_control.data.demos import (
     DemoSet,
     content_hash,
     load_demos,
+    manifest_digest,
     write_demos,
 )
 from generalist_control.evaluate import run as evaluate_run
@@ -99,13 +100,14 @@ def test_report_refuses_a_folder_of_user_files(tmp_path):
 
 
 def test_a_file_inside_an_owned_subfolder_is_foreign(tmp_path):
-    out = tmp_path / "eval"
+    out, owned = tmp_path / "eval", {"summary.json": None, "plots": "*.png"}
     (out / "plots").mkdir(parents=True)
     (out / "plots" / "a.png").write_bytes(b"png")
-    atomic.check_replaceable(out, {"plots": "*.png"})  # only outputs: fine
+    (out / "summary.json").write_text("{}")
+    atomic.check_replaceable(out, owned)  # only outputs (a folder from before markers): fine
     (out / "plots" / "keep.txt").write_text("mine")
     with pytest.raises(ForeignDirectoryError, match=r"plots/keep\.txt"):
-        atomic.check_replaceable(out, {"plots": "*.png"})
+        atomic.check_replaceable(out, owned)
 
 
 _KILL = textwrap.dedent(
@@ -172,6 +174,12 @@ def _copy(tiny_data_dir: Path, tmp_path: Path) -> Path:
     return out
 
 
+def _resealed(manifest: dict) -> dict:
+    """A manifest changed by someone who also recomputed its digest (test_manifest_digest.py
+    shows that a changed manifest is refused otherwise): the checks below still hold."""
+    return {**manifest, "manifest_digest": manifest_digest(manifest)}
+
+
 def test_a_sign_flipped_control_column_is_refused(tmp_path, tiny_data_dir):
     out = _copy(tiny_data_dir, tmp_path)
     tbl = pq.read_table(out / "trajectories.parquet")
@@ -196,7 +204,7 @@ def test_a_tampered_file_with_a_matching_file_digest_fails_the_content_hash(
     manifest = json.loads((out / "manifest.json").read_text())
     digest = hashlib.sha256((out / "trajectories.parquet").read_bytes()).hexdigest()
     manifest["files"]["trajectories.parquet"] = "sha256:" + digest
-    (out / "manifest.json").write_text(json.dumps(manifest))
+    (out / "manifest.json").write_text(json.dumps(_resealed(manifest)))
     with pytest.raises(CorruptDataError, match=r"content hash sha256:\w+, the manifest says"):
         load_demos(out)
 
@@ -206,11 +214,11 @@ def test_a_wrong_trajectory_count_is_refused(tmp_path, tiny_data_dir):
     manifest = json.loads((out / "manifest.json").read_text())
     B, N = manifest["n_trajectories"], manifest["steps_per_trajectory"]
     manifest["n_trajectories"], manifest["steps_per_trajectory"] = B // 2, N * 2  # same rows
-    (out / "manifest.json").write_text(json.dumps(manifest))
+    (out / "manifest.json").write_text(json.dumps(_resealed(manifest)))
     with pytest.raises(CorruptDataError, match=r"not whole trajectories"):
         load_demos(out)
     manifest["n_trajectories"], manifest["steps_per_trajectory"] = B - 1, N
-    (out / "manifest.json").write_text(json.dumps(manifest))
+    (out / "manifest.json").write_text(json.dumps(_resealed(manifest)))
     with pytest.raises(CorruptDataError, match=rf"{B * N} rows, not {B - 1} trajectories"):
         load_demos(out)
 

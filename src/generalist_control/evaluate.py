@@ -26,6 +26,7 @@ from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.deploy.resolve import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.mlflow_log import log_to_mlflow
+from generalist_control.evaluation.provenance import policy_record, provenance
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.setpoint import setpoint_from_config
 from generalist_control.evaluation.variants import check_variants_dir, run_variants
@@ -47,11 +48,13 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     (check_variants_dir if variants else check_reports_dir)(out_dir)
     source = cfg.get("policy") or str(Path(cfg.paths.models_dir) / POLICY_FILE)
     mlflow_utils.set_tracking(cfg.logger)  # for runs:/ and models:/ policy URIs
-    policy, meta = load_policy(resolve(source))
+    path = resolve(source)
+    policy, meta = load_policy(path)
     runtime = PolicyRuntime(policy, meta, backend=cfg.evaluation.get("backend", "torch"))
+    record = {"policy": policy_record(source, path, meta), "provenance": provenance()}
     plants = plants_from_config(cfg.systems)
     if variants:  # unseen plant variants instead (evaluation.variants, experiment=variants)
-        summary = run_variants(cfg, runtime, plants)
+        summary = run_variants(cfg, runtime, plants, record)
         log_to_mlflow(cfg, runtime.meta, summary, out_dir)
         log.info("variants evaluation written to %s: pass=%s", out_dir, summary["pass"])
         return summary
@@ -61,7 +64,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     plots = bool(cfg.evaluation.get("plots", True))
     bar = as_dict(cfg.evaluation.get("quality_bar") or {})
     setpoint = setpoint_from_config(as_dict(cfg.evaluation.get("setpoint") or {}), runtime, plants)
-    summary = write_reports(df, trajs, out_dir, plots, bar, setpoint)
+    summary = write_reports(df, trajs, out_dir, plots, bar, setpoint, record)
     log_to_mlflow(cfg, runtime.meta, summary, out_dir)
     log.info("evaluation written to %s: %s", out_dir, json.dumps(summary["quality_bar"]))
     return summary

@@ -1,20 +1,31 @@
-"""Publish an output folder atomically, and never replace a folder the project did not write.
+"""Publish an output folder atomically; never replace or delete a folder the project did not write.
 
 A stage writes its outputs into a temporary sibling folder (:func:`staging_directory`) and
 then swaps it into place (:func:`publish_directory`):
 
-* **Nothing of the user's is deleted.** A folder that already exists is replaced only if
-  everything in it is something the stage itself writes (the names and patterns it passes
-  as ``owned``); otherwise :class:`ForeignDirectoryError` names the foreign entries and
-  nothing is touched. ``paths.data_dir=data`` (a folder with ``.gitignore``) is refused.
+* **The stage's own output is what it recorded.** Publishing writes a marker,
+  :data:`MARKER` (``.gc-outputs.json``), into the folder: every file and sub-folder the
+  stage wrote. A folder that already exists is replaced only if everything in it is listed
+  by its marker; anything else (a file the user added, a folder without a marker that is
+  not empty) is foreign, :class:`ForeignDirectoryError` names it and nothing is touched.
+  ``paths.data_dir=data`` (a folder with ``.gitignore``) is refused.
+* **Folders from before the marker.** A folder without a marker is still the stage's own if
+  it holds nothing but the exact names the stage writes (``legacy``: a file name, or a
+  sub-folder name with the pattern of the files inside it, e.g. ``{"plots": "*.png"}``),
+  and files accepted by such a pattern only beside one of the stage's exact-named files:
+  an extension alone never makes a folder the stage's. Replacing it first records it in a
+  marker, so that its leftovers (below) are recognised too.
 * **Never half-written, never missing.** On Linux the two folders are exchanged in one
   ``renameat2(RENAME_EXCHANGE)`` call, so the old outputs are in place until the new ones
   are. Where that call is missing (another OS, an old file system) the old folder is first
-  renamed to ``.<name>.old-<pid>`` and the new one renamed into place; a kill between the
+  renamed to ``.<name>.old-<pid>-0`` and the new one renamed into place; a kill between the
   two renames leaves the old folder under that name, and :func:`recover` (called by every
   publish, and by the loaders) moves it back.
-* **No clutter.** Staging and old folders of processes that are no longer alive are removed
-  at the next publish; ``.gitignore`` ignores ``.*.tmp-*`` and ``.*.old-*``.
+* **No clutter, and no user folder taken for clutter.** Staging and old folders of
+  processes that are no longer alive are removed at the next publish, but only those that
+  carry the project's marker (a staging folder gets one when it is made): a folder named
+  like a leftover (``.demos.old-2024``) without it is the user's and is left untouched.
+  ``.gitignore`` ignores ``.*.tmp-*``, ``.*.old-*`` and the markers.
 """
 
 from __future__ import annotations
@@ -22,20 +33,27 @@ from __future__ import annotations
 import ctypes
 import errno
 import fnmatch
+import json
 import os
 import shutil
 import tempfile
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 __all__ = [
+    "MARKER",
     "ForeignDirectoryError",
     "check_replaceable",
     "publish_directory",
     "recover",
     "staging_directory",
 ]
+
+#: The file, in every folder a stage publishes, that lists what the stage wrote there.
+MARKER = ".gc-outputs.json"
+_WRITER = "generalist_control"
 
 #: ``renameat2`` flags and the "current directory" file descriptor (Linux ABI).
 _AT_FDCWD = -100
@@ -47,34 +65,90 @@ class ForeignDirectoryError(FileExistsError):
     """An output folder holds files the stage did not write; it is left untouched."""
 
 
+#: Exact top-level names a stage wrote before markers: ``None`` for a file, or the pattern
+#: every file inside that sub-folder matches (e.g. ``{"plots": "*.png"}``).
 Owned = Mapping[str, str | None]
 
 
-def _foreign(path: Path, owned: Owned) -> list[str]:
-    """Entries of ``path`` that are not outputs of the stage (relative paths, sorted).
+def _entries(path: Path) -> list[tuple[str, str]]:
+    """Every entry under ``path`` but the marker: (relative POSIX path, file|dir|link)."""
+    out = []
+    for root, dirs, files in os.walk(path):
+        rel = Path(root).relative_to(path)
+        for name in dirs + files:
+            full = Path(root) / name
+            kind = "link" if full.is_symlink() else "dir" if full.is_dir() else "file"
+            out.append(((rel / name).as_posix(), kind))
+    return sorted(e for e in out if not e[0].startswith(MARKER))  # and its temporary file
 
-    ``owned`` maps a top-level name (or glob) to ``None`` for a file, or to a glob that
-    every file inside that sub-folder must match (e.g. ``{"plots": "*.png"}``).
+
+def _listing(entries: list[tuple[str, str]]) -> list[str]:
+    """The marker's ``entries``: files by path, folders with a trailing ``/``."""
+    return [f"{p}/" if kind == "dir" else p for p, kind in entries]
+
+
+def _read_marker(path: Path) -> dict[str, Any] | None:
+    """The project's marker in ``path``; None if there is none or it is not the project's."""
+    try:
+        marker = json.loads((path / MARKER).read_text())
+    except (OSError, ValueError):
+        return None
+    ok = isinstance(marker, dict) and marker.get("written_by") == _WRITER
+    return marker if ok and isinstance(marker.get("entries"), list) else None
+
+
+def _write_marker(folder: Path, setting: str, **extra: Any) -> None:
+    """Record everything now in ``folder`` (the stage's outputs) in its marker, atomically."""
+    marker = {"written_by": _WRITER, "setting": setting, **extra}
+    marker["entries"] = _listing(_entries(folder))
+    tmp = folder / f"{MARKER}.tmp-{os.getpid()}"
+    tmp.write_text(json.dumps(marker, indent=1) + "\n")
+    os.replace(tmp, folder / MARKER)
+
+
+def _unlisted(path: Path, marker: Mapping[str, Any]) -> list[str]:
+    """Entries of ``path`` its marker does not list (links are never outputs)."""
+    listed = set(marker["entries"])
+    return [
+        p for p, kind in _entries(path) if kind == "link" or _listing([(p, kind)])[0] not in listed
+    ]
+
+
+def _foreign_legacy(path: Path, owned: Owned) -> list[str]:
+    """Entries of a folder without a marker that are not the stage's exact names.
+
+    Files accepted by a sub-folder's pattern count only beside an exact-named file of the
+    stage: an extension alone never makes a folder the stage's.
     """
-    bad = []
+    bad, by_pattern, exact_file = [], [], False
     for entry in sorted(path.iterdir()):
-        key = next((k for k in owned if fnmatch.fnmatch(entry.name, k)), None)
-        if key is None:
+        if entry.name not in owned or entry.is_symlink():
             bad.append(entry.name)
             continue
-        inner = owned[key]
-        if inner is None:  # a file belongs here
-            if entry.is_dir() or entry.is_symlink():
-                bad.append(entry.name)
-        elif entry.is_symlink() or not entry.is_dir():
+        inner = owned[entry.name]
+        if inner is None:  # a file of this name belongs here
+            exact_file |= entry.is_file()
+            bad += [] if entry.is_file() else [entry.name]
+        elif not entry.is_dir():
             bad.append(entry.name)  # a folder belongs here
         else:
-            bad += [
-                f"{entry.name}/{p.relative_to(entry)}"
-                for p in sorted(entry.rglob("*"))
-                if p.is_symlink() or (not p.is_dir() and not fnmatch.fnmatch(p.name, inner))
-            ]
-    return bad
+            for p, kind in _entries(entry):
+                name = f"{entry.name}/{p}"
+                if kind == "link" or (kind == "file" and not fnmatch.fnmatch(Path(p).name, inner)):
+                    bad.append(name)
+                elif kind == "file":
+                    by_pattern.append(name)
+    return sorted(bad + ([] if exact_file else by_pattern))
+
+
+def _foreign(path: Path, owned: Owned) -> list[str]:
+    """Entries of ``path`` that are not outputs of the stage (relative paths, sorted)."""
+    if not (path / MARKER).exists() and not (path / MARKER).is_symlink():
+        return _foreign_legacy(path, owned)
+    marker = None if (path / MARKER).is_symlink() else _read_marker(path)
+    if marker is None:
+        return [f"{MARKER} (not a record this project wrote)"]
+    return _unlisted(path, marker)
 
 
 def check_replaceable(
@@ -82,9 +156,12 @@ def check_replaceable(
 ) -> None:
     """Raise :class:`ForeignDirectoryError` unless ``out_dir`` may be replaced.
 
-    Call it before any work, so a refused run writes nothing. A missing or empty folder, or
-    one holding only the stage's own outputs, may be replaced.
+    Call it before any work, so a refused run writes nothing. A missing or empty folder, one
+    whose every entry its marker lists, or one without a marker holding only the exact names
+    ``owned`` (see the module docstring) may be replaced.
     """
+    if any(c in key for key in owned for c in "*?["):
+        raise ValueError(f"owned names must be exact names, not patterns: {sorted(owned)}")
     out_dir = Path(out_dir)
     recover(out_dir)
     if out_dir.is_symlink() or (out_dir.exists() and not out_dir.is_dir()):
@@ -99,8 +176,9 @@ def check_replaceable(
         shown = ", ".join(bad[:8]) + (f" and {len(bad) - 8} more" if len(bad) > 8 else "")
         raise ForeignDirectoryError(
             f"refusing to replace {setting} '{out_dir}': it holds files this stage did not "
-            f"write ({shown}). Nothing was changed. Point {setting} at a new or empty folder "
-            "(or one this stage wrote before), or move those files away yourself."
+            f"write ({shown}; a stage lists what it wrote in the folder's {MARKER}). Nothing "
+            f"was changed. Point {setting} at a new or empty folder (or one this stage wrote "
+            "before), or move those files away yourself."
         )
 
 
@@ -115,17 +193,30 @@ def _alive(pid: int) -> bool:
 
 
 def _leftovers(out_dir: Path, kind: str) -> Iterator[tuple[Path, int]]:
-    """Sibling folders ``.<name>.<kind>-<pid>-...`` and the pid that made each."""
-    for p in out_dir.parent.glob(f".{out_dir.name}.{kind}-*"):
+    """The project's leftovers ``.<name>.<kind>-<pid>-...`` beside ``out_dir``, with the pid.
+
+    Only a folder that carries the project's marker is one: a staging folder's marker names
+    the folder it was made as; any other must list everything in the folder (an old
+    output folder). A folder with that name and no such marker is the user's.
+    """
+    prefix = f".{out_dir.name}.{kind}-"
+    for p in out_dir.parent.glob(f"{prefix}*"):
         try:
-            pid = int(p.name[len(f".{out_dir.name}.{kind}-") :].split("-")[0])
+            pid = int(p.name[len(prefix) :].split("-")[0])
         except ValueError:
             continue
-        yield p, pid
+        marker = None if p.is_symlink() or not p.is_dir() else _read_marker(p)
+        if marker is None:
+            continue
+        if marker.get("staging") == p.name or not _unlisted(p, marker):
+            yield p, pid
 
 
 def recover(out_dir: str | Path) -> None:
-    """Restore ``out_dir`` from an interrupted two-rename publish; remove dead leftovers."""
+    """Restore ``out_dir`` from an interrupted two-rename publish; remove dead leftovers.
+
+    Leftovers are recognised by the marker the publisher wrote in them, never by name alone.
+    """
     out_dir = Path(out_dir)
     if not out_dir.parent.is_dir():
         return
@@ -144,13 +235,14 @@ def recover(out_dir: str | Path) -> None:
 
 @contextmanager
 def staging_directory(out_dir: str | Path) -> Iterator[Path]:
-    """A new temporary sibling of ``out_dir``; removed if the block raises."""
+    """A new temporary sibling of ``out_dir`` (marked as a staging folder); removed on error."""
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(
         tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-{os.getpid()}-", dir=out_dir.parent)
     )
     try:
+        _write_marker(staging, "", staging=staging.name)  # how recover() knows it
         yield staging
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
@@ -177,6 +269,8 @@ def publish_directory(
 ) -> Path:
     """Put the finished ``staging`` folder in place of ``out_dir`` (see the module docstring).
 
+    The marker written into it lists what ``staging`` holds now: the stage's outputs.
+
     Raises
     ------
     ForeignDirectoryError
@@ -186,6 +280,9 @@ def publish_directory(
     staging, out_dir = Path(staging), Path(out_dir)
     try:
         check_replaceable(out_dir, owned, setting)
+        _write_marker(staging, setting)
+        if out_dir.exists() and _read_marker(out_dir) is None:
+            _write_marker(out_dir, setting)  # a folder from before markers: now recorded
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

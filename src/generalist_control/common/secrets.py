@@ -1,29 +1,38 @@
 """Credentials never leave the process: one redaction for every URL that is logged or stored.
 
-Tracking URIs and Optuna storage URLs may carry a password (``scheme://user:secret@host``
-or ``?password=secret``). :func:`redact` hides it in a string, or in every string of a
-(nested) config, before the value is logged, written to a file or sent to MLflow.
+Tracking URIs and Optuna storage URLs may carry a password (``scheme://user:secret@host``)
+or a credential in the query (``?password=``, ``access_token=``, ``api_key=``, ``sig=``,
+``X-Amz-Signature=``, ``auth=``, ...: any parameter whose name ends in a password, token,
+secret, key, signature, credential or auth word). :func:`redact` hides it in a string, or in
+every string of a (nested) config, before the value is printed, logged, written to a file or
+sent to MLflow; :func:`redact_exception` does the same for an error and the errors it chains.
+Hydra's own output goes through both (:mod:`generalist_control.common.hydra_redact`).
 """
 
 from __future__ import annotations
 
 import re
+import traceback
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["MASK", "redact"]
+__all__ = ["MASK", "RedactedError", "redact", "redact_exception"]
 
 #: What a password is replaced with (as SQLAlchemy renders a hidden password).
 MASK = "***"
 
 _USERINFO = re.compile(r"(?P<head>[A-Za-z][A-Za-z0-9+.\-]*://[^:/@\s]*):(?P<secret>[^@\s/]*)@")
+#: A query parameter whose name ends in a credential word (``access_token``, ``apikey``, ...).
 _QUERY = re.compile(
-    r"(?P<head>[?&](?:password|passwd|pwd|token|secret)=)(?P<secret>[^&\s]*)", re.I
+    r"(?P<head>[?&;][\w.\-]*?"
+    r"(?:pass|passwd|password|pwd|token|secret|key|sig|signature|credentials?|auth\w*)=)"
+    r"(?P<secret>[^&;#\s'\"\]]*)",
+    re.I,
 )
 
 
 def redact(value: Any) -> Any:
-    """``value`` with passwords in URLs masked; mappings and lists are walked.
+    """``value`` with credentials in URLs masked; mappings and lists are walked.
 
     Examples
     --------
@@ -31,6 +40,8 @@ def redact(value: Any) -> Any:
     'postgresql+psycopg2://gc:***@db:5432/optuna'
     >>> redact({"uri": "http://u:p@host/?token=abc&x=1"})
     {'uri': 'http://u:***@host/?token=***&x=1'}
+    >>> redact("https://store/blob?sv=2024&sig=abc%2F&api_key=k1&access_token=t")
+    'https://store/blob?sv=2024&sig=***&api_key=***&access_token=***'
     """
     if isinstance(value, str):
         value = _USERINFO.sub(lambda m: f"{m['head']}:{MASK}@", value)
@@ -40,3 +51,39 @@ def redact(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return type(value)(redact(v) for v in value)
     return value
+
+
+class RedactedError(RuntimeError):
+    """An error whose text held a credential, raised again with the credential masked.
+
+    Its message is the original error's type and message, then each error it was raised
+    from (``caused by ...``), all redacted; the original traceback is kept.
+    """
+
+
+def _chain(ex: BaseException) -> list[BaseException]:
+    """``ex`` and the errors it was raised from or during, as a traceback would print them."""
+    out: list[BaseException] = []
+    cur: BaseException | None = ex
+    while cur is not None and all(cur is not e for e in out):
+        out.append(cur)
+        cur = cur.__cause__ or (None if cur.__suppress_context__ else cur.__context__)
+    return out
+
+
+def redact_exception(ex: BaseException) -> BaseException:
+    """``ex`` itself if none of its chain's text holds a credential, else a :class:`RedactedError`.
+
+    Examples
+    --------
+    >>> err = redact_exception(ConnectionError("no server at http://u:pw@host:9/"))
+    >>> print(err)
+    ConnectionError: no server at http://u:***@host:9/
+    """
+    texts = ["".join(traceback.format_exception_only(type(e), e)).strip() for e in _chain(ex)]
+    if all(redact(t) == t for t in texts):
+        return ex
+    message = "\n".join([redact(texts[0]), *(f"  caused by {redact(t)}" for t in texts[1:])])
+    clean = RedactedError(message).with_traceback(ex.__traceback__)
+    clean.__suppress_context__ = True
+    return clean

@@ -5,15 +5,19 @@ Trajectories are stored one row per sample (long form); windows are cut at load 
 go to a temporary folder that is swapped into place
 (:func:`generalist_control.common.atomic.publish_directory`), so an interrupted run never
 leaves a half-written or missing dataset, and a folder holding anything else is never
-replaced. Loading checks the dataset against its manifest: the file's SHA-256, the table's
-shape, and the content hash recomputed from the arrays, so a changed or spliced file is
-refused with the command that regenerates it.
+replaced. Loading checks the manifest against its own digest (``manifest_digest``, over
+every other field: a changed ``dt`` or count is refused), then the dataset against the
+manifest: the file's SHA-256, the table's shape, and the content hash recomputed from the
+arrays, so a changed or spliced file is refused with the command that regenerates it. The
+content hash covers the data alone (arrays and data config), so the same seed gives the same
+hash whatever the manifest records beside it.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,15 +44,19 @@ __all__ = [
     "check_data_dir",
     "content_hash",
     "load_demos",
+    "manifest_digest",
+    "read_manifest",
     "write_demos",
 ]
 
 TRAJECTORIES = "trajectories.parquet"
 MANIFEST = "manifest.json"
+DIGEST = "manifest_digest"  # the manifest's field that seals all the others
 FORMAT_VERSION = 2  # 2: a family per trajectory
 
 
-#: What a dataset folder holds: the only entries that may be replaced by a new dataset.
+#: What a dataset folder holds; without the outputs marker (a dataset written before markers,
+#: :mod:`generalist_control.common.atomic`), a folder of only these may be replaced.
 OWNED: dict[str, str | None] = {TRAJECTORIES: None, MANIFEST: None}
 
 
@@ -123,6 +131,13 @@ def content_hash(demos: DemoSet, config: dict[str, Any]) -> str:
     return "sha256:" + h.hexdigest()
 
 
+def manifest_digest(manifest: Mapping[str, Any]) -> str:
+    """SHA-256 over the canonical JSON of every field of ``manifest`` but its digest."""
+    body = {k: v for k, v in manifest.items() if k != DIGEST}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"))
+    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
+
+
 def _to_table(demos: DemoSet) -> pa.Table:
     B, N = demos.r.shape
     rep = lambda a: np.repeat(a, N)  # noqa: E731
@@ -162,6 +177,7 @@ def write_demos(out_dir: str | Path, demos: DemoSet, manifest: dict[str, Any]) -
         pq.write_table(_to_table(demos), tmp / TRAJECTORIES, compression="zstd")
         digest = hashlib.sha256((tmp / TRAJECTORIES).read_bytes()).hexdigest()
         manifest = {**manifest, "files": {TRAJECTORIES: "sha256:" + digest}}
+        manifest[DIGEST] = manifest_digest(manifest)
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
         return publish_directory(tmp, out_dir, OWNED, "paths.data_dir")
 
@@ -173,20 +189,49 @@ def _corrupt(data_dir: Path, what: str) -> CorruptDataError:
     )
 
 
-def _read_manifest(data_dir: Path) -> dict[str, Any]:
-    """The manifest, after checking that both files exist and the format is ours."""
+def read_manifest(data_dir: str | Path) -> dict[str, Any]:
+    """The dataset's manifest, checked against its own digest (every field is covered).
+
+    Raises
+    ------
+    MissingDataError
+        If it is missing, or of another format, with the command that creates the dataset.
+    CorruptDataError
+        If it is not a JSON object, or any field differs from what was written.
+    """
+    data_dir = Path(data_dir)
     recover(data_dir)
-    for name in (MANIFEST, TRAJECTORIES):
-        if not (data_dir / name).is_file():
-            raise MissingDataError(
-                f"no demonstration data at '{data_dir}' ({name} is missing). "
-                f"Create it with: {GENERATE_COMMAND}"
-            )
-    manifest = json.loads((data_dir / MANIFEST).read_text())
+    path = data_dir / MANIFEST
+    if not path.is_file():
+        raise MissingDataError(
+            f"no demonstration data at '{data_dir}' ({MANIFEST} is missing). "
+            f"Create it with: {GENERATE_COMMAND}"
+        )
+    try:
+        manifest = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise _corrupt(data_dir, f"{MANIFEST} is not JSON ({e})") from None
+    if not isinstance(manifest, dict):
+        raise _corrupt(data_dir, f"{MANIFEST} is not a JSON object")
     if manifest.get("format_version") != FORMAT_VERSION:
         raise MissingDataError(
             f"'{data_dir}' holds dataset format {manifest.get('format_version')}, this code "
             f"reads format {FORMAT_VERSION}; regenerate it with: {GENERATE_COMMAND}"
+        )
+    expected, actual = manifest.get(DIGEST), manifest_digest(manifest)
+    if expected != actual:
+        said = f"its {DIGEST} says {expected}" if expected else f"it has no {DIGEST}"
+        raise _corrupt(data_dir, f"{MANIFEST}'s fields give {actual}, {said}")
+    return manifest
+
+
+def _read_manifest(data_dir: Path) -> dict[str, Any]:
+    """The checked manifest, after checking that the trajectories exist and match it."""
+    manifest = read_manifest(data_dir)
+    if not (data_dir / TRAJECTORIES).is_file():
+        raise MissingDataError(
+            f"no demonstration data at '{data_dir}' ({TRAJECTORIES} is missing). "
+            f"Create it with: {GENERATE_COMMAND}"
         )
     expected = (manifest.get("files") or {}).get(TRAJECTORIES)
     actual = "sha256:" + hashlib.sha256((data_dir / TRAJECTORIES).read_bytes()).hexdigest()

@@ -25,7 +25,7 @@ import numpy as np
 
 from generalist_control.common.schema import require_int
 from generalist_control.plants.plant import Plant
-from generalist_control.plants.variants import DEFAULT_RANGE
+from generalist_control.plants.variants import variant_range
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import Trajectory, simulate
 from generalist_control.simulation.variants import VariantDraw, sample_variants
@@ -53,11 +53,9 @@ def variants_config(data: Mapping[str, Any]) -> dict[str, Any] | None:
     count = require_int("data.variants.count", block.get("count", 8))
     seed = require_int("data.variants.seed", block.get("seed", 0), minimum=0)
     tries = require_int("data.variants.max_tries", block.get("max_tries", 10))
-    rng = float(block.get("range", DEFAULT_RANGE))
+    rng = variant_range(block.get("range"), "data.variants.range")
     if count < 1 or tries < 1:
         raise ValueError("data.variants.count and data.variants.max_tries must be at least 1")
-    if not 0.0 < rng < 1.0:
-        raise ValueError(f"data.variants.range = {rng} must lie in (0, 1), e.g. 0.25 for +-25 %")
     return {"count": count, "seed": seed, "range": rng, "max_tries": tries}
 
 

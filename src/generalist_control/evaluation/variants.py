@@ -37,6 +37,7 @@ from generalist_control.common.atomic import (
 )
 from generalist_control.common.configs import as_dict
 from generalist_control.common.jsonsafe import strict
+from generalist_control.data.demos import read_manifest
 from generalist_control.data.variants import variants_config
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
@@ -44,7 +45,7 @@ from generalist_control.evaluation.runner import metric_rows
 from generalist_control.evaluation.setpoint import setpoint_from_config, setpoint_summary
 from generalist_control.evaluation.variant_summary import plot_variants, summarise_variants
 from generalist_control.plants.plant import Plant
-from generalist_control.plants.variants import DEFAULT_RANGE
+from generalist_control.plants.variants import DEFAULT_RANGE, variant_range
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.scenarios import perturbation, references
 from generalist_control.simulation.simulate import (
@@ -90,13 +91,19 @@ def check_variants_dir(out_dir: str | Path) -> None:
 
 
 def draw_eval_variants(
-    plants: Sequence[Plant], ecfg: Mapping[str, Any], steps: int
+    plants: Sequence[Plant],
+    ecfg: Mapping[str, Any],
+    steps: int,
+    key: str = "evaluation.variants.range",
 ) -> dict[str, VariantDraw]:
-    """``ecfg.count`` (at least 5) variants per plant from the evaluation's seed."""
+    """``ecfg.count`` (at least 5) variants per plant from the evaluation's seed.
+
+    ``ecfg.range`` must be a number in (0, 1) (an error names ``key``).
+    """
     count = int(ecfg.get("count", 6))
     if count < 5:
         raise ValueError(f"evaluation.variants.count = {count}: the bar needs at least 5")
-    rng = float(ecfg.get("range") or DEFAULT_RANGE)
+    rng = variant_range(ecfg.get("range"), key)
     seed, tries = int(ecfg["seed"]), int(ecfg.get("max_tries", 10))
     return {
         p.name: sample_variants(p, count, seed, rng, (1.0, -1.0), steps, tries) for p in plants
@@ -109,7 +116,7 @@ def _training_factors(
     """The training variants' factors, from the data's manifest or its config's seed stream."""
     manifest = data_dir / "manifest.json"
     if manifest.is_file():
-        recorded = json.loads(manifest.read_text()).get("variants")
+        recorded = read_manifest(data_dir).get("variants")  # checked against its digest
         if recorded:
             return f"manifest {manifest}", {
                 name: [v["factors"] for v in rec["kept"]] for name, rec in recorded.items()
@@ -257,8 +264,17 @@ def _variants_table(draws: Mapping[str, VariantDraw]) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["system", "variant", "parameter", "value", "factor"])
 
 
-def run_variants(cfg: Any, runtime: PolicyRuntime, plants: Sequence[Plant]) -> dict[str, Any]:
-    """Draw, check, evaluate and write the variants report to ``paths.reports_dir``."""
+def run_variants(
+    cfg: Any,
+    runtime: PolicyRuntime,
+    plants: Sequence[Plant],
+    record: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Draw, check, evaluate and write the variants report to ``paths.reports_dir``.
+
+    ``record`` (which policy was evaluated, when and where:
+    :mod:`~generalist_control.evaluation.provenance`) is added to ``summary.json``.
+    """
     out_dir = Path(cfg.paths.reports_dir)
     check_variants_dir(out_dir)
     ecfg = as_dict(cfg.evaluation.variants)
@@ -285,6 +301,7 @@ def run_variants(cfg: Any, runtime: PolicyRuntime, plants: Sequence[Plant]) -> d
     setpoint = setpoint_from_config(as_dict(cfg.evaluation.get("setpoint") or {}), runtime, plants)
     if setpoint is not None:  # the nominal plants' set points
         summary["setpoint"] = setpoint_summary(setpoint)
+    summary.update(record or {})
     with staging_directory(out_dir) as staging:
         df.to_csv(staging / "metrics.csv", index=False)
         if setpoint is not None:
@@ -335,7 +352,7 @@ def _judge(
     verdicts, per plant, ``disjoint``).
     """
     data, dagger, data_dir = training
-    draws = draw_eval_variants(plants, ecfg, steps)
+    draws = draw_eval_variants(plants, ecfg, steps, key.rsplit(".", 1)[0] + ".range")
     disjoint = check_disjoint(draws, plants, data, data_dir, int(ecfg["seed"]), dagger, key)
     df = evaluate_variants(runtime, draws, scenarios)
     summary = summarise_variants(df, next(iter(scenarios)), as_dict(ecfg.get("bar") or {}))

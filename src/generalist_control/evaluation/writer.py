@@ -85,6 +85,7 @@ def write_reports(
     plots: bool = True,
     bar: Mapping[str, Any] | None = None,
     setpoint: pd.DataFrame | None = None,
+    record: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write the CSV, tables, summary and plots atomically to ``out_dir``; return the summary.
 
@@ -92,6 +93,9 @@ def write_reports(
     (:data:`~generalist_control.evaluation.summary.DEFAULT_BAR`). ``setpoint``: the
     set-point check (:func:`~generalist_control.evaluation.setpoint.setpoint_stability`),
     written as ``setpoint.csv`` and summarised in ``summary.json``'s ``setpoint``.
+    ``record``: which policy was evaluated, when and where
+    (:mod:`~generalist_control.evaluation.provenance`: ``policy`` and ``provenance``),
+    added to ``summary.json``.
 
     Raises
     ------
@@ -105,6 +109,7 @@ def write_reports(
         if setpoint is not None:
             setpoint.to_csv(staging / "setpoint.csv", index=False)
             summary["setpoint"] = setpoint_summary(setpoint)
+        summary.update(record or {})
         (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
         scores = strict(headline_scores(summary))
         (staging / "scores.json").write_text(json.dumps(scores, indent=2) + "\n")

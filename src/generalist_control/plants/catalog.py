@@ -70,7 +70,8 @@ def plants_from_config(systems: DictConfig | Mapping[str, Any]) -> list[Plant]:
     UnknownPlantError
         If ``include`` names a plant that is not in the set.
     PlantConfigError
-        If a plant is invalid or two plants share a tag.
+        If a plant is invalid, two plants share a tag, or ``include`` is an empty list (it
+        names no plant; leaving the key out means every plant of the set).
     """
     if isinstance(systems, DictConfig):
         systems = cast(dict[str, Any], OmegaConf.to_container(systems, resolve=True))
@@ -78,6 +79,11 @@ def plants_from_config(systems: DictConfig | Mapping[str, Any]) -> list[Plant]:
     if not entries:
         raise PlantConfigError(f"systems set '{systems.get('name', '?')}' lists no plants")
     include = systems.get("include")
+    if include is not None and len(include) == 0:
+        raise PlantConfigError(
+            f"systems.include=[] names no plant of set '{systems.get('name', '?')}'; drop the "
+            "key for every plant of the set, or name plants, e.g. systems.include=[cstr]"
+        )
     if include:
         for name in include:
             if name not in entries:

@@ -23,6 +23,7 @@ A nonlinear variant keeps the nominal operating state ``x_op``: its ``u_op`` is 
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import weakref
 from collections.abc import Mapping
 from typing import Any
@@ -41,10 +42,35 @@ __all__ = [
     "parameter_ranges",
     "register_spec",
     "spec_of",
+    "variant_range",
 ]
 
 #: Relative half-width of a parameter's range when neither the plant nor the config says.
 DEFAULT_RANGE = 0.25
+
+
+def variant_range(value: Any, key: str, zero: bool = False, default: bool = True) -> float:
+    """The config's ``key`` as a variant range: a number in (0, 1); None: :data:`DEFAULT_RANGE`.
+
+    With ``zero``, 0 is allowed too (a plant file's ``ranges``: 0 fixes a parameter); without
+    ``default``, None is refused (a plant file's key given without a value).
+
+    Raises
+    ------
+    ValueError
+        If it is not a number, or not in (0, 1) (1 or more would flip a parameter's sign, 0
+        draw no variant), naming ``key``.
+    """
+    if value is None and default:
+        return DEFAULT_RANGE
+    number = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    if not number or not (0.0 <= float(value) < 1.0) or (float(value) == 0.0 and not zero):
+        raise ValueError(
+            f"{key} = {value!r} must be a number in {'[' if zero else '('}0, 1): the relative "
+            f"half-width of the parameters' range, e.g. {DEFAULT_RANGE} for "
+            f"+-{100 * DEFAULT_RANGE:g} %"
+        )
+    return float(value)
 
 
 class VariantError(ValueError):
@@ -68,16 +94,11 @@ _SPECS: weakref.WeakKeyDictionary[Plant, VariantSpec] = weakref.WeakKeyDictionar
 
 
 def _check_range(value: Any, field: str, name: str) -> float:
+    """A plant file's range (0 allowed): :func:`variant_range`, as a :class:`PlantConfigError`."""
     try:
-        r = float(value)
-    except (TypeError, ValueError):
-        r = float("nan")
-    if not 0.0 <= r < 1.0:
-        raise PlantConfigError(
-            f"plant '{name}': field '{field}' = {value!r} must be a number in [0, 1) "
-            "(relative half-width of the range, e.g. 0.25 for +-25 %)"
-        )
-    return r
+        return variant_range(value, f"plant '{name}': field '{field}'", zero=True, default=False)
+    except ValueError as e:
+        raise PlantConfigError(str(e)) from None
 
 
 def register_spec(plant: Plant, block: Mapping[str, Any] | None) -> VariantSpec:

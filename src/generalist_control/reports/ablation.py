@@ -62,6 +62,7 @@ from generalist_control.common.atomic import (
     staging_directory,
 )
 from generalist_control.common.configs import as_dict
+from generalist_control.common.secrets import redact
 from generalist_control.reports.comparison import comparison_markdown
 from generalist_control.reports.figures import (
     draw_gate_heatmap,
@@ -125,13 +126,24 @@ def runs_table(sweeps: Mapping[str, Mapping[int, RunPoint | None]]) -> pd.DataFr
     return pd.DataFrame(rows)
 
 
-#: What a report folder holds: the only entries a new report may replace.
-OWNED: dict[str, str | None] = {
-    "*.png": None,
-    "*.csv": None,
-    "comparison.md": None,
-    "summary.json": None,
-}
+_EXT = ("csv", "png")
+
+#: The exact names a report writes: a folder without the outputs marker that holds only
+#: these (one written before markers, :mod:`generalist_control.common.atomic`) may be replaced.
+OWNED: dict[str, str | None] = dict.fromkeys(
+    [
+        *(f"{kind}_{sweep}.{ext}" for kind in ("mse", "loss") for sweep in SWEEPS for ext in _EXT),
+        "params_vs_mse.csv",
+        "params_vs_mse.png",
+        "gate_weights.csv",
+        "gate_weights.png",
+        "fig_hidden_ablation.png",
+        "fig_expert_ablation.png",
+        "runs.csv",
+        "comparison.md",
+        "summary.json",
+    ]
+)
 
 
 def _gate_model(
@@ -309,7 +321,7 @@ def _log_to_mlflow(
     """
     rcfg = cfg.report
     exp_id = mlflow_utils.experiment_id(as_dict(cfg.logger), kind="report")
-    run_name = rcfg.get("run_name") or "ablation-report"
+    run_name = redact(rcfg.get("run_name") or "ablation-report")
     with mlflow.start_run(experiment_id=exp_id, run_name=run_name) as active:
         mlflow.set_tags(
             {

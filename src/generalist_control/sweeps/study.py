@@ -38,6 +38,7 @@ from __future__ import annotations
 import json
 import logging
 import random
+import re
 import time
 from collections.abc import Mapping
 from datetime import datetime
@@ -61,12 +62,14 @@ from generalist_control.tracking import mlflow_utils
 from generalist_control.tracking.experiments import experiment_name
 from generalist_control.tracking.parents import ROLE_TAG, create_parent_run
 
-__all__ = ["PARENT_ATTR", "TrialProgress", "run", "tune_logger"]
+__all__ = ["PARENT_ATTR", "PLAIN_NAME", "TrialProgress", "run", "tune_logger"]
 
 log = logging.getLogger(__name__)
 
 #: Study user attribute holding the id of the study's MLflow parent run.
 PARENT_ATTR = "mlflow_parent_run_id"
+#: A study name: also a folder name (no separator, no ``..``) and an MLflow filter value.
+PLAIN_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 _FINISHED = (TrialState.COMPLETE, TrialState.PRUNED)
 
 
@@ -220,9 +223,12 @@ def _checked_search(cfg: DictConfig) -> DictConfig:
     max_trials = search.get("max_trials")
     if int(search.n_trials) < 0 or (max_trials is not None and int(max_trials) < 0):
         raise ValueError("hparams_search.n_trials and max_trials must not be negative")
-    if not str(search.study_name) or any(c in str(search.study_name) for c in "'\"`"):
+    if not PLAIN_NAME.fullmatch(str(search.study_name)):
         raise ValueError(
-            f"hparams_search.study_name must be non-empty, without quotes: {search.study_name!r}"
+            f"hparams_search.study_name = {str(search.study_name)!r} is not a plain name: it "
+            "also names the folder of the study's trials (<trials_dir>/<study_name>), which "
+            "must stay in trials_dir; use letters, digits, '.', '_' and '-', starting with a "
+            "letter or digit, e.g. generalist-control-v2"
         )
     direction = str(search.get("direction", "minimize"))
     if direction not in ("minimize", "maximize"):

@@ -217,11 +217,30 @@ def mlflow_run(
     with mlflow.start_run(
         run_id=run_id,
         experiment_id=None if run_id else exp_id,
-        run_name=None if run_id else logger.get("run_name"),
+        run_name=None if run_id else redact(logger.get("run_name")),
         tags=None if run_id else parent_run_tags() or None,
     ) as run:
         mlflow.set_tags(process_tags())
         yield run
+
+
+def _lookup(uri: str, name: str) -> Any:
+    """The experiment ``name`` (None if missing); a store that fails is named, redacted.
+
+    Raises
+    ------
+    ConnectionError
+        If the store does not answer (or refuses); message and error carry no credential.
+    """
+    try:
+        return mlflow.get_experiment_by_name(name)
+    except MlflowException as e:
+        raise ConnectionError(
+            f"the MLflow tracking store {redact(uri)} (logger.tracking_uri) failed: "
+            f"{redact(e.message)}. Check that it runs and the URI is right, or point "
+            "logger.tracking_uri (or MLFLOW_TRACKING_URI) at another store, e.g. "
+            "sqlite:///mlflow.db"
+        ) from None
 
 
 def experiment_id(logger: Mapping[str, Any], kind: str = "train") -> str:
@@ -234,7 +253,7 @@ def experiment_id(logger: Mapping[str, Any], kind: str = "train") -> str:
     uri = set_tracking(logger)
     name = experiment_name(logger, kind)
     with store_lock(uri):
-        experiment = mlflow.get_experiment_by_name(name)
+        experiment = _lookup(uri, name)
         if experiment is not None:
             return experiment.experiment_id
         location = logger.get("artifact_location")

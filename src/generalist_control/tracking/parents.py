@@ -16,6 +16,7 @@ from typing import Any
 
 import mlflow
 
+from generalist_control.common.secrets import redact
 from generalist_control.tracking import mlflow_utils
 
 __all__ = ["ROLE_TAG", "create_parent_run", "parent_run", "summarise_children"]
@@ -43,6 +44,7 @@ def create_parent_run(
     tags : mapping, optional
         Further tags of the parent run.
     """
+    name = redact(name)
     exp_id = mlflow_utils.experiment_id(logger)
     run = mlflow.MlflowClient().create_run(
         exp_id, run_name=name, tags={ROLE_TAG: role, "sweep": name, **(tags or {})}

@@ -36,6 +36,7 @@ import torch
 from lightning.pytorch.loggers import MLFlowLogger
 from mlflow.exceptions import MlflowException
 
+from generalist_control.common.secrets import redact
 from generalist_control.tracking import mlflow_utils
 
 __all__ = [
@@ -144,7 +145,7 @@ def training_logger(logger: Mapping[str, Any], resume_run_id: str | None = None)
     mlflow_utils.end_stale_runs(exp_id)
     run_id = _existing_run(resume_run_id)
     tags = None if run_id else {**mlflow_utils.parent_run_tags(), **mlflow_utils.process_tags()}
-    run_name = logger.get("run_name")
+    run_name = redact(logger.get("run_name"))  # a run name is shown everywhere
     mlf = MLFlowLogger(
         experiment_name=client.get_experiment(exp_id).name,
         run_name=None if run_id or not run_name else str(run_name),

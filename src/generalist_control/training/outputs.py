@@ -19,11 +19,11 @@ import mlflow
 import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
-from hydra.types import RunMode
 from mlflow.data.numpy_dataset import from_numpy
 from mlflow.models import infer_signature
 from omegaconf import DictConfig, OmegaConf
 
+from generalist_control.common.hydra_redact import scrub_hydra_files
 from generalist_control.common.secrets import redact
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
@@ -84,32 +84,6 @@ def job_models_dir(cfg: DictConfig, run_dir: Path) -> Path:
     if published is None or models_dir.resolve() != Path(published).resolve():
         return models_dir
     return run_dir / "models"
-
-
-def _hydra_files() -> list[Path]:
-    """The config files Hydra saved for this job (and its multirun), if it runs under Hydra."""
-    if not HydraConfig.initialized():
-        return []
-    hc = HydraConfig.get()
-    files = []
-    if hc.output_subdir is not None:
-        files += sorted((Path(hc.runtime.output_dir) / hc.output_subdir).glob("*.yaml"))
-    if hc.mode == RunMode.MULTIRUN:
-        files.append(Path(hc.sweep.dir) / "multirun.yaml")
-    return [f for f in files if f.is_file()]
-
-
-def scrub_hydra_files() -> None:
-    """Rewrite Hydra's saved configs with passwords in URLs masked (``.hydra/*.yaml``).
-
-    Hydra saves the command's overrides and config before the job starts, so a tracking
-    or storage URL typed with its password would stay on disk in plain text.
-    """
-    for path in _hydra_files():
-        text = path.read_text()
-        clean = redact(text)
-        if clean != text:
-            path.write_text(clean)
 
 
 def closed_loop_scores(cfg: DictConfig, policy: Policy, meta: dict[str, Any]) -> dict[str, float]:
