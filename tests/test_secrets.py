@@ -153,6 +153,7 @@ def test_train_against_an_unreachable_tracking_server(tmp_path, tiny_data_dir):
     uri = f"http://user:{SECRET}@127.0.0.1:9/"
     cmd = [sys.executable, "train.py", f"logger.tracking_uri={uri}"]
     cmd += [f"paths.data_dir={tiny_data_dir}", "trainer.accelerator=cpu"]
+    cmd += ["systems.include=[cstr,hydraulic_actuator]"]
     out = _run(cmd, tmp_path / "run")
     assert "the MLflow tracking store http://user:***@127.0.0.1:9/ (logger.tracking_uri)" in out
 
