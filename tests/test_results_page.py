@@ -20,6 +20,7 @@ from generalist_control.reports.results_page import (
     main,
     render_page,
 )
+from generalist_control.reports.results_sections import fmt
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = {r.key: r for r in RECIPES}
@@ -185,7 +186,8 @@ def test_the_page_stays_short_whatever_the_reports_hold():
     assert "p0, p1, p2, p3, p4 and 94 more" in text
 
 
-def test_the_results_page_is_short():
+def test_the_front_pages_are_short():
+    assert len((REPO / "README.md").read_text().splitlines()) <= 150
     assert len((REPO / PAGE).read_text().splitlines()) <= MAX_LINES
     make = (REPO / "Makefile").read_text()
     assert "\nresults:" in make and "-m generalist_control.reports.results_page" in make
@@ -194,3 +196,15 @@ def test_the_results_page_is_short():
 @pytest.mark.parametrize("recipe", RECIPES, ids=lambda r: r.key)
 def test_every_recipe_names_its_summary_and_a_command(recipe):
     assert recipe.files["summary"].endswith("summary.json") and recipe.command
+
+
+def test_the_readme_quotes_the_committed_evaluation():
+    readme = (REPO / "README.md").read_text()
+    scores = json.loads((REPO / "reports/eval/scores.json").read_text())
+    summary = json.loads((REPO / "reports/eval/summary.json").read_text())
+    aw = summary["anti_windup"]["saturation_0.25"]["worst_ISE_ratio"]
+    for value in (scores["ISE_ratio"], scores["ITAE_ratio"], scores["RMSE_ratio"], aw):
+        assert f"| {fmt(value)} (" in readme, "README's table: copy it from reports/eval"
+    assert f"| GC runs diverged, every scenario | {scores['diverged']} |" in readme
+    assert f"| {scores['bar_passed']} of {scores['bar_checked']} |" in readme
+    assert f"| {scores['ess_ppm'] / 1e4:.3f} % (" in readme
