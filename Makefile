@@ -4,7 +4,7 @@ export DVC_NO_ANALYTICS := 1
 # DVC runs each stage's `python -m ...` through the shell: the venv's python must come first.
 export PATH := $(CURDIR)/.venv/bin:$(PATH)
 
-.PHONY: setup pipeline exp-show data test test-fast lint typecheck format bench clean
+.PHONY: setup pipeline exp-show data results test test-fast lint typecheck format bench clean
 
 setup:
 	bash scripts/setup.sh
@@ -21,6 +21,11 @@ exp-show:
 ## Only the data stage.
 data: setup
 	$(VENV)/dvc repro generate
+
+## The results page, docs/results.md, regenerated from the committed reports (written
+## atomically; tests/test_results_page.py checks that it matches them).
+results: setup
+	$(VENV)/python -m generalist_control.reports.results_page
 
 ## Lint, type check and the whole test suite (what CI runs), on PYTEST_WORKERS processes
 ## (pytest-xdist; whole test files per worker, so a file's fixtures are built once). One

@@ -1,0 +1,305 @@
+"""The parts of the results page: figures, tables and one section per kind of recipe.
+
+Used by :mod:`generalist_control.reports.results_page`, which holds the table of recipes and
+their files. Every function here is pure: parsed report files in, markdown lines out; a
+table never holds more than :data:`MAX_ROWS` rows.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["MAX_ROWS", "SECTIONS", "Recipe", "fmt", "number", "table"]
+
+MAX_ROWS = 20
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """One recipe of the page: its reports and the command that writes them.
+
+    ``kind`` picks the section's renderer (``evaluation``, ``variants``, ``ablation``);
+    ``files`` maps a role (``summary`` is required, the others optional) to a path relative
+    to the repository root.
+    """
+
+    key: str
+    title: str
+    kind: str
+    command: str
+    files: Mapping[str, str]
+
+
+# --- formatting ------------------------------------------------------------------------
+
+
+def number(value: Any) -> float | None:
+    """A number from JSON or CSV text; None for anything else or an empty cell."""
+    if isinstance(value, bool) or value is None:
+        return None
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return None
+
+
+def fmt(value: Any) -> str:
+    """A figure as the page writes it: ``1.0031``, ``9.89e-04``, ``56,484``, ``n/a``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return "n/a" if value is None or value == "" else _text(value)
+    if isinstance(value, int):
+        return f"{value:,}"
+    if math.isnan(value):
+        return "n/a"
+    if math.isinf(value) or value == 0:
+        return str(value).replace(".0", "")
+    if 0.01 <= abs(value) < 1000:  # trailing zeros only where the value is that short
+        text = f"{value:.4f}"
+        return text.rstrip("0").rstrip(".") if round(value, 4) == value else text
+    return f"{value:,.0f}" if abs(value) >= 1000 else f"{value:.2e}"
+
+
+def _text(value: Any, limit: int = 120) -> str:
+    """Text for one table cell or line: no newline, pipe or backtick; at most ``limit``."""
+    text = " ".join(str(value).split()).replace("|", "/").replace("`", "'")
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _verdict(value: Any) -> str:
+    return "not measured" if value is None else ("pass" if value else "**fail**")
+
+
+def _names(values: Any, limit: int = 5) -> str:
+    """A short list of names: ``a, b, c and 4 more``; ``none`` when empty."""
+    names = [_text(v, 40) for v in (values or [])]
+    more = f" and {len(names) - limit} more" if len(names) > limit else ""
+    return ", ".join(names[:limit]) + more if names else "none"
+
+
+def table(header: Sequence[str], rows: Sequence[Sequence[str]], source: str) -> list[str]:
+    """A markdown table of at most :data:`MAX_ROWS` rows; a last row names what was cut."""
+    lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows[:MAX_ROWS]]
+    if len(rows) > MAX_ROWS:
+        rest = [""] * (len(header) - 1)
+        lines.append("| " + " | ".join([f"{len(rows) - MAX_ROWS} more in `{source}`", *rest]))
+    return lines
+
+
+# --- parts of a section ------------------------------------------------------------------
+
+
+def _head(recipe: Recipe, summary: Mapping[str, Any]) -> list[str]:
+    """Heading, command, date and machine (``summary['provenance']``), reports."""
+    prov = summary.get("provenance")
+    prov = prov if isinstance(prov, Mapping) else {}
+    lines = [f"## {recipe.title}", "", f"- command: `{recipe.command}`"]
+    lines.append(f"- date: {_text(prov['date']) if prov.get('date') else 'not recorded'}")
+    lines.append(f"- machine: {_text(prov['machine']) if prov.get('machine') else 'not recorded'}")
+    if prov.get("command"):
+        lines.append(f"- recorded command: `{_text(prov['command'], 300)}`")
+    lines.append("- reports: " + ", ".join(f"`{p}`" for p in recipe.files.values()))
+    return [*lines, ""]
+
+
+def _training(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
+    """One line of the training's figures, or one that says the file is absent."""
+    path = recipe.files.get("training")
+    if path is None:
+        return []
+    m = data.get("training")
+    if not isinstance(m, Mapping):
+        return [f"Training figures: `{path}` is not here (written by the command above).", ""]
+    parts = [
+        f"{fmt(m.get('epochs'))} epochs",
+        f"{fmt(m.get('n_parameters'))} parameters",
+        f"val/loss {fmt(m.get('val/loss'))}",
+        f"closed-loop validation: {fmt(m.get('closed_loop/diverged'))} plants diverged",
+    ]
+    return [f"Training (`{path}`): " + ", ".join(parts) + ".", ""]
+
+
+def _setpoint(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
+    """Plants that settle at a constant reference, and the largest radius of GC's loop."""
+    rows, path = data.get("setpoint"), recipe.files.get("setpoint")
+    if not rows:
+        return []
+    settle = sum(str(r.get("settles")) == "True" for r in rows)
+    radii = [(number(r.get("radius_GC")), r) for r in rows]
+    finite = [(v, r) for v, r in radii if v is not None]
+    line = f"At rest (`{path}`): {settle} of {len(rows)} plants settle at a constant reference"
+    if finite:
+        value, worst = max(finite, key=lambda item: item[0])
+        unstable = sum(v >= 1.0 for v, _ in finite)
+        line += (
+            f"; {unstable} with a loop of spectral radius >= 1 there; largest "
+            f"{fmt(value)} ({_text(worst.get('system'), 40)}, LQI's "
+            f"{fmt(number(worst.get('radius_LQI')))})"
+        )
+    return [line + ".", ""]
+
+
+def _worst(fig: Mapping[str, Any], key: str) -> str:
+    """``1.0031 (plant)`` from ``worst_<key>_ratio`` and ``worst_<key>_system``."""
+    name = f"worst_{key}_ratio" if key != "ess" else "worst_relative_ess_GC"
+    system = fig.get(f"worst_{key}_system" if key != "ess" else "worst_relative_ess_system")
+    if name not in fig:
+        return ""
+    return fmt(fig[name]) + (f" ({_text(system, 40)})" if system else "")
+
+
+def _scenario_rows(summary: Mapping[str, Any]) -> list[list[str]]:
+    """Per scenario: the worst plant's ratios and GC's diverged runs."""
+    div = summary.get("diverged") or {}
+
+    def lost(scen: str) -> str:
+        return fmt(sum(int((div.get(c) or {}).get(scen, 0)) for c in ("GC", "GC-AW")))
+
+    rows = []
+    for scen, f in (summary.get("ratios") or {}).items():
+        rows.append([f"`{scen}`", _worst(f, "ISE"), _worst(f, "ITAE"), "", _worst(f, "ess")])
+        rows[-1].append(lost(scen))
+    for scen, f in (summary.get("tracking") or {}).items():
+        rows.append([f"`{scen}`", "", "", _worst(f, "RMSE"), "", lost(scen)])
+    for scen, f in (summary.get("anti_windup") or {}).items():
+        rows.append([f"`{scen}`, GC-AW / LQI-AW", _worst(f, "ISE"), "", "", "", ""])
+    return rows
+
+
+def _bar_line(bar: Mapping[str, Any]) -> list[str]:
+    """The quality bar's verdicts on one line."""
+    checked = [v for v in bar.values() if v is not None]
+    verdicts = ", ".join(f"`{_text(k, 40)}` {_verdict(v)}" for k, v in list(bar.items())[:12])
+    count = f"{sum(bool(v) for v in checked)} of {len(checked)} passed"
+    return [f"Quality bar (`docs/evaluation.md`): {count}: {verdicts or 'none'}.", ""]
+
+
+def _tag_free_bar(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
+    """The tag-free bar (``bar.json``) on one line, or that the file is absent."""
+    path, bar = recipe.files.get("bar"), data.get("bar")
+    if path is None:
+        return []
+    if not isinstance(bar, Mapping):
+        return [f"Tag-free bar: `{path}` is not here (written by the command above).", ""]
+    return [
+        f"Tag-free bar (`{path}`): {'met' if bar.get('met') else '**not met**'}; "
+        f"{fmt(bar.get('passed'))} of {fmt(bar.get('plants'))} plants within the unit-step ISE "
+        f"ratio {fmt(bar.get('ise_ratio_bar'))} (at least {fmt(bar.get('min_plants'))} "
+        f"required); no divergence: {_verdict(bar.get('no_divergence'))}; diverged: "
+        f"{_names(bar.get('diverged'))}; missed: {_names(bar.get('missing'))}.",
+        "",
+    ]
+
+
+# --- sections ----------------------------------------------------------------------------
+
+_SCENARIO_HEADER = (
+    "scenario",
+    "worst ISE ratio",
+    "worst ITAE ratio",
+    "worst RMSE ratio",
+    "worst relative e_ss of GC",
+    "GC runs diverged",
+)
+
+
+def _evaluation_section(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
+    """Bar verdicts and the worst plant's GC/LQI ratios per scenario."""
+    summary, source = data["summary"], recipe.files["summary"]
+    lines = [*_head(recipe, summary), *_training(recipe, data)]
+    lines += _bar_line(summary.get("quality_bar") or {})
+    lines += ["Worst plant's GC/LQI ratio of the mean over its runs, per scenario:", ""]
+    lines += [*table(_SCENARIO_HEADER, _scenario_rows(summary), source), ""]
+    return lines + _setpoint(recipe, data) + _tag_free_bar(recipe, data)
+
+
+def _bar_cell(bar: Any) -> str:
+    """``value 1.004, limit 1.1: pass`` from one bar of a variants summary."""
+    if not isinstance(bar, Mapping):
+        return ""
+    figures = [
+        f"{_text(k, 30)} {fmt(v)}"
+        for k, v in bar.items()
+        if k != "pass" and not isinstance(v, (Mapping, list))
+    ]
+    return ", ".join(figures[:4]) + f": {_verdict(bar.get('pass'))}"
+
+
+def _variants_section(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
+    """The bars on the test and held-out draws, and the worst plants."""
+    summary, source = data["summary"], recipe.files["summary"]
+    held = summary.get("validation") or {}
+    test_bars, held_bars = summary.get("bars") or {}, held.get("bars") or {}
+    rows = [
+        [f"`{_text(name, 40)}`", _bar_cell(test_bars.get(name)), _bar_cell(held_bars.get(name))]
+        for name in dict.fromkeys([*test_bars, *held_bars])
+    ]
+    rows.append(["all bars", _verdict(summary.get("pass")), _verdict(held.get("pass"))])
+    header = ("bar", "test draw", f"held-out draw (seed {_text(held.get('seed'), 20)})")
+    per_plant = summary.get("per_plant") or {}
+    worst = sorted(
+        ((number(p.get("worst_GC_over_oracle")), name) for name, p in per_plant.items()),
+        key=lambda item: -(item[0] if item[0] is not None else -math.inf),
+    )[:3]
+    names = ", ".join(f"{_text(n, 40)} {fmt(v)}" for v, n in worst) or "none"
+    lines = [*_head(recipe, summary), *_training(recipe, data)]
+    lines += ["GC's unit-step ISE over each unseen variant's own LQI (the oracle):", ""]
+    lines += [*table(header, rows, source), ""]
+    lines += [f"Worst plants (their worst variant, test draw): {names}.", ""]
+    return lines + _setpoint(recipe, data)
+
+
+def _ablation_rows(data: Mapping[str, Any]) -> list[list[str]]:
+    """Per sweep point of ``runs.csv``: parameters, loss, mean MSE, diverged plants, run."""
+    configs = data["summary"].get("configs") or {}
+    rows = []
+    for r in data.get("runs") or []:
+        d, m = number(r.get("hidden")), number(r.get("experts"))
+        ok = r.get("status") == "ok" and d is not None and m is not None
+        cfg = configs.get(f"d={d:g},M={m:g}") if d is not None and m is not None else None
+        cfg = cfg if isinstance(cfg, Mapping) else {}
+        n_par = number(r.get("n_parameters"))
+        cells = [
+            f"{int(n_par):,}" if n_par is not None else "n/a",
+            fmt(number(r.get("final_train_loss"))),
+            fmt(number(cfg.get("mse_mean"))),
+            fmt(number(r.get("closed_loop_diverged"))),
+            f"`{_text(r.get('run_id'))[:8]}`",
+        ]
+        status = _text(r.get("status") or "no run", 30)
+        cells = cells if ok else [status, "", "", "", ""]
+        rows.append([_text(r.get("label"), 20), fmt(d), fmt(m), *cells])
+    return rows
+
+
+_ABLATION_HEADER = (
+    "point",
+    "d",
+    "M",
+    "parameters",
+    "final train loss",
+    "mean closed-loop MSE",
+    "plants diverged",
+    "run",
+)
+
+
+def _ablation_section(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
+    """Per point: parameters, final training loss, mean closed-loop MSE, diverged plants."""
+    summary = data["summary"]
+    lines = [*_head(recipe, summary)]
+    if "runs" in data:
+        lines += [*table(_ABLATION_HEADER, _ablation_rows(data), recipe.files["runs"]), ""]
+    else:
+        lines += [f"Per-point figures: `{recipe.files.get('runs')}` is not here.", ""]
+    return lines + [f"No run for: {_names(summary.get('missing'), 10)}.", ""]
+
+
+SECTIONS = {
+    "evaluation": _evaluation_section,
+    "variants": _variants_section,
+    "ablation": _ablation_section,
+}

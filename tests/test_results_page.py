@@ -1,0 +1,210 @@
+"""The generated results page (``make results``) and the size of the front-page docs."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from generalist_control.reports.results_page import (
+    MAX_LINES,
+    MAX_ROWS,
+    PAGE,
+    RECIPES,
+    build_page,
+    main,
+    render_page,
+)
+from generalist_control.reports.results_sections import fmt
+
+REPO = Path(__file__).resolve().parents[1]
+RECIPE = {r.key: r for r in RECIPES}
+
+
+def _committed_inputs(dest: Path) -> Path:
+    """A copy of the recipes' files that git tracks (a DVC output not in git is left out).
+
+    Outside a git checkout, the working tree itself.
+    """
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(REPO), "ls-files", "-z"], capture_output=True, check=True
+        ).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return REPO
+    tracked = set(out.decode().split("\0"))
+    for path in {p for r in RECIPES for p in r.files.values()} & tracked:
+        (dest / path).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(REPO / path, dest / path)
+    return dest
+
+
+def _write(root: Path, path: str, content: Any) -> None:
+    target = root / path
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if path.endswith(".csv"):
+        with target.open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(content[0]))
+            writer.writeheader()
+            writer.writerows(content)
+    else:
+        target.write_text(json.dumps(content))
+
+
+def _eval_summary(**extra: Any) -> dict[str, Any]:
+    """A small evaluation summary.json with known figures."""
+    return {
+        "diverged": {"GC": {"random_steps": 2}, "LQI": {}, "GC-AW": {"saturation_0.25": 1}},
+        "ratios": {
+            "step": {
+                "worst_ISE_ratio": 1.2345,
+                "worst_ISE_system": "plant_a",
+                "worst_ITAE_ratio": 2.5,
+                "worst_ITAE_system": "plant_b",
+                "worst_relative_ess_GC": 0.00123,
+                "worst_relative_ess_system": "plant_c",
+                "n_systems": 2,
+            }
+        },
+        "tracking": {"sine": {"worst_RMSE_ratio": 1.0777, "worst_RMSE_system": "plant_d"}},
+        "anti_windup": {"saturation_0.25": {"worst_ISE_ratio": 0.875, "worst_ISE_system": "e"}},
+        "quality_bar": {"stable_everywhere": False, "ISE_ratio_le_1.05": False, "x": True},
+        **extra,
+    }
+
+
+def test_the_committed_page_is_what_the_committed_reports_give(tmp_path):
+    root = _committed_inputs(tmp_path)
+    assert build_page(root) == (REPO / PAGE).read_text(), "run `make results` and commit"
+
+
+def test_the_page_is_deterministic_and_written_atomically(tmp_path, capsys):
+    out = tmp_path / "results.md"
+    assert main(["--out", str(out)]) == 0
+    assert out.read_bytes() == build_page(REPO).encode()
+    assert main(["--out", str(out), "--check"]) == 0
+    out.write_text("edited by hand\n")
+    assert main(["--out", str(out), "--check"]) == 1
+    assert out.read_text() == "edited by hand\n"  # --check writes nothing
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.md"]  # no temporary left
+    assert "differs" in capsys.readouterr().out
+
+
+def test_synthetic_reports_render_their_values_and_missing_recipes(tmp_path):
+    _write(tmp_path, "reports/eval/summary.json", _eval_summary())
+    scores = {"diverged": 3, "bar_passed": 1, "bar_checked": 2, "ISE_ratio": 1.2345}
+    _write(
+        tmp_path, "reports/eval/scores.json", {**scores, "ITAE_ratio": 2.5, "RMSE_ratio": 1.0777}
+    )
+    rows = [
+        {"system": "plant_a", "settles": "True", "radius_GC": "0.9", "radius_LQI": "0.8"},
+        {"system": "plant_b", "settles": "False", "radius_GC": "1.25", "radius_LQI": "0.5"},
+    ]
+    _write(tmp_path, "reports/eval/setpoint.csv", rows)
+    text = build_page(tmp_path)
+    assert "| default | 3 | 1.2345 | 2.5 | 1.0777 | 1/2 |" in text
+    assert "| `step` | 1.2345 (plant_a) | 2.5 (plant_b) |  | 1.23e-03 (plant_c) | 0 |" in text
+    assert "| `random_steps` |" not in text  # no ratios for it: only its divergences
+    assert "| `sine` |  |  | 1.0777 (plant_d) |  | 0 |" in text
+    assert "| `saturation_0.25`, GC-AW / LQI-AW | 0.875 (e) |" in text
+    assert "1 of 3 passed: `stable_everywhere` **fail**, `ISE_ratio_le_1.05` **fail**" in text
+    assert "1 of 2 plants settle" in text and "1 with a loop of spectral radius >= 1" in text
+    assert "largest 1.25 (plant_b, LQI's 0.5)" in text
+    assert "`models/metrics.json` is not here" in text  # a DVC output absent from a checkout
+    for key in ("paper", "hybrid", "tag-free", "variants", "ablation"):
+        assert f"| {key} | not run yet |" in text
+        assert f"not run yet: `{RECIPE[key].command}`" in text
+    assert text.count("not run yet: `") == 5
+
+
+def test_without_scores_json_the_headline_comes_from_the_summary(tmp_path):
+    _write(tmp_path, "reports/eval/summary.json", _eval_summary())
+    assert "| default | 3 | 1.2345 | 2.5 | 1.0777 | 1/3 |" in build_page(tmp_path)
+
+
+def test_variants_and_ablation_render_their_values(tmp_path):
+    bar = {"no_divergence": {"GC_diverged_runs": 0, "pass": True}}
+    bar["worst_ISE_ratio"] = {"value": 1.75, "limit": 1.5, "pass": False}
+    summary = {"bars": bar, "pass": False, "ratios": {"variants": {"worst_ISE_ratio": 1.75}}}
+    summary["per_plant"] = {
+        "p1": {"worst_GC_over_oracle": 1.75},
+        "p2": {"worst_GC_over_oracle": 1.1},
+    }
+    summary["validation"] = {"bars": {"worst_ISE_ratio": {"value": 1.25, "pass": True}}, "seed": 7}
+    _write(tmp_path, "reports/variants/summary.json", summary)
+    configs = {"d=16,M=3": {"mse_mean": 0.00042}}
+    _write(tmp_path, "reports/ablation/summary.json", {"configs": configs, "missing": ["M=5"]})
+    runs = [
+        {"label": "d=16", "status": "ok", "hidden": "16.0", "experts": "3.0",
+         "run_id": "abcdef123", "n_parameters": "12345.0", "final_train_loss": "0.0625",
+         "closed_loop_diverged": "1"},
+        {"label": "M=5", "status": "no run", "hidden": "", "experts": "", "run_id": "",
+         "n_parameters": "", "final_train_loss": "", "closed_loop_diverged": ""},
+    ]  # fmt: skip
+    _write(tmp_path, "reports/ablation/runs.csv", runs)
+    text = build_page(tmp_path)
+    assert "| variants | 0 | 1.75 | n/a | n/a | 1/2 |" in text
+    assert "| `worst_ISE_ratio` | value 1.75, limit 1.5: **fail** | value 1.25: pass |" in text
+    assert "held-out draw (seed 7)" in text and "| all bars | **fail** | not measured |" in text
+    assert "Worst plants (their worst variant, test draw): p1 1.75, p2 1.1." in text
+    assert "| d=16 | 16 | 3 | 12,345 | 0.0625 | 4.20e-04 | 1 | `abcdef12` |" in text
+    assert "| M=5 | n/a | n/a | no run |" in text and "No run for: M=5." in text
+
+
+def test_provenance_is_shown_when_the_summary_has_it(tmp_path):
+    prov = {"date": "2026-12-10", "machine": "one H100, 16 cores", "command": "dvc repro -f"}
+    _write(tmp_path, "reports/eval/summary.json", _eval_summary(provenance=prov))
+    _write(tmp_path, "reports/tag_free/summary.json", _eval_summary())
+    text = build_page(tmp_path)
+    default, tag_free = text.split("## Default")[1], text.split("## Tag-free")[1]
+    assert "- date: 2026-12-10\n- machine: one H100, 16 cores\n" in default
+    assert "- recorded command: `dvc repro -f`" in default
+    assert "- date: not recorded\n- machine: not recorded\n" in tag_free.split("## ")[0]
+
+
+def test_the_page_stays_short_whatever_the_reports_hold():
+    many = {f"scenario_{i}": {"worst_ISE_ratio": 1.0 + i} for i in range(3 * MAX_ROWS)}
+    summary = _eval_summary(ratios=many, quality_bar={f"bar_{i}": True for i in range(50)})
+    summary["tracking"] = {f"track_{i}\nwith | odd text": {} for i in range(3 * MAX_ROWS)}
+    bars = {f"bar_{i}": {"value": i, "pass": True} for i in range(3 * MAX_ROWS)}
+    runs = [{"label": f"d={i}", "status": "ok", "hidden": i, "experts": 3} for i in range(99)]
+    setpoint = [{"system": f"p{i}", "settles": "True", "radius_GC": "0.5"} for i in range(500)]
+    eval_data = {"summary": summary, "setpoint": setpoint, "training": {"epochs": 1}}
+    reports = {r.key: eval_data for r in RECIPES if r.kind == "evaluation"}
+    reports["tag-free"] = {**eval_data, "bar": {"diverged": [f"p{i}" for i in range(99)]}}
+    reports["variants"] = {"summary": {"bars": bars, "validation": {"bars": bars}}}
+    reports["ablation"] = {"summary": {"missing": [str(i) for i in range(99)]}, "runs": runs}
+    text = render_page(reports)
+    assert len(text.splitlines()) <= MAX_LINES
+    rows = 2 * 3 * MAX_ROWS + 1  # step and tracking scenarios, and the anti-windup one
+    assert f"{rows - MAX_ROWS} more in `reports/eval/summary.json`" in text
+    assert "p0, p1, p2, p3, p4 and 94 more" in text
+
+
+def test_the_front_pages_are_short():
+    assert len((REPO / "README.md").read_text().splitlines()) <= 150
+    assert len((REPO / PAGE).read_text().splitlines()) <= MAX_LINES
+    make = (REPO / "Makefile").read_text()
+    assert "\nresults:" in make and "-m generalist_control.reports.results_page" in make
+
+
+@pytest.mark.parametrize("recipe", RECIPES, ids=lambda r: r.key)
+def test_every_recipe_names_its_summary_and_a_command(recipe):
+    assert recipe.files["summary"].endswith("summary.json") and recipe.command
+
+
+def test_the_readme_quotes_the_committed_evaluation():
+    readme = (REPO / "README.md").read_text()
+    scores = json.loads((REPO / "reports/eval/scores.json").read_text())
+    summary = json.loads((REPO / "reports/eval/summary.json").read_text())
+    aw = summary["anti_windup"]["saturation_0.25"]["worst_ISE_ratio"]
+    for value in (scores["ISE_ratio"], scores["ITAE_ratio"], scores["RMSE_ratio"], aw):
+        assert f"| {fmt(value)} (" in readme, "README's table: copy it from reports/eval"
+    assert f"| GC runs diverged, every scenario | {scores['diverged']} |" in readme
+    assert f"| {scores['bar_passed']} of {scores['bar_checked']} |" in readme
+    assert f"| {scores['ess_ppm'] / 1e4:.3f} % (" in readme
