@@ -142,8 +142,33 @@ def test_an_incompatible_resume_is_refused_before_the_run_is_touched(
     with pytest.raises(ValueError, match=r"model\.hidden: checkpoint 16, config 32") as err:
         train(compose_cfg(*resume))
     assert "model.hidden=16" in str(err.value) and "drop ckpt_path" in str(err.value)
+    # another plant set: refused, not trained on the checkpoint's plants
+    other = _overrides(tiny_data_dir, tmp_path / "b", mlflow_uri, "model.hidden=16",
+                       f"ckpt_path={last}", "systems.include=[cstr]")  # fmt: skip
+    with pytest.raises(ValueError, match=r"trained on the plants \['cstr', 'hydraulic_actu"):
+        train(compose_cfg(*other))
+    # nothing left to train: refused, not 0 epochs and the old checkpoint published
+    done = _overrides(tiny_data_dir, tmp_path / "b", mlflow_uri, "model.hidden=16",
+                      f"ckpt_path={last}")  # fmt: skip
+    with pytest.raises(ValueError, match="has finished 1 epochs and trainer.max_epochs is 1"):
+        train(compose_cfg(*done))
     assert mlflow.get_run(objs["run_id"]).info.status == "FINISHED"
-    assert len(_runs(mlflow_uri, "b")) == 0  # nothing was opened for the refused resume
+    assert len(_runs(mlflow_uri, "b")) == 0  # nothing was opened for the refused resumes
+    assert not (tmp_path / "b" / "run").exists() or not list((tmp_path / "b").rglob("*.ckpt"))
+
+
+def test_a_users_metrics_json_in_the_published_folder_is_not_overwritten(
+    tiny_data_dir, tmp_path, mlflow_uri
+):
+    published = tmp_path / "mine"
+    published.mkdir()
+    (published / "metrics.json").write_text('{"my_score": 3}\n')
+    cfg = compose_cfg(*_overrides(tiny_data_dir, tmp_path, mlflow_uri, "publish=true",
+                                  f"paths.published_dir={published}"))  # fmt: skip
+    with pytest.raises(FileExistsError, match=r"refusing to overwrite .*mine/metrics.json"):
+        train(cfg)
+    assert (published / "metrics.json").read_text() == '{"my_score": 3}\n'
+    assert len(_runs(mlflow_uri, tmp_path.name)) == 0
 
 
 # --- item 8: a killed training, last.ckpt, the published model ------------------------------

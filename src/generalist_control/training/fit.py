@@ -239,6 +239,7 @@ def _prepare(
     lit = _module(settings, dm, meta, resume=bool(ckpt_path))
     if ckpt_path:
         _check_fits(settings, ckpt_path, lit)
+        check_resume(ckpt_path, meta, settings.max_epochs)
     return settings, dm, meta, lit
 
 
@@ -271,6 +272,7 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     ckpt_path = cfg.get("ckpt_path")
     n_params = count_parameters(lit.policy)
     run_dir = outputs.run_dir(cfg)
+    outputs.check_models_dir(outputs.job_models_dir(cfg, run_dir))
     resume_id = training_run.run_id_from_checkpoint(ckpt_path) if ckpt_path else None
     callbacks, ckpt_cb = _callbacks(cfg, settings, run_dir, lit, dm)
     mlf = training_run.training_logger(cfg.logger, resume_run_id=resume_id)

@@ -8,6 +8,7 @@ the closed-loop errors, 1e-12 .. 1e-5, as their base-10 logarithms (``log10_`` i
 
 from __future__ import annotations
 
+import json
 import math
 import warnings
 from collections.abc import Mapping
@@ -28,7 +29,7 @@ from generalist_control.common.secrets import redact
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.flat import FlatPolicy, flat_columns
-from generalist_control.model.policy import Policy
+from generalist_control.model.policy import POLICY_FILE, Policy, PolicyFileError, load_policy
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.simulation.comparison import output_mse
 from generalist_control.tracking import mlflow_utils, training_run
@@ -39,6 +40,7 @@ __all__ = [
     "closed_loop_scores",
     "dvc_metrics",
     "end_message",
+    "check_models_dir",
     "job_models_dir",
     "log_dataset",
     "log_inputs",
@@ -84,6 +86,40 @@ def job_models_dir(cfg: DictConfig, run_dir: Path) -> Path:
     if published is None or models_dir.resolve() != Path(published).resolve():
         return models_dir
     return run_dir / "models"
+
+
+def check_models_dir(models_dir: Path) -> None:
+    """Refuse, before training, a ``policy.ckpt`` or ``metrics.json`` no training wrote.
+
+    A user's file of that name in the folder the run publishes to would be overwritten.
+
+    Raises
+    ------
+    FileExistsError
+        Naming the file and the fix (another ``paths.published_dir`` or ``run_dir``).
+    """
+    metrics = models_dir / "metrics.json"
+    foreign = []
+    if metrics.exists():
+        try:
+            keys = set(json.loads(metrics.read_text()))
+        except (ValueError, TypeError, OSError):
+            keys = {"not JSON"}
+        if not keys <= set(DVC_METRICS):
+            foreign.append(metrics)
+    policy = models_dir / POLICY_FILE
+    if policy.exists():
+        try:
+            load_policy(policy)
+        except PolicyFileError as exc:
+            if "older version" not in str(exc) and "policy format" not in str(exc):
+                foreign.append(policy)  # an older policy of ours may be replaced
+    if foreign:
+        raise FileExistsError(
+            f"refusing to overwrite {', '.join(map(str, foreign))}: not written by a training "
+            "of this project. Nothing was changed; choose another folder "
+            "(paths.published_dir, or run_dir for an unpublished run) or move the file away"
+        )
 
 
 def closed_loop_scores(cfg: DictConfig, policy: Policy, meta: dict[str, Any]) -> dict[str, float]:

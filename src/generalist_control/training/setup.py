@@ -118,12 +118,34 @@ def config_callbacks(cfg: DictConfig, run_dir: Path) -> list[L.Callback]:
     return callbacks
 
 
-def check_resume(ckpt_path: str, meta: dict[str, Any]) -> None:
-    """Refuse to resume from a checkpoint trained on other data."""
-    old = torch.load(ckpt_path, map_location="cpu", weights_only=True)["hyper_parameters"]
-    old_hash = old.get("meta", {}).get("content_hash")
-    if old_hash != meta["content_hash"]:
+def check_resume(ckpt_path: str, meta: dict[str, Any], max_epochs: int | None = None) -> None:
+    """Refuse to resume from a checkpoint of other data, other plants, or nothing left to do.
+
+    Raises
+    ------
+    ValueError
+        If the checkpoint was trained on data with another content hash, on another plant
+        set (``systems``), or (given ``max_epochs``) has already run ``trainer.max_epochs``
+        epochs, so that a resume would train nothing and publish the old run's checkpoint;
+        each message says what to do.
+    """
+    blob = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    old = blob.get("hyper_parameters", {}).get("meta", {})
+    if old.get("content_hash") != meta["content_hash"]:
         raise ValueError(
-            f"checkpoint {ckpt_path} was trained on data {old_hash}, but "
+            f"checkpoint {ckpt_path} was trained on data {old.get('content_hash')}, but "
             f"{meta['data_dir']} holds {meta['content_hash']}; resume on the same data"
+        )
+    if sorted(old.get("tags", {})) != sorted(meta["tags"]):
+        raise ValueError(
+            f"checkpoint {ckpt_path} was trained on the plants {sorted(old.get('tags', {}))}, "
+            f"this config's set is {sorted(meta['tags'])}: resume with the same systems "
+            "(systems, systems.include), or drop ckpt_path to start a new run"
+        )
+    done = int(blob.get("epoch", -1)) + 1
+    if max_epochs is not None and done >= max_epochs:
+        raise ValueError(
+            f"checkpoint {ckpt_path} has finished {done} epochs and trainer.max_epochs is "
+            f"{max_epochs}: there is nothing left to train; raise trainer.max_epochs, or "
+            "drop ckpt_path to start a new run"
         )
