@@ -1,7 +1,8 @@
 """Build the network from its config (``conf/model``, or the copy a policy file stores).
 
-The config is Hydra's: the network and each part name their class with ``_target_`` and the
-parts are ``_partial_`` (the network builds them, giving them its sizes). A policy file
+The config is Hydra's: the network and each part name their class with ``_target_``. A part
+is built by what holds it, which gives it its sizes, so every nested ``_target_`` is made
+``_partial_`` here (:func:`as_parts`); the config files need not say so. A policy file
 stores the resolved config as plain types, so loading one rebuilds the same network. Only
 classes of :mod:`generalist_control.model` may be named: a policy file cannot make the
 loader call anything else.
@@ -17,7 +18,7 @@ from hydra.utils import instantiate
 
 from generalist_control.model.network import GeneralistNetwork
 
-__all__ = ["TARGET_PREFIX", "build_network", "targets"]
+__all__ = ["TARGET_PREFIX", "as_parts", "build_network", "targets"]
 
 #: Where every ``_target_`` of a network config must live.
 TARGET_PREFIX = "generalist_control.model."
@@ -35,6 +36,18 @@ def targets(config: Any, path: str = "model") -> dict[str, str]:
         for i, value in enumerate(config):
             found.update(targets(value, f"{path}[{i}]"))
     return found
+
+
+def as_parts(config: Any, root: bool = True) -> Any:
+    """``config`` with every nested node that names a ``_target_`` marked ``_partial_``."""
+    if isinstance(config, Mapping):
+        out = {k: as_parts(v, root=False) for k, v in config.items()}
+        if "_target_" in out and not root:
+            out["_partial_"] = True
+        return out
+    if isinstance(config, list | tuple):
+        return [as_parts(v, root=False) for v in config]
+    return config
 
 
 def build_network(config: Mapping[str, Any]) -> GeneralistNetwork:
@@ -59,7 +72,7 @@ def build_network(config: Mapping[str, Any]) -> GeneralistNetwork:
             "is built from the project's own parts only"
         )
     try:
-        net = instantiate(dict(config), _convert_="all")
+        net = instantiate(as_parts(dict(config)), _convert_="all")
     except InstantiationException as exc:
         cause = exc.__cause__
         if isinstance(cause, ValueError | TypeError):

@@ -82,8 +82,11 @@ class GeneralistNetwork(nn.Module):
     window_scale : bool
         Divide each window by its peak and return the scale (:attr:`NetOutput.scale`), so
         errors are relative to the signal; off in the paper's recipe.
-    state_dim : int
-        Padded plant state entries per sample.
+
+    Notes
+    -----
+    Each sample's state is the plant's, zero-padded to
+    :data:`~generalist_control.plants.plant.MAX_ORDER` entries, then the channels.
 
     Examples
     --------
@@ -110,7 +113,6 @@ class GeneralistNetwork(nn.Module):
         channels: Sequence[str] = ("integral",),
         law_history: int | None = None,
         window_scale: bool = True,
-        state_dim: int = MAX_ORDER,
     ) -> None:
         super().__init__()
         d = require_int("model.hidden", hidden)
@@ -123,7 +125,7 @@ class GeneralistNetwork(nn.Module):
         self.stride = require_int("model.stride", stride)
         self.channels = _channels(channels)
         self.window_scale = bool(require_switch("model.window_scale", window_scale))
-        self.state_dim = state_dim
+        self.state_dim = state_dim = MAX_ORDER
         self.law_history = self._law_history(law_history)
         self.width = state_dim + len(self.channels)
         law_width = state_dim + ("integral" in self.channels)  # the law's [x; z]
