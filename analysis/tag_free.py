@@ -1,7 +1,7 @@
 """The tag-free bar (issue 13) and its report: what the policy without its tag achieves.
 
-From the long-form metrics of an evaluation run with the tag withheld
-(``evaluation.withhold_tag=true``), :func:`tag_free_bar` checks
+From the long-form metrics of an evaluation of a policy without the tag
+(``experiment=tag_free``: its plant part never reads the tag), :func:`tag_free_bar` checks
 
 * no divergence of GC on any plant in any scenario;
 * the unit-step ISE ratio GC/LQI at most ``ise_ratio`` (1.25) on at least ``min_plants``
