@@ -1,5 +1,7 @@
 """The runtime's weak answers of issue 36.
 
+* ``set_actuator_limits`` with a limit of zero or below, or NaN, is refused (it froze the
+  error integral or made the command NaN);
 * building the TorchScript or ONNX backend leaves nothing in the temporary directory (each
   load left a ``tmp*/policy.*`` folder behind).
 """
@@ -25,6 +27,36 @@ def policy() -> tuple[Policy, dict]:
     torch.manual_seed(0)
     config = {"hidden": 8, "experts": 2, "window_scale": 1, "integral": 1, "linear_skip": 1}
     return Policy({**config, "linear_samples": 1}).eval(), policy_meta(PLANTS, 8, 3)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"u_limit": 0.0}, "u_limit"),
+        ({"u_limit": -0.5}, "u_limit"),
+        ({"u_limit": float("nan")}, "u_limit"),
+        ({"u_limit": "a lot"}, "u_limit"),
+        ({"rate_limit": 0.0}, "rate_limit"),
+        ({"u_limit": 1.0, "rate_limit": float("nan")}, "rate_limit"),
+    ],
+)
+def test_a_limit_that_is_not_a_positive_number_is_refused(policy, kwargs, name):
+    rt = PolicyRuntime(*policy)
+    rt.set_actuator_limits(u_limit=2.0)
+    before = rt.limits
+    with pytest.raises(ValueError, match=rf"^{name} must be a positive number .*got"):
+        rt.set_actuator_limits(**kwargs)
+    assert rt.limits is before  # the limits known before are kept
+
+
+def test_positive_limits_and_none_are_taken(policy):
+    rt = PolicyRuntime(*policy)
+    rt.set_actuator_limits(u_limit=0.25, rate_limit=np.float32(3.0))
+    assert rt.limits is not None
+    assert (rt.limits.u_limit, rt.limits.rate_limit) == (0.25, 3.0)
+    rt.set_actuator_limits(u_limit=np.inf)  # no limit in effect, but a valid one
+    rt.set_actuator_limits()
+    assert rt.limits is None
 
 
 @pytest.mark.parametrize("backend", ["torchscript", "onnx"])

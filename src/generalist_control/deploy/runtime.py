@@ -44,6 +44,7 @@ import numpy as np
 from generalist_control.data.windows import HistoryBuffer
 from generalist_control.deploy.export import backend as _backend
 from generalist_control.deploy.facts import integral_facts
+from generalist_control.deploy.inputs import actuator_limit
 from generalist_control.deploy.rejection import RejectedStep, rejection
 from generalist_control.deploy.resolve import resolve
 from generalist_control.model.policy import Policy, load_policy
@@ -244,7 +245,14 @@ class PolicyRuntime:
         the error integral is frozen whenever integrating would push the command further
         into the limit, the direction being that of the LQI expert the policy imitates
         (``-Ki``). Without limits nothing changes. Takes effect at the next :meth:`reset`.
+
+        Raises
+        ------
+        ValueError
+            If a limit is not a positive number (zero, negative or NaN).
         """
+        u_limit = actuator_limit(u_limit, "u_limit")
+        rate_limit = actuator_limit(rate_limit, "rate_limit")
         if u_limit is None and rate_limit is None:
             self.limits = None
         else:
