@@ -44,7 +44,7 @@ import numpy as np
 from generalist_control.data.windows import HistoryBuffer
 from generalist_control.deploy.export import backend as _backend
 from generalist_control.deploy.facts import integral_facts
-from generalist_control.deploy.inputs import actuator_limit
+from generalist_control.deploy.inputs import actuator_limit, real_array, shaped_inputs
 from generalist_control.deploy.rejection import RejectedStep, rejection
 from generalist_control.deploy.resolve import resolve
 from generalist_control.model.policy import Policy, load_policy
@@ -202,24 +202,7 @@ class PolicyRuntime:
     def _check(self, x: Any, r: Any) -> tuple[np.ndarray, np.ndarray]:
         if not self._systems:
             raise RuntimeError("call reset(system) before step(x, r)")
-        x, r = np.asarray(x, dtype=np.float64), np.asarray(r, dtype=np.float64)
-        if self._single:
-            n = int(self._order[0])
-            if x.shape != (n,):
-                raise ValueError(
-                    f"state has shape {x.shape}; plant '{self._systems[0]}' has {n} states"
-                )
-            if r.size != 1:
-                raise ValueError(f"reference has shape {r.shape}; expected a scalar")
-            x, r = x[None, :], r.reshape(1)
-        else:
-            B = len(self._systems)
-            if x.ndim != 2 or x.shape[0] != B or x.shape[1] not in (MAX_ORDER, self._order.max()):
-                raise ValueError(
-                    f"state batch has shape {x.shape}; expected ({B}, {MAX_ORDER}) zero-padded"
-                )
-            if r.shape != (B,):
-                raise ValueError(f"reference batch has shape {r.shape}; expected ({B},)")
+        x, r = shaped_inputs(x, r, self._systems, self._order, self._single)
         self._screen("state", x, self._lim["state"][:, : x.shape[1]])
         self._screen("reference", r, self._lim["reference"])
         self._padded[:, : x.shape[1]] = x
@@ -289,7 +272,7 @@ class PolicyRuntime:
             if self._C is None:
                 self._C = self._output_rows()
             return np.einsum("bi,bi->b", self._C, x)  # float64: C is
-        y = np.asarray(y, dtype=np.float64).reshape(-1)
+        y = real_array(y, "measured output y").reshape(-1)
         if y.shape != (len(self._systems),):
             raise ValueError(f"output has shape {y.shape}; expected ({len(self._systems)},)")
         self._screen("output", y, self._lim["output"])
@@ -329,6 +312,13 @@ class PolicyRuntime:
         y : float or array_like, optional
             Measured output deviation, for a policy trained with ``model.integral``;
             default ``C x`` with the output rows stored with the policy.
+
+        Raises
+        ------
+        RejectedStep
+            If an input, a predicted control or the error integral is out of range.
+        TypeError
+            If an input is complex.
         """
         x, r = self._check(x, r)
         if self.integral:
@@ -358,7 +348,7 @@ class PolicyRuntime:
         control at the next step, and a known rate limit starts from it; the error integral
         does not depend on it. ``u``: a scalar for one plant, (B,) for a batch; finite.
         """
-        u = np.asarray(u, dtype=np.float64).reshape(-1)
+        u = real_array(u, "applied control u").reshape(-1)
         if u.shape != self._u_prev.shape:
             raise ValueError(
                 f"applied control has shape {u.shape}; expected {self._u_prev.shape} "
