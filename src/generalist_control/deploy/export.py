@@ -4,7 +4,9 @@ Each backend is a function ``run(state, mask, ref, tag) -> controls`` on raw flo
 (the window builder's arrays) returning the ``horizon`` controls in plant units; the
 :class:`~generalist_control.deploy.runtime.PolicyRuntime` calls it once per sample. Exports are
 traced from the :class:`~generalist_control.model.policy.Policy` (normaliser included) with a
-dynamic batch axis; their outputs equal PyTorch's within 1e-5 (tests/test_runtime.py).
+dynamic batch axis; their outputs equal PyTorch's within 1e-5 (tests/test_runtime.py). The
+ONNX backend also runs one plant at batch 1 through a graph made for it
+(:meth:`~generalist_control.deploy.onnx_backend.OnnxBackend.single`).
 
 Backends are built in memory: nothing is written to disk (:func:`export_onnx` and
 :func:`export_torchscript` write a file only where asked to).
@@ -19,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from generalist_control.deploy.onnx_backend import OnnxBackend
 from generalist_control.model.network import input_width
 from generalist_control.model.policy import Policy
 
@@ -105,13 +108,7 @@ def backend(policy: Policy, name: str) -> Backend:
 
         return run
     if name == "onnx":
-        import onnxruntime as ort  # optional and heavy: only for the ONNX backend
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = 1
-        opts.inter_op_num_threads = 1
-        sess = ort.InferenceSession(onnx_bytes(policy), opts)
-        return lambda state, mask, ref, tag: sess.run(
-            ["controls"], {"state": state, "mask": mask, "ref": ref, "tag": tag}
-        )[0]
+        return OnnxBackend(
+            onnx_bytes(policy), lambda: onnx_bytes(policy, batch=1), policy.config["horizon"]
+        )
     raise ValueError(f"unknown backend '{name}'; choose torch, torchscript or onnx")
