@@ -1,9 +1,9 @@
-"""One plant stepped alone (issue 38): the plant's own ONNX graph.
+"""One plant stepped alone (issue 38): the per-sample path and the plant's own ONNX graph.
 
-``PolicyRuntime.step`` for a runtime reset to one plant takes, with ONNX, a graph made for
-that plant at batch 1. It must give exactly what the general path gives
-(``specialise=False``): the same controls, plans, error integrals and windows, bit for bit,
-on every network variant. The graph rewrites behind the plant's graph are
+``PolicyRuntime.step`` for a runtime reset to one plant takes a path on Python numbers and,
+with ONNX, a graph made for that plant at batch 1. Both must give exactly what the general
+path gives (``specialise=False``): the same controls, plans, error integrals and windows,
+bit for bit, on every network variant. The graph rewrites behind the plant's graph are
 checked one by one in tests/test_runtime_onnx_graph.py.
 """
 
@@ -136,3 +136,21 @@ def test_a_replaced_network_is_what_one_plant_steps_through(policy):
     rt.reset("cstr")
     rt._run = lambda state, mask, ref, tag: np.full((len(tag), 3), 0.125, np.float32)
     assert rt.step([0.1, 0.0], 1.0) == 0.125
+
+
+@pytest.mark.parametrize(("integral", "controls"), [(False, False), (True, False), (True, True)])
+def test_stage_one_writes_the_window_stage_writes(integral, controls):
+    rng = np.random.default_rng(3)
+    order = np.array([3])
+    a, b = (HistoryBuffer(order, 6, integral, controls) for _ in range(2))
+    for k in range(10):
+        x, r, z, u = rng.normal(size=3), float(rng.normal()), float(rng.normal()), rng.normal()
+        padded = np.zeros((1, 4))
+        padded[0, :3] = x
+        sa, ra = a.stage_one(x, r, z, u)
+        sb, _, rb = b.stage(padded, np.array([r]), np.array([z]), np.array([u]))
+        np.testing.assert_array_equal(sa, sb)
+        np.testing.assert_array_equal(ra, rb)
+        if k % 3 != 2:  # some staged windows are dropped, as a refused step's are
+            a.commit()
+            b.commit()
