@@ -35,17 +35,24 @@ from generalist_control.deploy.onnx_layout import tidy_reshapes
 
 __all__ = ["AGREEMENT", "OnnxBackend", "SingleRun", "session", "shrink"]
 
+#: ONNX Runtime's rewrites left out of a plant's graph: MatMulAddFusion makes a MatMul and
+#: the Add of a computed tensor that follows it one Gemm, which sums in another order; the
+#: plant's graph is to give the general session's floats (its products and sums are
+#: already the Gemms the general session's own fusion makes, onnx_affine).
+_UNFUSED = ["MatMulAddFusion"]
+
 #: Largest difference between a plant's shrunk graph and the general session, relative to
 #: the largest control of a window, for the shrunk graph to be used.
 AGREEMENT = 1e-6
 
 
-def session(model: bytes, arena: bool = True) -> Any:
+def session(model: bytes, arena: bool = True, disabled: list[str] | None = None) -> Any:
     """An ONNX Runtime session for one real-time thread.
 
-    One intra- and one inter-op thread, sequential execution, all graph optimisations;
-    ``arena``: ONNX Runtime's memory arena (of use where shapes change from call to call;
-    for one static graph, whose buffers are planned once, a call is faster without it).
+    One intra- and one inter-op thread, sequential execution, all graph optimisations
+    but those named in ``disabled``; ``arena``: ONNX Runtime's memory arena (of use where
+    shapes change from call to call; for one static graph, whose buffers are planned once,
+    a call is faster without it).
     """
     import onnxruntime as ort  # optional and heavy: only for the ONNX backend
 
@@ -56,7 +63,9 @@ def session(model: bytes, arena: bool = True) -> Any:
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     opts.log_severity_level = 3  # warnings of the optimiser are not the user's business
-    return ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
+    return ort.InferenceSession(
+        model, opts, providers=["CPUExecutionProvider"], disabled_optimizers=disabled
+    )
 
 
 def shrink(model: onnx.ModelProto, fixed: dict[str, np.ndarray], keep: list[str]) -> bytes:
@@ -154,10 +163,10 @@ class OnnxBackend:
         mask = np.ascontiguousarray(mask, np.float32)
         key = (int(tag), mask.tobytes())
         if key not in self._single:
-            if self._one_model is None:
-                self._one_model = onnx.load_from_string(self._batch_one())
+            model = self._one_model or onnx.load_from_string(self._batch_one())
+            self._one_model = model
             fixed = {"tag": np.array([tag], np.int64), "mask": mask}
-            sess = session(shrink(self._one_model, fixed, ["controls"]), arena=False)
+            sess = session(shrink(model, fixed, ["controls"]), arena=False, disabled=_UNFUSED)
             worst = self._disagreement(sess, fixed)
             if worst <= AGREEMENT:
                 self._single[key] = SingleRun(sess, self.horizon)

@@ -271,7 +271,8 @@ def einsum_to_matmul(graph: Graph) -> Graph:
 
     ``a, b -> out``: batch letters (in all three), contracted ones (in ``a`` and ``b``) and
     free ones; each operand is transposed to ``(batch, free, contracted)`` order and
-    reshaped to three axes, multiplied, and brought back to ``out``'s axes.
+    reshaped to three axes (two where the batch letters' size is one), multiplied, and
+    brought back to ``out``'s axes.
     """
     graph.infer()
     nodes: list[onnx.NodeProto] = []
@@ -307,8 +308,9 @@ def _einsum_nodes(
         return int(np.prod([dim[c] for c in cs]))
 
     p = n.output[0] + "/mm"
-    sa = (size(batch), size(free_a), size(summed))
-    sb = (size(batch), size(summed), size(free_b))
+    lead = (size(batch),) if size(batch) > 1 else ()  # one product at batch 1: 2-d
+    sa = (*lead, size(free_a), size(summed))
+    sb = (*lead, size(summed), size(free_b))
     x = _arrange(graph, nodes, n.input[0], a, batch + free_a + summed, sa, dim, p + "a")
     y = _arrange(graph, nodes, n.input[1], b, batch + summed + free_b, sb, dim, p + "b")
     nodes.append(helper.make_node("MatMul", [x, y], [p]))
@@ -327,7 +329,7 @@ def _arrange(
     name: str,
     letters: str,
     order: list[str],
-    shape: tuple[int, int, int],
+    shape: tuple[int, ...],
     dim: dict[str, int],
     prefix: str,
 ) -> str:
