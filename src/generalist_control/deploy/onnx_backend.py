@@ -74,7 +74,7 @@ def shrink(model: onnx.ModelProto, fixed: dict[str, np.ndarray], keep: list[str]
     graph.outputs = [o for o in graph.outputs if o.name in keep]
     graph = fold_constants(prune(drop_trivial(fold_constants(graph))))
     graph = tidy_reshapes(fold_affine(prune(einsum_to_matmul(graph))))
-    return graph.to_model().SerializeToString()
+    return prune(fold_constants(graph)).to_model().SerializeToString()  # reshaped constants
 
 
 class SingleRun:

@@ -11,6 +11,7 @@ is left to the general path, which then takes the step or refuses it with its fu
 
 from __future__ import annotations
 
+from array import array
 from typing import Any
 
 import numpy as np
@@ -50,12 +51,14 @@ class OnePlant:
         self.rt = rt
         self.n = int(rt._order[0])
         lim = rt._lim
-        self.lim_x: list[float] = lim["state"][0, : self.n].tolist()
+        # at most float32's largest: the state is rounded to float32 (array("f") below)
+        self.lim_x: list[float] = np.minimum(lim["state"][0, : self.n], 3.4e38).tolist()
         self.lim_r = float(lim["reference"][0])
         self.lim_u = float(lim["network output"][0, 0])
         self.lim_z = float(lim["error integral"][0]) if rt.integral else 0.0
         self.c: list[float] | None = None  # the output row, read when y is first left out
         self.integral, self.shape, self.plan_shape = rt.integral, (self.n,), (1, rt.horizon)
+        self.buffer, self.dt = rt._buffer, rt.dt
 
     def _output(self, y: Any, xs: list[float]) -> float | None:
         if y is not None:
@@ -82,17 +85,18 @@ class OnePlant:
             r = _number(r)
         if x.shape != self.shape or r is None or rt.limits is not None or not abs(r) <= self.lim_r:
             return None
-        for v, limit in zip(x.tolist(), self.lim_x, strict=True):
+        xs = x.tolist()
+        for v, limit in zip(xs, self.lim_x, strict=True):
             if not abs(v) <= limit:
                 return None
         z = float(rt.z[0]) if self.integral else 0.0
-        buffer = rt._buffer
-        state, ref = buffer.stage_one(x, r, z, float(rt._u_prev[0]))
         if self.integral:
             # y = C x of the state as the window holds it (float32), as the general path
-            yv = self._output(y, state[0, -1, : self.n].tolist())
+            yv = self._output(y, array("f", xs).tolist())
             if yv is None:
                 return None
+        buffer = self.buffer
+        state, ref = buffer.stage_one(x, r, z, float(rt._u_prev[0]))
         net = rt._net1
         if net is None or rt._run is not rt._backend:
             net = rt._network
@@ -104,7 +108,7 @@ class OnePlant:
             if not abs(v) <= self.lim_u:
                 return None
         if self.integral:
-            z = z + rt.dt * (r - yv)
+            z = z + self.dt * (r - yv)
             if not abs(z) <= self.lim_z:
                 return None
             rt.z[0] = z
