@@ -171,8 +171,9 @@ class PolicyRuntime:
         self._u_prev = np.zeros(len(names))
         self._C: np.ndarray | None = None
         self._set_limits()
+        # one plant by name only: a batch (of one too, as evaluation's) keeps the batch session
         single_run = getattr(self._backend, "single", None) if self.specialise else None
-        self._net1 = None if single_run is None or len(names) > 1 else single_run(
+        self._net1 = None if single_run is None or not single else single_run(
             int(self._tag[0]), self._buffer.mask
         )  # fmt: skip
         self._one = OnePlant(self) if single and self.specialise else None
