@@ -179,7 +179,8 @@ class HistoryBuffer:
     without changing the buffer, and :meth:`commit` then makes it the newest, so a caller
     can check the window (and what the policy makes of it) and drop it on failure. Both
     write into preallocated arrays (two of each, swapped on commit): no allocation per
-    sample.
+    sample. :meth:`stage_one` stages the same window for a buffer of one trajectory from
+    plain numbers (the runtime's per-sample path for one plant).
 
     Parameters
     ----------
@@ -237,6 +238,33 @@ class HistoryBuffer:
             ref[:, -1] = r
         self._staged = True
         return state, self.mask, ref
+
+    def stage_one(
+        self, x: np.ndarray, r: float, z: float = 0.0, u_prev: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`stage` for a buffer of one trajectory, writing the same window.
+
+        ``x`` (n,): the real states only (``n`` the trajectory's order; the padding stays
+        zero, as the mask makes it in :meth:`stage`); ``r``, ``z``, ``u_prev``: numbers,
+        ``z`` and ``u_prev`` used where the buffer keeps them. Returns ``(state, ref)``;
+        the mask is :attr:`mask`. For the runtime's per-sample path: no argument checks.
+        """
+        state, ref = self._next_state, self._next_ref
+        row = state[0, -1]  # the padding of this row is zero and is never written
+        row[: x.shape[0]] = x
+        if self.integral:
+            row[MAX_ORDER] = z
+        if self.controls:
+            row[-1] = u_prev
+        if self._empty:
+            state[0, :-1] = row
+            ref[0] = r
+        else:
+            state[0, :-1] = self.state[0, 1:]
+            ref[0, :-1] = self.ref[0, 1:]
+            ref[0, -1] = r
+        self._staged = True
+        return state, ref
 
     def commit(self) -> None:
         """Make the window of the last :meth:`stage` the newest (swaps arrays, copies none)."""

@@ -4,21 +4,27 @@ Each backend is a function ``run(state, mask, ref, tag) -> controls`` on raw flo
 (the window builder's arrays) returning the ``horizon`` controls in plant units; the
 :class:`~generalist_control.deploy.runtime.PolicyRuntime` calls it once per sample. Exports are
 traced from the :class:`~generalist_control.model.policy.Policy` (normaliser included) with a
-dynamic batch axis; their outputs equal PyTorch's within 1e-5 (tests/test_runtime.py).
+dynamic batch axis; their outputs equal PyTorch's within 1e-5 (tests/test_runtime.py). The
+ONNX backend also runs one plant at batch 1 through a graph made for it
+(:meth:`~generalist_control.deploy.onnx_backend.OnnxBackend.single`).
+
+Backends are built in memory: nothing is written to disk (:func:`export_onnx` and
+:func:`export_torchscript` write a file only where asked to).
 """
 
 from __future__ import annotations
 
-import tempfile
+import io
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from generalist_control.deploy.onnx_backend import OnnxBackend
 from generalist_control.model.policy import Policy
 
-__all__ = ["Backend", "backend", "export_onnx", "export_torchscript"]
+__all__ = ["Backend", "backend", "export_onnx", "export_torchscript", "onnx_bytes"]
 
 _INPUTS = ("state", "mask", "ref", "tag")
 
@@ -44,30 +50,43 @@ def _example(policy: Policy, batch: int = 2) -> tuple[torch.Tensor, ...]:
     )
 
 
+def _traced(policy: Policy) -> torch.jit.ScriptModule:
+    with torch.no_grad():
+        return torch.jit.trace(policy.eval(), _example(policy), check_trace=False)
+
+
 def export_torchscript(policy: Policy, path: str | Path) -> Path:
     """Trace ``policy`` (raw windows in, ``(controls, gates)`` out) to a TorchScript file."""
     path = Path(path)
-    with torch.no_grad():
-        traced = torch.jit.trace(policy.eval(), _example(policy), check_trace=False)
-    traced.save(str(path))
+    _traced(policy).save(str(path))
     return path
 
 
-def export_onnx(policy: Policy, path: str | Path) -> Path:
-    """Export ``policy`` to ONNX with a dynamic batch axis (inputs state, mask, ref, tag)."""
-    path = Path(path)
-    dyn = {k: {0: "batch"} for k in (*_INPUTS, "controls", "gates")}
+def onnx_bytes(policy: Policy, batch: int | None = None) -> bytes:
+    """``policy`` as an ONNX model (inputs state, mask, ref, tag; outputs controls, gates).
+
+    ``batch``: None for a dynamic batch axis, or a fixed batch size (all shapes static).
+    """
+    dyn = None if batch else {k: {0: "batch"} for k in (*_INPUTS, "controls", "gates")}
+    buffer = io.BytesIO()
     with torch.no_grad():
         torch.onnx.export(
             policy.eval(),
-            _example(policy),
-            str(path),
+            _example(policy, batch or 2),
+            buffer,  # type: ignore[arg-type]  # the TorchScript-based exporter writes to it
             input_names=list(_INPUTS),
             output_names=["controls", "gates"],
             dynamic_axes=dyn,
             opset_version=17,
             dynamo=False,
         )
+    return buffer.getvalue()
+
+
+def export_onnx(policy: Policy, path: str | Path) -> Path:
+    """Export ``policy`` to ONNX with a dynamic batch axis (inputs state, mask, ref, tag)."""
+    path = Path(path)
+    path.write_bytes(onnx_bytes(policy))
     return path
 
 
@@ -75,9 +94,11 @@ def backend(policy: Policy, name: str) -> Backend:
     """The ``run(state, mask, ref, tag)`` function of backend ``name`` for ``policy``."""
     if name == "torch":
         return _torch_backend(policy)
-    tmp = Path(tempfile.mkdtemp())
     if name == "torchscript":
-        module = torch.jit.load(str(export_torchscript(policy, tmp / "policy.ts")))
+        buffer = io.BytesIO()
+        torch.jit.save(_traced(policy), buffer)
+        buffer.seek(0)
+        module = torch.jit.load(buffer)
 
         @torch.inference_mode()
         def run(state, mask, ref, tag):
@@ -85,13 +106,5 @@ def backend(policy: Policy, name: str) -> Backend:
 
         return run
     if name == "onnx":
-        import onnxruntime as ort  # optional and heavy: only for the ONNX backend
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = 1
-        opts.inter_op_num_threads = 1
-        sess = ort.InferenceSession(str(export_onnx(policy, tmp / "policy.onnx")), opts)
-        return lambda state, mask, ref, tag: sess.run(
-            ["controls"], {"state": state, "mask": mask, "ref": ref, "tag": tag}
-        )[0]
+        return OnnxBackend(onnx_bytes(policy), lambda: onnx_bytes(policy, batch=1), policy.horizon)
     raise ValueError(f"unknown backend '{name}'; choose torch, torchscript or onnx")

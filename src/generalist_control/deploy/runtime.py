@@ -31,6 +31,12 @@ input, value and allowed range, and changes nothing (see :class:`PolicyRuntime`)
 Backends: ``"torch"`` (eager), ``"torchscript"`` and ``"onnx"`` (ONNX Runtime); see
 :mod:`generalist_control.deploy.export`. In a simulated loop the runtime is driven through
 :class:`~generalist_control.deploy.adapter.RuntimeAdapter`.
+
+**One plant** (``reset(name)``) is stepped on Python numbers
+(:class:`~generalist_control.deploy.single.OnePlant`) and, with ONNX, through a graph made for
+that plant at batch 1 (:meth:`~generalist_control.deploy.onnx_backend.OnnxBackend.single`):
+the general path's controls, bit for bit, in a third of its time (issue 38). Inputs out of
+range, actuator limits and other unusual steps take the general path.
 """
 
 from __future__ import annotations
@@ -44,8 +50,10 @@ import numpy as np
 from generalist_control.data.windows import HistoryBuffer
 from generalist_control.deploy.export import backend as _backend
 from generalist_control.deploy.facts import integral_facts
+from generalist_control.deploy.inputs import actuator_limit, real_array, shaped_inputs
 from generalist_control.deploy.rejection import RejectedStep, rejection
 from generalist_control.deploy.resolve import resolve
+from generalist_control.deploy.single import OnePlant, output_of
 from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.plant import MAX_ORDER
 from generalist_control.simulation.antiwindup import conditional_increment
@@ -78,6 +86,9 @@ class PolicyRuntime:
     backend : {"torch", "torchscript", "onnx"}
     input_limit : float
         ``L`` above, a positive number: how many training RMS a signal may reach.
+    specialise : bool
+        Step one plant alone through its own path (module docstring); False: the general
+        path, as for a batch of one (e.g. to compare the two).
     """
 
     def __init__(
@@ -86,6 +97,7 @@ class PolicyRuntime:
         meta: dict[str, Any],
         backend: str = "torch",
         input_limit: float = INPUT_LIMIT,
+        specialise: bool = True,
     ) -> None:
         if not 0.0 < float(input_limit) < np.inf:
             raise ValueError(f"input_limit must be a positive number; got {input_limit!r}")
@@ -106,8 +118,11 @@ class PolicyRuntime:
         }
         self._unknown: set[str] = set()  # plants neither the meta nor the catalogue knows
         self.limits: Perturbation | None = None
-        self.backend = backend
-        self._run = _backend(policy, backend)
+        self.backend, self.specialise = backend, bool(specialise)
+        self._backend = _backend(policy, backend)
+        self._run = self._backend  # (tests replace it to corrupt the network's output)
+        self._net1: Any = None  # the backend's own batch-1 run of the plant, if it has one
+        self._one: OnePlant | None = None
         self._systems: list[str] = []
         self._single = True
         self.plan = np.zeros((0, self.horizon), np.float32)
@@ -156,6 +171,12 @@ class PolicyRuntime:
         self._u_prev = np.zeros(len(names))
         self._C: np.ndarray | None = None
         self._set_limits()
+        # one plant by name only: a batch (of one too, as evaluation's) keeps the batch session
+        single_run = getattr(self._backend, "single", None) if self.specialise else None
+        self._net1 = None if single_run is None or not single else single_run(
+            int(self._tag[0]), self._buffer.mask
+        )  # fmt: skip
+        self._one = OnePlant(self) if single and self.specialise else None
 
     def _set_limits(self) -> None:
         """Per row, the largest magnitude of each input and control (the class docstring)."""
@@ -188,6 +209,7 @@ class PolicyRuntime:
         self.plan = self.plan[idx] if len(self.plan) else self.plan
         self._single = self._single and idx.size == 1
         self._set_limits()
+        self._one = OnePlant(self) if self._single and self.specialise else None
 
     def _screen(self, kind: str, values: np.ndarray, limit: np.ndarray) -> None:
         """Refuse the step unless every ``|value| <= limit`` (NaN and inf never are)."""
@@ -201,24 +223,7 @@ class PolicyRuntime:
     def _check(self, x: Any, r: Any) -> tuple[np.ndarray, np.ndarray]:
         if not self._systems:
             raise RuntimeError("call reset(system) before step(x, r)")
-        x, r = np.asarray(x, dtype=np.float64), np.asarray(r, dtype=np.float64)
-        if self._single:
-            n = int(self._order[0])
-            if x.shape != (n,):
-                raise ValueError(
-                    f"state has shape {x.shape}; plant '{self._systems[0]}' has {n} states"
-                )
-            if r.size != 1:
-                raise ValueError(f"reference has shape {r.shape}; expected a scalar")
-            x, r = x[None, :], r.reshape(1)
-        else:
-            B = len(self._systems)
-            if x.ndim != 2 or x.shape[0] != B or x.shape[1] not in (MAX_ORDER, self._order.max()):
-                raise ValueError(
-                    f"state batch has shape {x.shape}; expected ({B}, {MAX_ORDER}) zero-padded"
-                )
-            if r.shape != (B,):
-                raise ValueError(f"reference batch has shape {r.shape}; expected ({B},)")
+        x, r = shaped_inputs(x, r, self._systems, self._order, self._single)
         self._screen("state", x, self._lim["state"][:, : x.shape[1]])
         self._screen("reference", r, self._lim["reference"])
         self._padded[:, : x.shape[1]] = x
@@ -244,7 +249,14 @@ class PolicyRuntime:
         the error integral is frozen whenever integrating would push the command further
         into the limit, the direction being that of the LQI expert the policy imitates
         (``-Ki``). Without limits nothing changes. Takes effect at the next :meth:`reset`.
+
+        Raises
+        ------
+        ValueError
+            If a limit is not a positive number (zero, negative or NaN).
         """
+        u_limit = actuator_limit(u_limit, "u_limit")
+        rate_limit = actuator_limit(rate_limit, "rate_limit")
         if u_limit is None and rate_limit is None:
             self.limits = None
         else:
@@ -280,8 +292,10 @@ class PolicyRuntime:
         if y is None:
             if self._C is None:
                 self._C = self._output_rows()
+            if self._single:  # as OnePlant sums it
+                return np.array([output_of(self._C[0].tolist(), x[0].tolist())])
             return np.einsum("bi,bi->b", self._C, x)  # float64: C is
-        y = np.asarray(y, dtype=np.float64).reshape(-1)
+        y = real_array(y, "measured output y").reshape(-1)
         if y.shape != (len(self._systems),):
             raise ValueError(f"output has shape {y.shape}; expected ({len(self._systems)},)")
         self._screen("output", y, self._lim["output"])
@@ -321,12 +335,23 @@ class PolicyRuntime:
         y : float or array_like, optional
             Measured output deviation, for a policy with the ``integral`` channel;
             default ``C x`` with the output rows stored with the policy.
+
+        Raises
+        ------
+        RejectedStep
+            If an input, a predicted control or the error integral is out of range.
+        TypeError
+            If an input is complex.
         """
+        if self._one is not None:  # one plant: the same step on Python numbers
+            fast = self._one.step(x, r, y)
+            if fast is not None:
+                return fast
         x, r = self._check(x, r)
         if self.integral:
             y = self._output(y, x)  # checked before anything changes
         state, mask, ref = self._buffer.stage(x, r, self.z, self._u_prev)
-        plan = np.asarray(self._run(state, mask, ref, self._tag))
+        plan = np.array(self._network(state, ref))
         if plan.shape != (len(self._systems), self.horizon):
             raise RuntimeError(f"the backend returned controls of shape {plan.shape}")
         self._screen("network output", plan, self._lim["network output"])
@@ -341,6 +366,12 @@ class PolicyRuntime:
         self.plan = plan
         return float(u[0]) if self._single else u
 
+    def _network(self, state: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        """The backend's controls for the staged window (its batch-1 run for one plant)."""
+        if self._net1 is not None and self._run is self._backend:
+            return self._net1(state, ref)
+        return np.asarray(self._run(state, self._buffer.mask, ref, self._tag))
+
     def record_applied(self, u: Any) -> None:
         """Tell the runtime the control the plant received at the last :meth:`step`.
 
@@ -350,7 +381,7 @@ class PolicyRuntime:
         control at the next step, and a known rate limit starts from it; the error integral
         does not depend on it. ``u``: a scalar for one plant, (B,) for a batch; finite.
         """
-        u = np.asarray(u, dtype=np.float64).reshape(-1)
+        u = real_array(u, "applied control u").reshape(-1)
         if u.shape != self._u_prev.shape:
             raise ValueError(
                 f"applied control has shape {u.shape}; expected {self._u_prev.shape} "

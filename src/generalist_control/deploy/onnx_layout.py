@@ -1,0 +1,158 @@
+"""Fewer reshapes in a static-shape ONNX graph: each one is a node ONNX Runtime runs.
+
+:func:`tidy_reshapes` rewrites, until nothing changes:
+
+* a ``Squeeze``, ``Unsqueeze``, ``Flatten``, or a ``Transpose`` that moves only axes of
+  size one, as the ``Reshape`` it is (to its static shape);
+* a reshape of a reshape as one reshape, and a reshape to its input's own shape as nothing;
+* an elementwise function of a reshape as the reshape of the function (so that reshapes
+  meet, and cancel, further down);
+* a ``Concat`` along the last axis of tensors reshaped alike as the reshape of the
+  ``Concat`` of the tensors.
+
+None of these changes a value: they move elements, never compute them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+from onnx import helper
+
+from generalist_control.deploy.onnx_graph import Graph, prune
+
+__all__ = ["tidy_reshapes"]
+
+#: Elementwise functions of one tensor (no attribute changes what "elementwise" means).
+_ELEMENTWISE = {
+    "Relu", "Sigmoid", "Tanh", "Neg", "Abs", "Exp", "Log", "Sqrt", "Reciprocal", "Softplus",
+    "Softsign", "Elu", "Selu", "LeakyRelu", "HardSigmoid", "Erf", "Floor", "Ceil", "Sign",
+}  # fmt: skip
+_SHAPES = {"Reshape", "Squeeze", "Unsqueeze", "Flatten"}
+
+
+def _static_reshape(graph: Graph, node: onnx.NodeProto) -> bool:
+    """Rewrite a reshape-like node as ``Reshape`` to its static output shape (if it is one)."""
+    if not node.input or not node.output:
+        return False
+    src, out = graph.shape(node.input[0]), graph.shape(node.output[0])
+    if src is None or out is None:
+        return False
+    if node.op_type == "Transpose":
+        perm = [a.ints for a in node.attribute if a.name == "perm"]
+        order = list(perm[0]) if perm else list(range(len(src)))[::-1]
+        moved = [a for a in order if src[a] != 1]
+        if moved != sorted(moved):
+            return False
+    elif node.op_type not in _SHAPES:
+        return False
+    name = node.output[0] + "/static_shape"
+    graph.consts[name] = np.array(out, np.int64)
+    node.op_type = "Reshape"
+    node.input[:] = [node.input[0], name]
+    del node.attribute[:]
+    return True
+
+
+def _collapse(graph: Graph) -> bool:
+    """Reshape-like nodes as static reshapes; chains of them as one; identities dropped."""
+    changed = False
+    producer = {o: n for n in graph.nodes for o in n.output}
+    outputs = {o.name for o in graph.outputs}
+    alias: dict[str, str] = {}
+    kept = []
+    for n in graph.nodes:
+        n.input[:] = [alias.get(i, i) for i in n.input]
+        was = n.op_type
+        static = was in _SHAPES | {"Transpose"} and _static_reshape(graph, n)
+        changed |= static and was != "Reshape"
+        if static:
+            inner = producer.get(n.input[0])
+            if inner is not None and inner.op_type == "Reshape":
+                n.input[0] = inner.input[0]  # its shape is static: the input's does not matter
+                changed = True
+            if graph.shape(n.input[0]) == graph.shape(n.output[0]) and n.output[0] not in outputs:
+                alias[n.output[0]] = n.input[0]
+                changed = True
+                continue
+        kept.append(n)
+    graph.nodes = kept
+    return changed
+
+
+def _sink(graph: Graph) -> bool:
+    """``f(Reshape(x))`` as ``Reshape(f(x))`` for elementwise ``f`` (the reshape read once)."""
+    readers = graph.consumers()
+    producer = {o: n for n in graph.nodes for o in n.output}
+    outputs = {o.name for o in graph.outputs}
+    changed = False
+    for n in list(graph.nodes):
+        r = producer.get(n.input[0]) if n.op_type in _ELEMENTWISE and n.input else None
+        if r is None or r.op_type != "Reshape" or len(readers.get(r.output[0], ())) != 1:
+            continue
+        shape = graph.shape(n.output[0])
+        if r.output[0] in outputs or shape is None:
+            continue
+        inner, out = n.output[0] + "/before_reshape", n.output[0]
+        n.input[0], n.output[0] = r.input[0], inner
+        r.input[:] = [inner, out + "/static_shape"]
+        r.output[0] = out
+        graph.consts[out + "/static_shape"] = np.array(shape, np.int64)
+        changed = True
+    if changed:
+        graph.sort()
+    return changed
+
+
+def _joinable(graph: Graph, node: onnx.NodeProto, producer, readers) -> list[str] | None:
+    """The tensors a last-axis ``Concat`` of reshapes could join before reshaping, or None."""
+    out = graph.shape(node.output[0])
+    if out is None:
+        return None
+    axis = next(a.i for a in node.attribute if a.name == "axis") % len(out)
+    rs = [producer.get(i) for i in node.input]
+    if axis != len(out) - 1 or any(r is None or r.op_type != "Reshape" for r in rs):
+        return None
+    ins = [r.input[0] for r in rs if r is not None]
+    shapes = [graph.shape(i) for i in ins]
+    if any(s is None for s in shapes) or len({s[:-1] for s in shapes if s}) != 1:
+        return None
+    for r, s in zip(rs, shapes, strict=True):
+        assert r is not None and s is not None
+        if (
+            len(readers.get(r.output[0], ())) != 1
+            or s[-1:] != (graph.shape(r.output[0]) or ())[-1:]
+        ):
+            return None
+    return ins
+
+
+def _concat(graph: Graph) -> bool:
+    """``Concat`` on the last axis of reshapes that regroup only leading axes, alike."""
+    readers = graph.consumers()
+    producer = {o: n for n in graph.nodes for o in n.output}
+    changed = False
+    for n in list(graph.nodes):
+        ins = _joinable(graph, n, producer, readers) if n.op_type == "Concat" else None
+        if ins is None:
+            continue
+        target, joined = n.output[0], n.output[0] + "/joined"
+        graph.consts[joined + "/shape"] = np.array(graph.shape(target), np.int64)
+        n.input[:], n.output[0] = ins, joined
+        del n.attribute[:]
+        n.attribute.append(helper.make_attribute("axis", len(graph.shape(ins[0]) or ()) - 1))
+        graph.nodes.append(helper.make_node("Reshape", [joined, joined + "/shape"], [target]))
+        changed = True
+    if changed:
+        graph.sort()
+    return changed
+
+
+def tidy_reshapes(graph: Graph) -> Graph:
+    """Apply the rewrites of the module docstring until none applies; drop what is unused."""
+    for _ in range(50):
+        graph.infer()
+        if not (_collapse(graph) | _sink(graph) | _concat(graph)):
+            break
+        prune(graph)
+    return prune(graph)

@@ -1,0 +1,112 @@
+"""The runtime's weak answers of issue 36: bad actuator limits, complex inputs, temp folders.
+
+* ``set_actuator_limits`` with a limit of zero or below, or NaN, is refused (it froze the
+  error integral or made the command NaN);
+* a complex state, reference, output or applied control is refused, naming the input (its
+  imaginary part was dropped), and the runtime is left as it was;
+* building the TorchScript or ONNX backend leaves nothing in the temporary directory (each
+  load left a ``tmp*/policy.*`` folder behind).
+"""
+
+from __future__ import annotations
+
+import tempfile
+
+import numpy as np
+import pytest
+import torch
+
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.model.policy import Policy
+from helpers import policy_meta
+
+PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
+
+
+@pytest.fixture(scope="module")
+def policy() -> tuple[Policy, dict]:
+    """A small integrating policy (random weights; the checks do not depend on them)."""
+    torch.manual_seed(0)
+    config = {"hidden": 8, "experts": 2, "window_scale": 1, "integral": 1, "linear_skip": 1}
+    return Policy({**config, "linear_samples": 1}).eval(), policy_meta(PLANTS, 8, 3)
+
+
+def _state(rt: PolicyRuntime) -> list[np.ndarray]:
+    state, _, ref, _ = rt.window()
+    return [a.copy() for a in (state, ref, rt.z, rt._u_prev, rt.plan)]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"u_limit": 0.0}, "u_limit"),
+        ({"u_limit": -0.5}, "u_limit"),
+        ({"u_limit": float("nan")}, "u_limit"),
+        ({"u_limit": "a lot"}, "u_limit"),
+        ({"rate_limit": 0.0}, "rate_limit"),
+        ({"u_limit": 1.0, "rate_limit": float("nan")}, "rate_limit"),
+    ],
+)
+def test_a_limit_that_is_not_a_positive_number_is_refused(policy, kwargs, name):
+    rt = PolicyRuntime(*policy)
+    rt.set_actuator_limits(u_limit=2.0)
+    before = rt.limits
+    with pytest.raises(ValueError, match=rf"^{name} must be a positive number .*got"):
+        rt.set_actuator_limits(**kwargs)
+    assert rt.limits is before  # the limits known before are kept
+
+
+def test_positive_limits_and_none_are_taken(policy):
+    rt = PolicyRuntime(*policy)
+    rt.set_actuator_limits(u_limit=0.25, rate_limit=np.float32(3.0))
+    assert rt.limits is not None
+    assert (rt.limits.u_limit, rt.limits.rate_limit) == (0.25, 3.0)
+    rt.set_actuator_limits(u_limit=np.inf)  # no limit in effect, but a valid one
+    rt.set_actuator_limits()
+    assert rt.limits is None
+
+
+@pytest.mark.parametrize("backend", ["torch", "onnx"])
+@pytest.mark.parametrize("where", ["x", "r", "y"])
+def test_a_complex_input_to_one_plant_is_refused_and_changes_nothing(policy, backend, where):
+    rt = PolicyRuntime(*policy, backend=backend)
+    rt.reset("hydraulic_actuator")
+    x, r, y = np.array([0.1, -0.2, 0.05]), 1.0, 0.2
+    rt.step(x, r, y)
+    before = _state(rt)
+    bad = {"x": x + 0.5j, "r": np.complex128(1.0 + 1e-3j), "y": np.array([0.2 + 1j])}[where]
+    args = {"x": x, "r": r, "y": y, where: bad}
+    label = {"x": "state x", "r": "reference r", "y": "measured output y"}[where]
+    with pytest.raises(TypeError, match=rf"{label} is complex \(complex128\).*real part"):
+        rt.step(args["x"], args["r"], args["y"])
+    for a, b in zip(_state(rt), before, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_complex_batch_or_applied_control_is_refused(policy):
+    rt = PolicyRuntime(*policy)
+    rt.reset(["cstr", "hydraulic_actuator"])
+    x = np.array([[0.1, 0.0, 0, 0], [0.2, 0.1, -0.1, 0]])
+    with pytest.raises(TypeError, match="state x is complex"):
+        rt.step(x.astype(complex), np.ones(2))
+    with pytest.raises(TypeError, match="reference r is complex"):
+        rt.step(x, np.ones(2, complex))
+    rt.step(x, np.ones(2))
+    with pytest.raises(TypeError, match="applied control u is complex"):
+        rt.record_applied(np.array([0.1, 0.2j]))
+    # a complex dtype holding real values is refused too: the caller says which part to use
+    with pytest.raises(TypeError, match="state x is complex"):
+        rt.step(x + 0j, np.ones(2))
+
+
+@pytest.mark.parametrize("backend", ["torchscript", "onnx"])
+def test_building_a_backend_leaves_nothing_in_the_temporary_directory(
+    policy, backend, tmp_path, monkeypatch
+):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    rt = PolicyRuntime(*policy, backend=backend)
+    rt.reset("cstr")  # one plant: the ONNX backend builds its batch-1 graph too
+    rt.step([0.1, 0.0], 1.0)
+    rt.reset(list(PLANTS))
+    rt.step(np.zeros((2, 4)), np.ones(2))
+    assert list(tmp_path.iterdir()) == []
