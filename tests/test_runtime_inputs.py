@@ -18,7 +18,7 @@ import torch
 
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
-from helpers import policy_meta
+from helpers import net_config, policy_meta
 
 PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
 
@@ -27,8 +27,9 @@ PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
 def policy() -> tuple[Policy, dict]:
     """A small integrating policy (random weights; the checks do not depend on them)."""
     torch.manual_seed(0)
-    config = {"hidden": 8, "experts": 2, "window_scale": 1, "integral": 1, "linear_skip": 1}
-    return Policy({**config, "linear_samples": 1}).eval(), policy_meta(PLANTS, 8, 3)
+    config = net_config(hidden=8, experts=2, window_scale=True, channels=["integral"],
+                        skip="linear")  # fmt: skip
+    return Policy(config).eval(), policy_meta(PLANTS, 8, 3)
 
 
 def _state(rt: PolicyRuntime) -> list[np.ndarray]:

@@ -24,16 +24,16 @@ from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import simulate
-from helpers import policy_meta
+from helpers import net_config, policy_meta
 
 PLANTS = ("cstr", "hydraulic_actuator", "two_mass_spring")  # orders 2, 3 and 4
 
 VARIANTS = {
     "paper": {},
-    "default": {"window_scale": 1, "integral": 1, "linear_skip": 1, "linear_samples": 1},
-    "linear-head": {"window_scale": 1, "integral": 1, "linear_head": 1},
-    "tag-free": {"window_scale": 1, "integral": 1, "tag_free": 1, "control_history": 1,
-                 "linear_skip": 1, "history_context": 1, "identity_head": 1, "infer_tag": 1},
+    "default": {"window_scale": True, "channels": ["integral"], "skip": "linear"},
+    "table": {"window_scale": True, "channels": ["integral"], "table": 8},
+    "tag-free": {"window_scale": True, "channels": ["integral", "previous_control"],
+                 "skip": "context", "plant": "inferred", "models": None},
 }  # fmt: skip
 
 
@@ -41,10 +41,12 @@ VARIANTS = {
 def policy(request) -> tuple[Policy, dict]:
     """A random policy of each variant, its linear paths and scales non-trivial."""
     torch.manual_seed(0)
-    pol = Policy({"hidden": 16, "experts": 3, **VARIANTS[request.param]}).eval()
+    pol = Policy(net_config(hidden=16, experts=3, **VARIANTS[request.param])).eval()
     g = torch.Generator().manual_seed(1)
     with torch.no_grad():
-        for path in (pol.net.linear, pol.net.skip):
+        linear = [pol.net.table.weight if pol.net.table is not None else None,
+                  pol.net.skip.gains if pol.net.skip is not None else None]  # fmt: skip
+        for path in linear:
             if path is not None:
                 path.weight.normal_(0.0, 0.05, generator=g)
         for expert in pol.net.experts:  # LayerNorm weights of their own
@@ -94,8 +96,8 @@ def test_the_plant_graph_is_smaller_and_computes_what_the_general_session_does(p
     rng = np.random.default_rng(0)
     for name in PLANTS:
         plant = load_plant(name)
-        buffer = HistoryBuffer(np.array([plant.order]), 8, bool(pol.config["integral"]),
-                               bool(pol.config["control_history"]))  # fmt: skip
+        buffer = HistoryBuffer(np.array([plant.order]), 8, "integral" in pol.channels,
+                               "previous_control" in pol.channels)  # fmt: skip
         single = run.single(plant.tag, buffer.mask)
         tag = np.array([plant.tag])
         for scale in (1e-2, 1.0, 30.0):
