@@ -19,7 +19,7 @@ from typing import Any
 
 from generalist_control.common.secrets import redact
 
-__all__ = ["machine", "policy_record", "provenance"]
+__all__ = ["command", "machine", "policy_record", "provenance"]
 
 
 def policy_record(source: str, path: Path, meta: Mapping[str, Any]) -> dict[str, Any]:
@@ -47,11 +47,26 @@ def machine() -> str:
     )
 
 
+def command(argv: list[str] | None = None) -> str:
+    """The command line as typed: ``python -m generalist_control.<stage> ...`` for a stage.
+
+    Examples
+    --------
+    >>> command(["/x/src/generalist_control/evaluate.py", "experiment=tag_free"])
+    'python -m generalist_control.evaluate experiment=tag_free'
+    """
+    argv = list(sys.argv if argv is None else argv)
+    path = Path(argv[0])
+    head = f"python {path.name}"
+    if path.parent.name == "generalist_control":
+        head = f"python -m generalist_control.{path.stem}"
+    return " ".join([head, *argv[1:]])
+
+
 def provenance() -> dict[str, str]:
     """The date (UTC), this machine (:func:`machine`) and the command (credentials masked)."""
-    command = " ".join(Path(sys.argv[0]).name if i == 0 else a for i, a in enumerate(sys.argv))
     return {
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
         "machine": machine(),
-        "command": redact(command),
+        "command": redact(command()),
     }
