@@ -30,7 +30,7 @@ LAYERS = [
     {"tracking"},
     {"training", "evaluation"},
     {"reports", "sweeps"},
-    {"generate", "train", "evaluate", "report", "tune", "sweep"},  # entry points
+    {"generate", "train", "evaluate", "report", "tune", "sweep", "adapt"},  # entry points
 ]
 #: Sibling packages of one layer that must not import each other.
 SEPARATE = [{"training", "evaluation"}, {"reports", "sweeps"}]
