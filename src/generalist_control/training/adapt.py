@@ -124,8 +124,10 @@ def _windows(
     return windows, facts, False
 
 
-def _dagger(cfg: DictConfig, new: NewPlant, policy: Policy, seed: int) -> tuple[Any, Any]:
-    """The training's sampler (on the new plant alone) and labeller settings."""
+def _dagger(
+    cfg: DictConfig, new: NewPlant, policy: Policy, seed: int
+) -> tuple[RolloutSampler, ExpertLabeller]:
+    """The training's sampler (on the new plant alone) and labeller (``dagger``'s settings)."""
     node = _plain(cfg, "dagger")
     spec = DaggerSettings() if node is None else read_section(DaggerSettings, node, "dagger")
     data = as_dict(cfg.data)
