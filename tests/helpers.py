@@ -7,10 +7,10 @@ from hydra import compose, initialize_config_dir
 from generalist_control.common.paths import conf_dir
 
 
-def compose_cfg(*overrides: str):
-    """The project's primary config with ``overrides`` applied."""
+def compose_cfg(*overrides: str, config: str = "config"):
+    """The project's primary config (or ``config``, e.g. ``adapt``) with ``overrides`` applied."""
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
-        return compose("config", overrides=list(overrides))
+        return compose(config, overrides=list(overrides))
 
 
 #: The tiny data config: eight step amplitudes, 2 s (40 samples) per trajectory.

@@ -30,7 +30,8 @@ LAYERS = [
     {"tracking"},
     {"training", "evaluation"},
     {"reports", "sweeps"},
-    {"generate", "train", "evaluate", "report", "tune", "sweep"},  # entry points
+    # entry points
+    {"generate", "train", "evaluate", "report", "tune", "sweep", "adapt", "unseen"},
 ]
 #: Sibling packages of one layer that must not import each other.
 SEPARATE = [{"training", "evaluation"}, {"reports", "sweeps"}]

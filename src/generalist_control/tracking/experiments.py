@@ -12,6 +12,8 @@ kind           written by
 ``ablation``   the DVC ablation pipeline (``ablation/dvc.yaml``)
 ``tag-free``   the DVC stage ``tag_free``
 ``variants``   the DVC stage ``variants``
+``adapt``      ``python -m generalist_control.adapt`` (a plant added to a trained policy)
+``unseen``     the DVC stage ``unseen``'s trainings without the held-out plants
 =============  ===========================================================================
 
 An explicit ``logger.experiment_name`` overrides the scheme (every run then lands there).
@@ -27,7 +29,9 @@ __all__ = ["DEFAULT_PREFIX", "KINDS", "experiment_name"]
 DEFAULT_PREFIX = "generalist-control"
 
 #: The kinds of work, each with its own experiment.
-KINDS = ("train", "sweep", "tune", "report", "ablation", "tag-free", "variants")
+KINDS = (
+    "train", "sweep", "tune", "report", "ablation", "tag-free", "variants", "adapt", "unseen",
+)  # fmt: skip
 
 
 def experiment_name(logger: Mapping[str, Any], kind: str) -> str:

@@ -33,17 +33,32 @@ __all__ = [
 
 
 def included_plants(cfg: DictConfig) -> list[str]:
-    """The plants of ``cfg.systems`` (with ``systems.include``: those it keeps).
+    """The plants of ``cfg.systems`` (with ``systems.include``: those it keeps), less ``held_out``.
 
     The data module trains and validates on these plants only, and refuses data that lacks
     one of them, so a run logged as ``systems.name=paper`` trained on the paper's plants.
+    ``held_out`` (the held-out protocol, ``beyond/dvc.yaml:unseen``) names plants of the set
+    that training never sees.
 
     Raises
     ------
     generalist_control.plants.catalog.UnknownPlantError
         If ``include`` names a plant that is not in the set.
+    ValueError
+        If ``held_out`` names a plant that is not in the set, or every plant of it.
     """
-    return [p.name for p in plants_from_config(cfg.systems)]
+    names = [p.name for p in plants_from_config(cfg.systems)]
+    held = [str(h) for h in (cfg.get("held_out") or [])]
+    unknown = [h for h in held if h not in names]
+    if unknown:
+        raise ValueError(
+            f"held_out names {unknown}, which the plant set (systems) does not hold; it holds "
+            f"{names}"
+        )
+    kept = [n for n in names if n not in held]
+    if not kept:
+        raise ValueError(f"held_out={held} leaves no plant of the set to train on")
+    return kept
 
 
 def training_plants(cfg: DictConfig, meta: dict[str, Any]) -> list[Plant]:

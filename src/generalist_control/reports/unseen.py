@@ -1,0 +1,229 @@
+"""The held-out protocol (``beyond/dvc.yaml:unseen``): plants the policy has never seen.
+
+The default recipe is trained without the plants of ``held_out`` (``conf/unseen.yaml``),
+and so is the tag-free recipe. Then, per held-out plant, three policies run every scenario
+of ``conf/evaluation`` against the plant's LQI (:func:`~generalist_control.evaluation.
+runner.evaluate`):
+
+* ``adapted``: the default trained without it, plus its row learned by
+  :func:`~generalist_control.training.adapt.adapt` (the policy in
+  ``<unseen.models>/adapted/<plant>/``, its run in ``<prefix>/adapt``);
+* ``zero_shot``: the tag-free policy trained without it, the plant named on a free
+  normaliser row whose scales are fitted on its demonstrations, nothing learned
+  (``adapt.learn=false``);
+* ``trained_with``: the default trained with it (the pipeline's ``models/policy.ckpt``),
+  the upper reference.
+
+``reports/unseen/`` (``paths.reports_dir``): ``metrics.csv`` in the evaluation's long form
+with a ``policy`` column first, and ``summary.json``: per plant its class (computed from its
+model), the demonstrations used, the adaptation's wall time and closed-loop scores, and per
+policy the GC/LQI ratios of the evaluation's summary.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import control
+import mlflow
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig
+
+from generalist_control.common.atomic import (
+    check_replaceable,
+    publish_directory,
+    staging_directory,
+)
+from generalist_control.common.configs import as_dict
+from generalist_control.common.jsonsafe import strict
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.evaluation.provenance import provenance
+from generalist_control.evaluation.runner import evaluate
+from generalist_control.evaluation.summary import summarise
+from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
+from generalist_control.plants.catalog import load_plant
+from generalist_control.plants.plant import Plant
+from generalist_control.tracking import mlflow_utils
+from generalist_control.training.adapt import adapt, learn, prepare
+
+__all__ = ["OWNED", "POLICIES", "plant_class", "run_unseen"]
+
+log = logging.getLogger(__name__)
+
+#: The policies compared on each held-out plant, in the report's order.
+POLICIES = ("adapted", "zero_shot", "trained_with")
+
+#: What ``reports/unseen`` holds: the only entries the stage may replace.
+OWNED: dict[str, str | None] = {"metrics.csv": None, "summary.json": None}
+
+#: The stage's trainings: ``<unseen.models>/<folder>/policy.ckpt``.
+TRAININGS = {"adapted": "default", "zero_shot": "tag_free"}
+
+#: How each training is made (quoted when one is missing).
+STAGE = "dvc repro beyond/dvc.yaml:unseen (its first two commands train them)"
+
+
+def plant_class(plant: Plant) -> dict[str, Any]:
+    """What makes a plant hard, from its (linearised) model.
+
+    ``open_loop_unstable`` (a pole with a positive real part), ``non_minimum_phase`` (a zero
+    with one), ``nonlinear``, ``order`` and ``min_damping`` (the smallest damping ratio of
+    its complex poles; None without).
+    """
+    poles = np.linalg.eigvals(plant.A)
+    zeros = np.asarray(control.ss(plant.A, plant.B, plant.C, 0).zeros())
+    complex_poles = poles[np.abs(poles.imag) > 1e-9]
+    damping = -complex_poles.real / np.abs(complex_poles)
+    return {
+        "order": plant.order,
+        "nonlinear": not plant.is_linear,
+        "open_loop_unstable": bool(np.any(poles.real > 1e-9)),
+        "non_minimum_phase": bool(np.any(zeros.real > 1e-9)),
+        "min_damping": float(damping.min()) if damping.size else None,
+    }
+
+
+def _paths(cfg: DictConfig) -> dict[str, Path]:
+    """The three policies' files, each checked to exist (before any work)."""
+    models = Path(str(cfg.unseen.models))
+    paths = {k: models / v / POLICY_FILE for k, v in TRAININGS.items()}
+    paths["trained_with"] = Path(str(cfg.unseen.trained_with))
+    for key, path in paths.items():
+        if not path.is_file():
+            make = "dvc repro train (the pipeline's policy)" if key == "trained_with" else STAGE
+            raise FileNotFoundError(f"no {key} policy at {path}; make it with: {make}")
+    return paths
+
+
+def _sub(cfg: DictConfig, **values: Any) -> DictConfig:
+    """A copy of ``cfg`` with top-level ``values`` and ``adapt.learn``."""
+    sub = copy.deepcopy(cfg)
+    learn_row = values.pop("learn", True)
+    for key, value in values.items():
+        sub[key] = value
+    sub.adapt.learn = learn_row
+    return sub
+
+
+def _zero_shot(cfg: DictConfig, name: str, path: Path) -> tuple[Policy, dict[str, Any]]:
+    """The tag-free policy named for the plant (its scales only); nothing written."""
+    job = prepare(_sub(cfg, plant=name, policy=str(path), learn=False, run_dir=None))
+    policy, meta, _ = learn(job)
+    return policy, meta
+
+
+def _evaluated(
+    cfg: DictConfig, label: str, policy: Policy, meta: dict[str, Any], plant: Plant
+) -> pd.DataFrame:
+    """Every scenario on ``plant``: GC (this policy), LQI and LQI-AW; a ``policy`` column."""
+    runtime = PolicyRuntime(policy, meta, backend=cfg.evaluation.get("backend", "torch"))
+    scenarios = as_dict(cfg.evaluation.scenarios)
+    crazyflie = as_dict(cfg.evaluation.get("crazyflie") or {})
+    df, _ = evaluate(runtime, [plant], scenarios, crazyflie)
+    df.insert(0, "policy", label)
+    return df
+
+
+def _figures(df: pd.DataFrame) -> dict[str, Any]:
+    """One plant and policy: GC's divergences and its worst ratios to LQI (the summary's)."""
+    s = summarise(df)
+    step = s["ratios"].get("step", {})
+    rmse = [v["worst_RMSE_ratio"] for v in s["tracking"].values()]
+    ess = [v["worst_relative_ess_GC"] for v in s["ratios"].values()]
+    return {
+        "diverged_runs": int(sum(sum(v.values()) for k, v in s["diverged"].items() if "GC" in k)),
+        "ISE_ratio": step.get("worst_ISE_ratio"),
+        "ITAE_ratio": step.get("worst_ITAE_ratio"),
+        "RMSE_ratio_worst": max(rmse) if rmse else None,
+        "relative_ess_worst": max(ess) if ess else None,
+        "ratios": s["ratios"],
+        "tracking": s["tracking"],
+    }
+
+
+def _plant(cfg: DictConfig, name: str, paths: Mapping[str, Path]) -> tuple[pd.DataFrame, dict]:
+    """Adapt, name and load the three policies for one plant; evaluate each."""
+    run_dir = Path(str(cfg.unseen.models)) / "adapted" / name
+    record, objects = adapt(
+        _sub(cfg, plant=name, policy=str(paths["adapted"]), run_dir=str(run_dir))
+    )
+    policies = {
+        "adapted": (objects["policy"], objects["meta"]),
+        "zero_shot": _zero_shot(cfg, name, paths["zero_shot"]),
+        "trained_with": load_policy(paths["trained_with"]),
+    }
+    plant = load_plant(name)
+    frames = [_evaluated(cfg, k, p, m, plant) for k, (p, m) in policies.items()]
+    df = pd.concat(frames, ignore_index=True)
+    entry = {
+        "class": plant_class(plant),
+        "demonstrations": record["demonstrations"],
+        "adaptation_wall_s": record["wall_s"],
+        "adaptation": {k: record[k] for k in ("init", "closed_loop", "learned")},
+        "adapted_policy": str(objects["policy_path"]),
+        "registered_version": objects["registered_version"],
+        "policies": {k: _figures(df[df.policy == k]) for k in POLICIES},
+    }
+    return df, entry
+
+
+def _write(out_dir: Path, df: pd.DataFrame, summary: Mapping[str, Any]) -> None:
+    with staging_directory(out_dir) as staging:
+        df.to_csv(staging / "metrics.csv", index=False)
+        (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
+        publish_directory(staging, out_dir, OWNED, "paths.reports_dir")
+
+
+def _log(cfg: DictConfig, summary: Mapping[str, Any], out_dir: Path) -> None:
+    """The stage's own run (experiment ``<prefix>/unseen``): the per-plant figures."""
+    flat = {}
+    for name, entry in summary["held_out"].items():
+        flat[f"unseen/{name}/adaptation_wall_s"] = entry["adaptation_wall_s"]
+        for label, fig in entry["policies"].items():
+            for key in ("ISE_ratio", "ITAE_ratio", "RMSE_ratio_worst", "diverged_runs"):
+                if fig[key] is not None and np.isfinite(fig[key]):
+                    flat[f"unseen/{name}/{label}/{key}"] = float(fig[key])
+    logger = {**as_dict(cfg.logger), "run_name": "unseen"}
+    with mlflow_utils.mlflow_run(logger, kind="unseen"):
+        mlflow.log_params({"held_out": ",".join(summary["held_out"])})
+        mlflow.log_metrics(flat)
+        mlflow.log_artifacts(str(out_dir), "unseen")
+
+
+def run_unseen(cfg: DictConfig) -> dict[str, Any]:
+    """Adapt to, and evaluate on, every held-out plant; write ``paths.reports_dir``.
+
+    Raises
+    ------
+    ValueError
+        If ``held_out`` is empty.
+    FileNotFoundError
+        If one of the three policies is missing (with the command that makes it).
+    generalist_control.common.atomic.ForeignDirectoryError
+        If the reports folder holds files the stage does not write.
+    """
+    held = [str(h) for h in (cfg.get("held_out") or [])]
+    if not held:
+        raise ValueError("held_out is empty: name the held-out plants (conf/unseen.yaml)")
+    out_dir = Path(cfg.paths.reports_dir)
+    check_replaceable(out_dir, OWNED, "paths.reports_dir")
+    paths = _paths(cfg)
+    frames, entries = [], {}
+    for name in held:
+        df, entries[name] = _plant(cfg, name, paths)
+        frames.append(df)
+        log.info("held-out plant %s: adapted in %.0f s", name, entries[name]["adaptation_wall_s"])
+    summary = {
+        "held_out": entries,
+        "policies": {k: str(v) for k, v in paths.items()},
+        "provenance": provenance(),
+    }
+    _write(out_dir, pd.concat(frames, ignore_index=True), summary)
+    _log(cfg, summary, out_dir)
+    return summary

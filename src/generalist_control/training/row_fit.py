@@ -1,0 +1,197 @@
+"""Learning one plant's row of a grown policy, everything else frozen.
+
+The optimiser holds the row alone (a parameter of its own, spliced into the embedding for
+each forward pass with :func:`torch.func.functional_call`), plus, only when asked
+(``adapt.unfreeze``), a few named parameters of the network. Nothing else can move: the
+trained rows are the embedding's own, detached; every other parameter has
+``requires_grad`` off while the row is fitted. The loss is the training's (the MSE on the
+horizon's controls in the plant's normalised units, relative to the window scale).
+
+DAgger rounds on the plant reuse the training's sampler and labeller
+(:mod:`.sampler`, :mod:`.labeller`); the row kept is the one whose closed loop is nearest
+LQI's (:func:`~generalist_control.simulation.comparison.closed_loop_score`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+from torch.func import functional_call
+
+from generalist_control.deploy.adapter import RuntimeAdapter
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.model.grow import ROWS, set_row
+from generalist_control.model.policy import Policy
+from generalist_control.plants.plant import Plant
+from generalist_control.simulation.comparison import closed_loop_score
+from generalist_control.training.datamodule import WindowTensors
+from generalist_control.training.labeller import ExpertLabeller
+from generalist_control.training.sampler import RolloutSampler
+from generalist_control.training.settings import ClosedLoopValSettings
+
+__all__ = [
+    "closed_loop",
+    "dagger_round",
+    "fit_row",
+    "imitation_loss",
+    "learned_parameters",
+    "nearest_row",
+]
+
+#: The row's name inside the network (``ROWS`` without ``net.``).
+_NET_ROWS = ROWS.removeprefix("net.")
+
+#: Windows the start rows are compared on (a random subset when there are more).
+_COMPARED = 4096
+
+
+def imitation_loss(
+    policy: Policy, batch: Mapping[str, Tensor], rows: Tensor | None = None
+) -> Tensor:
+    """The training's loss on ``batch``, with the embedding's weight ``rows`` if given."""
+    state, mask, ref, tag = policy.normaliser.normalise_inputs(
+        batch["state"], batch["mask"], batch["ref"], batch["tag"]
+    )
+    params = {} if rows is None else {_NET_ROWS: rows}
+    out = functional_call(policy.net, params, (state, mask, ref, tag))
+    target = policy.normaliser.normalise_controls(batch["target"], batch["tag"])
+    return ((out.control - target / out.scale) ** 2).mean()
+
+
+def _spliced(frozen: Tensor, tag: int, row: Tensor) -> Tensor:
+    """The embedding's weight with row ``tag`` replaced by ``row`` (the others detached)."""
+    return torch.cat([frozen[:tag], row[None], frozen[tag + 1 :]])
+
+
+@torch.no_grad()
+def nearest_row(
+    policy: Policy, tag: int, tensors: Mapping[str, Tensor], candidates: Mapping[str, Tensor]
+) -> tuple[str, dict[str, float]]:
+    """The candidate row whose policy imitates the windows best, and every candidate's loss."""
+    frozen = policy.state_dict()[ROWS]
+    n = len(tensors["tag"])
+    pick = torch.randperm(n, generator=torch.Generator().manual_seed(0))[:_COMPARED]
+    batch = {k: v[pick] for k, v in tensors.items()}
+    losses = {
+        name: float(imitation_loss(policy, batch, _spliced(frozen, tag, row)))
+        for name, row in candidates.items()
+    }
+    finite = {k: v for k, v in losses.items() if v == v}
+    return min(finite, key=finite.__getitem__), losses
+
+
+def learned_parameters(policy: Policy, unfreeze: Sequence[str]) -> dict[str, nn.Parameter]:
+    """The network's parameters ``unfreeze`` names (each a dotted prefix of their names).
+
+    Raises
+    ------
+    ValueError
+        If a prefix names no parameter (listing the network's parts), or names the tag
+        embedding, whose trained rows must not move.
+    """
+    named = dict(policy.named_parameters())
+    out: dict[str, nn.Parameter] = {}
+    for prefix in unfreeze:
+        hits = {k: p for k, p in named.items() if k == prefix or k.startswith(prefix + ".")}
+        if not hits:
+            parts = sorted({".".join(k.split(".")[:2]) for k in named})
+            raise ValueError(
+                f"adapt.unfreeze names {prefix!r}, which is no parameter of the policy; its "
+                f"parts: {parts} (e.g. net.skip.gains)"
+            )
+        if ROWS in hits:
+            raise ValueError(
+                f"adapt.unfreeze names {prefix!r}, which holds the trained plants' rows "
+                f"({ROWS}): the new row is always learned, the others never"
+            )
+        out.update(hits)
+    return out
+
+
+@contextmanager
+def _learning(policy: Policy, learned: Mapping[str, nn.Parameter]) -> Iterator[None]:
+    """Only ``learned`` parameters take gradients inside; afterwards every one does again."""
+    flags = {k: p.requires_grad for k, p in policy.named_parameters()}
+    for k, p in policy.named_parameters():
+        p.requires_grad_(k in learned)
+    was_training = policy.training
+    policy.train()
+    try:
+        yield
+    finally:
+        for k, p in policy.named_parameters():
+            p.requires_grad_(flags[k])
+        policy.train(was_training)
+
+
+def fit_row(
+    policy: Policy,
+    tag: int,
+    tensors: Mapping[str, Tensor],
+    settings: Any,
+    learned: Mapping[str, nn.Parameter],
+    seed: int,
+) -> list[float]:
+    """Fit row ``tag`` (and ``learned``) on ``tensors`` for ``settings.epochs`` epochs.
+
+    ``settings``: :class:`~generalist_control.training.settings.AdaptSettings` (``epochs``,
+    ``lr``, ``batch_size``). The row is written into the policy at the end; every other row
+    and every parameter not in ``learned`` is left bit for bit as it was. Returns the mean
+    loss of each epoch.
+    """
+    frozen = policy.state_dict()[ROWS].clone()
+    row = nn.Parameter(frozen[tag].clone())
+    optimiser = torch.optim.Adam([row, *learned.values()], lr=settings.lr)
+    generator = torch.Generator().manual_seed(seed)
+    n, losses = len(tensors["tag"]), []
+    with _learning(policy, learned):
+        for _ in range(settings.epochs):
+            total = 0.0
+            for idx in torch.randperm(n, generator=generator).split(settings.batch_size):
+                batch = {k: v[idx] for k, v in tensors.items()}
+                loss = imitation_loss(policy, batch, _spliced(frozen, tag, row))
+                optimiser.zero_grad(set_to_none=True)
+                loss.backward()
+                optimiser.step()
+                total += loss.item() * len(idx)
+            losses.append(total / n)
+    set_row(policy, tag, row)
+    return losses
+
+
+def closed_loop(
+    policy: Policy, meta: dict[str, Any], plant: Plant, scoring: ClosedLoopValSettings
+) -> float:
+    """The plant's step error against its LQI, relative to LQI's (1: diverged).
+
+    :func:`~generalist_control.simulation.comparison.closed_loop_score` on the steps of
+    ``scoring`` (``closed_loop_val``: the training's own closed-loop validation).
+    """
+    runtime = PolicyRuntime(policy, meta)
+    steps, duration = scoring.amplitudes, scoring.duration
+    with torch.inference_mode():
+        scores = closed_loop_score(RuntimeAdapter(runtime), [plant], steps, duration)
+    return scores[plant.name]
+
+
+def dagger_round(
+    policy: Policy,
+    meta: dict[str, Any],
+    sampler: RolloutSampler,
+    labeller: ExpertLabeller,
+    data: WindowTensors,
+    round_index: int,
+    beta: float,
+) -> int:
+    """Roll the policy out on the sampler's plant, label with its LQI, append; windows added."""
+    runtime = PolicyRuntime(policy, meta)
+    with torch.inference_mode():
+        rollouts = sampler.run(round_index, runtime, beta)
+        bounds = labeller.bounds(data, sampler.plants)
+        windows, _ = labeller.label(rollouts, bounds)
+    data.append(windows)
+    return len(windows)

@@ -1,0 +1,137 @@
+"""The held-out protocol (``beyond/dvc.yaml:unseen``): its plants, its commands, its chain."""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from generalist_control.model.policy import load_policy
+from generalist_control.plants.catalog import available_plants, load_plant
+from generalist_control.reports.unseen import POLICIES, plant_class
+from generalist_control.training.setup import included_plants
+from helpers import compose_cfg, tiny_train_overrides
+
+REPO = Path(__file__).resolve().parents[1]
+STAGE = yaml.safe_load((REPO / "beyond" / "dvc.yaml").read_text())["stages"]["unseen"]
+CONFIG = yaml.safe_load((REPO / "conf" / "unseen.yaml").read_text())
+
+
+def test_plant_class_against_hand_values():
+    cstr = plant_class(load_plant("cstr"))  # zero at s = +2.82, stable poles
+    assert cstr["non_minimum_phase"] and not cstr["open_loop_unstable"]
+    maglev = plant_class(load_plant("magnetic_levitation"))
+    assert maglev["open_loop_unstable"] and maglev["order"] == 3
+    osc = plant_class(load_plant("damped_oscillator"))  # wn = 2, zeta = 0.1
+    assert osc["min_damping"] == pytest.approx(0.1)
+    assert plant_class(load_plant("two_tank"))["nonlinear"]
+    assert plant_class(load_plant("mass_spring_damper"))["min_damping"] is None  # real poles
+
+
+def test_the_held_out_plants_span_the_classes_and_each_class_stays_in_training():
+    held = CONFIG["held_out"]
+    assert len(held) >= 5
+    trained = [n for n in available_plants() if n not in held]
+
+    def classes(names):
+        c = [plant_class(load_plant(n)) for n in names]
+        return {
+            "unstable": any(x["open_loop_unstable"] for x in c),
+            "non-minimum-phase": any(x["non_minimum_phase"] for x in c),
+            "nonlinear": any(x["nonlinear"] for x in c),
+            "order 4": any(x["order"] == 4 for x in c),
+            "lightly damped": any((x["min_damping"] or 1.0) < 0.2 for x in c),
+        }
+
+    assert all(classes(held).values()), classes(held)
+    assert all(classes(trained).values()), classes(trained)
+
+
+def test_held_out_plants_are_left_out_of_training():
+    cfg = compose_cfg("systems.include=[cstr,hydraulic_actuator]", "held_out=[cstr]")
+    assert included_plants(cfg) == ["hydraulic_actuator"]
+    with pytest.raises(ValueError, match=r"held_out names \['nowhere'\].*does not hold"):
+        included_plants(compose_cfg("held_out=[nowhere]"))
+    with pytest.raises(ValueError, match="leaves no plant of the set to train on"):
+        included_plants(compose_cfg("systems.include=[cstr]", "held_out=[cstr]"))
+
+
+def _commands() -> list[list[str]]:
+    return [shlex.split(c) for c in STAGE["cmd"].split(" && ")]
+
+
+def test_the_stage_commands_write_where_the_protocol_reads():
+    train_default, train_free, evaluate = _commands()
+    models = CONFIG["unseen"]["models"]
+    assert "--config-name" in train_default and "unseen" in train_default
+    assert CONFIG["paths"]["published_dir"] == f"{models}/default"
+    assert f"paths.published_dir={models}/tag_free" in train_free
+    assert "experiment=tag_free" in train_free
+    assert evaluate == ["python", "-m", "generalist_control.unseen"]
+    outs = [o if isinstance(o, str) else next(iter(o)) for o in STAGE["outs"]]
+    assert {f"{models}/default/policy.ckpt", f"{models}/tag_free/policy.ckpt"} <= set(outs)
+    assert f"{models}/adapted" in outs and CONFIG["unseen"]["trained_with"] in STAGE["deps"]
+
+
+#: What the tiny chain appends to each of the stage's commands.
+TINY_TRAIN = (
+    "systems.include=[cstr,hydraulic_actuator]", "held_out=[hydraulic_actuator]",
+    "trainer.max_epochs=1", "trainer.accelerator=cpu", "trainer.enable_progress_bar=false",
+    "trainer.enable_model_summary=false", "logger.log_model=false",
+)  # fmt: skip
+TINY_UNSEEN = (
+    "held_out=[hydraulic_actuator]", "adapt.epochs=2", "adapt.rounds=1", "adapt.batch_size=64",
+    "logger.log_model=false", "data.duration=2.0", "data.families=null",
+    "data.amplitudes.segments=[{start:1.0,stop:4.0,step:1.0}]", "evaluation.backend=torch",
+    "~evaluation.scenarios",
+    "+evaluation.scenarios={step:{kind:step,duration:5.0},"
+    "sine:{kind:sine,amplitude:1.0,omega:0.5,y0:0.5,duration:5.0}}",
+)  # fmt: skip
+
+
+@pytest.mark.slow
+def test_the_stage_runs_on_tiny_data(tiny_data_dir, tmp_path, mlflow_uri):
+    """Tiny: the stage's own commands, in a folder of the tiny data and a tiny models/."""
+    from generalist_control.training.fit import train
+
+    (tmp_path / "data").mkdir()
+    shutil.copytree(tiny_data_dir, tmp_path / "data" / "demos")
+    over = tiny_train_overrides(tiny_data_dir, tmp_path / "with", mlflow_uri,
+                                "logger.log_model=false")  # fmt: skip
+    _, trained = train(compose_cfg(*over))
+    (tmp_path / "models").mkdir()
+    shutil.copy(trained["policy_path"], tmp_path / "models" / "policy.ckpt")
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO / "src"), env.get("PYTHONPATH", "")])
+    for cmd in _commands():
+        tiny = TINY_UNSEEN if cmd[-1] == "generalist_control.unseen" else TINY_TRAIN
+        argv = [sys.executable, *cmd[1:], *tiny]
+        proc = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True,
+                              timeout=900)  # fmt: skip
+        assert proc.returncode == 0, (cmd, proc.stderr[-3000:])
+    base, meta = load_policy(tmp_path / "models/unseen/default/policy.ckpt")
+    assert set(meta["tags"]) == {"cstr"}
+    adapted, meta = load_policy(tmp_path / "models/unseen/adapted/hydraulic_actuator/policy.ckpt")
+    assert meta["tags"] == {"cstr": 10, "hydraulic_actuator": base.net.n_tags}
+    df = pd.read_csv(tmp_path / "reports/unseen/metrics.csv")
+    assert list(df.columns) == ["policy", "system", "scenario", "controller", "run", "metric",
+                                "value"]  # fmt: skip
+    assert set(df.policy) == set(POLICIES) and set(df.system) == {"hydraulic_actuator"}
+    assert set(df.scenario) == {"step", "sine"}
+    summary = json.loads((tmp_path / "reports/unseen/summary.json").read_text())
+    entry = summary["held_out"]["hydraulic_actuator"]
+    assert entry["adaptation_wall_s"] > 0 and entry["demonstrations"]["windows"] == 8 * 38
+    assert entry["class"]["order"] == 3
+    for label in POLICIES:
+        figures = entry["policies"][label]
+        assert figures["ISE_ratio"] is None or np.isfinite(figures["ISE_ratio"]), label
+        assert "RMSE_ratio_worst" in figures and "diverged_runs" in figures
