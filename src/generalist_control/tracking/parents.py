@@ -30,7 +30,7 @@ __all__ = [
     "summarise_children",
 ]
 
-#: Tag that marks a parent run and says what it groups (``sweep`` or ``study``).
+#: Tag that marks a parent run and says what it groups (``sweep``, ``study`` or ``group``).
 ROLE_TAG = "gc.role"
 #: The role of a parent found or made by name (:func:`named_parent`).
 GROUP_ROLE = "group"
