@@ -34,9 +34,51 @@ def policy_meta() -> dict:
     }
 
 
+def experiment(uri: str, name: str, tmp: Path) -> str:
+    """The id of the experiment ``name`` in ``uri``, created if missing."""
+    mlflow.set_tracking_uri(uri)
+    found = mlflow.get_experiment_by_name(name)
+    if found:
+        return found.experiment_id
+    return mlflow.create_experiment(name, artifact_location=(tmp / "art").as_uri())
+
+
+def log_run(
+    exp_id: str,
+    tmp: Path,
+    d: int,
+    m: int,
+    loss: float,
+    mse: Mapping[str, float],
+    params: Mapping[str, Any] | None = None,
+    parent: str | None = None,
+) -> str:
+    """One finished training-like run of (d, M); its id. A policy artifact when M = 5.
+
+    ``loss`` is the final ``train/loss`` (the history ends with it), ``mse`` the
+    ``closed_loop/mse/<plant>`` scores, ``params`` further params (``seed``, ...).
+    """
+    policy = Policy(net_config(hidden=d, experts=m, heads=2))
+    tags = {"mlflow.parentRunId": parent} if parent else None
+    with mlflow.start_run(experiment_id=exp_id, run_name=f"d{d}-M{m}", tags=tags) as r:
+        mlflow.log_params(
+            {"model.hidden": d, "experts": m, "n_parameters": count_parameters(policy)}
+        )
+        mlflow.log_params({k: str(v) for k, v in (params or {}).items()})
+        for epoch, factor in enumerate((4.0, 2.0, 1.0)):
+            mlflow.log_metric("train/loss", loss * factor, step=epoch)
+            mlflow.log_metric("val/loss", 1.5 * loss * factor, step=epoch)
+        mlflow.log_metrics({f"closed_loop/mse/{k}": v for k, v in mse.items()})
+        mlflow.log_metric("closed_loop/diverged", float(len(PLANTS) - len(mse)))
+        if m == 5:
+            path = save_policy(tmp / "policy" / "policy.ckpt", policy, policy_meta())
+            mlflow.log_artifact(str(path), "policy")
+        return r.info.run_id
+
+
 def log_runs(
     uri: str,
-    experiment: str,
+    experiment_name: str,
     tmp: Path,
     params: Mapping[tuple[int, int], Mapping[str, Any]] | None = None,
     parent: str | None = None,
@@ -48,28 +90,8 @@ def log_runs(
     the parent run (a sweep) the runs are nested under; ``configs``: a subset of CONFIGS.
     The experiment is created if missing.
     """
-    mlflow.set_tracking_uri(uri)
-    found = mlflow.get_experiment_by_name(experiment)
-    exp_id = (
-        found.experiment_id
-        if found
-        else mlflow.create_experiment(experiment, artifact_location=(tmp / "art").as_uri())
-    )
-    ids = {}
-    tags = {"mlflow.parentRunId": parent} if parent else None
-    for (d, m), (loss, mse) in (configs or CONFIGS).items():
-        policy = Policy(net_config(hidden=d, experts=m, heads=2))
-        with mlflow.start_run(experiment_id=exp_id, run_name=f"d{d}-M{m}", tags=tags) as r:
-            mlflow.log_params(
-                {"model.hidden": d, "experts": m, "n_parameters": count_parameters(policy)}
-            )
-            mlflow.log_params({k: str(v) for k, v in ((params or {}).get((d, m)) or {}).items()})
-            for epoch, factor in enumerate((4.0, 2.0, 1.0)):
-                mlflow.log_metric("train/loss", loss * factor, step=epoch)
-            mlflow.log_metrics({f"closed_loop/mse/{k}": v for k, v in mse.items()})
-            mlflow.log_metric("closed_loop/diverged", float(len(PLANTS) - len(mse)))
-            if m == 5:
-                path = save_policy(tmp / "policy" / "policy.ckpt", policy, policy_meta())
-                mlflow.log_artifact(str(path), "policy")
-            ids[(d, m)] = r.info.run_id
-    return ids
+    exp_id = experiment(uri, experiment_name, tmp)
+    return {
+        (d, m): log_run(exp_id, tmp, d, m, loss, mse, (params or {}).get((d, m)), parent)
+        for (d, m), (loss, mse) in (configs or CONFIGS).items()
+    }

@@ -187,6 +187,12 @@ def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
     mlflow.set_tracking_uri(mlflow_uri)
     (run,) = mlflow.search_runs(experiment_names=[tmp_path.name], output_format="list")
     assert "eval/diverged/GC" in run.data.metrics
+    # the quality-bar verdicts as 0/1 metrics, for MLflow's Compare view
+    measured = {k: v for k, v in summary["quality_bar"].items() if v is not None}
+    for name, met in measured.items():
+        assert run.data.metrics[f"eval/bar/{name}"] == float(met)
+    assert run.data.metrics["eval/bar_passed"] == sum(measured.values())
+    assert run.data.metrics["eval/bar_checked"] == len(measured)
     assert run.data.metrics["eval/setpoint/unsettled"] == len(unsettled)
     names = {a.path for a in mlflow.MlflowClient().list_artifacts(run.info.run_id, "eval")}
     assert "eval/metrics.csv" in names and "eval/table2.md" in names

@@ -116,10 +116,10 @@ def test_synthetic_reports_render_their_values_and_missing_recipes(tmp_path):
     assert "1 of 2 plants settle" in text and "1 with a loop of spectral radius >= 1" in text
     assert "largest 1.25 (plant_b, LQI's 0.5)" in text
     assert "`models/metrics.json` is not here" in text  # a DVC output absent from a checkout
-    for key in ("paper", "hybrid", "tag-free", "variants", "ablation"):
+    for key in ("paper", "hybrid", "tag-free", "variants", "ablation", "ablation-paper"):
         assert f"| {key} | not run yet |" in text
         assert f"not run yet: `{RECIPE[key].command}`" in text
-    assert text.count("not run yet: `") == 5
+    assert text.count("not run yet: `") == 6
 
 
 def test_without_scores_json_the_headline_comes_from_the_summary(tmp_path):
@@ -138,7 +138,15 @@ def test_variants_and_ablation_render_their_values(tmp_path):
     summary["validation"] = {"bars": {"worst_ISE_ratio": {"value": 1.25, "pass": True}}, "seed": 7}
     _write(tmp_path, "reports/variants/summary.json", summary)
     configs = {"d=16,M=3": {"mse_mean": 0.00042}}
-    _write(tmp_path, "reports/ablation/summary.json", {"configs": configs, "missing": ["M=5"]})
+    claims = [
+        {"claim": "final training loss, d=16, M=3", "paper": "1.02e-02", "ours": "0.0625 (s42)",
+         "verdict": "does not reproduce"},
+    ]  # fmt: skip
+    counts = {"does not reproduce": 1}
+    summary = {"configs": configs, "missing": ["M=5"], "claims": claims}
+    _write(
+        tmp_path, "ablation/report/default/summary.json", {**summary, "claims_verdicts": counts}
+    )
     runs = [
         {"label": "d=16", "status": "ok", "hidden": "16.0", "experts": "3.0",
          "run_id": "abcdef123", "n_parameters": "12345.0", "final_train_loss": "0.0625",
@@ -146,7 +154,7 @@ def test_variants_and_ablation_render_their_values(tmp_path):
         {"label": "M=5", "status": "no run", "hidden": "", "experts": "", "run_id": "",
          "n_parameters": "", "final_train_loss": "", "closed_loop_diverged": ""},
     ]  # fmt: skip
-    _write(tmp_path, "reports/ablation/runs.csv", runs)
+    _write(tmp_path, "ablation/report/default/runs.csv", runs)
     text = build_page(tmp_path)
     assert "| variants | 0 | 1.75 | n/a | n/a | 1/2 |" in text
     assert "| `worst_ISE_ratio` | value 1.75, limit 1.5: **fail** | value 1.25: pass |" in text
@@ -154,6 +162,11 @@ def test_variants_and_ablation_render_their_values(tmp_path):
     assert "Worst plants (their worst variant, test draw): p1 1.75, p2 1.1." in text
     assert "| d=16 | 16 | 3 | 12,345 | 0.0625 | 4.20e-04 | 1 | `abcdef12` |" in text
     assert "| M=5 | n/a | n/a | no run |" in text and "No run for: M=5." in text
+    assert "claim by claim (1 does not reproduce; rules and notes in" in text
+    row = "| final training loss, d=16, M=3 | 1.02e-02 | 0.0625 (s42) | does not reproduce |"
+    assert row in text
+    assert "## Ablation, the paper's recipe" in text  # the other recipe: not run yet
+    assert "not run yet: `scripts/ablation.sh paper`" in text
 
 
 def test_provenance_is_shown_when_the_summary_has_it(tmp_path):
@@ -178,7 +191,9 @@ def test_the_page_stays_short_whatever_the_reports_hold():
     reports = {r.key: eval_data for r in RECIPES if r.kind == "evaluation"}
     reports["tag-free"] = {**eval_data, "bar": {"diverged": [f"p{i}" for i in range(99)]}}
     reports["variants"] = {"summary": {"bars": bars, "validation": {"bars": bars}}}
-    reports["ablation"] = {"summary": {"missing": [str(i) for i in range(99)]}, "runs": runs}
+    claims = [{"claim": f"claim {i}", "verdict": "reproduces"} for i in range(99)]
+    ablation = {"summary": {"missing": [str(i) for i in range(99)], "claims": claims}}
+    reports["ablation"] = reports["ablation-paper"] = {**ablation, "runs": runs}
     text = render_page(reports)
     assert len(text.splitlines()) <= MAX_LINES
     rows = 2 * 3 * MAX_ROWS + 1  # step and tracking scenarios, and the anti-windup one

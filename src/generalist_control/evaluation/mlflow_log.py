@@ -23,7 +23,10 @@ def log_to_mlflow(
     """Log the summary figures and the report folder to the evaluated model's MLflow run.
 
     Names start with ``evaluation.mlflow_prefix`` (default ``eval``), so that two
-    evaluations of one policy (e.g. on other scenarios) keep apart in its run.
+    evaluations of one policy (e.g. on other scenarios) keep apart in its run. The
+    quality-bar verdicts are metrics too, ``<prefix>/bar/<verdict>`` 1 (met) or 0 (a verdict
+    not measured is left out), with ``<prefix>/bar_passed`` and ``<prefix>/bar_checked``, so
+    that MLflow's Compare view shows them beside the scores.
     """
     prefix = str(cfg.evaluation.get("mlflow_prefix") or "eval")
     flat: dict[str, float] = {}
@@ -33,6 +36,12 @@ def log_to_mlflow(
                 flat[f"{prefix}/{scen}/{k}"] = float(v)
     for ctrl, by_scen in summary.get("diverged", {}).items():
         flat[f"{prefix}/diverged/{ctrl}"] = float(sum(by_scen.values()))
+    verdicts = {k: v for k, v in (summary.get("quality_bar") or {}).items() if v is not None}
+    for name, met in verdicts.items():
+        flat[f"{prefix}/bar/{name}"] = 1.0 if met else 0.0
+    if verdicts:
+        flat[f"{prefix}/bar_passed"] = float(sum(bool(v) for v in verdicts.values()))
+        flat[f"{prefix}/bar_checked"] = float(len(verdicts))
     setpoint = summary.get("setpoint") or {}
     if setpoint:
         flat[f"{prefix}/setpoint/unsettled"] = float(len(setpoint["unsettled"]))

@@ -28,16 +28,21 @@ and renamed into place, a PNG and a CSV for each figure:
 * ``gate_weights``: mean gate weight per expert and plant of the ``M = report.gate.experts``
   model (see :func:`~generalist_control.reports.gates.gate_weights`);
 * ``fig_hidden_ablation.png``, ``fig_expert_ablation.png``: the paper's two-panel layouts;
-* ``comparison.md`` (our figures beside the paper's,
-  :data:`generalist_control.evaluation.paper.ABLATION`),
-  ``runs.csv`` (the runs used) and ``summary.json``.
+* ``claims.csv``: the paper's Section 7 claim by claim, ours beside it and a verdict
+  (:mod:`generalist_control.reports.claims`);
+* ``points.csv``: every run behind the points, each seed apart, with its losses, scores and
+  its evaluation's quality-bar verdicts (:mod:`generalist_control.reports.points`);
+* ``scenarios.csv``: per run, scenario and plant, GC's score over LQI's, from the runs'
+  evaluations (``report.evaluations_dir``, :mod:`generalist_control.reports.evaluations`);
+* ``comparison.md`` (all of it in words and tables, :mod:`.comparison`), ``runs.csv`` (the
+  run drawn for each point) and ``summary.json`` (the same figures, the claims, the recipe,
+  the provenance, read by the results page).
 
 The data come from :mod:`generalist_control.reports.runs` and
 :mod:`generalist_control.reports.gates`, the drawing from
 :mod:`generalist_control.reports.figures`, the paper comparison from
 :mod:`generalist_control.reports.comparison`. Everything is logged to a ``report`` run of the
-experiment of kind ``report`` (tag ``gc.run_type = report``, which the run search leaves
-out should it share the sweeps' experiment).
+experiment of kind ``report`` (:mod:`generalist_control.reports.report_run`).
 The drawing functions take a Matplotlib
 ``Axes`` and data frames, so notebooks reuse them (``notebooks/02_mlflow_comparison.ipynb``).
 """
@@ -50,11 +55,10 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import mlflow
 import numpy as np
 import pandas as pd
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from generalist_control.common.atomic import (
     check_replaceable,
@@ -62,7 +66,9 @@ from generalist_control.common.atomic import (
     staging_directory,
 )
 from generalist_control.common.configs import as_dict
-from generalist_control.common.secrets import redact
+from generalist_control.common.jsonsafe import strict
+from generalist_control.evaluation.provenance import provenance
+from generalist_control.reports.claims import claims_records, verdict_counts
 from generalist_control.reports.comparison import comparison_markdown
 from generalist_control.reports.figures import (
     draw_gate_heatmap,
@@ -73,23 +79,21 @@ from generalist_control.reports.figures import (
     placeholder,
 )
 from generalist_control.reports.gates import gate_weights, policy_of_run
+from generalist_control.reports.report_run import log_report
 from generalist_control.reports.runs import (
     NO_RUN,
-    RUN_TYPE_TAG,
     SWEEP_COMMANDS,
     SWEEPS,
     RunPoint,
-    loss_frame,
     mlflow_client,
-    mse_frame,
-    params_frame,
     point_label,
     unique_points,
 )
 from generalist_control.reports.selection import select_runs
+from generalist_control.reports.tables import Inputs, inputs_from_config, report_tables
 from generalist_control.tracking import mlflow_utils
 
-__all__ = ["OWNED", "build_report", "runs_table", "write_report"]
+__all__ = ["OWNED", "Inputs", "build_report", "runs_table", "write_report"]
 
 log = logging.getLogger(__name__)
 
@@ -118,8 +122,10 @@ def runs_table(sweeps: Mapping[str, Mapping[int, RunPoint | None]]) -> pd.DataFr
                     "run_name": p.run_name if p else None,
                     "hidden": p.hidden if p else None,
                     "experts": p.experts if p else None,
+                    "seed": p.seed if p else None,
                     "n_parameters": p.n_parameters if p else None,
                     "final_train_loss": p.train_loss if p else None,
+                    "final_val_loss": p.val_loss if p else None,
                     "closed_loop_diverged": p.diverged if p else None,
                 }
             )
@@ -140,6 +146,9 @@ OWNED: dict[str, str | None] = dict.fromkeys(
         "fig_hidden_ablation.png",
         "fig_expert_ablation.png",
         "runs.csv",
+        "points.csv",
+        "claims.csv",
+        "scenarios.csv",
         "comparison.md",
         "summary.json",
     ]
@@ -170,7 +179,7 @@ def _gate_model(
 def _sweep_figures(
     staging: Path,
     sweeps: Mapping[str, Mapping[int, RunPoint | None]],
-    frames: Mapping[str, pd.DataFrame],
+    frames: Mapping[str, Any],
     base: Mapping[str, int],
 ) -> None:
     """Per sweep: MSE bars and loss curves; parameters against MSE; the paper's layouts."""
@@ -224,9 +233,14 @@ def _summary(
     sweeps: Mapping[str, Mapping[int, RunPoint | None]],
     gate_run: RunPoint | None,
     plants: Sequence[str],
-    params: pd.DataFrame,
+    tables: Mapping[str, Any],
 ) -> dict[str, Any]:
-    """``summary.json``: run ids per point, missing points, the gate model, per-config figures."""
+    """``summary.json``: the runs of the points, the claims, the recipe, the provenance.
+
+    Also the missing points, the gate model, per-config figures, the claims' verdict counts
+    and the separating scenarios.
+    """
+    params, claims = tables["params"], tables["claims"]
     return {
         "points": {
             sweep: {point_label(sweep, v): (p.run_id if p else None) for v, p in by_v.items()}
@@ -249,6 +263,12 @@ def _summary(
             }
             for row in params.itertuples()
         },
+        "recipe": tables["recipe"],
+        "claims": claims_records(claims),
+        "claims_verdicts": verdict_counts(claims),
+        "separating_scenarios": dict(tables["separating"]),
+        "runs": {r: str(i) for i, r in tables["labels"].items()},
+        "provenance": provenance(),
     }
 
 
@@ -259,7 +279,7 @@ def write_report(
     client: Any | None = None,
     gate: Mapping[str, Any] | None = None,
     baseline: Mapping[str, int] | None = None,
-    eval_summary: Mapping[str, Any] | None = None,
+    inputs: Inputs | None = None,
 ) -> dict[str, Any]:
     """Draw every figure and table from the selected runs; write them atomically.
 
@@ -278,73 +298,36 @@ def write_report(
         knows), ``duration`` (s).
     baseline : mapping, optional
         ``hidden`` of the gate-weight model (default 32).
-    eval_summary : mapping, optional
-        The evaluate stage's ``summary.json``, quoted in ``comparison.md``.
+    inputs : Inputs, optional
+        Every seed's runs, their evaluations, the recipe, the tolerances.
 
     Returns
     -------
     dict
-        The summary also written to ``summary.json``: run ids per point, missing points,
-        the gate model's run.
+        The summary also written to ``summary.json`` (:func:`_summary`).
     """
     check_replaceable(out_dir, OWNED, "report.out_dir")
     client = client or mlflow_client()
+    inputs = inputs or Inputs()
     gate = dict(gate or {})
     base = {"hidden": 32, "experts": 3, **(baseline or {})}
     sweeps = {k: dict(v) for k, v in sweeps.items()}
-    frames = {
-        "mse": mse_frame(sweeps, plants),
-        "loss": loss_frame(sweeps, client),
-        "params": params_frame(sweeps, plants),
-    }
     gate_run, gates = _gate_model(sweeps, gate, base, client)
+    tables = report_tables(sweeps, plants, client, gates, inputs)
     with staging_directory(out_dir) as staging:
-        _sweep_figures(staging, sweeps, frames, base)
+        _sweep_figures(staging, sweeps, tables, base)
         _gate_figure(staging, gates, gate_run, int(gate.get("experts", 5)), base)
         runs_table(sweeps).to_csv(staging / "runs.csv", index=False)
-        text = comparison_markdown(sweeps, frames["mse"], gates, gate_run, eval_summary)
+        for name in ("points", "claims", "scenarios"):
+            tables[name].to_csv(staging / f"{name}.csv", index=False)
+        text = comparison_markdown(
+            tables, gates, gate_run, inputs.eval_summary, recipe=tables["recipe"]
+        )
         (staging / "comparison.md").write_text(text)
-        summary = _summary(sweeps, gate_run, plants, frames["params"])
-        (staging / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        summary = _summary(sweeps, gate_run, plants, tables)
+        (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
         publish_directory(staging, out_dir, OWNED, "report.out_dir")
     return summary
-
-
-def _log_to_mlflow(
-    cfg: DictConfig, experiment: str, out_dir: Path, summary: Mapping[str, Any]
-) -> str:
-    """Log the report as a run of the experiment of kind ``report``; return its run id.
-
-    The run is tagged with the experiment it read (``report.source_experiment``) and, when
-    ``report.allow_mixed`` let differing runs through, with the differences
-    (``report.mixed_params``).
-    """
-    rcfg = cfg.report
-    exp_id = mlflow_utils.experiment_id(as_dict(cfg.logger), kind="report")
-    run_name = redact(rcfg.get("run_name") or "ablation-report")
-    with mlflow.start_run(experiment_id=exp_id, run_name=run_name) as active:
-        mlflow.set_tags(
-            {
-                RUN_TYPE_TAG: "report",
-                "report.kind": "ablation",
-                "report.missing": ", ".join(summary["missing"]) or "none",
-                "report.source_experiment": experiment,
-                "report.mixed_params": json.dumps(summary.get("mixed") or {})[:5000],
-            }
-        )
-        flat = mlflow_utils.flatten_params({"report": OmegaConf.to_container(rcfg, resolve=True)})
-        mlflow.log_params(flat)
-        mlflow.log_dict(dict(summary), "ablation/summary.json")
-        mlflow.log_artifacts(str(out_dir), "ablation")
-        metrics = {"report/missing_points": float(len(summary["missing"]))}
-        for label, fig in summary["configs"].items():
-            key = label.replace("=", "").replace(",", "_")  # d32_M3
-            for name in ("final_train_loss", "n_parameters", "mse_mean"):
-                value = fig.get(name)
-                if value is not None and np.isfinite(value):
-                    metrics[f"ablation/{name}/{key}"] = float(value)
-        mlflow.log_metrics(metrics)
-        return active.info.run_id
 
 
 def build_report(cfg: DictConfig) -> dict[str, Any]:
@@ -365,7 +348,7 @@ def build_report(cfg: DictConfig) -> dict[str, Any]:
         torch.set_num_threads(int(cfg.threads))
     rcfg = cfg.report
     client = mlflow_client(mlflow_utils.set_tracking(cfg.logger))
-    experiment, sweeps, mixed = select_runs(cfg, client)
+    experiment, sweeps, mixed, by_config = select_runs(cfg, client)
     baseline = as_dict(rcfg.baseline)
     plants = rcfg.get("plants")
     if plants is None:
@@ -373,13 +356,10 @@ def build_report(cfg: DictConfig) -> dict[str, Any]:
     plants = list(plants or [])
     if not plants:
         plants = sorted({k for p in unique_points(sweeps) for k in p.mse})
-    eval_summary = None
-    summary_path = Path(cfg.paths.get("reports_dir", "reports/eval")) / "summary.json"
-    if summary_path.is_file():
-        eval_summary = json.loads(summary_path.read_text())
     out_dir = Path(rcfg.out_dir)
     gate = as_dict(rcfg.gate) if rcfg.get("gate") else {}
-    summary = write_report(out_dir, sweeps, plants, client, gate, baseline, eval_summary)
+    inputs = inputs_from_config(cfg, by_config)
+    summary = write_report(out_dir, sweeps, plants, client, gate, baseline, inputs)
     if summary["missing"]:
         log.warning(
             "no run for %s; create them with: %s",
@@ -389,6 +369,6 @@ def build_report(cfg: DictConfig) -> dict[str, Any]:
     if mixed:
         summary["mixed"] = mixed
     if rcfg.get("log_mlflow", True):
-        summary["report_run_id"] = _log_to_mlflow(cfg, experiment, out_dir, summary)
+        summary["report_run_id"] = log_report(cfg, experiment, out_dir, summary)
     log.info("ablation report written to %s", out_dir)
     return summary

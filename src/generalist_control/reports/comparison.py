@@ -1,84 +1,125 @@
-"""The ablation figures beside the paper's (``comparison.md`` of the report)."""
+"""``comparison.md`` of the ablation report: the paper's Section 7 answered point by point.
+
+Sections, in order: the claims table (:mod:`generalist_control.reports.claims`: the paper's
+figure, ours, the rule, the verdict), every run behind the points (each seed apart), the
+quality-bar verdicts of each run's evaluation, the worst plant's GC/LQI ratio per scenario
+and run with the scenarios that separate the runs, the dominant expert of the M = 5 model
+on every plant, and the per-plant closed-loop MSE tables of the two sweeps.
+"""
 
 from __future__ import annotations
 
-import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import pandas as pd
 
-from generalist_control.evaluation.paper import ABLATION
 from generalist_control.reports.figures import fmt_value
-from generalist_control.reports.runs import (
-    NO_RUN,
-    NOT_AVAILABLE,
-    SWEEPS,
-    RunPoint,
-    point_label,
-    unique_points,
-)
+from generalist_control.reports.runs import SWEEPS, RunPoint, point_label
 
 __all__ = ["comparison_markdown"]
 
 
-def _parse_key(key: str) -> tuple[int, int]:
-    m = re.fullmatch(r"d=(\d+),M=(\d+)", key)
-    if not m:
-        raise ValueError(f"unexpected configuration key '{key}'")
-    return int(m.group(1)), int(m.group(2))
+def _cell(text: Any) -> str:
+    return str(text).replace("|", "/").replace("\n", " ")
 
 
-def _fmt_run(p: RunPoint | None) -> str:
-    return f"`{p.run_id[:8]}`" if p else ""
+def _table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
+    return lines + ["| " + " | ".join(_cell(c) for c in row) + " |" for row in rows]
 
 
-def _paper_rows(by_cfg: Mapping[tuple[int, int], RunPoint]) -> list[str]:
-    """Rows of the paper's final losses, parameter counts and per-plant MSEs beside ours."""
-
-    def find(key: str) -> RunPoint | None:
-        return by_cfg.get(_parse_key(key))
-
-    lines = []
-    for key, ref in ABLATION["final_train_loss"].items():
-        p = find(key)
-        ours = NO_RUN if p is None else fmt_value(p.train_loss)
-        lines.append(
-            f"| final training loss | {key} | {fmt_value(ref)} | {ours} | {_fmt_run(p)} |"
-        )
-    for key, ref in ABLATION["parameters"].items():
-        p = find(key)
-        ours = (
-            NO_RUN if p is None else (f"{p.n_parameters:,}" if p.n_parameters else NOT_AVAILABLE)
-        )
-        approx = "" if key == "d=32,M=3" else "≈"
-        lines.append(f"| parameters | {key} | {approx}{ref:,} | {ours} | {_fmt_run(p)} |")
-    for name, plant in (("crazyflie_mse", "crazyflie_altitude"), ("hvac_mse", "hvac_two_zone")):
-        for key, ref in ABLATION[name].items():
-            p = find(key)
-            ours = NO_RUN if p is None else fmt_value(p.mse.get(plant))
-            lines.append(f"| {plant} MSE | {key} | {fmt_value(ref)} | {ours} | {_fmt_run(p)} |")
-    return lines
+def _claims(claims: pd.DataFrame, recipe: str) -> list[str]:
+    counts = claims["verdict"].value_counts(sort=False)
+    tally = ", ".join(f"{n} {v}" for v, n in counts.items())
+    rows = claims[["claim", "paper", "ours", "verdict", "rule", "note"]].to_numpy().tolist()
+    return [
+        f"## The paper's claims ({recipe} recipe): {tally}",
+        "",
+        *_table(["claim", "paper", "ours (per seed)", "verdict", "rule", "note"], rows),
+        "",
+        "A verdict needs every seed: `seed-dependent` when some seeds reproduce the figure and "
+        "others do not. `not comparable`: the figures differ in definition for this recipe.",
+    ]
 
 
-def _gate_rows(gates: pd.DataFrame | None, gate_run: RunPoint | None) -> list[str]:
-    """Rows of the paper's dominant gate weights beside ours."""
-    gate_cfg = gate_run.label if gate_run else "d=32,M=5"  # the paper's gate model
-    lines = []
-    for plant, ref in ABLATION["gate_weights_m5"].items():
-        ((expert, weight),) = ref.items()
-        paper = f"{expert.replace('_', ' ')}: {weight:.0%}"
-        if gates is None or gate_run is None:
-            ours = NO_RUN
-        elif plant not in gates.index:
-            ours = "not trained on it"
-        else:
-            row = gates.loc[plant]
-            ours = f"{row.idxmax().replace('_', ' ')}: {row.max():.0%} (dominant)"
-        lines.append(
-            f"| gate weight, {plant} | {gate_cfg} | {paper} | {ours} | {_fmt_run(gate_run)} |"
-        )
-    return lines
+def _runs(points: pd.DataFrame) -> list[str]:
+    if points.empty:
+        return []
+    rows = []
+    for r in points.to_dict(orient="records"):
+        n_par = r.get("n_parameters")
+        checked = r.get("bar_checked")
+        bar = f"{int(r['bar_passed'])}/{int(checked)}" if pd.notna(checked) else "no evaluation"
+        rows.append(
+            [f"`{r['run']}`", f"{int(n_par):,}" if pd.notna(n_par) else "n/a",
+             fmt_value(r.get("final_train_loss")), fmt_value(r.get("final_val_loss")),
+             fmt_value(r.get("mse_mean")), bar, f"`{str(r['run_id'])[:8]}`"]
+        )  # fmt: skip
+    header = ["run", "parameters", "final train loss", "final val loss", "mean closed-loop MSE"]
+    return ["", "## Every run", "", *_table([*header, "quality bar", "MLflow run"], rows)]
+
+
+def _verdicts(points: pd.DataFrame) -> list[str]:
+    cols = [c for c in points.columns if c.startswith("bar/")]
+    if not cols:
+        return []
+    runs = [f"`{r}`" for r in points["run"]]
+    rows = []
+    for col in cols:
+        cells = ["n/a" if pd.isna(v) else ("pass" if v else "**fail**") for v in points[col]]
+        rows.append([f"`{col[4:]}`", *cells])
+    return [
+        "",
+        "## Quality bar per run (docs/evaluation.md)",
+        "",
+        *_table(["verdict", *runs], rows),
+    ]
+
+
+def _scenarios(worst: pd.DataFrame, separating: Mapping[str, str]) -> list[str]:
+    if worst.empty:
+        return []
+    runs = list(dict.fromkeys(worst["run"]))
+    rows = []
+    for scen, part in worst.groupby("scenario", sort=False):
+        by_run = part.set_index("run")
+        cells = []
+        for run in runs:
+            if run not in by_run.index:
+                cells.append("")
+                continue
+            r = by_run.loc[run]
+            text = fmt_value(r["worst_ratio"])
+            cells.append(text + (f", {r['GC_diverged']} diverged" if r["GC_diverged"] else ""))
+        kind = "ISE" if part["kind"].iloc[0] == "step" else "RMSE"
+        rows.append([f"`{scen}`", kind, *cells, "yes" if scen in separating else ""])
+    lines = [
+        "",
+        "## Scenarios: the worst plant's GC/LQI ratio per run (per-plant: `scenarios.csv`)",
+        "",
+        *_table(["scenario", "ratio of", *[f"`{r}`" for r in runs], "separates"], rows),
+        "",
+    ]
+    if not separating:
+        return [*lines, "No scenario separates the runs."]
+    return [*lines, "Scenarios that separate the runs:", ""] + [
+        f"- `{scen}`: {why}" for scen, why in separating.items()
+    ]
+
+
+def _gates(gates: pd.DataFrame | None, gate_run: RunPoint | None) -> list[str]:
+    if gates is None or gate_run is None:
+        return []
+    rows = [
+        [p, str(r.idxmax()).replace("expert_", ""), f"{r.max():.0%}"] for p, r in gates.iterrows()
+    ]
+    title = f"## Gate weights of {gate_run.label} (run `{gate_run.run_id[:8]}`), every plant"
+    note = (
+        "Mean gate weight over a closed-loop unit step (`gate_weights.csv`, "
+        "`gate_weights.png`). Expert numbers are arbitrary: compare shares, not numbers."
+    )
+    return ["", title, "", note, "", *_table(["plant", "dominant expert", "its share"], rows)]
 
 
 def _mse_tables(mse: pd.DataFrame) -> list[str]:
@@ -89,58 +130,64 @@ def _mse_tables(mse: pd.DataFrame) -> list[str]:
         if part.empty:
             continue
         values = list(dict.fromkeys(part["value"]))
-        lines += [
-            "",
-            f"## Output MSE by {symbol} (figure `mse_{sweep}.png`)",
-            "",
-            "| plant | " + " | ".join(point_label(sweep, v) for v in values) + " |",
-            "| --- |" + " --- |" * len(values),
-        ]
-        for plant, rows in part.groupby("plant", sort=False):
+        rows = []
+        for plant, by_plant in part.groupby("plant", sort=False):
             cells = []
             for v in values:
-                r = rows[rows["value"] == v].iloc[0]
+                r = by_plant[by_plant["value"] == v].iloc[0]
                 cells.append(fmt_value(r["mse"]) if r["status"] == "ok" else r["status"])
-            lines.append(f"| {plant} | " + " | ".join(cells) + " |")
+            rows.append([plant, *cells])
+        header = ["plant", *(point_label(sweep, v) for v in values)]
+        title = f"## Output MSE by {symbol} (figure `mse_{sweep}.png`)"
+        lines += ["", title, "", *_table(header, rows)]
     return lines
 
 
 def comparison_markdown(
-    sweeps: Mapping[str, Mapping[int, RunPoint | None]],
-    mse: pd.DataFrame,
+    tables: Mapping[str, Any],
     gates: pd.DataFrame | None,
     gate_run: RunPoint | None,
     eval_summary: Mapping[str, Any] | None = None,
+    recipe: str = "default",
 ) -> str:
-    """Markdown: our ablation figures beside the paper's, and the per-plant MSE tables."""
-    by_cfg = {(p.hidden, p.experts): p for p in unique_points(sweeps)}
+    """The report's markdown.
+
+    Parameters
+    ----------
+    tables : mapping
+        ``claims`` (:func:`~generalist_control.reports.claims.judge_claims`), ``points``
+        (:func:`~generalist_control.reports.points.points_frame`), ``worst``
+        (:func:`~generalist_control.reports.evaluations.scenario_worst`), ``separating``
+        (:func:`~generalist_control.reports.evaluations.separating`) and ``mse`` (the sweeps'
+        per-plant MSE, :func:`~generalist_control.reports.runs.mse_frame`).
+    gates, gate_run :
+        The M = 5 model's gate weights and its run (None without it).
+    eval_summary : mapping, optional
+        The pipeline model's evaluation summary, whose quality bar closes the page.
+    recipe : str
+        The runs' recipe, named in the claims' heading.
+    """
     lines = [
         "# Ablation study (Section 7): our runs beside the paper",
         "",
-        "Redrawn from the MLflow training runs by `python -m generalist_control.report`. "
-        '"no run": no finished run of that configuration; "no score": the run has no score '
-        "(diverged, or not trained on the plant). Our training loss is the MSE on normalised "
-        "controls (see docs/training.md); MSE is GC against LQI, unit step, ablation set.",
+        "Written by `python -m generalist_control.report` from the MLflow training runs and "
+        'their evaluations. "no run": no finished run of that configuration; "no score": the '
+        "run has no such figure (a diverged closed loop, a plant it was not trained on). MSE "
+        "is GC against LQI, unit step, the ablation set (`closed_loop.systems`).",
         "",
-        "| quantity | configuration | paper | ours | run |",
-        "| --- | --- | --- | --- | --- |",
-        *_paper_rows(by_cfg),
-        *_gate_rows(gates, gate_run),
+        *_claims(tables["claims"], recipe),
+        *_runs(tables["points"]),
+        *_verdicts(tables["points"]),
+        *_scenarios(tables["worst"], tables["separating"]),
+        *_gates(gates, gate_run),
+        *_mse_tables(tables["mse"]),
     ]
-    lines += [
-        "",
-        "Expert numbering is arbitrary (any permutation of the experts is the same model), so "
-        "for the gate weights compare the dominant expert's share, not its index.",
-    ]
-    lines += _mse_tables(mse)
     if eval_summary:
         qb = eval_summary.get("quality_bar", {})
         lines += [
             "",
             "## The pipeline's model (evaluate stage, reports/eval/summary.json)",
             "",
-            "| quality bar | met |",
-            "| --- | --- |",
-            *[f"| {k} | {v} |" for k, v in qb.items()],
+            *_table(["quality bar", "met"], [[k, v] for k, v in qb.items()]),
         ]
     return "\n".join(lines) + "\n"

@@ -287,15 +287,34 @@ _ABLATION_HEADER = (
 )
 
 
+def _claims(recipe: Recipe, summary: Mapping[str, Any]) -> list[str]:
+    """The paper's claims beside ours, with the verdicts (``summary['claims']``)."""
+    claims = [c for c in summary.get("claims") or [] if isinstance(c, Mapping)]
+    if not claims:
+        return []
+    counts = summary.get("claims_verdicts") or {}
+    tally = ", ".join(f"{_text(n, 10)} {_text(v, 30)}" for v, n in counts.items())
+    rows = [
+        [_text(c.get("claim"), 80), _text(c.get("paper"), 20), _text(c.get("ours"), 60),
+         _text(c.get("verdict"), 30)]
+        for c in claims
+    ]  # fmt: skip
+    source = recipe.files["summary"].replace("summary.json", "claims.csv")
+    lines = [f"The paper's Section 7, claim by claim ({_text(tally, 200)}; rules and notes in "
+             f"`{source}`):", ""]  # fmt: skip
+    return [*lines, *table(("claim", "paper", "ours", "verdict"), rows, source), ""]
+
+
 def _ablation_section(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
-    """Per point: parameters, final training loss, mean closed-loop MSE, diverged plants."""
+    """Per point its parameters, losses, mean MSE, diverged plants; then the claims."""
     summary = data["summary"]
     lines = [*_head(recipe, summary)]
     if "runs" in data:
         lines += [*table(_ABLATION_HEADER, _ablation_rows(data), recipe.files["runs"]), ""]
     else:
         lines += [f"Per-point figures: `{recipe.files.get('runs')}` is not here.", ""]
-    return lines + [f"No run for: {_names(summary.get('missing'), 10)}.", ""]
+    lines += [f"No run for: {_names(summary.get('missing'), 10)}.", ""]
+    return lines + _claims(recipe, summary)
 
 
 SECTIONS = {

@@ -70,6 +70,11 @@ class RunPoint:
     n_parameters : int or None
     train_loss : float or None
         The last logged ``train/loss`` (the final training loss).
+    val_loss, best_val_loss : float or None
+        The last logged ``val/loss`` (the published checkpoint's, which training validates
+        last) and ``best/val/loss``.
+    seed : int or None
+        The training's ``seed``.
     mse : dict
         ``closed_loop/mse/<plant>`` by plant (only finite scores are logged by training).
     diverged : int
@@ -93,6 +98,9 @@ class RunPoint:
     start_time: int = 0
     params: Mapping[str, str] = field(default_factory=dict, compare=False, repr=False)
     parent_id: str | None = None
+    val_loss: float | None = None
+    best_val_loss: float | None = None
+    seed: int | None = None
 
     @property
     def label(self) -> str:
@@ -120,7 +128,7 @@ def _point(run: Any) -> RunPoint | None:
     n_params = _as_int(params.get("n_parameters"))
     if n_params is None and "n_parameters" in metrics:
         n_params = int(metrics["n_parameters"])
-    loss = metrics.get("train/loss")
+    loss, val, best = (metrics.get(k) for k in ("train/loss", "val/loss", "best/val/loss"))
     return RunPoint(
         run_id=run.info.run_id,
         run_name=run.info.run_name or "",
@@ -133,6 +141,9 @@ def _point(run: Any) -> RunPoint | None:
         start_time=int(run.info.start_time or 0),
         params=dict(params),
         parent_id=tags.get("mlflow.parentRunId"),
+        val_loss=float(val) if val is not None else None,
+        best_val_loss=float(best) if best is not None else None,
+        seed=_as_int(params.get("seed")),
     )
 
 
@@ -223,7 +234,11 @@ def select_sweeps(
     experts: Sequence[int] = (1, 3, 5),
     baseline: Mapping[str, int] | None = None,
 ) -> dict[str, dict[int, RunPoint | None]]:
-    """The run of each sweep point: the newest matching run, or None ("no run").
+    """The run of each sweep point: the newest matching run of its smallest seed, or None.
+
+    A point trained with several seeds (the DVC ablation's second seeds) is drawn with its
+    smallest seed's run, so that the figures do not depend on which seed ran last;
+    :func:`generalist_control.reports.points.seed_runs` gives every seed's run.
 
     Parameters
     ----------
@@ -240,10 +255,10 @@ def select_sweeps(
         ``{"hidden": {d: RunPoint | None}, "experts": {M: RunPoint | None}}``.
     """
     base = {"hidden": 32, "experts": 3, **(baseline or {})}
-    newest = sorted(points, key=lambda p: -p.start_time)
+    order = sorted(points, key=lambda p: (p.seed is None, p.seed or 0, -p.start_time))
 
     def first(d: int, m: int) -> RunPoint | None:
-        return next((p for p in newest if p.hidden == d and p.experts == m), None)
+        return next((p for p in order if p.hidden == d and p.experts == m), None)
 
     return {
         "hidden": {int(d): first(int(d), int(base["experts"])) for d in hidden},
@@ -252,7 +267,7 @@ def select_sweeps(
 
 
 def unique_points(sweeps: Mapping[str, Mapping[int, RunPoint | None]]) -> list[RunPoint]:
-    """The runs of all sweeps, each once (the baseline belongs to both sweeps)."""
+    """The runs of all sweeps, each once (the baseline belongs to both sweeps), by (d, M)."""
     seen: dict[str, RunPoint] = {}
     for by_value in sweeps.values():
         for p in by_value.values():

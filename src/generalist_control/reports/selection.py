@@ -25,13 +25,13 @@ from omegaconf import DictConfig
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.secrets import redact
+from generalist_control.reports.points import seed_runs
 from generalist_control.reports.runs import (
     SWEEP_COMMANDS,
     NoAblationRunsError,
     RunPoint,
     runs_from_mlflow,
     select_sweeps,
-    unique_points,
 )
 from generalist_control.tracking.experiments import experiment_name
 from generalist_control.tracking.parents import ROLE_TAG
@@ -203,11 +203,19 @@ def check_comparable(
 
 def select_runs(
     cfg: DictConfig, client: Any
-) -> tuple[str, dict[str, dict[int, RunPoint | None]], dict[str, dict[str, list[str]]]]:
-    """The report's experiment, its sweep points, and the differences let through.
+) -> tuple[
+    str,
+    dict[str, dict[int, RunPoint | None]],
+    dict[str, dict[str, list[str]]],
+    dict[tuple[int, int], list[RunPoint]],
+]:
+    """The report's experiment, its sweep points, the differences let through, every seed.
 
     Reads ``report.experiment_name``, ``parent_run``, ``filter_string``, ``hidden``,
-    ``experts``, ``baseline``, ``identity_keys`` and ``allow_mixed``.
+    ``experts``, ``baseline``, ``identity_keys`` and ``allow_mixed``. The last item holds,
+    per configuration (d, M) of the sweeps, its newest run of each seed
+    (:func:`~generalist_control.reports.points.seed_runs`); all of them are checked to be
+    comparable.
 
     Raises
     ------
@@ -233,10 +241,11 @@ def select_runs(
             "Create the ablation runs with:\n  " + "\n  ".join(SWEEP_COMMANDS)
         )
     sweeps = select_sweeps(points, list(rcfg.hidden), list(rcfg.experts), as_dict(rcfg.baseline))
+    by_config = seed_runs(points, sweeps)
     mixed = check_comparable(
-        unique_points(sweeps),
+        [p for runs in by_config.values() for p in runs],
         [str(k) for k in rcfg.get("identity_keys") or []],
         bool(rcfg.get("allow_mixed")),
         parents_hint(client, exp_id) if exp_id else "none",
     )
-    return experiment, sweeps, mixed
+    return experiment, sweeps, mixed, by_config

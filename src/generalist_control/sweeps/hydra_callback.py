@@ -11,8 +11,18 @@ the MLflow UI shows the points as children of one row and compares them side by 
 After the last job the parent gets a summary (``sweep/n_runs``, ``sweep/best/<metric>``,
 tag ``sweep.best_run_id``) and ends ``FINISHED``, or ``FAILED`` if a job failed.
 
-Hydra's basic launcher runs the jobs one after another in this process; a launcher that
-starts worker processes inherits the environment, so the jobs still find their parent.
+Hydra's basic launcher runs the jobs one after another in this process. A parallel launcher
+runs them elsewhere: ``hydra/launcher=parallel`` or ``joblib`` in worker processes of this
+machine (loky, which may reuse workers started for an earlier multirun, with that one's
+environment), ``submitit_local`` and ``submitit_slurm`` in processes of their own, on a
+cluster's nodes for SLURM. Each of them pickles Hydra's callbacks, this one with its
+``run_id``, into the job, and :meth:`MLflowSweepCallback.on_job_start` sets the variables
+there before the training starts: the parent reaches a job whatever its process inherited.
+
+A single run (no ``-m``) with ``group`` set is filed under the parent run of that name in
+its experiment, found or created by
+:func:`generalist_control.tracking.parents.named_parent`: separate commands (the DVC
+ablation's trainings, started two at a time) share one parent that way.
 :func:`generalist_control.tracking.parents.parent_run` is the same mechanism for code (the
 Optuna study of :mod:`generalist_control.sweeps.study` files its trials under a study run
 with it).
@@ -38,11 +48,32 @@ from generalist_control.common.configs import as_dict
 from generalist_control.common.secrets import redact
 from generalist_control.tracking import mlflow_utils
 from generalist_control.tracking.experiments import experiment_name
-from generalist_control.tracking.parents import create_parent_run, summarise_children
+from generalist_control.tracking.parents import (
+    create_parent_run,
+    named_parent,
+    summarise_children,
+)
 
 __all__ = ["MLflowSweepCallback", "sweep_overrides"]
 
 log = logging.getLogger(__name__)
+
+_ENV_KEYS = (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV)
+
+
+def _set_env(values: Sequence[str]) -> dict[str, str | None]:
+    """Set the parent's variables; return their previous values."""
+    saved = {k: os.environ.get(k) for k in _ENV_KEYS}
+    os.environ.update(dict(zip(_ENV_KEYS, values, strict=True)))
+    return saved
+
+
+def _restore_env(saved: dict[str, str | None]) -> None:
+    for key, value in saved.items():
+        if value is None:
+            os.environ.pop(key, None)
+        else:
+            os.environ[key] = value
 
 
 def sweep_overrides(overrides: Sequence[str]) -> list[str]:
@@ -69,6 +100,9 @@ class MLflowSweepCallback(Callback):
     name : str, optional
         The parent run's name and the children's ``sweep`` tag; default ``sweep:`` followed
         by the sweeping overrides, e.g. ``sweep:model.hidden=16,32,64``.
+    group : str, optional
+        A single run (no ``-m``) is filed under the parent run of this name in its
+        experiment, made if missing (e.g. ``ablation:default``); a multirun ignores it.
 
     Each job of a multirun writes its model to ``<its output dir>/models`` unless
     ``paths.models_dir`` is on the command line
@@ -76,13 +110,18 @@ class MLflowSweepCallback(Callback):
     so the jobs overwrite neither each other's model nor the DVC output ``models/``.
     """
 
-    def __init__(self, jobs: Sequence[str] = ("train",), name: str | None = None) -> None:
+    def __init__(
+        self, jobs: Sequence[str] = ("train",), name: str | None = None, group: str | None = None
+    ) -> None:
         self.jobs = tuple(jobs)
         self.name = name
+        self.group = group
         self.run_id: str | None = None
+        self._parent_name: str | None = None
         self._failed = 0
         self._tracking_uri: str | None = None
         self._saved_env: dict[str, str | None] = {}
+        self._job_env: dict[str, str | None] | None = None
 
     def _active(self, config: DictConfig) -> bool:
         return str(config.hydra.job.name) in self.jobs
@@ -103,19 +142,40 @@ class MLflowSweepCallback(Callback):
         logger = as_dict(config.logger)
         logger["experiment_name"] = experiment_name(logger, "sweep")  # the jobs follow it
         self.run_id = create_parent_run(logger, name, "sweep", tags)
+        self._parent_name = name
         self._tracking_uri = mlflow.get_tracking_uri()
         self._failed = 0
-        keys = (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV)
-        self._saved_env = {k: os.environ.get(k) for k in keys}
-        os.environ.update(dict(zip(keys, (self.run_id, name), strict=True)))
+        self._saved_env = _set_env((self.run_id, name))
         # A failed job makes Hydra raise before on_multirun_end: end the parent at exit then.
         atexit.register(self._end, RunStatus.to_string(RunStatus.FAILED))
         log.info("MLflow sweep %r: parent run %s", name, self.run_id)
 
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """A single run with ``group`` set: find or make that parent, export it to the job."""
+        if not self.group or not self._active(config):
+            return
+        logger = as_dict(config.logger)
+        self.run_id = named_parent(logger, self.group, kind="train")
+        self._parent_name = self.group
+        log.info("MLflow group %r: parent run %s", self.group, self.run_id)
+
+    def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """Export the parent to this job, in whichever process the launcher runs it."""
+        if self.run_id and self._parent_name and self._active(config):
+            self._job_env = _set_env((self.run_id, self._parent_name))
+
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
-        """Count the failed jobs (the parent then ends ``FAILED``)."""
+        """Count the failed jobs (the parent then ends ``FAILED``); restore the environment."""
+        if self._job_env is not None:
+            _restore_env(self._job_env)
+            self._job_env = None
         if self.run_id and job_return.status == JobStatus.FAILED:
             self._failed += 1
+
+    def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
+        """Forget a group's parent (it stays ``FINISHED``: it has no work of its own)."""
+        if self.group and self._active(config):
+            self.run_id = self._parent_name = None
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """Summarise the children into the parent and end it."""
@@ -136,11 +196,8 @@ class MLflowSweepCallback(Callback):
             return
         run_id, self.run_id = self.run_id, None
         atexit.unregister(self._end)
-        for key, value in self._saved_env.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
+        _restore_env(self._saved_env)
+        self._parent_name = None
         if self._tracking_uri:
             mlflow.set_tracking_uri(self._tracking_uri)
         mlflow.MlflowClient().set_terminated(run_id, status)

@@ -1,8 +1,9 @@
 """Parent runs: one MLflow run that groups the training runs of a sweep or a study.
 
-A parent is created with :func:`create_parent_run`; inside :func:`parent_run` (or with
-``GC_PARENT_RUN_ID`` set) every training run is filed under it
-(:func:`generalist_control.tracking.mlflow_utils.parent_run_tags`), and
+A parent is created with :func:`create_parent_run` (a multirun's, a study's) or found by
+name with :func:`named_parent` (a group of separate commands, e.g. the DVC ablation's
+trainings); inside :func:`parent_run` (or with ``GC_PARENT_RUN_ID`` set) every training run
+is filed under it (:func:`generalist_control.tracking.mlflow_utils.parent_run_tags`), and
 :func:`summarise_children` logs the best child to the parent.
 """
 
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any
@@ -19,10 +21,20 @@ import mlflow
 from generalist_control.common.secrets import redact
 from generalist_control.tracking import mlflow_utils
 
-__all__ = ["ROLE_TAG", "create_parent_run", "parent_run", "summarise_children"]
+__all__ = [
+    "GROUP_ROLE",
+    "ROLE_TAG",
+    "create_parent_run",
+    "named_parent",
+    "parent_run",
+    "summarise_children",
+]
 
-#: Tag that marks a parent run and says what it groups (``sweep`` or ``study``).
+#: Tag that marks a parent run and says what it groups (``sweep``, ``study`` or ``group``).
 ROLE_TAG = "gc.role"
+#: The role of a parent found or made by name (:func:`named_parent`).
+GROUP_ROLE = "group"
+_NAME = re.compile(r"[A-Za-z0-9_.:=,/+@ -]+")
 
 
 def create_parent_run(
@@ -50,6 +62,60 @@ def create_parent_run(
         exp_id, run_name=name, tags={ROLE_TAG: role, "sweep": name, **(tags or {})}
     )
     return run.info.run_id
+
+
+def _named(client: Any, exp_id: str, name: str) -> list[Any]:
+    """The group parents of an experiment called ``name``, oldest first."""
+    runs = client.search_runs(
+        [exp_id],
+        filter_string=f"tags.`{ROLE_TAG}` = '{GROUP_ROLE}' and attributes.run_name = '{name}'",
+        order_by=["attributes.start_time ASC"],
+        max_results=100,
+    )
+    return sorted(runs, key=lambda r: (r.info.start_time, r.info.run_id))
+
+
+def named_parent(logger: Mapping[str, Any], name: str, kind: str = "train") -> str:
+    """The id of the parent run called ``name`` in the experiment of ``kind``, made if missing.
+
+    Separate commands that give the same name (the DVC ablation's trainings, two at a time)
+    share one parent: on an SQLite store the lookup and the creation hold the store's lock;
+    on a server two commands may both create one, and then both keep the older and the other
+    is deleted. The parent is ``FINISHED`` at once (a row that groups, with no work of its
+    own) and tagged ``gc.role = group``.
+
+    Parameters
+    ----------
+    logger : mapping
+        The ``logger`` config (tracking URI, experiment name or prefix).
+    name : str
+        Letters, digits, spaces and ``_.:=,/+@-`` (it goes into a search filter).
+    kind : str
+        The kind of work whose experiment holds the parent (that of the runs it groups).
+
+    Raises
+    ------
+    ValueError
+        For a name with other characters.
+    """
+    if not _NAME.fullmatch(name):
+        raise ValueError(
+            f"parent run name {name!r}: use letters, digits, spaces and _.:=,/+@- only"
+        )
+    exp_id = mlflow_utils.experiment_id(logger, kind)
+    client = mlflow.MlflowClient()
+    with mlflow_utils.store_lock(mlflow.get_tracking_uri()):
+        found = _named(client, exp_id, name)
+        if found:
+            return str(found[0].info.run_id)
+        mine = client.create_run(
+            exp_id, run_name=name, tags={ROLE_TAG: GROUP_ROLE, "sweep": name}
+        ).info.run_id
+        client.set_terminated(mine, "FINISHED")
+    oldest = str(_named(client, exp_id, name)[0].info.run_id)
+    if oldest != mine:  # another command made one at the same time (a server store)
+        client.delete_run(mine)
+    return oldest
 
 
 @contextmanager

@@ -1,0 +1,203 @@
+"""The ablation points' evaluations: verdicts, per-scenario scores, what separates the points.
+
+Each point of the DVC ablation is evaluated on every scenario after its training
+(``python -m generalist_control.evaluate policy=<its policy> paths.reports_dir=<folder>``).
+:func:`load_evaluations` reads such folders (``summary.json``, and ``metrics.csv`` where
+present) and keys them by the MLflow run that trained the policy, which ``summary.json``
+records (``policy.mlflow_run_id``), so the report matches them to its runs whatever the
+folders are called. From them:
+
+* :func:`bar_of`: a point's quality-bar verdicts;
+* :func:`scenario_scores`: per run, scenario and plant, GC's mean ISE (step scenarios) or
+  tracking RMSE (the others) over LQI's, from ``metrics.csv``;
+* :func:`scenario_worst`: per run and scenario, the worst plant's ratio and GC's diverged
+  runs, from ``summary.json``;
+* :func:`separating`: the scenarios in which the points do not all fare alike.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from generalist_control.evaluation.summary import DEFAULT_BAR
+
+__all__ = [
+    "Evaluation",
+    "bar_of",
+    "load_evaluations",
+    "scenario_scores",
+    "scenario_worst",
+    "separating",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One evaluation folder: its ``summary.json`` and, if there, its ``metrics.csv``."""
+
+    path: Path
+    summary: Mapping[str, Any]
+    metrics: pd.DataFrame | None
+
+
+def load_evaluations(directory: str | Path | None) -> dict[str, Evaluation]:
+    """The evaluations under ``directory`` (``*/summary.json``), by their policy's run id.
+
+    A folder whose summary names no MLflow run is skipped with a warning; of two folders
+    of one run, the one written last counts. A missing or empty directory gives ``{}``.
+    """
+    out: dict[str, Evaluation] = {}
+    if directory is None or not Path(directory).is_dir():
+        return out
+    found = sorted(Path(directory).glob("*/summary.json"), key=lambda f: f.stat().st_mtime)
+    for file in found:
+        summary = json.loads(file.read_text())
+        run_id = (summary.get("policy") or {}).get("mlflow_run_id")
+        if not run_id:
+            log.warning("%s names no MLflow run (policy.mlflow_run_id): left out", file)
+            continue
+        csv = file.with_name("metrics.csv")
+        metrics = pd.read_csv(csv) if csv.is_file() else None
+        out[str(run_id)] = Evaluation(file.parent, summary, metrics)
+    return out
+
+
+def bar_of(summary: Mapping[str, Any]) -> dict[str, bool | None]:
+    """The quality-bar verdicts of an evaluation summary (None: not measured)."""
+    return {
+        str(k): (None if v is None else bool(v))
+        for k, v in (summary.get("quality_bar") or {}).items()
+    }
+
+
+def _kind(metrics: pd.Series) -> str:
+    return "step" if "rise_time" in set(metrics) else "tracking"
+
+
+def scenario_scores(
+    labels: Mapping[str, str], evaluations: Mapping[str, Evaluation]
+) -> pd.DataFrame:
+    """Per run, scenario and plant: GC's mean score over LQI's, from ``metrics.csv``.
+
+    The score is the ISE in step scenarios (those with step metrics) and the tracking RMSE
+    in the others, each averaged over the scenario's runs that did not diverge, as the
+    evaluation's summary does.
+
+    Parameters
+    ----------
+    labels : mapping
+        Run id -> the run's label (:func:`~generalist_control.reports.points.run_label`),
+        in table order.
+    evaluations : mapping
+        From :func:`load_evaluations`.
+
+    Returns
+    -------
+    DataFrame
+        Columns ``run, run_id, scenario, kind, plant, metric, GC, LQI, ratio, GC_diverged``.
+    """
+    cols = ["run", "run_id", "scenario", "kind", "plant", "metric", "GC", "LQI", "ratio"]
+    frames = []
+    for run_id, label in labels.items():
+        ev = evaluations.get(run_id)
+        if ev is None or ev.metrics is None:
+            continue
+        df = ev.metrics
+        kinds = df.groupby("scenario", sort=False)["metric"].agg(_kind)
+        metric = kinds.map({"step": "ISE", "tracking": "RMSE"})
+        wanted = df[df["metric"] == df["scenario"].map(metric)]
+        means = wanted.groupby(["scenario", "system", "controller"], sort=False)["value"].mean()
+        table = means.unstack("controller")
+        if not {"GC", "LQI"} <= set(table.columns):
+            continue
+        diverged = df[(df["metric"] == "diverged") & (df["controller"] == "GC")]
+        div = diverged.groupby(["scenario", "system"])["value"].sum()
+        part = table[["GC", "LQI"]].reset_index().rename(columns={"system": "plant"})
+        part["ratio"] = part["GC"] / part["LQI"]
+        part["kind"] = part["scenario"].map(kinds)
+        part["metric"] = part["scenario"].map(metric)
+        keys = list(zip(part["scenario"], part["plant"], strict=True))
+        part["GC_diverged"] = [int(div.get(k, 0)) for k in keys]
+        part.insert(0, "run_id", run_id)
+        part.insert(0, "run", label)
+        frames.append(part)
+    if not frames:
+        return pd.DataFrame(columns=[*cols, "GC_diverged"])
+    return pd.concat(frames, ignore_index=True)[[*cols, "GC_diverged"]]
+
+
+def scenario_worst(
+    labels: Mapping[str, str], evaluations: Mapping[str, Evaluation]
+) -> pd.DataFrame:
+    """Per run and scenario, from ``summary.json``: the worst plant's ratio, GC's divergences.
+
+    Returns
+    -------
+    DataFrame
+        Columns ``run, run_id, scenario, kind`` (``step`` or ``tracking``), ``worst_ratio``
+        (ISE for step scenarios, RMSE for tracking ones; inf when every plant diverged),
+        ``worst_plant``, ``GC_diverged`` (GC runs diverged in the scenario).
+    """
+    rows = []
+    for run_id, label in labels.items():
+        ev = evaluations.get(run_id)
+        if ev is None:
+            continue
+        s = ev.summary
+        diverged = (s.get("diverged") or {}).get("GC") or {}
+        kinds = [
+            ("step", "ISE", s.get("ratios") or {}),
+            ("tracking", "RMSE", s.get("tracking") or {}),
+        ]
+        for kind, metric, by_scen in kinds:
+            for scen, fig in by_scen.items():
+                value = fig.get(f"worst_{metric}_ratio")
+                rows.append(
+                    (label, run_id, scen, kind, float("inf") if value is None else float(value),
+                     fig.get(f"worst_{metric}_system"), int(diverged.get(scen, 0)))
+                )  # fmt: skip
+    cols = ["run", "run_id", "scenario", "kind", "worst_ratio", "worst_plant", "GC_diverged"]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def separating(worst: pd.DataFrame, bar: Mapping[str, Any] | None = None) -> dict[str, str]:
+    """The scenarios that separate the runs, each with the reason.
+
+    A scenario separates them when GC diverges in it for some runs and not for others, or
+    when its worst ratio is within the quality bar's limit for some runs and beyond it for
+    others (``ISE_ratio``, 1.05, for step scenarios; ``RMSE_ratio``, 1.1, for tracking ones,
+    on every scenario, not only those the bar judges). Runs without the scenario are left
+    out of its judgement.
+
+    Returns
+    -------
+    dict
+        Scenario -> reason, e.g. ``"GC diverges for d16-M3-s42 only"``, in the order the
+        scenarios first appear.
+    """
+    limits = {**DEFAULT_BAR, **(bar or {})}
+    out: dict[str, str] = {}
+    for scen, part in worst.groupby("scenario", sort=False):
+        if len(part) < 2:
+            continue
+        runs = list(part["run"])
+        div = part["GC_diverged"] > 0
+        if div.any() and not div.all():
+            out[str(scen)] = "GC diverges for " + ", ".join(np.array(runs)[div.to_numpy()])
+            continue
+        limit = float(limits["ISE_ratio" if part["kind"].iloc[0] == "step" else "RMSE_ratio"])
+        within = part["worst_ratio"] <= limit
+        if within.any() and not within.all():
+            beyond = ", ".join(np.array(runs)[~within.to_numpy()])
+            out[str(scen)] = f"worst ratio beyond {limit:g} for {beyond} only"
+    return out
