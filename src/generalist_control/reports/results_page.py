@@ -50,16 +50,9 @@ __all__ = [
 ]
 
 
-_PAPER = (
-    "python -m generalist_control.generate experiment=paper && python train.py experiment=paper"
-    " run_dir=outputs/recipes/paper && python -m generalist_control.evaluate experiment=paper"
-    " policy=outputs/recipes/paper/models/policy.ckpt paths.reports_dir=reports/paper"
-)
-_HYBRID = (
-    "python train.py experiment=lqi_head run_dir=outputs/recipes/lqi_head && python -m"
-    " generalist_control.evaluate policy=outputs/recipes/lqi_head/models/policy.ckpt"
-    " paths.reports_dir=reports/hybrid"
-)
+#: The paper's recipe is the ablation's point d = 32, M = 3 of the paper's recipe.
+_PAPER = "dvc repro ablation/dvc.yaml:paper@d32 (python train.py experiment=paper, evaluated)"
+_HYBRID = "dvc repro beyond/dvc.yaml:hybrid"
 #: The full-scale ablation (ablation/dvc.yaml), one recipe: its points two at a time, the report.
 _ABLATION = "scripts/ablation.sh {recipe}"
 
@@ -69,11 +62,12 @@ RECIPES: tuple[Recipe, ...] = (
         "summary": "reports/eval/summary.json", "scores": "reports/eval/scores.json",
         "setpoint": "reports/eval/setpoint.csv", "training": "models/metrics.json"}),
     Recipe("paper", "Paper: the paper's recipe", "evaluation", _PAPER, {
-        "summary": "reports/paper/summary.json", "scores": "reports/paper/scores.json",
-        "setpoint": "reports/paper/setpoint.csv"}),
+        "summary": "ablation/reports/paper/d32/summary.json",
+        "scores": "ablation/reports/paper/d32/scores.json",
+        "training": "ablation/models/paper/d32/metrics.json"}),
     Recipe("hybrid", "Hybrid: the default plus a per-plant LQI head", "evaluation", _HYBRID, {
         "summary": "reports/hybrid/summary.json", "scores": "reports/hybrid/scores.json",
-        "setpoint": "reports/hybrid/setpoint.csv"}),
+        "setpoint": "reports/hybrid/setpoint.csv", "training": "models/hybrid/metrics.json"}),
     Recipe("tag-free", "Tag-free: no plant tag", "evaluation",
            "dvc repro beyond/dvc.yaml:tag_free", {
         "summary": "reports/tag_free/summary.json", "scores": "reports/tag_free/scores.json",
