@@ -62,7 +62,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     df = pd.read_csv(metrics)
     plants = [p for p in plants_from_config(cfg.systems) if p.name in set(df.system)]
     scenarios = as_dict(cfg.evaluation.scenarios)
-    trajectories = None
+    trajectories: dict = {}  # no diverged run: an empty departures table
     gc = df[(df.controller == "GC") & (df.metric == "diverged")]
     if (gc.value > 0).any():  # when each diverged run left its expert
         crazyflie = as_dict(cfg.evaluation.get("crazyflie") or {})

@@ -230,5 +230,7 @@ def test_the_tag_free_stage_trains_evaluates_and_writes_its_analyses(
     named = pd.read_csv(bar_dir / "identity.csv")
     assert set(named.system) == {"cstr", "hydraulic_actuator"}
     assert named.p_true.between(0, 1).all() and (named.p_guess >= named.p_true - 1e-12).all()
+    departures = pd.read_csv(bar_dir / "departures.csv")  # a DVC output even when empty
+    assert len(departures) == bar["departures"]["runs"]
     separation = pd.read_csv(bar_dir / "separation.csv")
     assert set(separation.system) == {"cstr", "hydraulic_actuator"}
