@@ -34,7 +34,7 @@ from generalist_control.deploy.resolve import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.background import figures_beside
 from generalist_control.evaluation.provenance import policy_record, provenance
-from generalist_control.evaluation.runner import run_suite
+from generalist_control.evaluation.runner import crazyflie_flight, run_suite
 from generalist_control.evaluation.setpoint import setpoint_from_config, setpoint_settings
 from generalist_control.evaluation.tracker import MlflowWorker
 from generalist_control.evaluation.variants import check_variants_dir, run_variants
@@ -73,10 +73,16 @@ def _evaluate(
     cf = as_dict(cfg.evaluation.get("crazyflie") or {})
     spec = as_dict(cfg.evaluation.get("setpoint") or {})
     # the set-point check's long holds run in the scenarios' loop
-    ev = run_suite(runtime, plants, scen, cf, hold=setpoint_settings(spec, runtime))
+    ev = run_suite(runtime, plants, scen, hold=setpoint_settings(spec, runtime))
     bar = as_dict(cfg.evaluation.get("quality_bar") or {})
-    # the figures are drawn in a process of their own while the set point is checked
+    # the figures are drawn in processes of their own while the Crazyflie flies and the set
+    # point is checked
     with figures_beside(ev.trajectories, bool(cfg.evaluation.get("plots", True))) as figures:
+        flight = crazyflie_flight(runtime, plants, cf)
+        if flight is not None:
+            ev = ev.joined(flight)
+            if figures is not None:
+                figures.add(flight.trajectories)
         setpoint = setpoint_from_config(spec, runtime, plants, held=ev.held)
         tracker.ready()  # a store that cannot be opened stops us before any output changes
         return write_reports(ev.metrics, ev.trajectories, Path(cfg.paths.reports_dir),

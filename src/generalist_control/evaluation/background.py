@@ -34,15 +34,26 @@ class FigureJob:
     """
 
     def __init__(self, trajs: Trajs, forked: bool = True, processes: int = 2) -> None:
-        self.trajs, self.dir = trajs, Path(tempfile.mkdtemp(prefix="gc-figures-"))
+        self.dir = Path(tempfile.mkdtemp(prefix="gc-figures-"))
+        self.forked = forked and "fork" in multiprocessing.get_all_start_methods()
         self.procs: list[multiprocessing.process.BaseProcess] = []
-        if forked and "fork" in multiprocessing.get_all_start_methods():
-            ctx = multiprocessing.get_context("fork")
-            for i in range(processes):
-                share = (i, processes)
-                proc = ctx.Process(target=plot_all, args=(trajs, self.dir, share), daemon=True)
-                proc.start()
-                self.procs.append(proc)
+        self.here: list[Trajs] = []  # drawn at collect() where nothing forks
+        for i in range(processes):
+            self._start(trajs, (i, processes))
+
+    def _start(self, trajs: Trajs, share: tuple[int, int]) -> None:
+        if not self.forked:
+            if share[0] == 0:
+                self.here.append(trajs)
+            return
+        ctx = multiprocessing.get_context("fork")
+        proc = ctx.Process(target=plot_all, args=(trajs, self.dir, share), daemon=True)
+        proc.start()
+        self.procs.append(proc)
+
+    def add(self, trajs: Trajs) -> None:
+        """Draw the figures of more scenarios too (one more process), e.g. a later one's."""
+        self._start(trajs, (0, 1))
 
     def collect(self, dest: str | Path) -> list[Path]:
         """Wait for the figures and move them into ``dest`` (made); their paths there.
@@ -52,8 +63,8 @@ class FigureJob:
         RuntimeError
             If the drawing process failed (its traceback is on stderr).
         """
-        if not self.procs:
-            plot_all(self.trajs, self.dir)
+        for trajs in self.here:
+            plot_all(trajs, self.dir)
         for proc in self.procs:
             proc.join()
             if proc.exitcode != 0:

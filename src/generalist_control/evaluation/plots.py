@@ -34,6 +34,7 @@ _STYLE = {
     "GC-AW": ("tab:purple", "-."),
 }
 _ORDER = ("GC", "GC-AW", "LQI", "LQI-AW")
+_PAIR = ("GC", "LQI")  # the step and sine sheets
 #: Scenarios with at most this many plants get a figure per plant, the others one grid.
 PER_PLANT = 4
 #: Shown in the step and sine sheets only.
@@ -80,16 +81,22 @@ def _panel(ax_y: Any, ax_u: Any, by_ctrl: Mapping[str, Trajectory]) -> None:
 
 
 class _StepSine:
-    """The step and sine sheet of one plant, on one figure drawn again per plant."""
+    """The step and sine sheet of one plant: one figure, its lines given each plant's data."""
 
     def __init__(self) -> None:
         self.fig, self.axes = pyplot().subplots(2, 2, figsize=(10, 5.5), sharex="col")
+        self.lines: dict[str, tuple[Any, dict[str, Any], dict[str, Any]]] = {}
+        for col, scen in enumerate(("step", "sine")):
+            ax_y, ax_u = self.axes[0, col], self.axes[1, col]
+            (ref,) = ax_y.plot([], [], color="0.4", lw=1, label="reference")
+            ys = {c: ax_y.plot([], [], color=_STYLE[c][0], ls=_STYLE[c][1])[0] for c in _PAIR}
+            us = {c: ax_u.plot([], [], color=_STYLE[c][0], ls=_STYLE[c][1])[0] for c in _PAIR}
+            self.lines[scen] = (ref, ys, us)
+            ax_y.set_ylabel("y")
+            ax_u.set_ylabel("u")
+            ax_u.set_xlabel("t (s)")
         for ax in self.axes.flat:
             _light(ax)
-        for col in range(2):
-            self.axes[0, col].set_ylabel("y")
-            self.axes[1, col].set_ylabel("u")
-            self.axes[1, col].set_xlabel("t (s)")
         # fixed margins: tight_layout doubles the drawing time
         self.fig.subplots_adjust(
             left=0.08, right=0.98, bottom=0.1, top=0.94, wspace=0.18, hspace=0.1
@@ -99,21 +106,29 @@ class _StepSine:
         """Draw ``system``'s step and sine responses (GC and LQI) into ``path``."""
         for col, scen in enumerate(("step", "sine")):
             ax_y, ax_u = self.axes[0, col], self.axes[1, col]
-            for ax in (ax_y, ax_u):
-                for line in list(ax.lines):
-                    line.remove()
-            ax_y.set_title("")
-            legend = ax_y.get_legend()
-            if legend is not None:
-                legend.remove()
+            ref, ys, us = self.lines[scen]
             runs = trajs.get(scen, {})
-            by_ctrl = {c: runs[c][system] for c in ("GC", "LQI") if system in runs.get(c, {})}
+            by_ctrl = {c: runs[c][system] for c in _PAIR if system in runs.get(c, {})}
+            for line in (ref, *ys.values(), *us.values()):
+                line.set_visible(False)
             if by_ctrl:
-                _panel(ax_y, ax_u, by_ctrl)
-                ax_y.legend(fontsize=7)
-                ax_y.set_title(f"{system}: {scen}")
+                first = next(iter(by_ctrl.values()))
+                n = first.u.shape[1]
+                ref.set_data(first.t[:n], first.r[0])
+                ref.set_visible(True)
+                for c, tr in by_ctrl.items():
+                    ys[c].set_data(tr.t[:n], tr.y[0, :n])
+                    us[c].set_data(tr.t[:n], tr.u[0])
+                    ys[c].set_visible(True)
+                    us[c].set_visible(True)
+                handles = [ref, *(ys[c] for c in by_ctrl)]
+                labels = ["reference", *(_label(c, tr) for c, tr in by_ctrl.items())]
+                ax_y.legend(handles, labels, fontsize=7)
+            elif ax_y.get_legend() is not None:
+                ax_y.get_legend().remove()
+            ax_y.set_title(f"{system}: {scen}" if by_ctrl else "")
             for ax in (ax_y, ax_u):
-                ax.relim()
+                ax.relim(visible_only=True)
                 ax.autoscale_view()
         self.fig.savefig(path, dpi=80)
 

@@ -55,7 +55,9 @@ __all__ = [
     "CONTROLLERS",
     "GC_ANTI_WINDUP",
     "STEP_KINDS",
+    "COLUMNS",
     "Evaluation",
+    "crazyflie_flight",
     "evaluate",
     "metric_rows",
     "run_suite",
@@ -65,6 +67,8 @@ CONTROLLERS = ("GC", "LQI", "LQI-AW")
 #: Run as well where a scenario limits the actuator and the policy integrates.
 GC_ANTI_WINDUP = "GC-AW"
 STEP_KINDS = ("step", "random_steps")
+#: The long form of the metrics.
+COLUMNS = ["system", "scenario", "controller", "run", "metric", "value"]
 
 log = logging.getLogger(__name__)
 
@@ -165,14 +169,26 @@ class _Plan:
         return segment, len(runs) - 1
 
 
+#: The share of GC's rows that part 0 takes: it steps in the loop's own thread, which steps
+#: every other segment too while the other parts step in theirs.
+FIRST_SHARE = 0.4
+
+
 def _shares(runs: Sequence[Run], parts: int) -> dict[str, int]:
-    """Which GC part each plant goes to: contiguous groups of plants, rows balanced."""
+    """Which GC part each plant goes to: contiguous groups of plants by their rows.
+
+    Part 0 takes about :data:`FIRST_SHARE` of the rows (all of them with one part), the
+    others share the rest equally.
+    """
     rows: dict[str, int] = {}
     for run in runs:
         rows[run.plant.name] = rows.get(run.plant.name, 0) + np.atleast_2d(run.r).shape[0]
-    total, seen, out = sum(rows.values()), 0, {}
+    total, seen, out = max(sum(rows.values()), 1), 0, {}
+    first = FIRST_SHARE if parts > 1 else 1.0
     for name, n in rows.items():
-        out[name] = min(parts - 1, int(parts * seen / max(total, 1)))
+        share = seen / total  # where the plant's rows start
+        later = 1 + int((parts - 1) * (share - first) / (1 - first)) if share >= first else 0
+        out[name] = min(parts - 1, later)
         seen += n
     return out
 
@@ -263,6 +279,11 @@ class Evaluation:
     trajectories: dict[str, dict[str, dict[str, Trajectory]]]
     held: pd.DataFrame | None = None
 
+    def joined(self, other: Evaluation) -> Evaluation:
+        """The scenarios of both, these first (``other.held`` is ignored)."""
+        metrics = pd.concat([self.metrics, other.metrics], ignore_index=True)
+        return Evaluation(metrics, {**self.trajectories, **other.trajectories}, self.held)
+
 
 def _check_known(runtime: PolicyRuntime, plants: Sequence[Plant]) -> None:
     missing = [p.name for p in plants if p.name not in runtime.tags]
@@ -312,12 +333,23 @@ def run_suite(
             trajs[name][ctrl] = {run.plant.name: tr for run, tr in zip(runs, got, strict=True)}
             for run, tr in zip(runs, got, strict=True):
                 rows += metric_rows(run.plant.name, name, ctrl, scenarios[name]["kind"], tr)
-    if crazyflie and any(p.name == "crazyflie_altitude" for p in plants):
-        plant = next(p for p in plants if p.name == "crazyflie_altitude")
-        rows += _crazyflie(runtime, plant, crazyflie, trajs)
-        log.info("crazyflie_sim2real: %d controllers", len(trajs["crazyflie_sim2real"]))
-    df = pd.DataFrame(rows, columns=["system", "scenario", "controller", "run", "metric", "value"])
-    return Evaluation(df, trajs, _held(plan, results, plants, hold) if hold else None)
+    ev = Evaluation(pd.DataFrame(rows, columns=COLUMNS), trajs,
+                    _held(plan, results, plants, hold) if hold else None)  # fmt: skip
+    flight = crazyflie_flight(runtime, plants, crazyflie)
+    return ev if flight is None else ev.joined(flight)
+
+
+def crazyflie_flight(
+    runtime: PolicyRuntime, plants: Sequence[Plant], spec: Mapping[str, Any] | None
+) -> Evaluation | None:
+    """The sim-to-real stand-in's scenario ``crazyflie_sim2real`` (None: off, or no plant)."""
+    plant = next((p for p in plants if p.name == "crazyflie_altitude"), None)
+    if not spec or plant is None:
+        return None
+    trajs: dict[str, dict[str, dict[str, Trajectory]]] = {}
+    rows = _crazyflie(runtime, plant, spec, trajs)
+    log.info("crazyflie_sim2real: %d controllers", len(trajs["crazyflie_sim2real"]))
+    return Evaluation(pd.DataFrame(rows, columns=COLUMNS), trajs)
 
 
 def evaluate(

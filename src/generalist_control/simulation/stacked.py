@@ -219,6 +219,9 @@ class _Loop:
         self.length = {key: np.atleast_2d(segments[key[0]].runs[key[1]].r).shape[1]
                        for key in self.layout.rows}  # fmt: skip
         self.steps = max(self.length.values())
+        self.ends: dict[int, list[tuple[int, int]]] = {}
+        for key in sorted(self.length):
+            self.ends.setdefault(self.length[key], []).append(key)
         B = self.layout.size
         self.r = np.zeros((B, self.steps))
         for (s, i), rows in self.layout.rows.items():
@@ -237,7 +240,7 @@ class _Loop:
 
     def end(self, k: int) -> list[tuple[int, int]]:
         """Close the runs of length ``k``: their divergence as it stood, their rows dropped."""
-        done = sorted(key for key, n in self.length.items() if n == k)
+        done = self.ends.get(k, [])
         for key in done:
             rows = self.layout.rows[key]
             self.final[key] = self.diverged[rows].copy()
