@@ -169,6 +169,11 @@ class _Plan:
         return segment, len(runs) - 1
 
 
+#: GC's rows are split between runtime copies from this many rows on. Fewer gain nothing
+#: from two threads, and a batch of a few rows can meet other kernels than the old loop's
+#: batch (ONNX Runtime's results depend on the batch size below about 8 rows for some
+#: networks: docs/evaluation.md).
+SPLIT_ROWS = 64
 #: The share of GC's rows that part 0 takes: it steps in the loop's own thread, which steps
 #: every other segment too while the other parts step in theirs.
 FIRST_SHARE = 0.4
@@ -198,6 +203,8 @@ def _plan(
 ) -> _Plan:
     plan = _Plan()
     every = [run for runs in todo.values() for run in runs] + held
+    if sum(np.atleast_2d(run.r).shape[0] for run in every) < SPLIT_ROWS:
+        parts = 1
     parts = max(1, min(parts, len({run.plant.name for run in every})))  # a plant per part at least
     share = _shares(every, parts)
     for i in range(parts):  # part 0 drives the runtime itself, the others copies of it

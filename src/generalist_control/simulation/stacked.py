@@ -9,11 +9,13 @@ all the rows they have, whatever segment or run the rows belong to.
 
 Every row follows the arithmetic of :func:`simulate_many` exactly (the same expressions on the
 same values: zero-order hold or RK4, actuator, noise, disturbance, divergence), and rows never
-mix, so a run's trajectory is the one :func:`simulate_many` gives for it, bit for bit, when
-the run's plant has two or more rows in both loops (tests/test_stacked.py). One exception:
-BLAS multiplies a single row by another path than several, which can change the last bit of a
-linear update; a plant alone in a :func:`simulate_many` batch can differ there (1 ulp a
-sample, docs/evaluation.md).
+mix, so a run's trajectory is the one :func:`simulate_many` gives for it, bit for bit
+(tests/test_stacked.py), with one proviso: BLAS multiplies a single row by another path than
+several, which can change the last bit of a linear update. A linear plant is updated once
+per segment for all its rows there (and a controller sees all its rows of a plant at once),
+so a run equals its own :func:`simulate_many` when its plant has as many rows in the
+segment as in that batch, or two or more in both (1 ulp a sample otherwise,
+docs/evaluation.md).
 
 A run that has ended is commanded NaN (its later samples are never recorded) and its
 controller, if it has a ``finish(rows)`` method, is told which of its rows ended, so that a
@@ -68,19 +70,26 @@ class _Layout:
         #: per (segment, run): its global rows (a slice); per segment: its rows, own order
         self.rows: dict[tuple[int, int], slice] = {}
         self.local: dict[tuple[int, int], slice] = {}
+        #: the rows each plant update takes: a plant's in every segment where it is nonlinear
+        #: (RK4, elementwise), per segment where it is linear (a matrix product: BLAS's path
+        #: depends on the number of rows, and a segment's are a simulate_many batch's)
         self.blocks: list[tuple[Plant, slice]] = []
         order: list[list[int]] = [[] for _ in segments]
         start = 0
         for plant in plants:
             first = start
             for s, seg in enumerate(segments):
+                mine = start
                 for i, run in enumerate(seg.runs):
                     if run.plant is plant:
                         b = np.atleast_2d(run.r).shape[0]
                         self.rows[s, i] = slice(start, start + b)
                         order[s] += range(start, start + b)
                         start += b
-            self.blocks.append((plant, slice(first, start)))
+                if plant.is_linear and start > mine:
+                    self.blocks.append((plant, slice(mine, start)))
+            if not plant.is_linear:
+                self.blocks.append((plant, slice(first, start)))
         self.size = start
         self.segment_rows = [np.asarray(o, dtype=np.int64) for o in order]
         for (s, i), rows in self.rows.items():
