@@ -61,6 +61,17 @@ class LQIRuntime:
             ctrl.reset(len(rows))
             self.groups.append((ctrl, self.plants[name].order, rows))
 
+    def select(self, rows) -> None:
+        """Go on with only ``rows`` of the batch, in that order (as PolicyRuntime.select)."""
+        rows = np.asarray(rows)
+        groups = []
+        for ctrl, n, idx in self.groups:
+            mine = np.flatnonzero(np.isin(rows, idx))  # their new positions
+            if mine.size:
+                ctrl.z = ctrl.z[np.searchsorted(idx, rows[mine])]
+                groups.append((ctrl, n, mine))
+        self.groups = groups
+
     def step(self, x, r):
         x, r = np.atleast_2d(x), np.atleast_1d(r)
         u = np.empty(len(r))

@@ -35,8 +35,9 @@ LAYERS = [
 ]
 #: Sibling packages of one layer that must not import each other.
 SEPARATE = [{"training", "evaluation"}, {"reports", "sweeps"}]
-#: Heavy, optional dependencies that may be imported inside a function.
-LAZY_OK = {"mlflow", "mlflow.tracking", "onnxruntime"}
+#: Heavy, optional dependencies that may be imported inside a function (matplotlib: the
+#: evaluation draws its figures in a process of its own and keeps it out of its imports).
+LAZY_OK = {"mlflow", "mlflow.tracking", "onnxruntime", "matplotlib", "matplotlib.pyplot"}
 
 
 def _modules() -> dict[str, Path]:

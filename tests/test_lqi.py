@@ -5,10 +5,15 @@ import numpy as np
 import pytest
 from scipy.linalg import solve_continuous_are
 
-from generalist_control.plants.catalog import load_plant
+from generalist_control.plants.catalog import available_plants, load_plant
 from generalist_control.plants.config import plant_from_config
 from generalist_control.plants.plant import PlantConfigError
-from generalist_control.simulation.lqi import LQIController, design_lqi, sampled_closed_loop
+from generalist_control.simulation.lqi import (
+    LQIController,
+    augment,
+    design_lqi,
+    sampled_closed_loop,
+)
 from generalist_control.simulation.simulate import discretise, simulate
 
 PAPER_LINEAR = ["cstr", "unstable", "boeing747", "hydraulic_actuator", "two_mass_spring"]
@@ -58,6 +63,18 @@ def test_gains_match_python_control_integral_action(name):
     g = design_lqi(p)
     np.testing.assert_allclose(g.Kx, np.asarray(K_pc)[0, :-1], rtol=1e-7)
     np.testing.assert_allclose(g.Ki, -np.asarray(K_pc)[0, -1], rtol=1e-7)
+
+
+@pytest.mark.parametrize("name", available_plants())
+def test_design_is_python_controls_lqr_bit_for_bit(name):
+    """The design no longer imports python-control; its numbers are still lqr's, exactly."""
+    p = load_plant(name)
+    K, P, poles = control.lqr(*augment(p.A, p.B, p.C), p.Q, p.R)
+    g = design_lqi(p)
+    np.testing.assert_array_equal(g.Kx, np.asarray(K)[0, :-1])
+    assert g.Ki == float(np.asarray(K)[0, -1])
+    np.testing.assert_array_equal(g.P, P)
+    np.testing.assert_array_equal(g.poles, poles)
 
 
 def test_sampled_loop_matches_hand_built_discrete_system():

@@ -1,7 +1,8 @@
 """The ``evaluate`` stage: ``python -m generalist_control.evaluate`` or ``dvc repro evaluate``.
 
 Every scenario of ``conf/evaluation`` runs the trained policy (GC), the LQI expert and LQI
-with anti-windup on each plant (:func:`generalist_control.evaluation.runner.evaluate`).
+with anti-windup on each plant, in one loop with the set-point check's long holds
+(:func:`generalist_control.evaluation.runner.run_suite`).
 Outputs under ``paths.reports_dir`` (default ``reports/eval``): ``metrics.csv`` in long form
 (system, scenario, controller, run, metric, value), ``summary.json`` (the quality-bar
 figures, DVC metrics), ``setpoint.csv`` (each plant's loop linearised at rest and a long
@@ -9,6 +10,11 @@ hold's tail, ``evaluation.setpoint``; :mod:`generalist_control.evaluation.setpoi
 ``table2.md`` (the paper's Table 2 layout with the paper's values
 beside ours), ``table_all.md`` (the same for every plant), ``responses.csv`` (DVC plots)
 and PNG plots; all are logged to the MLflow run of the evaluated model.
+
+Where the time goes and what runs beside what (docs/evaluation.md, "Run time"): MLflow is
+imported and its store opened in a process of its own
+(:mod:`~generalist_control.evaluation.tracker`), and the figures are drawn in another
+(:mod:`~generalist_control.evaluation.background`), both while this one works.
 """
 
 from __future__ import annotations
@@ -20,24 +26,67 @@ from typing import Any
 
 import hydra
 from omegaconf import DictConfig
+from threadpoolctl import threadpool_limits
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.deploy.resolve import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.mlflow_log import log_to_mlflow
+from generalist_control.evaluation.background import figures_beside
 from generalist_control.evaluation.provenance import policy_record, provenance
-from generalist_control.evaluation.runner import evaluate
-from generalist_control.evaluation.setpoint import setpoint_from_config
+from generalist_control.evaluation.runner import crazyflie_flight, run_suite
+from generalist_control.evaluation.setpoint import setpoint_from_config, setpoint_settings
+from generalist_control.evaluation.tracker import MlflowWorker
 from generalist_control.evaluation.variants import check_variants_dir, run_variants
 from generalist_control.evaluation.writer import check_reports_dir, write_reports
 from generalist_control.model.policy import POLICY_FILE, load_policy
 from generalist_control.plants.catalog import plants_from_config
-from generalist_control.tracking import mlflow_utils
+from generalist_control.plants.plant import Plant
 
 __all__ = ["main", "run"]
 
 log = logging.getLogger(__name__)
+
+
+def _runtime(cfg: DictConfig, tracker: MlflowWorker) -> tuple[PolicyRuntime, dict[str, Any]]:
+    """The policy's runtime and its record (:mod:`~generalist_control.evaluation.provenance`)."""
+    source = cfg.get("policy") or str(Path(cfg.paths.models_dir) / POLICY_FILE)
+    if not Path(str(source)).is_file():  # a runs:/ or models:/ URI: MLflow fetches it here
+        import mlflow
+
+        mlflow.set_tracking_uri(tracker.ready())
+    path = resolve(source)
+    policy, meta = load_policy(path)
+    runtime = PolicyRuntime(policy, meta, backend=cfg.evaluation.get("backend", "torch"))
+    return runtime, {"policy": policy_record(source, path, meta), "provenance": provenance()}
+
+
+def _evaluate(
+    cfg: DictConfig,
+    runtime: PolicyRuntime,
+    plants: list[Plant],
+    record: dict[str, Any],
+    tracker: MlflowWorker,
+) -> dict[str, Any]:
+    """Every scenario, the set-point check, the reports written; the summary."""
+    scen = as_dict(cfg.evaluation.scenarios)
+    cf = as_dict(cfg.evaluation.get("crazyflie") or {})
+    spec = as_dict(cfg.evaluation.get("setpoint") or {})
+    # the set-point check's long holds run in the scenarios' loop
+    ev = run_suite(runtime, plants, scen, hold=setpoint_settings(spec, runtime))
+    bar = as_dict(cfg.evaluation.get("quality_bar") or {})
+    # the figures are drawn in processes of their own while the Crazyflie flies and the set
+    # point is checked
+    with figures_beside(ev.trajectories, bool(cfg.evaluation.get("plots", True))) as figures:
+        flight = crazyflie_flight(runtime, plants, cf)
+        if flight is not None:
+            ev = ev.joined(flight)
+            if figures is not None:
+                figures.add(flight.trajectories)
+        setpoint = setpoint_from_config(spec, runtime, plants, held=ev.held)
+        tracker.ready()  # a store that cannot be opened stops us before any output changes
+        return write_reports(ev.metrics, ev.trajectories, Path(cfg.paths.reports_dir),
+                             figures or False, bar, setpoint, record)  # fmt: skip
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -46,27 +95,23 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     variants = bool((cfg.evaluation.get("variants") or {}).get("enabled", False))
     # refuse a folder of someone else's files before any work
     (check_variants_dir if variants else check_reports_dir)(out_dir)
-    source = cfg.get("policy") or str(Path(cfg.paths.models_dir) / POLICY_FILE)
-    mlflow_utils.set_tracking(cfg.logger)  # for runs:/ and models:/ policy URIs
-    path = resolve(source)
-    policy, meta = load_policy(path)
-    runtime = PolicyRuntime(policy, meta, backend=cfg.evaluation.get("backend", "torch"))
-    record = {"policy": policy_record(source, path, meta), "provenance": provenance()}
-    plants = plants_from_config(cfg.systems)
-    if variants:  # unseen plant variants instead (evaluation.variants, experiment=variants)
-        summary = run_variants(cfg, runtime, plants, record)
-        log_to_mlflow(cfg, runtime.meta, summary, out_dir)
+    prefix = str(cfg.evaluation.get("mlflow_prefix") or "eval")
+    # MLflow imports and opens its store in a process of its own while we work. BLAS on one
+    # thread: the matrices here are at most 5 x 5, and OpenBLAS's threads only wait on each
+    # other (its triangular solves ten times slower on a busy machine); the same numbers.
+    with MlflowWorker(as_dict(cfg.logger), prefix) as tracker, threadpool_limits(1, "blas"):
+        runtime, record = _runtime(cfg, tracker)
+        plants = plants_from_config(cfg.systems)
+        if variants:  # unseen plant variants instead (evaluation.variants, experiment=variants)
+            tracker.ready()
+            summary = run_variants(cfg, runtime, plants, record)
+        else:
+            summary = _evaluate(cfg, runtime, plants, record, tracker)
+        tracker.log(runtime.meta.get("mlflow_run_id"), summary, out_dir)
+    if variants:
         log.info("variants evaluation written to %s: pass=%s", out_dir, summary["pass"])
-        return summary
-    scen = as_dict(cfg.evaluation.scenarios)
-    cf = as_dict(cfg.evaluation.get("crazyflie") or {})
-    df, trajs = evaluate(runtime, plants, scen, cf)
-    plots = bool(cfg.evaluation.get("plots", True))
-    bar = as_dict(cfg.evaluation.get("quality_bar") or {})
-    setpoint = setpoint_from_config(as_dict(cfg.evaluation.get("setpoint") or {}), runtime, plants)
-    summary = write_reports(df, trajs, out_dir, plots, bar, setpoint, record)
-    log_to_mlflow(cfg, runtime.meta, summary, out_dir)
-    log.info("evaluation written to %s: %s", out_dir, json.dumps(summary["quality_bar"]))
+    else:
+        log.info("evaluation written to %s: %s", out_dir, json.dumps(summary["quality_bar"]))
     return summary
 
 

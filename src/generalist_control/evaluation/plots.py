@@ -1,18 +1,31 @@
-"""Plots of the closed-loop evaluation: step and sine responses, perturbation runs."""
+"""Plots of the closed-loop evaluation: step and sine responses, perturbation runs.
+
+Figures (PNG, 80 dpi) under ``plots/``:
+
+- ``<system>_step_sine.png``: per plant, the step and sine responses of GC and LQI with
+  their controls;
+- ``<system>_<scenario>.png``: per plant of a scenario that runs on at most
+  :data:`PER_PLANT` plants (actuator limits, noise and disturbance, the Crazyflie stand-in),
+  every controller's output and control;
+- ``<scenario>.png``: a scenario on more plants (the unseen families, the perturbations of
+  every plant): one panel per plant, every controller's output against the reference.
+
+The step and sine sheets share one figure, drawn again with each plant's data: building a
+figure costs more than drawing it (the evaluation's 25 sheets take a third of the time).
+"""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+from generalist_control.simulation.simulate import Trajectory
 
-from generalist_control.simulation.simulate import Trajectory  # noqa: E402
-
-__all__ = ["plot_all"]
+__all__ = ["PER_PLANT", "plot_all", "pyplot"]
 
 _STYLE = {
     "GC": ("tab:blue", "-"),
@@ -20,59 +33,199 @@ _STYLE = {
     "LQI-AW": ("tab:green", ":"),
     "GC-AW": ("tab:purple", "-."),
 }
+_ORDER = ("GC", "GC-AW", "LQI", "LQI-AW")
+_PAIR = ("GC", "LQI")  # the step and sine sheets
+#: Scenarios with at most this many plants get a figure per plant, the others one grid.
+PER_PLANT = 4
+#: Shown in the step and sine sheets only.
+_BASIC = ("step", "sine", "ramp", "composite", "random_steps")
+
+Runs = Mapping[str, Mapping[str, Trajectory]]
+Trajs = Mapping[str, Runs]
 
 
-def _panel(ax_y, ax_u, by_ctrl: Mapping[str, Trajectory], controllers: tuple[str, ...]) -> None:
+def pyplot() -> Any:
+    """The pyplot of matplotlib on the Agg backend, imported on first use.
+
+    Half a second of imports that an evaluation spends in the process drawing its figures
+    (:mod:`~generalist_control.evaluation.background`), not in its own.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _light(ax: Any) -> None:
+    """A grid and about three ticks per axis: tick labels are most of a figure's drawing."""
+    ax.grid(alpha=0.3)
+    ax.locator_params(nbins=3)
+
+
+def _label(ctrl: str, tr: Trajectory) -> str:
+    return ctrl + (" (diverged)" if tr.diverged[0] else "")
+
+
+def _panel(ax_y: Any, ax_u: Any, by_ctrl: Mapping[str, Trajectory]) -> None:
+    """Reference, outputs and (``ax_u`` not None) controls of the first run of each."""
     ref = next(iter(by_ctrl.values()))
     n = ref.u.shape[1]
     ax_y.plot(ref.t[:n], ref.r[0], color="0.4", lw=1, label="reference")
-    for ctrl in controllers:
-        tr = by_ctrl.get(ctrl)
-        if tr is None:
-            continue
-        color, ls = _STYLE[ctrl]
-        label = ctrl + (" (diverged)" if tr.diverged[0] else "")
-        ax_y.plot(tr.t[:n], tr.y[0, :n], color=color, ls=ls, label=label)
-        ax_u.plot(tr.t[:n], tr.u[0], color=color, ls=ls)
+    for ctrl in (c for c in _ORDER if c in by_ctrl):
+        tr, (color, ls) = by_ctrl[ctrl], _STYLE[ctrl]
+        ax_y.plot(tr.t[:n], tr.y[0, :n], color=color, ls=ls, label=_label(ctrl, tr))
+        if ax_u is not None:
+            ax_u.plot(tr.t[:n], tr.u[0], color=color, ls=ls)
+
+
+class _StepSine:
+    """The step and sine sheet of one plant: one figure, its lines given each plant's data."""
+
+    def __init__(self) -> None:
+        self.fig, self.axes = pyplot().subplots(2, 2, figsize=(10, 5.5), sharex="col")
+        self.lines: dict[str, tuple[Any, dict[str, Any], dict[str, Any]]] = {}
+        for col, scen in enumerate(("step", "sine")):
+            ax_y, ax_u = self.axes[0, col], self.axes[1, col]
+            (ref,) = ax_y.plot([], [], color="0.4", lw=1, label="reference")
+            ys = {c: ax_y.plot([], [], color=_STYLE[c][0], ls=_STYLE[c][1])[0] for c in _PAIR}
+            us = {c: ax_u.plot([], [], color=_STYLE[c][0], ls=_STYLE[c][1])[0] for c in _PAIR}
+            self.lines[scen] = (ref, ys, us)
+            ax_y.set_ylabel("y")
+            ax_u.set_ylabel("u")
+            ax_u.set_xlabel("t (s)")
+        for ax in self.axes.flat:
+            _light(ax)
+        # fixed margins: tight_layout doubles the drawing time
+        self.fig.subplots_adjust(
+            left=0.08, right=0.98, bottom=0.1, top=0.94, wspace=0.18, hspace=0.1
+        )
+
+    def draw(self, trajs: Trajs, system: str, path: Path) -> None:
+        """Draw ``system``'s step and sine responses (GC and LQI) into ``path``."""
+        for col, scen in enumerate(("step", "sine")):
+            ax_y, ax_u = self.axes[0, col], self.axes[1, col]
+            ref, ys, us = self.lines[scen]
+            runs = trajs.get(scen, {})
+            by_ctrl = {c: runs[c][system] for c in _PAIR if system in runs.get(c, {})}
+            for line in (ref, *ys.values(), *us.values()):
+                line.set_visible(False)
+            if by_ctrl:
+                first = next(iter(by_ctrl.values()))
+                n = first.u.shape[1]
+                ref.set_data(first.t[:n], first.r[0])
+                ref.set_visible(True)
+                for c, tr in by_ctrl.items():
+                    ys[c].set_data(tr.t[:n], tr.y[0, :n])
+                    us[c].set_data(tr.t[:n], tr.u[0])
+                    ys[c].set_visible(True)
+                    us[c].set_visible(True)
+                handles = [ref, *(ys[c] for c in by_ctrl)]
+                labels = ["reference", *(_label(c, tr) for c, tr in by_ctrl.items())]
+                ax_y.legend(handles, labels, fontsize=7)
+            elif ax_y.get_legend() is not None:
+                ax_y.get_legend().remove()
+            ax_y.set_title(f"{system}: {scen}" if by_ctrl else "")
+            for ax in (ax_y, ax_u):
+                ax.relim(visible_only=True)
+                ax.autoscale_view()
+        self.fig.savefig(path, dpi=80)
+
+
+def _run_figure(
+    runs: Mapping[str, Mapping[str, Trajectory]], scen: str, s: str, out: Path
+) -> Path:
+    """One plant's run of a scenario on few plants: every controller, output and control."""
+    plt = pyplot()
+    fig, (ax_y, ax_u) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
+    _panel(ax_y, ax_u, {c: runs[c][s] for c in runs})
+    ax_y.set_title(f"{s}: {scen}")
     ax_y.set_ylabel("y")
     ax_u.set_ylabel("u")
     ax_u.set_xlabel("t (s)")
     ax_y.legend(fontsize=7)
     for ax in (ax_y, ax_u):
-        ax.grid(alpha=0.3)
+        _light(ax)
+    fig.subplots_adjust(left=0.11, right=0.97, bottom=0.1, top=0.94, hspace=0.08)
+    path = out / f"{s}_{scen}.png"
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
 
 
-def plot_all(trajs: Mapping[str, Mapping[str, Mapping[str, Trajectory]]], out: Path) -> list[Path]:
-    """Step and sine responses per plant (GC vs LQI), and each perturbation run."""
+def _cell(ax: Any, by_ctrl: Mapping[str, Trajectory], at: tuple[int, int], name: str) -> None:
+    """One plant's first run, scaled into the unit cell ``at`` (column, row from the top)."""
+    col, row = at
+    plt = pyplot()
+    ref = next(iter(by_ctrl.values()))
+    n = ref.u.shape[1]
+    curves = {"reference": ref.r[0]} | {c: by_ctrl[c].y[0, :n] for c in _ORDER if c in by_ctrl}
+    finite = np.concatenate([v[np.isfinite(v)] for v in curves.values()])
+    lo, hi = (finite.min(), finite.max()) if finite.size else (0.0, 1.0)
+    span = hi - lo if hi > lo else 1.0
+    x = col + 0.04 + 0.92 * ref.t[:n] / max(ref.t[n - 1], 1e-12)
+    for key, v in curves.items():
+        color, ls = _STYLE.get(key, ("0.4", "-"))
+        y = -row - 0.9 + 0.75 * (v - lo) / span
+        ax.plot(x, y, color=color, ls=ls, lw=1 if key == "reference" else 1.2)
+    ax.text(col + 0.04, -row - 0.06, f"{name}  [{lo:.3g}, {hi:.3g}]", fontsize=7, va="top")
+    ax.add_patch(plt.Rectangle((col, -row - 1), 1, 1, fill=False, lw=0.5, ec="0.7"))
+
+
+def _grid(runs: Runs, scen: str, out: Path) -> Path:
+    """One cell per plant on one axes: the first run's outputs against the reference.
+
+    Each cell is scaled to the range its curves span (printed beside the plant's name), so
+    the figure is one axes without ticks: a twentieth of the drawing a grid of axes takes.
+    """
+    systems, plt = list(runs.get("GC", {})), pyplot()
+    cols = math.ceil(math.sqrt(len(systems)))
+    rows = math.ceil(len(systems) / cols)
+    fig = plt.figure(figsize=(2.4 * cols, 1.7 * rows + 0.5))
+    ax = fig.add_axes((0.005, 0.005, 0.99, 1 - 0.5 / (1.7 * rows + 0.5)))
+    for k, s in enumerate(systems):
+        _cell(ax, {c: runs[c][s] for c in runs if s in runs[c]}, (k % cols, k // cols), s)
+    ax.set_xlim(0, cols)
+    ax.set_ylim(-rows, 0)
+    ax.set_axis_off()
+    shown = [c for c in _ORDER if c in runs]
+    handles = [plt.Line2D([], [], color="0.4")] + [
+        plt.Line2D([], [], color=_STYLE[c][0], ls=_STYLE[c][1]) for c in shown
+    ]
+    fig.legend(handles, ["reference", *shown], loc="upper right", fontsize=8, ncol=len(handles))
+    fig.suptitle(f"{scen}: output against time, first run per plant (range in brackets)",
+                 fontsize=9, x=0.01, ha="left")  # fmt: skip
+    path = out / f"{scen}.png"
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
+
+
+def plot_all(trajs: Trajs, out: Path, share: tuple[int, int] = (0, 1)) -> list[Path]:
+    """Write the evaluation's figures (the module docstring) into ``out``; their paths.
+
+    ``share``: ``(i, n)`` draws only every ``n``-th figure from the ``i``-th, so that ``n``
+    processes draw them all (:class:`~generalist_control.evaluation.background.FigureJob`).
+    """
     out.mkdir(parents=True, exist_ok=True)
+    i, n = share
     written = []
-    systems = sorted(trajs.get("step", {}).get("GC", {}))
-    for s in systems:
-        fig, axes = plt.subplots(2, 2, figsize=(10, 5.5), sharex="col")
-        for col, scen in enumerate(("step", "sine")):
-            by_ctrl = {
-                c: trajs[scen][c][s] for c in ("GC", "LQI") if s in trajs.get(scen, {}).get(c, {})
-            }
-            if by_ctrl:
-                _panel(axes[0, col], axes[1, col], by_ctrl, ("GC", "LQI"))
-                axes[0, col].set_title(f"{s}: {scen}")
-        # fixed margins: tight_layout doubles the drawing time of the evaluation's plots
-        fig.subplots_adjust(left=0.08, right=0.98, bottom=0.1, top=0.94, wspace=0.18, hspace=0.1)
-        path = out / f"{s}_step_sine.png"
-        fig.savefig(path, dpi=80)
-        plt.close(fig)
-        written.append(path)
+    systems = sorted(trajs.get("step", {}).get("GC", {}))[i::n]
+    if systems:
+        sheet = _StepSine()
+        for s in systems:
+            written.append(out / f"{s}_step_sine.png")
+            sheet.draw(trajs, s, written[-1])
+        pyplot().close(sheet.fig)
+    figures: list[tuple[str, str | None]] = []  # (scenario, plant), or one grid: (scenario, None)
     for scen, runs in trajs.items():
-        if scen in ("step", "sine", "ramp", "composite", "random_steps"):
-            continue
-        for s in runs.get("GC", {}):
-            fig, (ax_y, ax_u) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
-            order = tuple(c for c in ("GC", "GC-AW", "LQI", "LQI-AW") if c in runs)
-            _panel(ax_y, ax_u, {c: runs[c][s] for c in runs}, order)
-            ax_y.set_title(f"{s}: {scen}")
-            fig.subplots_adjust(left=0.11, right=0.97, bottom=0.1, top=0.94, hspace=0.08)
-            path = out / f"{s}_{scen}.png"
-            fig.savefig(path, dpi=80)
-            plt.close(fig)
-            written.append(path)
+        if scen not in _BASIC:
+            few = len(runs.get("GC", {})) <= PER_PLANT
+            figures += [(scen, s) for s in runs.get("GC", {})] if few else [(scen, None)]
+    for scen, plant in figures[i::n]:
+        runs = trajs[scen]
+        written.append(
+            _grid(runs, scen, out) if plant is None else _run_figure(runs, scen, plant, out)
+        )
     return written

@@ -24,7 +24,8 @@ sampled the same way (:func:`~generalist_control.simulation.lqi.sampled_closed_l
 from __future__ import annotations
 
 import copy
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -32,27 +33,41 @@ import pandas as pd
 import torch
 from scipy.optimize import brentq
 
-from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.evaluation.live import FinishingAdapter
 from generalist_control.model.rest_loop import closed_loop_matrix, equilibrium, rest_window
 from generalist_control.plants.plant import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi, sampled_closed_loop
-from generalist_control.simulation.simulate import (
-    BatchController,
-    PerPlantController,
-    Run,
-    discretise,
-    simulate_many,
-)
+from generalist_control.simulation.simulate import PerPlantController, Run, Trajectory, discretise
+from generalist_control.simulation.stacked import Segment, controller_rows, simulate_stacked
 
 __all__ = [
+    "check_hold",
     "closed_loop_matrix",
     "equilibrium",
+    "hold_runs",
     "hold_tail",
     "setpoint_from_config",
+    "setpoint_settings",
     "setpoint_stability",
     "setpoint_summary",
+    "tail_table",
 ]
+
+
+@contextmanager
+def _one_thread() -> Iterator[None]:
+    """Torch on one thread while the check's small float64 forwards run.
+
+    One window, or a few hundred: more threads only wait on each other (ten times slower
+    on a busy machine). The numbers are the same.
+    """
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _control(policy: torch.nn.Module, window: Sequence[torch.Tensor]) -> torch.Tensor:
@@ -97,6 +112,44 @@ def _integral_at(
     return z, abs(f(z))
 
 
+def hold_runs(plants: Sequence[Plant], reference: float = 1.0, hold: float = 60.0) -> list[Run]:
+    """The long step of :func:`hold_tail`: ``reference`` for ``hold`` seconds, one per plant."""
+    return [Run(p, np.full((1, int(round(hold / p.dt))), float(reference))) for p in plants]
+
+
+def check_hold(hold: float, tail: float) -> None:
+    """Refuse a tail that is not inside the hold."""
+    if not 0.0 < tail < hold:
+        raise ValueError(f"need 0 < tail < hold; got tail={tail}, hold={hold}")
+
+
+def tail_table(
+    plants: Sequence[Plant],
+    trajectories: Mapping[str, Sequence[Trajectory]],
+    z_end: np.ndarray | float,
+    reference: float = 1.0,
+    tail: float = 20.0,
+) -> pd.DataFrame:
+    """:func:`hold_tail`'s table from the holds' trajectories (per controller, per plant).
+
+    ``z_end``: the policy's error integral at the end of each plant's hold (NaN: unknown).
+    """
+    out = pd.DataFrame({"system": [p.name for p in plants]})
+    for name, trajs in trajectories.items():
+        if name == "GC":  # where the policy's integral ended (one row per plant)
+            out["z_end_GC"] = z_end
+        errs, dus = [], []
+        for p, tr in zip(plants, trajs, strict=True):
+            k = int(round(tail / p.dt))
+            e = (tr.r[0, -k:] - tr.y[0, -k - 1 : -1]) / abs(float(reference))
+            du = np.diff(tr.u[0, -k - 1 :])
+            bad = bool(tr.diverged[0])
+            errs.append(np.nan if bad else float(np.sqrt(np.mean(e**2))))
+            dus.append(np.nan if bad else float(np.sqrt(np.mean(du**2))))
+        out[f"tail_error_{name}"], out[f"tail_du_{name}"] = errs, dus
+    return out
+
+
 def hold_tail(
     runtime: PolicyRuntime,
     plants: Sequence[Plant],
@@ -110,32 +163,18 @@ def hold_tail(
     Columns ``tail_error_<c>``: the RMS tracking error over the tail relative to
     ``|reference|``; ``tail_du_<c>``: the RMS change of the control from sample to sample
     over the tail (zero once a loop rests); NaN for a diverged run. ``z_end_GC``: the
-    policy's error integral at the end of its hold.
+    policy's error integral at the end of its hold (NaN for every plant if the runtime
+    refused any of them). The evaluation runs these holds in its own loop
+    (:func:`~generalist_control.evaluation.runner.run_suite`).
     """
-    if not 0.0 < tail < hold:
-        raise ValueError(f"need 0 < tail < hold; got tail={tail}, hold={hold}")
-    out = pd.DataFrame({"system": [p.name for p in plants]})
-    adapter = RuntimeAdapter(runtime)
-    controllers: dict[str, BatchController] = {
-        "GC": adapter,
-        "LQI": PerPlantController(LQIController),
-    }
-    for name, ctrl in controllers.items():
-        runs = [Run(p, np.full((1, int(round(hold / p.dt))), float(reference))) for p in plants]
-        errs, dus = [], []
-        trajectories = simulate_many(runs, ctrl)
-        if name == "GC":  # where the policy's integral ended (one row per plant, none refused)
-            z = runtime.z if not adapter.refused and len(runtime.z) == len(plants) else np.nan
-            out["z_end_GC"] = z
-        for p, tr in zip(plants, trajectories, strict=True):
-            k = int(round(tail / p.dt))
-            e = (tr.r[0, -k:] - tr.y[0, -k - 1 : -1]) / abs(float(reference))
-            du = np.diff(tr.u[0, -k - 1 :])
-            bad = bool(tr.diverged[0])
-            errs.append(np.nan if bad else float(np.sqrt(np.mean(e**2))))
-            dus.append(np.nan if bad else float(np.sqrt(np.mean(du**2))))
-        out[f"tail_error_{name}"], out[f"tail_du_{name}"] = errs, dus
-    return out
+    check_hold(hold, tail)
+    runs = hold_runs(plants, reference, hold)
+    gc = FinishingAdapter(runtime)
+    segments = [Segment(gc, runs), Segment(PerPlantController(LQIController), runs)]
+    gc_trajs, lqi_trajs = simulate_stacked(segments)
+    rows = [sl.start for sl in controller_rows(segments)[0]]
+    z = np.nan if gc.refused else gc.z_end[rows]
+    return tail_table(plants, {"GC": gc_trajs, "LQI": lqi_trajs}, z, reference, tail)
 
 
 def _radius_row(
@@ -174,6 +213,7 @@ def setpoint_stability(
     reference: float = 1.0,
     hold: float = 60.0,
     tail: float = 20.0,
+    held: pd.DataFrame | None = None,
 ) -> pd.DataFrame:
     """Per plant: the spectral radius of the policy's and LQI's loops at the set point.
 
@@ -182,7 +222,8 @@ def setpoint_stability(
     nearest the integral at which its own hold ended, ``z_end_GC``; else nearest ``z_LQI``),
     ``residual`` (``|u(z*) - u*|``), ``radius_GC`` (NaN: no equilibrium near where the
     search started), ``radius_LQI``, ``settles`` (``radius_GC < 1``), then :func:`hold_tail`'s
-    columns for ``hold`` and ``tail``. See the module docstring.
+    columns for ``hold`` and ``tail`` (``held``: that table, already computed). See the
+    module docstring.
 
     Raises
     ------
@@ -195,12 +236,13 @@ def setpoint_stability(
             "the set-point check needs a policy with the integral channel (model.channels; its "
             "equilibrium is the error integral at which its control holds the plant at rest)"
         )
-    held = hold_tail(runtime, plants, reference, hold, tail)
+    if held is None:
+        held = hold_tail(runtime, plants, reference, hold, tail)
     policy = copy.deepcopy(runtime.policy).double().eval()
     ends = held["z_end_GC"].to_numpy(dtype=float)
-    rows = [
-        _radius_row(runtime, policy, p, reference, z) for p, z in zip(plants, ends, strict=True)
-    ]
+    with _one_thread():
+        rows = [_radius_row(runtime, policy, p, reference, z)
+                for p, z in zip(plants, ends, strict=True)]  # fmt: skip
     cols = ["system", "reference", "z_LQI", "z_star", "residual", "radius_GC", "radius_LQI"]
     df = pd.DataFrame(rows, columns=cols)
     df["settles"] = df["radius_GC"] < 1.0
@@ -224,13 +266,13 @@ def setpoint_summary(df: pd.DataFrame) -> dict[str, object]:
     }
 
 
-def setpoint_from_config(
-    spec: Mapping[str, Any] | None, runtime: PolicyRuntime, plants: Sequence[Plant]
-) -> pd.DataFrame | None:
-    """:func:`setpoint_stability` as ``evaluation.setpoint`` asks (None or ``{}``: off).
+def setpoint_settings(
+    spec: Mapping[str, Any] | None, runtime: PolicyRuntime
+) -> tuple[float, float, float] | None:
+    """``(reference, hold, tail)`` as ``evaluation.setpoint`` asks; None: no check.
 
-    Keys ``reference``, ``hold``, ``tail`` (defaults 1.0, 60.0, 20.0). A policy without
-    the error integral has no such check: None.
+    Keys ``reference``, ``hold``, ``tail`` (defaults 1.0, 60.0, 20.0); None or ``{}``: off.
+    A policy without the error integral has no such check: None.
     """
     if not spec or not runtime.integral:
         return None
@@ -240,10 +282,23 @@ def setpoint_from_config(
             f"evaluation.setpoint has unknown keys {sorted(unknown)}; it takes reference, "
             "hold and tail"
         )
-    return setpoint_stability(
-        runtime,
-        plants,
-        float(spec.get("reference", 1.0)),
-        float(spec.get("hold", 60.0)),
-        float(spec.get("tail", 20.0)),
-    )
+    settings = tuple(float(spec.get(k, d)) for k, d in (("reference", 1.0), ("hold", 60.0),
+                                                        ("tail", 20.0)))  # fmt: skip
+    check_hold(settings[1], settings[2])
+    return settings  # type: ignore[return-value]
+
+
+def setpoint_from_config(
+    spec: Mapping[str, Any] | None,
+    runtime: PolicyRuntime,
+    plants: Sequence[Plant],
+    held: pd.DataFrame | None = None,
+) -> pd.DataFrame | None:
+    """:func:`setpoint_stability` as ``evaluation.setpoint`` asks (:func:`setpoint_settings`).
+
+    ``held``: :func:`hold_tail`'s table if the holds already ran (the evaluation's loop).
+    """
+    settings = setpoint_settings(spec, runtime)
+    if settings is None:
+        return None
+    return setpoint_stability(runtime, plants, *settings, held=held)

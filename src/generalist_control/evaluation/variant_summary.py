@@ -18,12 +18,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import numpy as np
+import pandas as pd
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
+from generalist_control.evaluation.plots import pyplot
 
 __all__ = ["DEFAULT_BAR", "ise_table", "plot_variants", "summarise_variants"]
 
@@ -121,6 +119,7 @@ def plot_variants(df: pd.DataFrame, scenario: str, out_dir: Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     t = ise_table(df, scenario).replace(np.inf, np.nan)
     names = sorted(t.index.get_level_values("system").unique())
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(10, 4))
     for i, name in enumerate(names):
         g = t.loc[name]

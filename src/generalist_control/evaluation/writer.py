@@ -24,8 +24,9 @@ from generalist_control.common.atomic import (
     staging_directory,
 )
 from generalist_control.common.jsonsafe import strict
-from generalist_control.evaluation import plots as plotting
 from generalist_control.evaluation import tables
+from generalist_control.evaluation.background import FigureJob
+from generalist_control.evaluation.plots import plot_all
 from generalist_control.evaluation.runner import STEP_KINDS
 from generalist_control.evaluation.setpoint import setpoint_summary
 from generalist_control.evaluation.summary import summarise
@@ -82,13 +83,15 @@ def write_reports(
     df: pd.DataFrame,
     trajs: Mapping[str, Mapping[str, Mapping[str, Trajectory]]],
     out_dir: str | Path,
-    plots: bool = True,
+    plots: bool | FigureJob = True,
     bar: Mapping[str, Any] | None = None,
     setpoint: pd.DataFrame | None = None,
     record: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write the CSV, tables, summary and plots atomically to ``out_dir``; return the summary.
 
+    ``plots``: draw the figures (True), collect them from a job drawing them beside the
+    evaluation (:class:`~generalist_control.evaluation.background.FigureJob`), or none.
     ``bar`` overrides thresholds of the quality bar
     (:data:`~generalist_control.evaluation.summary.DEFAULT_BAR`). ``setpoint``: the
     set-point check (:func:`~generalist_control.evaluation.setpoint.setpoint_stability`),
@@ -116,7 +119,9 @@ def write_reports(
         (staging / "table2.md").write_text(tables.table2_markdown(df))
         (staging / "table_all.md").write_text(tables.table_all_markdown(df))
         tables.responses_csv(trajs).to_csv(staging / "responses.csv", index=False)
-        if plots:
-            plotting.plot_all(trajs, staging / "plots")
+        if isinstance(plots, FigureJob):
+            plots.collect(staging / "plots")
+        elif plots:
+            plot_all(trajs, staging / "plots")
         publish_directory(staging, out_dir, OWNED, "paths.reports_dir")
     return summary

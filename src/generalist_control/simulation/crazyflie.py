@@ -11,13 +11,14 @@ its history at the sample time it was trained on.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from generalist_control.simulation.simulate import DIVERGENCE_BOUND, Controller, Trajectory
 
-__all__ = ["CrazyflieParams", "fly"]
+__all__ = ["CrazyflieParams", "fly", "fly_many"]
 
 
 @dataclass(frozen=True)
@@ -42,9 +43,11 @@ def _deriv(s: np.ndarray, t_cmd: np.ndarray, p: CrazyflieParams) -> np.ndarray:
     """Derivative of ``[z, w, T]`` (altitude, vertical velocity, thrust)."""
     w, thrust = s[:, 1], s[:, 2]
     drag = p.drag_linear * w + p.drag_quadratic * w * np.abs(w)
-    return np.stack(
-        [w, (thrust - p.mass * p.g - drag) / p.mass, (t_cmd - thrust) / p.motor_tau], 1
-    )
+    out = np.empty_like(s)
+    out[:, 0] = w
+    out[:, 1] = (thrust - p.mass * p.g - drag) / p.mass
+    out[:, 2] = (t_cmd - thrust) / p.motor_tau
+    return out
 
 
 def fly(
@@ -66,9 +69,26 @@ def fly(
         At the loop rate: true ``[z, w]`` states, the delivered thrust deviation from the
         nominal hover thrust as ``u``, the altitude as ``y``.
     """
+    return fly_many([controller], r, control_dt, params, seed)[0]
+
+
+def fly_many(
+    controllers: Sequence[Controller],
+    r: np.ndarray,
+    control_dt: float = 0.05,
+    params: CrazyflieParams | None = None,
+    seed: int = 0,
+) -> list[Trajectory]:
+    """:func:`fly` for several controllers in one loop, each on the same noise.
+
+    Every controller's trajectory equals its own :func:`fly` with the same ``seed``: the
+    vehicles are stacked, one batch per controller, and each batch sees the noise one
+    :func:`fly` would draw.
+    """
     p = params or CrazyflieParams()
     r = np.atleast_2d(np.asarray(r, dtype=float))
     batch, steps = r.shape
+    m = len(controllers)
     dt = 1.0 / p.loop_rate
     every = int(round(control_dt / dt))
     if every < 1 or abs(every * dt - control_dt) > 1e-9:
@@ -77,28 +97,39 @@ def fly(
         )
     rng = np.random.default_rng(seed)
     hover = p.nominal_mass * p.g
-    s = np.zeros((batch, 3))
+    s = np.zeros((m * batch, 3))
     s[:, 2] = hover  # motors spinning at the nominal hover thrust
-    xs = np.zeros((batch, steps + 1, 2))
-    u = np.zeros((batch, steps))
-    diverged = np.zeros(batch, dtype=bool)
-    controller.reset(batch)
-    u_cmd = np.zeros(batch)
-    h = dt / p.substeps
+    xs = np.zeros((m * batch, steps + 1, 2))
+    u = np.zeros((m * batch, steps))
+    diverged = np.zeros(m * batch, dtype=bool)
+    for c in controllers:
+        c.reset(batch)
+    u_cmd = np.zeros(m * batch)
+    rows = [slice(i * batch, (i + 1) * batch) for i in range(m)]
     with np.errstate(all="ignore"):
         for k in range(steps):
             if k % every == 0:
                 noise = rng.normal(size=(batch, 2)) * [p.noise_altitude, p.noise_velocity]
-                u_cmd = np.asarray(controller.step(s[:, :2] + noise, r[:, k]), dtype=float)
-            t_cmd = np.clip(hover + u_cmd, p.thrust_min, p.thrust_max)
-            for _ in range(p.substeps):
-                k1 = _deriv(s, t_cmd, p)
-                k2 = _deriv(s + 0.5 * h * k1, t_cmd, p)
-                k3 = _deriv(s + 0.5 * h * k2, t_cmd, p)
-                k4 = _deriv(s + h * k3, t_cmd, p)
-                s = s + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+                for c, sl in zip(controllers, rows, strict=True):
+                    u_cmd[sl] = np.asarray(c.step(s[sl, :2] + noise, r[:, k]), dtype=float)
+            s = _rk4(s, np.clip(hover + u_cmd, p.thrust_min, p.thrust_max), dt, p)
             diverged |= ~np.all(np.isfinite(s) & (np.abs(s) < DIVERGENCE_BOUND), axis=1)
             u[:, k] = s[:, 2] - hover
             xs[:, k + 1] = np.where(diverged[:, None], xs[:, k], s[:, :2])
     t = np.arange(steps + 1) * dt
-    return Trajectory(t=t, x=xs, u=u, r=r, y=xs[:, :, 0], diverged=diverged)
+    return [
+        Trajectory(t=t, x=xs[sl], u=u[sl], r=r, y=xs[sl, :, 0], diverged=diverged[sl])
+        for sl in rows
+    ]
+
+
+def _rk4(s: np.ndarray, t_cmd: np.ndarray, dt: float, p: CrazyflieParams) -> np.ndarray:
+    """One loop period: ``p.substeps`` RK4 steps of the vehicle under thrust command ``t_cmd``."""
+    h = dt / p.substeps
+    for _ in range(p.substeps):
+        k1 = _deriv(s, t_cmd, p)
+        k2 = _deriv(s + 0.5 * h * k1, t_cmd, p)
+        k3 = _deriv(s + 0.5 * h * k2, t_cmd, p)
+        k4 = _deriv(s + h * k3, t_cmd, p)
+        s = s + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+    return s

@@ -19,8 +19,8 @@ from __future__ import annotations
 import weakref
 from dataclasses import dataclass
 
-import control
 import numpy as np
+from scipy.linalg import solve_continuous_are
 
 from generalist_control.plants.plant import Plant, PlantConfigError
 from generalist_control.simulation.antiwindup import conditional_increment
@@ -103,6 +103,23 @@ def sampled_closed_loop(plant: Plant, gains: LQIGains) -> np.ndarray:
     return np.vstack([top, bottom])
 
 
+def _lqr(
+    A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(K, P, poles)`` of the continuous LQR: python-control's ``lqr`` without Slycot.
+
+    That is SciPy's Riccati solver and the two lines below, the same numbers bit for bit
+    (tests/test_lqi.py). Importing python-control costs a second (SciPy's signal module,
+    matplotlib) that the evaluation and the data stage otherwise do not need. ``Q`` and
+    ``R`` are symmetric (:mod:`~generalist_control.plants.config` checks).
+    """
+    A, B, Q, R = (np.array(M, ndmin=2, dtype=float) for M in (A, B, Q, R))
+    P = solve_continuous_are(A, B, Q, R)
+    K = np.linalg.solve(R, B.T @ P)
+    poles, _ = np.linalg.eig(A - B @ K)
+    return K, P, poles
+
+
 def design_lqi(plant: Plant) -> LQIGains:
     """Continuous LQI design for ``plant`` (its linearisation for nonlinear plants).
 
@@ -124,8 +141,7 @@ def design_lqi(plant: Plant) -> LQIGains:
         return cached
     Aa, Ba = augment(plant.A, plant.B, plant.C)
     _check_fit(plant, Aa, Ba)
-    K, P, poles = control.lqr(Aa, Ba, plant.Q, plant.R)
-    K = np.asarray(K)
+    K, P, poles = _lqr(Aa, Ba, plant.Q, plant.R)
     gains = LQIGains(Kx=K[0, :-1].copy(), Ki=float(K[0, -1]), P=np.asarray(P), poles=poles)
     if np.any(np.real(poles) >= 0):
         raise PlantConfigError(f"plant '{plant.name}': LQI closed loop is not stable")

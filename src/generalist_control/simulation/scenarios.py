@@ -30,7 +30,7 @@ from generalist_control.simulation.references import (
 )
 from generalist_control.simulation.simulate import Perturbation
 
-__all__ = ["KINDS", "ScenarioError", "perturbation", "references"]
+__all__ = ["KINDS", "ScenarioError", "envelope_amplitudes", "perturbation", "references"]
 
 KINDS = ("step", "random_steps", "sine", "ramp", "composite", *FAMILIES)
 
@@ -99,6 +99,19 @@ def references(
         )
         r = np.where(t < third, amp, ramp + sine)[None, :]
     return r, x0
+
+
+def envelope_amplitudes(spec: Mapping[str, Any]) -> list[float]:
+    """The step amplitudes of the state envelopes the scenario's runs ask for.
+
+    A family's random initial states (``x0_amplitude``) and ``noise_rel`` (unit steps);
+    :func:`~generalist_control.simulation.references.state_envelopes` computes them for
+    many plants at once beforehand.
+    """
+    out = [float(spec.get("x0_amplitude", 3.0))] if spec.get("kind") in FAMILIES else []
+    if (spec.get("perturbation") or {}).get("noise_rel") is not None:
+        out.append(1.0)
+    return out
 
 
 def perturbation(

@@ -1,0 +1,66 @@
+"""The MLflow side of the evaluate stage, as a process of its own (``python -m`` this module).
+
+Started by :class:`~generalist_control.evaluation.tracker.MlflowWorker` before the evaluation
+imports anything heavy, it imports MLflow and opens the tracking store
+(:func:`~generalist_control.tracking.mlflow_utils.set_tracking`) while the evaluation runs,
+then logs what it is sent (:func:`~generalist_control.evaluation.mlflow_log.log_to_mlflow`).
+
+Protocol: JSON lines. In on stdin: first ``{"logger": ..., "prefix": ...}``, then
+``{"log": {"run_id", "summary", "out_dir"}}`` per evaluation; anything else ends it. Out on
+stdout, one line per request: ``{"uri": ...}`` once the store is open, ``{"run_id": ...}``
+per log, or ``{"error": "<type>: <message>"}`` (credentials masked). Whatever else prints
+goes to stderr.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+from typing import Any, TextIO
+
+from omegaconf import OmegaConf
+
+from generalist_control.common.secrets import redact
+from generalist_control.evaluation.mlflow_log import log_to_mlflow
+from generalist_control.tracking.mlflow_utils import set_tracking
+
+__all__ = ["main"]
+
+
+def _answer(out: TextIO, work: Callable[[], dict[str, Any]]) -> bool:
+    """Write ``work()``'s reply (or its error) as one line; whether it succeeded."""
+    try:
+        reply = work()
+    except Exception as exc:  # noqa: BLE001 - every error goes back to the evaluation
+        reply = {"error": redact(f"{type(exc).__module__}.{type(exc).__qualname__}: {exc}")}
+    out.write(json.dumps(reply) + "\n")
+    out.flush()
+    return "error" not in reply
+
+
+def _log(cfg: Any, req: dict[str, Any]) -> dict[str, Any]:
+    meta = {"mlflow_run_id": req["run_id"]}
+    return {"run_id": log_to_mlflow(cfg, meta, req["summary"], Path(req["out_dir"]))}
+
+
+def main() -> None:
+    """Serve one evaluation: open the store, then log what comes (module docstring)."""
+    replies, sys.stdout = sys.stdout, sys.stderr  # MLflow's own prints stay off the pipe
+    start = json.loads(sys.stdin.readline() or "{}")
+    cfg = OmegaConf.create(
+        {"logger": start.get("logger", {}), "evaluation": {"mlflow_prefix": start.get("prefix")}}
+    )
+    if not _answer(replies, lambda: {"uri": set_tracking(cfg.logger)}):
+        return
+    for line in sys.stdin:
+        req = json.loads(line).get("log")
+        if req is None:
+            return
+        _answer(replies, partial(_log, cfg, req))
+
+
+if __name__ == "__main__":
+    main()
