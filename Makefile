@@ -32,7 +32,7 @@ results: setup
 ## process took 14.5-16 min on 2 cores; CI has 2. PYTEST_WORKERS=0 runs in this process.
 PYTEST_WORKERS ?= 2
 test: setup
-	$(VENV)/ruff check src analysis tests benchmarks scripts train.py tune.py
+	$(VENV)/ruff check src analysis tests benchmarks scripts train.py tune.py adapt.py
 	$(VENV)/mypy
 	$(VENV)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
 
@@ -41,8 +41,8 @@ test-fast: setup
 	$(VENV)/python -m pytest -q -m "not slow" -n $(PYTEST_WORKERS) --dist loadfile
 
 lint: setup
-	$(VENV)/ruff check src analysis tests benchmarks scripts train.py tune.py
-	$(VENV)/ruff format --check src analysis tests benchmarks scripts train.py tune.py
+	$(VENV)/ruff check src analysis tests benchmarks scripts train.py tune.py adapt.py
+	$(VENV)/ruff format --check src analysis tests benchmarks scripts train.py tune.py adapt.py
 	$(VENV)/mypy
 
 ## The type checker alone (mypy on src/, settings in pyproject.toml).
@@ -50,8 +50,8 @@ typecheck: setup
 	$(VENV)/mypy
 
 format: setup
-	$(VENV)/ruff format src analysis tests benchmarks scripts train.py tune.py
-	$(VENV)/ruff check --fix src analysis tests benchmarks scripts train.py tune.py
+	$(VENV)/ruff format src analysis tests benchmarks scripts train.py tune.py adapt.py
+	$(VENV)/ruff check --fix src analysis tests benchmarks scripts train.py tune.py adapt.py
 
 bench: setup
 	$(VENV)/python benchmarks/bench_generate.py
