@@ -116,10 +116,11 @@ def test_synthetic_reports_render_their_values_and_missing_recipes(tmp_path):
     assert "1 of 2 plants settle" in text and "1 with a loop of spectral radius >= 1" in text
     assert "largest 1.25 (plant_b, LQI's 0.5)" in text
     assert "`models/metrics.json` is not here" in text  # a DVC output absent from a checkout
-    for key in ("paper", "hybrid", "tag-free", "variants", "ablation", "ablation-paper"):
+    missing = ("paper", "hybrid", "tag-free", "variants", "unseen", "ablation", "ablation-paper")
+    for key in missing:
         assert f"| {key} | not run yet |" in text
         assert f"not run yet: `{RECIPE[key].command}`" in text
-    assert text.count("not run yet: `") == 6
+    assert text.count("not run yet: `") == len(missing)
 
 
 def test_without_scores_json_the_headline_comes_from_the_summary(tmp_path):
@@ -167,6 +168,33 @@ def test_variants_and_ablation_render_their_values(tmp_path):
     assert row in text
     assert "## Ablation, the paper's recipe" in text  # the other recipe: not run yet
     assert "not run yet: `scripts/ablation.sh paper`" in text
+
+
+def test_unseen_renders_each_held_out_plant_and_the_bar(tmp_path):
+    def policy(ise, rmse, diverged=0, itae=1.0):
+        return {"ISE_ratio": ise, "RMSE_ratio_worst": rmse, "diverged_runs": diverged,
+                "ITAE_ratio": itae}  # fmt: skip
+
+    entry = {
+        "class": {"order": 3, "open_loop_unstable": True, "nonlinear": False,
+                  "non_minimum_phase": False, "min_damping": 0.1},  # fmt: skip
+        "adaptation_wall_s": 57.6,
+        "demonstrations": {"windows": 19404, "dagger_windows": 7722},
+        "policies": {"adapted": policy(0.99, 1.0108, itae=1.04),
+                     "zero_shot": policy(None, None, 32),
+                     "trained_with": policy(1.002, 1.0042)},  # fmt: skip
+    }
+    other = {**entry, "policies": {"adapted": policy(1.25, 1.0, 1, itae=2.5)}}
+    bars = {"no_divergence": {"GC_diverged_runs": 1, "pass": False}}
+    summary = {"held_out": {"maglev": entry, "other": other}, "bars": bars, "pass": False}
+    _write(tmp_path, "reports/unseen/summary.json", summary)
+    text = build_page(tmp_path)
+    assert "| unseen | 1 | 1.25 | 2.5 | 1.0108 | 0/1 |" in text
+    row = ("| `maglev` | order 3, unstable, zeta 0.1 | 58 | 19,404 + 7,722 | "
+           "0.99 / 1.0108 / 0 | n/a / n/a / 32 | 1.002 / 1.0042 / 0 |")  # fmt: skip
+    assert row in text
+    assert "| `other` | order 3, unstable, zeta 0.1 | 58 | 19,404 + 7,722 | 1.25 / 1 / 1 | " in text
+    assert "`no_divergence` GC_diverged_runs 1: **fail**; all: **fail**." in text
 
 
 def test_provenance_is_shown_when_the_summary_has_it(tmp_path):

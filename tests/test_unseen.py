@@ -17,7 +17,7 @@ import yaml
 
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import available_plants, load_plant
-from generalist_control.reports.unseen import POLICIES, plant_class
+from generalist_control.reports.unseen import POLICIES, judge, plant_class
 from generalist_control.training.setup import included_plants
 from helpers import compose_cfg, tiny_train_overrides
 
@@ -135,3 +135,31 @@ def test_the_stage_runs_on_tiny_data(tiny_data_dir, tmp_path, mlflow_uri):
         figures = entry["policies"][label]
         assert figures["ISE_ratio"] is None or np.isfinite(figures["ISE_ratio"]), label
         assert "RMSE_ratio_worst" in figures and "diverged_runs" in figures
+
+
+def _entry(ise, rmse, diverged=0, wall=60.0):
+    adapted = {"ISE_ratio": ise, "RMSE_ratio_worst": rmse, "diverged_runs": diverged}
+    return {"adaptation_wall_s": wall, "policies": {"adapted": adapted}}
+
+
+def test_the_bar_allows_one_plant_over_the_tight_limits_and_none_over_the_loose_one():
+    good = {f"p{i}": _entry(1.0, 1.0) for i in range(4)}
+    one_over = judge({**good, "x": _entry(1.2, 1.0)})  # ISE over 1.10, under 1.5
+    assert one_over["pass"] and one_over["bars"]["most_within"]["over"] == ["x"]
+    two_over = judge({**good, "x": _entry(1.2, 1.0), "y": _entry(1.0, 1.3)})
+    assert not two_over["bars"]["most_within"]["pass"] and not two_over["pass"]
+    assert two_over["bars"]["all_within"]["pass"]  # 1.3 <= 1.5
+    loose = judge({**good, "x": _entry(1.0, 1.51)})
+    assert not loose["bars"]["all_within"]["pass"] and loose["bars"]["most_within"]["pass"]
+
+
+def test_the_bar_fails_on_a_divergence_a_missing_ratio_or_a_slow_adaptation():
+    good = {f"p{i}": _entry(1.0, 1.0) for i in range(4)}
+    assert judge(good)["pass"]
+    diverged = judge({**good, "x": _entry(1.0, 1.0, diverged=2)})
+    assert diverged["bars"]["no_divergence"]["GC_diverged_runs"] == 2 and not diverged["pass"]
+    missing = judge({**good, "x": _entry(None, None)})  # every step run diverged: no ratio
+    assert missing["bars"]["all_within"]["value"] == float("inf") and not missing["pass"]
+    slow = judge({**good, "x": _entry(1.0, 1.0, wall=181.0)})
+    assert not slow["bars"]["adaptation_wall_s"]["pass"]
+    assert judge({**good, "x": _entry(1.0, 1.0, wall=181.0)}, {"wall_s": 200})["pass"]

@@ -77,6 +77,10 @@ RECIPES: tuple[Recipe, ...] = (
            "dvc repro beyond/dvc.yaml:variants", {
         "summary": "reports/variants/summary.json", "setpoint": "reports/variants/setpoint.csv",
         "training": "models/variants/metrics.json"}),
+    Recipe("unseen", "Unseen: plants held out of training, a row learned for each", "unseen",
+           "dvc repro beyond/dvc.yaml:unseen", {
+        "summary": "reports/unseen/summary.json",
+        "training": "models/unseen/default/metrics.json"}),
     Recipe("ablation", "Ablation, default recipe: hidden size d and expert count M",
            "ablation", _ABLATION.format(recipe="default"), {
         "summary": "ablation/report/default/summary.json",
@@ -137,6 +141,19 @@ def _headline(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
         worst = ((summary.get("ratios") or {}).get("variants") or {}).get("worst_ISE_ratio")
         passed = sum(bool((b or {}).get("pass")) for b in bars.values())
         return [recipe.key, fmt(lost), fmt(worst), "n/a", "n/a", f"{passed}/{len(bars)}"]
+    if recipe.kind == "unseen":
+        figs = [(e.get("policies") or {}).get("adapted") or {}
+                for e in (summary.get("held_out") or {}).values()]  # fmt: skip
+        bars = summary.get("bars") or {}
+
+        def worst(key: str) -> str:
+            values = [number(f.get(key)) for f in figs]
+            return fmt(max((v for v in values if v is not None), default=None))
+
+        lost = sum(int(number(f.get("diverged_runs")) or 0) for f in figs)
+        passed = sum(bool((b or {}).get("pass")) for b in bars.values())
+        cells = [worst(k) for k in ("ISE_ratio", "ITAE_ratio", "RMSE_ratio_worst")]
+        return [recipe.key, fmt(lost), *cells, f"{passed}/{len(bars)}"]
     if recipe.kind != "evaluation":
         return [recipe.key, "n/a", "n/a", "n/a", "n/a", "n/a"]
     s = data.get("scores") or {}
@@ -171,6 +188,7 @@ _HEADLINE_NOTES = [
     "Ratios are GC (the learned policy) over LQI (its expert), of the worst plant; below 1 GC "
     "does better. Diverged runs: GC's and GC-AW's, every scenario.",
     "Variants: GC over each unseen variant's own LQI, unit step, and the variants' own bars. "
+    "Unseen: the adapted policies on the held-out plants, and the held-out bar. "
     "Ablation: a grid of trainings judged against the paper's Section 7 (its sections).",
 ]
 

@@ -317,8 +317,64 @@ def _ablation_section(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
     return lines + _claims(recipe, summary)
 
 
+def _unseen_row(name: str, entry: Mapping[str, Any]) -> list[str]:
+    """One held-out plant: its class, the adaptation, and per policy ISE / RMSE / diverged."""
+    cls = entry.get("class") or {}
+    kinds = [k for k, on in (("unstable", cls.get("open_loop_unstable")),
+                             ("NMP", cls.get("non_minimum_phase")),
+                             ("nonlinear", cls.get("nonlinear"))) if on]  # fmt: skip
+    damping = number(cls.get("min_damping"))
+    if damping is not None and damping < 0.2:
+        kinds.append(f"zeta {fmt(damping)}")
+    demos = entry.get("demonstrations") or {}
+    wall = number(entry.get("adaptation_wall_s"))
+    cells = [f"`{_text(name, 40)}`", ", ".join([f"order {fmt(cls.get('order'))}", *kinds]),
+             "n/a" if wall is None else f"{wall:.0f}",
+             f"{fmt(demos.get('windows'))} + {fmt(demos.get('dagger_windows'))}"]  # fmt: skip
+    policies = entry.get("policies") or {}
+    for label in ("adapted", "zero_shot", "trained_with"):
+        f = policies.get(label) or {}
+        cells.append(
+            f"{fmt(number(f.get('ISE_ratio')))} / {fmt(number(f.get('RMSE_ratio_worst')))}"
+            f" / {fmt(f.get('diverged_runs'))}"
+        )
+    return cells
+
+
+_UNSEEN_HEADER = (
+    "held-out plant",
+    "class",
+    "adaptation s",
+    "windows + DAgger",
+    "adapted: ISE / RMSE / diverged",
+    "zero-shot (tag-free)",
+    "trained with it",
+)
+
+
+def _unseen_section(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
+    """Per held-out plant the three policies' worst ratios to its LQI; then the bar."""
+    summary, source = data["summary"], recipe.files["summary"]
+    held = summary.get("held_out") or {}
+    rows = [_unseen_row(name, e) for name, e in held.items() if isinstance(e, Mapping)]
+    lines = [*_head(recipe, summary), *_training(recipe, data)]
+    lines += [
+        "Per held-out plant, each policy's unit-step ISE ratio and worst tracking RMSE ratio "
+        "to the plant's LQI, and its diverged runs over every scenario:",
+        "",
+    ]
+    lines += [*table(_UNSEEN_HEADER, rows, source), ""]
+    bars = summary.get("bars") or {}
+    if bars:
+        cells = [f"`{_text(k, 30)}` {_bar_cell(v)}" for k, v in bars.items()]
+        lines += [f"Bar on the adapted policies: {'; '.join(cells)}; "
+                  f"all: {_verdict(summary.get('pass'))}.", ""]  # fmt: skip
+    return lines
+
+
 SECTIONS = {
     "evaluation": _evaluation_section,
+    "unseen": _unseen_section,
     "variants": _variants_section,
     "ablation": _ablation_section,
 }

@@ -17,7 +17,8 @@ runner.evaluate`):
 ``reports/unseen/`` (``paths.reports_dir``): ``metrics.csv`` in the evaluation's long form
 with a ``policy`` column first, and ``summary.json``: per plant its class (computed from its
 model), the demonstrations used, the adaptation's wall time and closed-loop scores, and per
-policy the GC/LQI ratios of the evaluation's summary.
+policy the GC/LQI ratios of the evaluation's summary; then the bar (:func:`judge`) on the
+adapted policies.
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ from generalist_control.plants.plant import Plant
 from generalist_control.tracking import mlflow_utils
 from generalist_control.training.adapt import adapt, learn, prepare
 
-__all__ = ["OWNED", "POLICIES", "plant_class", "run_unseen"]
+__all__ = ["DEFAULT_BAR", "OWNED", "POLICIES", "judge", "plant_class", "run_unseen"]
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +65,17 @@ OWNED: dict[str, str | None] = {"metrics.csv": None, "summary.json": None}
 
 #: The stage's trainings: ``<unseen.models>/<folder>/policy.ckpt``.
 TRAININGS = {"adapted": "default", "zero_shot": "tag_free"}
+
+#: The bar on the adapted policies (``unseen.bar`` overrides it): no diverged run, at most
+#: ``wall_s`` of adaptation per plant, unit-step ISE ratio <= ``ISE_ratio`` and worst tracking
+#: RMSE ratio <= ``RMSE_ratio`` on all plants but ``allowed_over``, both <= ``all_ratio`` on all.
+DEFAULT_BAR = {
+    "wall_s": 180.0,
+    "ISE_ratio": 1.1,
+    "RMSE_ratio": 1.2,
+    "allowed_over": 1,
+    "all_ratio": 1.5,
+}
 
 #: How each training is made (quoted when one is missing).
 STAGE = "dvc repro beyond/dvc.yaml:unseen (its first two commands train them)"
@@ -87,6 +99,38 @@ def plant_class(plant: Plant) -> dict[str, Any]:
         "non_minimum_phase": bool(np.any(zeros.real > 1e-9)),
         "min_damping": float(damping.min()) if damping.size else None,
     }
+
+
+def _ratio(value: Any) -> float:
+    """A ratio of the summary; a missing one (every run diverged) counts as infinite."""
+    return float("inf") if value is None else float(value)
+
+
+def judge(entries: Mapping[str, Any], bar: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The bar (:data:`DEFAULT_BAR`) on the ``adapted`` figures of every held-out plant.
+
+    Returns the bars, each with its figures and ``pass``, and ``pass`` of them all.
+    """
+    b = {**DEFAULT_BAR, **(bar or {})}
+    figs = {name: e["policies"]["adapted"] for name, e in entries.items()}
+    ise = {n: _ratio(f["ISE_ratio"]) for n, f in figs.items()}
+    rmse = {n: _ratio(f["RMSE_ratio_worst"]) for n, f in figs.items()}
+    over = sorted(n for n in figs if ise[n] > b["ISE_ratio"] or rmse[n] > b["RMSE_ratio"])
+    worst = max([*ise.values(), *rmse.values()], default=float("nan"))
+    diverged = sum(int(f["diverged_runs"]) for f in figs.values())
+    wall = max((float(e["adaptation_wall_s"]) for e in entries.values()), default=0.0)
+    bars = {
+        "no_divergence": {"GC_diverged_runs": diverged, "pass": diverged == 0},
+        "adaptation_wall_s": {"value": wall, "limit": b["wall_s"], "pass": wall <= b["wall_s"]},
+        "most_within": {
+            "plants_over": len(over),
+            "over": over,
+            "allowed_over": int(b["allowed_over"]),
+            "pass": len(over) <= int(b["allowed_over"]),
+        },
+        "all_within": {"value": worst, "limit": b["all_ratio"], "pass": worst <= b["all_ratio"]},
+    }
+    return {"bars": bars, "pass": all(v["pass"] for v in bars.values())}
 
 
 def _paths(cfg: DictConfig) -> dict[str, Path]:
@@ -221,6 +265,7 @@ def run_unseen(cfg: DictConfig) -> dict[str, Any]:
         log.info("held-out plant %s: adapted in %.0f s", name, entries[name]["adaptation_wall_s"])
     summary = {
         "held_out": entries,
+        **judge(entries, as_dict(cfg.unseen.get("bar") or {})),
         "policies": {k: str(v) for k, v in paths.items()},
         "provenance": provenance(),
     }
