@@ -176,13 +176,20 @@ def test_unseen_renders_each_held_out_plant_and_the_bar(tmp_path):
                 "ITAE_ratio": itae}  # fmt: skip
 
     entry = {
-        "class": {"order": 3, "open_loop_unstable": True, "nonlinear": False,
-                  "non_minimum_phase": False, "min_damping": 0.1},  # fmt: skip
+        "class": {
+            "order": 3,
+            "open_loop_unstable": True,
+            "nonlinear": False,
+            "non_minimum_phase": False,
+            "min_damping": 0.1,
+        },
         "adaptation_wall_s": 57.6,
         "demonstrations": {"windows": 19404, "dagger_windows": 7722},
-        "policies": {"adapted": policy(0.99, 1.0108, itae=1.04),
-                     "zero_shot": policy(None, None, 32),
-                     "trained_with": policy(1.002, 1.0042)},  # fmt: skip
+        "policies": {
+            "adapted": policy(0.99, 1.0108, itae=1.04),
+            "zero_shot": policy(None, None, 32),
+            "trained_with": policy(1.002, 1.0042),
+        },
     }
     other = {**entry, "policies": {"adapted": policy(1.25, 1.0, 1, itae=2.5)}}
     bars = {"no_divergence": {"GC_diverged_runs": 1, "pass": False}}
@@ -193,7 +200,9 @@ def test_unseen_renders_each_held_out_plant_and_the_bar(tmp_path):
     row = ("| `maglev` | order 3, unstable, zeta 0.1 | 58 | 19,404 + 7,722 | "
            "0.99 / 1.0108 / 0 | n/a / n/a / 32 | 1.002 / 1.0042 / 0 |")  # fmt: skip
     assert row in text
-    assert "| `other` | order 3, unstable, zeta 0.1 | 58 | 19,404 + 7,722 | 1.25 / 1 / 1 | " in text
+    assert (
+        "| `other` | order 3, unstable, zeta 0.1 | 58 | 19,404 + 7,722 | 1.25 / 1 / 1 | " in text
+    )
     assert "`no_divergence` GC_diverged_runs 1: **fail**; all: **fail**." in text
 
 

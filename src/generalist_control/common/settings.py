@@ -35,7 +35,7 @@ import typing
 from collections.abc import Mapping
 from typing import Any, TypeVar, Union
 
-__all__ = ["SettingError", "positive", "read_section"]
+__all__ = ["SettingError", "positive", "read_section", "unit_interval"]
 
 T = TypeVar("T")
 
@@ -46,6 +46,12 @@ class SettingError(ValueError):
     def __init__(self, field: str, message: str) -> None:
         super().__init__(f"{field} {message}")
         self.field, self.message = field, message
+
+
+def unit_interval(name: str, value: float) -> None:
+    """Raise :class:`SettingError` unless ``value`` lies in [0, 1]."""
+    if not 0.0 <= value <= 1.0:
+        raise SettingError(name, f"must lie in [0, 1], got {value}")
 
 
 def positive(name: str, value: float, strict: bool = True) -> None:

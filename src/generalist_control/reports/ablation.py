@@ -55,7 +55,6 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 import torch
 from omegaconf import DictConfig
@@ -66,7 +65,7 @@ from generalist_control.common.atomic import (
     staging_directory,
 )
 from generalist_control.common.configs import as_dict
-from generalist_control.common.jsonsafe import strict
+from generalist_control.common.jsonsafe import finite, strict
 from generalist_control.evaluation.provenance import provenance
 from generalist_control.reports.claims import claims_records, verdict_counts
 from generalist_control.reports.comparison import comparison_markdown
@@ -96,15 +95,6 @@ from generalist_control.tracking import mlflow_utils
 __all__ = ["OWNED", "Inputs", "build_report", "runs_table", "write_report"]
 
 log = logging.getLogger(__name__)
-
-
-def _finite(value: Any) -> float | None:
-    """A finite float, or None (for JSON)."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        return None
-    return v if np.isfinite(v) else None
 
 
 def runs_table(sweeps: Mapping[str, Mapping[int, RunPoint | None]]) -> pd.DataFrame:
@@ -257,9 +247,9 @@ def _summary(
         "configs": {
             row.label: {
                 "run_id": row.run_id,
-                "final_train_loss": _finite(row.final_train_loss),
-                "n_parameters": _finite(row.n_parameters),
-                "mse_mean": _finite(row.mse_mean),
+                "final_train_loss": finite(row.final_train_loss),
+                "n_parameters": finite(row.n_parameters),
+                "mse_mean": finite(row.mse_mean),
             }
             for row in params.itertuples()
         },

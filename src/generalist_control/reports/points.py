@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from generalist_control.common.jsonsafe import finite
 from generalist_control.reports.evaluations import Evaluation, bar_of
 from generalist_control.reports.runs import RunPoint, unique_points
 
@@ -68,14 +69,6 @@ def infer_recipe(runs: Sequence[RunPoint]) -> str:
     return "default"
 
 
-def _finite(value: Any) -> float | None:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        return None
-    return v if np.isfinite(v) else None
-
-
 def points_frame(
     by_config: Mapping[Config, Sequence[RunPoint]],
     plants: Sequence[str],
@@ -100,9 +93,9 @@ def points_frame(
                 "seed": p.seed,
                 "run_id": p.run_id,
                 "n_parameters": p.n_parameters,
-                "final_train_loss": _finite(p.train_loss),
-                "final_val_loss": _finite(p.val_loss),
-                "best_val_loss": _finite(p.best_val_loss),
+                "final_train_loss": finite(p.train_loss),
+                "final_val_loss": finite(p.val_loss),
+                "best_val_loss": finite(p.best_val_loss),
                 "mse_mean": float(np.mean(scores)) if scores else None,
                 **{f"mse/{k}": p.mse.get(k) for k in plants},
                 "closed_loop_diverged": p.diverged,

@@ -17,7 +17,12 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.schema import require_int
-from generalist_control.common.settings import SettingError, positive, read_section
+from generalist_control.common.settings import (
+    SettingError,
+    positive,
+    read_section,
+    unit_interval,
+)
 
 __all__ = [
     "INITS",
@@ -125,9 +130,8 @@ class DaggerSettings:
         for name in ("start_epoch", "every", "rounds"):
             if getattr(self, name) < (0 if name == "start_epoch" else 1):
                 raise SettingError(name, f"is out of range: {getattr(self, name)}")
-        for name in ("beta", "beta_decay"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise SettingError(name, f"must lie in [0, 1], got {getattr(self, name)}")
+        unit_interval("beta", self.beta)
+        unit_interval("beta_decay", self.beta_decay)
 
     def beta_at(self, round_index: int) -> float:
         """The expert's share in round ``round_index`` (0-based): ``beta * beta_decay ** i``."""
@@ -174,9 +178,8 @@ class AdaptSettings:
         if self.batch_size < 1:
             raise SettingError("batch_size", f"must be >= 1, got {self.batch_size}")
         positive("lr", self.lr)
-        for name in ("beta", "beta_decay"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise SettingError(name, f"must lie in [0, 1], got {getattr(self, name)}")
+        unit_interval("beta", self.beta)
+        unit_interval("beta_decay", self.beta_decay)
 
     def beta_at(self, round_index: int) -> float:
         """The expert's share in round ``round_index`` (0-based)."""
