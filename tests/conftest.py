@@ -11,6 +11,7 @@ import torch
 from generalist_control.data.demos import DemoSet, write_demos
 from generalist_control.data.generation import build_manifest, generate_demos
 from generalist_control.plants.catalog import load_plant
+from generalist_control.tracking import mlflow_utils
 from helpers import TINY_DATA
 
 # One thread: the tiny batches gain nothing from two, and on a shared 2-core machine a second
@@ -19,6 +20,14 @@ torch.set_num_threads(1)
 
 #: Two plants of order 2 and 3, eight step amplitudes each, 2 s (40 samples) per trajectory.
 TINY_PLANTS = ("cstr", "hydraulic_actuator")
+
+
+@pytest.fixture(autouse=True)
+def no_parent_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every test starts outside a sweep: no parent run in the environment (and any a test
+    leaves behind is removed afterwards), whatever ran before it in the same worker."""
+    for key in (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV):
+        monkeypatch.delenv(key, raising=False)
 
 
 @pytest.fixture(scope="session")
