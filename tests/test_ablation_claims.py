@@ -109,6 +109,22 @@ def test_each_claim_is_judged_by_its_rule_on_every_seed():
     assert v["gate_pattern"] == "no score"
 
 
+def test_an_order_is_judged_per_run_of_its_first_configuration_not_per_pair():
+    # the committed default ablation: M=5 below M=1 but above M=3, one seed each
+    one_seed = {
+        (32, 5): [_point(32, 5, 42, mse={"hvac_two_zone": 9.23e-7})],
+        (32, 1): [_point(32, 1, 42, mse={"hvac_two_zone": 2.13e-6})],
+        (32, 3): [_point(32, 3, 42, mse={"hvac_two_zone": 5.65e-7})],
+    }
+    assert _verdicts(judge_claims(one_seed, None))["order_hvac_m5"] == "does not reproduce"
+    # two runs of M=5: one below every rival, one not
+    two = {
+        **one_seed,
+        (32, 5): [*one_seed[(32, 5)], _point(32, 5, 43, mse={"hvac_two_zone": 1e-7})],
+    }
+    assert _verdicts(judge_claims(two, None))["order_hvac_m5"] == "seed-dependent"
+
+
 def test_the_default_recipe_makes_losses_and_counts_not_comparable_but_not_ratios():
     table = judge_claims(RUNS, GATES, recipe="default")
     v = _verdicts(table)
