@@ -199,3 +199,29 @@ def test_other_mlflow_errors_of_log_input_are_raised_at_once(monkeypatch):
     with pytest.raises(mlflow.exceptions.MlflowException, match="run not found"):
         mlflow_utils.log_input_shared(_numpy_dataset("e" * 36), context="training", tags={})
     assert calls == [1]
+
+
+def test_a_run_reopened_since_the_search_is_not_set_killed(tmp_path, monkeypatch):
+    """end_stale_runs judges each run again under the store's lock: a run an evaluation
+    reopened (its live process's tags) after the search saw the dead training's stays."""
+    import os
+    import socket
+    import subprocess
+
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    client = mlflow.MlflowClient()
+    exp = client.create_experiment("stale")
+    run_id = client.create_run(exp).info.run_id
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # a process that has ended: its pid is the training's that was killed
+    client.set_tag(run_id, mlflow_utils.HOST_TAG, socket.gethostname())
+    client.set_tag(run_id, mlflow_utils.PID_TAG, str(gone.pid))
+    seen = client.search_runs([exp])  # what a concurrent search saw: the dead pid
+    client.set_tag(run_id, mlflow_utils.PID_TAG, str(os.getpid()))  # reopened, alive
+    client.set_tag(run_id, mlflow_utils.START_TAG, "")
+    monkeypatch.setattr(mlflow.MlflowClient, "search_runs", lambda self, *a, **k: seen)
+    assert mlflow_utils.end_stale_runs(exp) == []
+    assert client.get_run(run_id).info.status == "RUNNING"
+    client.set_tag(run_id, mlflow_utils.PID_TAG, str(gone.pid))  # now it is gone
+    assert mlflow_utils.end_stale_runs(exp) == [run_id]
+    assert client.get_run(run_id).info.status == "KILLED"

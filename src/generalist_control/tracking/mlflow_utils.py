@@ -214,13 +214,21 @@ def mlflow_run(
             run_id = mlflow.get_run(resume_run_id).info.run_id
         except MlflowException:
             run_id = None  # the checkpoint comes from another store: start a new run
-    with mlflow.start_run(
-        run_id=run_id,
-        experiment_id=None if run_id else exp_id,
-        run_name=None if run_id else redact(logger.get("run_name")),
-        tags=None if run_id else parent_run_tags() or None,
-    ) as run:
-        mlflow.set_tags(process_tags())
+    # reopened and tagged with this process under the store's lock: a resumed run is
+    # RUNNING with its old process's tags until set_tags, which end_stale_runs must not see
+    with store_lock(mlflow.get_tracking_uri()):
+        run = mlflow.start_run(
+            run_id=run_id,
+            experiment_id=None if run_id else exp_id,
+            run_name=None if run_id else redact(logger.get("run_name")),
+            tags=None if run_id else parent_run_tags() or None,
+        )
+        try:
+            mlflow.set_tags(process_tags())
+        except BaseException:
+            mlflow.end_run("FAILED")
+            raise
+    with run:
         yield run
 
 
@@ -321,17 +329,21 @@ def end_stale_runs(exp_id: str) -> list[str]:
         max_results=1000,
     )
     ended = []
-    for run in runs:
-        tags = run.data.tags
-        pid = int(tags.get(PID_TAG, "0") or 0)
-        if pid <= 0 or _alive(pid, tags.get(START_TAG)):
-            continue
-        reason = (
-            f"process {host}:{pid} is gone (last heartbeat {tags.get(HEARTBEAT_TAG, '?')}); "
-            f"ended by {host}:{os.getpid()} at {now()}"
-        )
-        client.set_tag(run.info.run_id, "gc.killed_reason", reason)
-        client.set_terminated(run.info.run_id, "KILLED")
+    for found in runs:
+        # judged again under the store's lock: another process may have reopened the run
+        # (an evaluation logging into its model's run) since the search
+        with store_lock(mlflow.get_tracking_uri()):
+            run = client.get_run(found.info.run_id)
+            tags = run.data.tags
+            pid = int(tags.get(PID_TAG, "0") or 0)
+            if run.info.status != "RUNNING" or pid <= 0 or _alive(pid, tags.get(START_TAG)):
+                continue
+            reason = (
+                f"process {host}:{pid} is gone (last heartbeat "
+                f"{tags.get(HEARTBEAT_TAG, '?')}); ended by {host}:{os.getpid()} at {now()}"
+            )
+            client.set_tag(run.info.run_id, "gc.killed_reason", reason)
+            client.set_terminated(run.info.run_id, "KILLED")
         log.warning("MLflow run %s was left RUNNING: %s; set KILLED", run.info.run_id, reason)
         ended.append(run.info.run_id)
     return ended
