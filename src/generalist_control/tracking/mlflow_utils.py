@@ -214,20 +214,14 @@ def mlflow_run(
             run_id = mlflow.get_run(resume_run_id).info.run_id
         except MlflowException:
             run_id = None  # the checkpoint comes from another store: start a new run
-    # reopened and tagged with this process under the store's lock: a resumed run is
-    # RUNNING with its old process's tags until set_tags, which end_stale_runs must not see
-    with store_lock(mlflow.get_tracking_uri()):
+    with store_lock(mlflow.get_tracking_uri()):  # reopened, it has old tags until set_tags
         run = mlflow.start_run(
             run_id=run_id,
             experiment_id=None if run_id else exp_id,
             run_name=None if run_id else redact(logger.get("run_name")),
             tags=None if run_id else parent_run_tags() or None,
         )
-        try:
-            mlflow.set_tags(process_tags())
-        except BaseException:
-            mlflow.end_run("FAILED")
-            raise
+        mlflow.set_tags(process_tags())
     with run:
         yield run
 
@@ -317,9 +311,8 @@ def end_stale_runs(exp_id: str) -> list[str]:
     """Set ``KILLED`` the ``RUNNING`` runs of ``exp_id`` whose process on this host is gone.
 
     A training killed outright (SIGKILL, out of memory) cannot end its run; its ``gc.host``
-    and ``gc.pid`` tags say which process ran it. Only runs of this host are judged (a pid
-    means nothing elsewhere); each ended run gets the tag ``gc.killed_reason``. Returns
-    their ids.
+    and ``gc.pid`` tags say which process ran it (runs of this host only). Each ended run
+    gets the tag ``gc.killed_reason``. Returns their ids.
     """
     host = socket.gethostname()
     client = mlflow.MlflowClient()
@@ -330,17 +323,15 @@ def end_stale_runs(exp_id: str) -> list[str]:
     )
     ended = []
     for found in runs:
-        # judged again under the store's lock: another process may have reopened the run
-        # (an evaluation logging into its model's run) since the search
         with store_lock(mlflow.get_tracking_uri()):
-            run = client.get_run(found.info.run_id)
+            run = client.get_run(found.info.run_id)  # again: it may have been reopened since
             tags = run.data.tags
             pid = int(tags.get(PID_TAG, "0") or 0)
             if run.info.status != "RUNNING" or pid <= 0 or _alive(pid, tags.get(START_TAG)):
                 continue
+            beat, me = tags.get(HEARTBEAT_TAG, "?"), f"{host}:{os.getpid()}"
             reason = (
-                f"process {host}:{pid} is gone (last heartbeat "
-                f"{tags.get(HEARTBEAT_TAG, '?')}); ended by {host}:{os.getpid()} at {now()}"
+                f"process {host}:{pid} is gone (last heartbeat {beat}); ended by {me} at {now()}"
             )
             client.set_tag(run.info.run_id, "gc.killed_reason", reason)
             client.set_terminated(run.info.run_id, "KILLED")
