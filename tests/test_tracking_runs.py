@@ -7,6 +7,9 @@ themselves are in tests/test_train.py (registered model, dataset input, end mess
 from __future__ import annotations
 
 import math
+import os
+import socket
+import subprocess
 
 import mlflow
 import pytest
@@ -204,10 +207,6 @@ def test_other_mlflow_errors_of_log_input_are_raised_at_once(monkeypatch):
 def test_a_run_reopened_since_the_search_is_not_set_killed(tmp_path, monkeypatch):
     """end_stale_runs judges each run again under the store's lock: a run an evaluation
     reopened (its live process's tags) after the search saw the dead training's stays."""
-    import os
-    import socket
-    import subprocess
-
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
     client = mlflow.MlflowClient()
     exp = client.create_experiment("stale")
