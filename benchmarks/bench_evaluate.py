@@ -140,7 +140,7 @@ def main() -> None:
     measured = measure(policy, args.baseline, args.repeats)
     result: dict[str, Any] = {
         "benchmark": "python -m generalist_control.evaluate (default suite, 25 plants)",
-        "policy": str(policy),
+        "policy": str(policy.relative_to(ROOT)) if policy.is_relative_to(ROOT) else policy.name,
         "repeats": args.repeats,
         "cores": os.cpu_count(),
         "load_average_before": load_before,

@@ -25,6 +25,8 @@ def test_the_worker_logs_the_figures_and_the_folder(tmp_path, mlflow_uri):
     with MlflowWorker(_logger(mlflow_uri, tmp_path.name), "ev") as worker:
         assert worker.ready() == mlflow_uri
         run_id = worker.log(None, summary, out)
+    # it ends at once after its last answer (os._exit), and cleanly
+    assert worker._proc.returncode == 0
     mlflow.set_tracking_uri(mlflow_uri)
     run = mlflow.get_run(run_id)
     assert run.data.metrics == {"ev/step/worst_ISE_ratio": 1.5, "ev/diverged/GC": 1.0}
