@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from generalist_control.model.blocks import SummaryAttention
 from generalist_control.model.build import build_network
 from generalist_control.model.flat import FlatPolicy
 from generalist_control.model.network import GeneralistNetwork, count_parameters
@@ -150,8 +151,22 @@ def test_attention_over_one_token_leaves_query_and_key_without_gradient():
     u.sum().backward()
     inner = net.attention.heads * net.attention.d_k
     grad = net.attention.qkv.weight.grad
-    # zero up to rounding in the softmax backward
-    assert grad[: 2 * inner].abs().max() < 1e-6 * grad[2 * inner :].abs().max()
+    assert torch.count_nonzero(grad[: 2 * inner]) == 0
+    assert torch.count_nonzero(grad[2 * inner :]) > 0
+
+
+def test_attention_over_one_token_is_the_attention_kernel_s_value():
+    # the reference: torch's scaled dot-product attention over the same projections
+    att = SummaryAttention(64, 3)
+    z = torch.randn(50, 1, 64) * 10
+    q, k, v = att.qkv(z).view(50, 1, 3, 3, att.d_k).permute(2, 0, 3, 1, 4)
+    a = torch.nn.functional.scaled_dot_product_attention(q, k, v).transpose(1, 2)
+    expected = z + att.out(a.reshape(50, 1, 3 * att.d_k))
+    assert torch.equal(att(z), expected)
+    two = torch.randn(5, 2, 64)  # more tokens: the kernel itself
+    q, k, v = att.qkv(two).view(5, 2, 3, 3, att.d_k).permute(2, 0, 3, 1, 4)
+    a = torch.nn.functional.scaled_dot_product_attention(q, k, v).transpose(1, 2)
+    assert torch.equal(att(two), two + att.out(a.reshape(5, 2, 3 * att.d_k)))
 
 
 def _documented_parameter_parts(

@@ -30,8 +30,10 @@ class SummaryAttention(nn.Module):
     -----
     As in the paper the tokens are the temporal summary ``z`` alone (one token per window),
     so the softmax over a single key is identically one and the block computes
-    ``z + W_O V z``; the query and key projections are kept for fidelity with the paper
-    (and its parameter count), but receive zero gradient (up to rounding).
+    ``z + W_O V z``: with one token that is what :meth:`forward` computes, to the bit what
+    the attention gives, without its kernel (a tenth of a training step). The query and
+    key projections are kept for fidelity with the paper (and its parameter count); they
+    receive zero gradient.
     """
 
     def __init__(self, dim: int, heads: int) -> None:
@@ -45,6 +47,9 @@ class SummaryAttention(nn.Module):
     def forward(self, tokens: Tensor) -> Tensor:
         """Attend over ``tokens`` (B, T, dim); return the same shape."""
         B, T, _ = tokens.shape
+        inner = self.heads * self.d_k
+        if T == 1:  # one key: every head's weights are one, its output is its value
+            return tokens + self.out(self.qkv(tokens)[..., 2 * inner :])
         qkv = self.qkv(tokens).view(B, T, 3, self.heads, self.d_k).permute(2, 0, 3, 1, 4)
         a = F.scaled_dot_product_attention(qkv[0], qkv[1], qkv[2])  # (B, heads, T, d_k)
         return tokens + self.out(a.transpose(1, 2).reshape(B, T, self.heads * self.d_k))
