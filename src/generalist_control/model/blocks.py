@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 __all__ = ["ExpertMLP", "SummaryAttention", "mlp"]
@@ -29,11 +28,11 @@ class SummaryAttention(nn.Module):
     Notes
     -----
     As in the paper the tokens are the temporal summary ``z`` alone (one token per window),
-    so the softmax over a single key is identically one and the block computes
-    ``z + W_O V z``: with one token that is what :meth:`forward` computes, to the bit what
-    the attention gives, without its kernel (a tenth of a training step). The query and
-    key projections are kept for fidelity with the paper (and its parameter count); they
-    receive zero gradient.
+    so the softmax over a single key is identically one and every head's output is its
+    value: :meth:`forward` computes ``z + W_O V z``, to the bit what the attention kernel
+    gives (tests/test_model.py), without the kernel (a tenth of a training step). The query
+    and key projections are kept for fidelity with the paper (and its parameter count);
+    they receive zero gradient.
     """
 
     def __init__(self, dim: int, heads: int) -> None:
@@ -44,15 +43,10 @@ class SummaryAttention(nn.Module):
         self.qkv = nn.Linear(dim, 3 * inner)
         self.out = nn.Linear(inner, dim)
 
-    def forward(self, tokens: Tensor) -> Tensor:
-        """Attend over ``tokens`` (B, T, dim); return the same shape."""
-        B, T, _ = tokens.shape
+    def forward(self, z: Tensor) -> Tensor:
+        """The block's output for the one token ``z`` (B, dim): ``z + W_O V z`` (B, dim)."""
         inner = self.heads * self.d_k
-        if T == 1:  # one key: every head's weights are one, its output is its value
-            return tokens + self.out(self.qkv(tokens)[..., 2 * inner :])
-        qkv = self.qkv(tokens).view(B, T, 3, self.heads, self.d_k).permute(2, 0, 3, 1, 4)
-        a = F.scaled_dot_product_attention(qkv[0], qkv[1], qkv[2])  # (B, heads, T, d_k)
-        return tokens + self.out(a.transpose(1, 2).reshape(B, T, self.heads * self.d_k))
+        return z + self.out(self.qkv(z)[..., 2 * inner :])
 
 
 class ExpertMLP(nn.Sequential):

@@ -214,7 +214,7 @@ class GeneralistNetwork(nn.Module):
         _, (h_fast, _) = self.lstm_fast(f)
         _, (h_slow, _) = self.lstm_slow(f[:, self.slow_start :: self.stride])
         z = torch.cat([h_fast[-1], h_slow[-1]], dim=-1)
-        z_att = self.attention(z.unsqueeze(1)).squeeze(1)
+        z_att = self.attention(z)
         gates = torch.softmax(self.gate(z_att), dim=-1)
         u_experts = torch.stack([expert(z_att) for expert in self.experts], dim=1)
         u = torch.einsum("bm,bmk->bk", gates, u_experts)
