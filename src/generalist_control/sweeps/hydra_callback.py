@@ -37,11 +37,9 @@ import os
 from collections.abc import Sequence
 from typing import Any
 
-import mlflow
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
-from mlflow.entities import RunStatus
 from omegaconf import DictConfig
 
 from generalist_control.common.configs import as_dict
@@ -128,6 +126,9 @@ class MLflowSweepCallback(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         """Create the parent run and export its id to the jobs."""
+        import mlflow
+        from mlflow.entities import RunStatus
+
         if not self._active(config):
             return
         overrides = [str(o) for o in config.hydra.overrides.task]
@@ -179,6 +180,9 @@ class MLflowSweepCallback(Callback):
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """Summarise the children into the parent and end it."""
+        import mlflow
+        from mlflow.entities import RunStatus
+
         if self.run_id is None:
             return
         try:
@@ -192,6 +196,8 @@ class MLflowSweepCallback(Callback):
             self._end(RunStatus.to_string(status))
 
     def _end(self, status: str) -> None:
+        import mlflow
+
         if self.run_id is None:
             return
         run_id, self.run_id = self.run_id, None

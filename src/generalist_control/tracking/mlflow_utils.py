@@ -31,14 +31,15 @@ from collections.abc import Iterator, Mapping
 from contextlib import AbstractContextManager, contextmanager, nullcontext
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import mlflow
 import yaml
-from mlflow.exceptions import MlflowException
 
 from generalist_control.common.secrets import redact
 from generalist_control.tracking.experiments import experiment_name
+
+if TYPE_CHECKING:
+    import mlflow
 
 __all__ = [
     "PARENT_RUN_ENV",
@@ -48,8 +49,6 @@ __all__ = [
     "experiment_id",
     "flatten_params",
     "init_store",
-    "log_input_shared",
-    "log_params_once",
     "mlflow_run",
     "now",
     "parent_run_tags",
@@ -64,7 +63,7 @@ log = logging.getLogger(__name__)
 #: Config subtrees left out of the params: the plant models (fixed by the data hash, and in
 #: the logged manifest) and Hydra's own settings.
 EXCLUDED = ("systems.plants", "hydra")
-_MAX_VALUE = 6000  # MLflow's limit on a param value
+MAX_VALUE = 6000  # MLflow's limit on a param value
 
 #: Environment variables through which a sweep (:mod:`generalist_control.sweep`) or a study
 #: (:mod:`generalist_control.tune`) hands its parent run to the training runs it starts.
@@ -82,6 +81,8 @@ def tracking_uri(logger: Mapping[str, Any]) -> str:
 
 def set_tracking(logger: Mapping[str, Any]) -> str:
     """Point MLflow at the ``logger`` config's tracking URI, its store initialised; return it."""
+    import mlflow
+
     uri = tracking_uri(logger)
     mlflow.set_tracking_uri(uri)
     init_store(uri)
@@ -127,6 +128,8 @@ def init_store(uri: str) -> None:
 
     Other stores are left to their server; a store is initialised once per process.
     """
+    import mlflow
+
     if uri in _INITIALISED or _sqlite_file(uri) is None:
         return
     with store_lock(uri):
@@ -158,7 +161,7 @@ def flatten_params(cfg: Mapping[str, Any], exclude: tuple[str, ...] = EXCLUDED) 
                 walk(value, f"{prefix}.{key}" if prefix else str(key))
         else:
             text = json.dumps(node) if isinstance(node, list | tuple) else str(node)
-            out[prefix] = redact(text)[:_MAX_VALUE]
+            out[prefix] = redact(text)[:MAX_VALUE]
 
     walk(cfg, "")
     return out
@@ -206,6 +209,9 @@ def mlflow_run(
     process is gone are ended (:func:`end_stale_runs`); the run is tagged with this
     process (:func:`process_tags`).
     """
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
     exp_id = experiment_id(logger, kind=kind)
     end_stale_runs(exp_id)
     run_id = None
@@ -234,6 +240,9 @@ def _lookup(uri: str, name: str) -> Any:
     ConnectionError
         If the store does not answer (or refuses); message and error carry no credential.
     """
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
     try:
         return mlflow.get_experiment_by_name(name)
     except MlflowException as e:
@@ -252,6 +261,9 @@ def experiment_id(logger: Mapping[str, Any], kind: str = "train") -> str:
     (``<logger.experiment_prefix>/<kind>``, or ``logger.experiment_name`` when set). Lookup
     and creation hold :func:`store_lock`.
     """
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
     uri = set_tracking(logger)
     name = experiment_name(logger, kind)
     with store_lock(uri):
@@ -314,6 +326,8 @@ def end_stale_runs(exp_id: str) -> list[str]:
     and ``gc.pid`` tags say which process ran it (runs of this host only). Each ended run
     gets the tag ``gc.killed_reason``. Returns their ids.
     """
+    import mlflow
+
     host = socket.gethostname()
     client = mlflow.MlflowClient()
     runs = client.search_runs(
@@ -353,48 +367,3 @@ def parent_run_tags() -> dict[str, str]:
     if os.environ.get(SWEEP_ENV):
         tags["sweep"] = os.environ[SWEEP_ENV]
     return tags
-
-
-def log_params_once(params: Mapping[str, str]) -> dict[str, tuple[str, str]]:
-    """Log params to the active run, skipping those it already has (a resumed run).
-
-    Returns the params whose value differs from the one already logged, ``{key: (old,
-    new)}``; they are also written to the tag ``resume.changed_params``.
-    """
-    run = mlflow.active_run()
-    old = mlflow.get_run(run.info.run_id).data.params if run else {}
-    changed = {k: (old[k], v) for k, v in params.items() if k in old and old[k] != v}
-    mlflow.log_params({k: v for k, v in params.items() if k not in old})
-    if changed:
-        mlflow.set_tag("resume.changed_params", json.dumps(changed)[:_MAX_VALUE])
-    return changed
-
-
-#: What a database says when a row another process inserted first is inserted again
-#: (PostgreSQL, SQLite, MySQL), lower-cased.
-_DUPLICATE_ROW = ("duplicate key", "unique constraint", "duplicate entry")
-
-
-def log_input_shared(
-    dataset: Any, context: str, tags: Mapping[str, str], attempts: int = 3
-) -> None:
-    """:func:`mlflow.log_input`, again when another process logged the same dataset first.
-
-    MLflow's database store looks a dataset up by (experiment, name, digest) and inserts it
-    when missing, in one transaction without a lock: two trainings on one data set that
-    start together (the workers of a study) can both miss it, and the second insert then
-    fails on the table's unique key. The failed transaction is rolled back, so logging again
-    finds the row the other process wrote and only links it to this run. Any other error,
-    or the same one ``attempts`` times, is raised.
-    """
-    for attempt in range(1, attempts + 1):
-        try:
-            mlflow.log_input(dataset, context=context, tags=dict(tags))
-            return
-        except MlflowException as err:
-            text = str(err).lower()
-            if attempt == attempts or not any(s in text for s in _DUPLICATE_ROW):
-                raise
-            log.info(
-                "dataset %s was logged by another run at the same time; linking it", dataset.name
-            )

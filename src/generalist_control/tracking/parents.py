@@ -16,8 +16,6 @@ from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any
 
-import mlflow
-
 from generalist_control.common.secrets import redact
 from generalist_control.tracking import mlflow_utils
 
@@ -56,6 +54,8 @@ def create_parent_run(
     tags : mapping, optional
         Further tags of the parent run.
     """
+    import mlflow
+
     name = redact(name)
     exp_id = mlflow_utils.experiment_id(logger)
     run = mlflow.MlflowClient().create_run(
@@ -98,6 +98,8 @@ def named_parent(logger: Mapping[str, Any], name: str, kind: str = "train") -> s
     ValueError
         For a name with other characters.
     """
+    import mlflow
+
     if not _NAME.fullmatch(name):
         raise ValueError(
             f"parent run name {name!r}: use letters, digits, spaces and _.:=,/+@- only"
@@ -156,6 +158,8 @@ def summarise_children(parent_id: str, metric: str = "val/loss", mode: str = "mi
         ``best_run_id``; logged as ``sweep/n_runs``, ``sweep/n_finished``,
         ``sweep/best/<metric>`` and the tag ``sweep.best_run_id``.
     """
+    import mlflow
+
     if mode not in ("min", "max"):
         raise ValueError(f"mode must be 'min' or 'max', not {mode!r}")
     client = mlflow.MlflowClient()

@@ -23,6 +23,7 @@ metrics. Our own code remains only where the logger cannot do the job:
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
@@ -41,6 +42,8 @@ from generalist_control.tracking import mlflow_utils
 
 __all__ = [
     "RunRecorder",
+    "log_input_shared",
+    "log_params_once",
     "run_id_from_checkpoint",
     "training_experiment",
     "training_logger",
@@ -219,3 +222,48 @@ def run_id_from_checkpoint(ckpt_path: str | Path) -> str | None:
         if states.get(key, {}).get("run_id"):
             return str(states[key]["run_id"])
     return None
+
+
+def log_params_once(params: Mapping[str, str]) -> dict[str, tuple[str, str]]:
+    """Log params to the active run, skipping those it already has (a resumed run).
+
+    Returns the params whose value differs from the one already logged, ``{key: (old,
+    new)}``; they are also written to the tag ``resume.changed_params``.
+    """
+    run = mlflow.active_run()
+    old = mlflow.get_run(run.info.run_id).data.params if run else {}
+    changed = {k: (old[k], v) for k, v in params.items() if k in old and old[k] != v}
+    mlflow.log_params({k: v for k, v in params.items() if k not in old})
+    if changed:
+        mlflow.set_tag("resume.changed_params", json.dumps(changed)[: mlflow_utils.MAX_VALUE])
+    return changed
+
+
+#: What a database says when a row another process inserted first is inserted again
+#: (PostgreSQL, SQLite, MySQL), lower-cased.
+_DUPLICATE_ROW = ("duplicate key", "unique constraint", "duplicate entry")
+
+
+def log_input_shared(
+    dataset: Any, context: str, tags: Mapping[str, str], attempts: int = 3
+) -> None:
+    """:func:`mlflow.log_input`, again when another process logged the same dataset first.
+
+    MLflow's database store looks a dataset up by (experiment, name, digest) and inserts it
+    when missing, in one transaction without a lock: two trainings on one data set that
+    start together (the workers of a study) can both miss it, and the second insert then
+    fails on the table's unique key. The failed transaction is rolled back, so logging again
+    finds the row the other process wrote and only links it to this run. Any other error,
+    or the same one ``attempts`` times, is raised.
+    """
+    for attempt in range(1, attempts + 1):
+        try:
+            mlflow.log_input(dataset, context=context, tags=dict(tags))
+            return
+        except MlflowException as err:
+            text = str(err).lower()
+            if attempt == attempts or not any(s in text for s in _DUPLICATE_ROW):
+                raise
+            log.info(
+                "dataset %s was logged by another run at the same time; linking it", dataset.name
+            )

@@ -226,7 +226,7 @@ def log_inputs(cfg: DictConfig, dm: DemoDataModule, n_params: int, run_dir: Path
         "data.content_hash": meta["content_hash"],
         "n_parameters": str(n_params),
     }
-    mlflow_utils.log_params_once(params)
+    training_run.log_params_once(params)
     tags = {
         "data.content_hash": meta["content_hash"],
         "data.dir": meta["data_dir"],
@@ -269,7 +269,7 @@ def log_dataset(dm: DemoDataModule) -> None:
         dataset = from_numpy(
             features, source=source, targets=t["target"].numpy(), name="demos", digest=digest
         )
-    mlflow_utils.log_input_shared(
+    training_run.log_input_shared(
         dataset, context="training", tags={"content_hash": meta["content_hash"]}
     )
 
