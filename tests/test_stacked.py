@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from generalist_control.plants.catalog import load_plant
-from generalist_control.simulation import stacked
 from generalist_control.simulation.crazyflie import fly, fly_many
 from generalist_control.simulation.lqi import AntiWindupLQIController, LQIController
 from generalist_control.simulation.references import state_envelope, state_envelopes
@@ -15,7 +14,6 @@ from generalist_control.simulation.simulate import (
     PerPlantController,
     Perturbation,
     Run,
-    plant_stepper,
     simulate,
     simulate_many,
 )
@@ -103,27 +101,6 @@ def test_runs_end_on_their_own_sample_and_their_controller_is_told():
     rows = controller_rows([Segment(rec, runs)])[0]
     assert rows[0] == slice(0, 2)  # cstr's runs first (plants in order of first appearance)
     assert rec.finished[0] == [0, 1] and rec.finished[1] == [2, 3, 4, 5]
-
-
-def test_a_plant_whose_runs_all_ended_is_no_longer_advanced(monkeypatch):
-    calls: dict[str, int] = {}
-
-    def counting(plant):
-        step = plant_stepper(plant)
-
-        def advance(x, u):
-            calls[plant.name] = calls.get(plant.name, 0) + 1
-            return step(x, u)
-
-        return advance
-
-    monkeypatch.setattr(stacked, "plant_stepper", counting)
-    p, q = load_plant("cstr"), load_plant("two_mass_spring")
-    runs = [Run(p, np.ones((2, 10))), Run(q, np.ones((1, 25)))]
-    (trajs,) = simulate_stacked([Segment(PerPlantController(LQIController), runs)])
-    assert calls == {"cstr": 10, "two_mass_spring": 25}
-    for run, tr in zip(runs, trajs, strict=True):  # what was recorded is each run's own loop
-        _same(tr, simulate_many([run], PerPlantController(LQIController))[0])
 
 
 def test_concurrent_segments_give_the_same_numbers():

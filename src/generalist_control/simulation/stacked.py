@@ -19,8 +19,7 @@ docs/evaluation.md).
 
 A run that has ended is commanded NaN (its later samples are never recorded) and its
 controller, if it has a ``finish(rows)`` method, is told which of its rows ended, so that a
-controller that pays per row (the learned policy) can drop them; a plant block whose runs
-have all ended is no longer advanced.
+controller that pays per row (the learned policy) can drop them.
 """
 
 from __future__ import annotations
@@ -247,7 +246,6 @@ class _Loop:
         self.ended = np.zeros(B, dtype=bool)
         self.final: dict[tuple[int, int], np.ndarray] = {}
         self.advance = [(plant_stepper(p), p.order, rows) for p, rows in self.layout.blocks]
-        self.live = self.advance  # the plant blocks with a run still going
 
     def end(self, k: int) -> list[tuple[int, int]]:
         """Close the runs of length ``k``: their divergence as it stood, their rows dropped."""
@@ -256,8 +254,6 @@ class _Loop:
             rows = self.layout.rows[key]
             self.final[key] = self.diverged[rows].copy()
             self.ended[rows] = True
-        if done:
-            self.live = [a for a in self.live if not self.ended[a[2]].all()]
         for s, seg in enumerate(self.segments):
             finish = getattr(seg.controller, "finish", None)
             mine = [self.layout.local[key] for key in done if key[0] == s]
@@ -289,8 +285,8 @@ class _Loop:
         u = self.act.actuate(u)
         self.u[k] = u
         ua = self.act.applied(u, k)
-        nxt = self.x.copy()  # a block whose runs all ended stays where it was
-        for advance, n, rows in self.live:
+        nxt = np.zeros_like(self.x)
+        for advance, n, rows in self.advance:
             nxt[rows, :n] = advance(self.x[rows, :n], ua[rows])
         bad = ~np.all(np.isfinite(nxt) & (np.abs(nxt) < DIVERGENCE_BOUND), axis=1)
         self.diverged |= bad
