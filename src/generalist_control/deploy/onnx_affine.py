@@ -62,12 +62,8 @@ def _exact_scale(c: np.ndarray, divide: bool) -> bool:
     return bool(np.all((mant == 0.5) | ((mant == 0) & (not divide))))
 
 
-def _kind(node: onnx.NodeProto, consts: dict[str, np.ndarray], exact: bool = True) -> str | None:
-    """How ``node`` is affine in its non-constant inputs (None: it is not).
-
-    ``exact=False``: every product with constants counts as a scaling, which may be folded
-    into anything (its rounding is not kept).
-    """
+def _kind(node: onnx.NodeProto, consts: dict[str, np.ndarray]) -> str | None:
+    """How ``node`` is affine in its non-constant inputs (None: it is not)."""
     op, ins = node.op_type, list(node.input)
     dyn = [i for i in ins if i and i not in consts]
     if not dyn:
@@ -80,16 +76,14 @@ def _kind(node: onnx.NodeProto, consts: dict[str, np.ndarray], exact: bool = Tru
         if op == "Div" and ins[1] in dyn:
             return None
         c = consts[ins[1] if ins[0] in dyn else ins[0]]
-        if not exact or _exact_scale(c, op == "Div"):
+        if _exact_scale(c, op == "Div"):
             return "scale"
         # x * c is the product a Gemm computes; x / c is not x * (1 / c) in floats
         return "product" if op == "Mul" else None
     # a product with constant weights on the right, as the folded Gemm computes it: the
     # kernel sums along the same axis in the same order (with the weights on the left, as a
     # matrix times a column, it may sum in another order)
-    if op in ("MatMul", "Gemm") and len(dyn) == 1 and (dyn[0] == ins[0] or not exact):
-        if not exact:
-            return "scale"
+    if op in ("MatMul", "Gemm") and len(dyn) == 1 and dyn[0] == ins[0]:
         return "gemm" if op == "Gemm" and len(ins) > 2 and ins[2] else "product"
     return None
 
@@ -99,15 +93,15 @@ _RULES = {"move": (DONE, None), "scale": (DONE, None), "product": (SEL, PROD),
           "gemm": (SEL, DONE), "offset": (PROD, DONE), "add": (SELC, DONE)}  # fmt: skip
 
 
-def _chains(graph: Graph, exact: bool = True) -> _Chains:
-    """Classify the graph's tensors (see the module docstring; ``exact``: :func:`fold_affine`)."""
+def _chains(graph: Graph) -> _Chains:
+    """Classify the graph's tensors (see the module docstring)."""
     ch = _Chains({}, {}, {}, {}, set())
     readers = graph.consumers()
     for n in graph.nodes:
-        kind = _kind(n, graph.consts, exact)
+        kind = _kind(n, graph.consts)
         if kind is None:
             continue
-        limit, out = _RULES[kind] if exact else (DONE, SEL)
+        limit, out = _RULES[kind]
         dyn = [i for i in n.input if i and i not in graph.consts]
         follow = []
         for d in dyn:
@@ -266,12 +260,11 @@ class _Emitter:
     """New nodes and constants for folded chains; shared source layouts are built once.
 
     :meth:`plan` proposes the nodes of one fold; :meth:`accept` keeps them (and the layouts
-    they built for later folds to share). ``tag`` ends the names of what it makes (apart
-    from those of an earlier pass).
+    they built for later folds to share).
     """
 
-    def __init__(self, graph: Graph, tag: str = "") -> None:
-        self.graph, self.tag = graph, tag
+    def __init__(self, graph: Graph) -> None:
+        self.graph = graph
         self.nodes: list[onnx.NodeProto] = []
         self._made: dict[tuple, str] = {}  # (kind, inputs, layout) -> tensor, accepted
         self._new: dict[tuple, str] = {}  # the same, of the current plan
@@ -286,14 +279,14 @@ class _Emitter:
     def _reshape(self, name: str, shape: tuple[int, ...], new: list) -> str:
         if self.graph.shape(name) == shape:
             return name
-        out = f"{name}/as{'x'.join(map(str, shape))}{self.tag}"
+        out = f"{name}/as{'x'.join(map(str, shape))}"
         self.graph.consts[out + "/shape"] = np.array(shape, np.int64)
         return self._layout(("reshape", name, shape), "Reshape", [name, out + "/shape"], out, new)
 
     def _concat(self, names: list[str], axis: int, new: list) -> str:
         if len(names) == 1:
             return names[0]
-        out = f"{names[0]}/cat{len(names)}_{len(self._made) + len(self._new)}{self.tag}"
+        out = f"{names[0]}/cat{len(names)}_{len(self._made) + len(self._new)}"
         return self._layout(("concat", tuple(names), axis), "Concat", names, out, new, axis=axis)
 
     def plan(self, f: _Fold) -> list[onnx.NodeProto] | None:
@@ -303,10 +296,8 @@ class _Emitter:
         self._new = {}
         rowwise = _row_map(g, f)
         if len(f.sources) == 1 and f.M.shape[0] == f.M.shape[1] and _identity(f.M, f.c):
-            self.graph.consts[f.end + self.tag + "/shape"] = np.array(out, np.int64)
-            new.append(
-                helper.make_node("Reshape", [f.sources[0], f.end + self.tag + "/shape"], [f.end])
-            )
+            self.graph.consts[f.end + "/shape"] = np.array(out, np.int64)
+            new.append(helper.make_node("Reshape", [f.sources[0], f.end + "/shape"], [f.end]))
         elif rowwise is not None:
             W, C = rowwise
             rows = int(np.prod(out[:-1]))
@@ -337,20 +328,18 @@ class _Emitter:
         if moves and W.shape[0] == W.shape[1] and np.all(idx == np.arange(idx.size)):
             y = x  # the sources, laid out as they are
         elif moves:  # a selection of source elements
-            y, self.graph.consts[end + self.tag + "/idx"] = end + self.tag + "/gathered", idx
-            new.append(helper.make_node("Gather", [x, end + self.tag + "/idx"], [y], axis=1))
+            y, self.graph.consts[end + "/idx"] = end + "/gathered", idx
+            new.append(helper.make_node("Gather", [x, end + "/idx"], [y], axis=1))
         else:
-            y = end + self.tag + "/gemm"
-            self.graph.consts[end + self.tag + "/W"] = W.astype(np.float32)
-            self.graph.consts[end + self.tag + "/c"] = np.asarray(bias, np.float32)
-            new.append(
-                helper.make_node("Gemm", [x, end + self.tag + "/W", end + self.tag + "/c"], [y])
-            )
+            y = end + "/gemm"
+            self.graph.consts[end + "/W"] = W.astype(np.float32)
+            self.graph.consts[end + "/c"] = np.asarray(bias, np.float32)
+            new.append(helper.make_node("Gemm", [x, end + "/W", end + "/c"], [y]))
         if out == shape and new and new[-1].output[0] == y:
             new[-1].output[0] = end
         else:
-            self.graph.consts[end + self.tag + "/shape"] = np.array(out, np.int64)
-            new.append(helper.make_node("Reshape", [y, end + self.tag + "/shape"], [end]))
+            self.graph.consts[end + "/shape"] = np.array(out, np.int64)
+            new.append(helper.make_node("Reshape", [y, end + "/shape"], [end]))
 
 
 def _cost(graph: Graph, nodes: list[onnx.NodeProto]) -> int:
@@ -363,18 +352,12 @@ def _cost(graph: Graph, nodes: list[onnx.NodeProto]) -> int:
     return len(nodes) + 2 * len(wide)
 
 
-def fold_affine(graph: Graph, exact: bool = True) -> Graph:
-    """Fold the graph's affine chains where that leaves fewer nodes (module docstring).
-
-    ``exact=False``: fold whole chains, whatever they round (products of products, sums of
-    products, divisions by constants, constant weights on either side), and follow a tensor
-    that several chains read into each of them: the folded chain computes the same function
-    to float32 rounding, not the same floats.
-    """
+def fold_affine(graph: Graph) -> Graph:
+    """Fold the graph's affine chains where that leaves fewer nodes (module docstring)."""
     graph.infer()
-    folds = _candidates(graph, _chains(graph, exact))
+    folds = _candidates(graph, _chains(graph))
     _measure(graph, folds)
-    emit = _Emitter(graph, "" if exact else "/approx")
+    emit = _Emitter(graph)
     folded: set[str] = set()
     for f in folds:
         new = emit.plan(f)

@@ -23,7 +23,6 @@ import numpy as np
 import onnx
 
 from generalist_control.deploy.onnx_affine import fold_affine
-from generalist_control.deploy.onnx_concat import hoist_concats
 from generalist_control.deploy.onnx_graph import (
     Graph,
     drop_trivial,
@@ -45,14 +44,6 @@ _UNFUSED = ["MatMulAddFusion"]
 #: Largest difference between a plant's shrunk graph and the general session, relative to
 #: the largest control of a window, for the shrunk graph to be used.
 AGREEMENT = 1e-6
-
-#: The ways to shrink a plant's graph (:func:`shrink`'s options), fewest nodes first: the
-#: first whose graph agrees with the general session is used.
-_SHRINKS: tuple[dict[str, bool], ...] = (
-    {"exact": False, "join": True},
-    {"exact": False},
-    {"exact": True},
-)
 
 
 def session(model: bytes, arena: bool = True, disabled: list[str] | None = None) -> Any:
@@ -77,28 +68,12 @@ def session(model: bytes, arena: bool = True, disabled: list[str] | None = None)
     )
 
 
-def shrink(
-    model: onnx.ModelProto,
-    fixed: dict[str, np.ndarray],
-    keep: list[str],
-    exact: bool = True,
-    join: bool = False,
-) -> bytes:
-    """The batch-1 graph with inputs ``fixed`` made constants, computing only ``keep``.
-
-    ``exact=False``: then fold whole linear chains, whatever they round
-    (:func:`~generalist_control.deploy.onnx_affine.fold_affine`); ``join`` (with it):
-    first join parallel branches above their ``Concat``
-    (:func:`~generalist_control.deploy.onnx_concat.hoist_concats`). Both give fewer nodes
-    that compute the same function to float32 rounding, not the same floats.
-    """
+def shrink(model: onnx.ModelProto, fixed: dict[str, np.ndarray], keep: list[str]) -> bytes:
+    """The batch-1 graph with inputs ``fixed`` made constants, computing only ``keep``."""
     graph = freeze(Graph.from_model(model), fixed)
     graph.outputs = [o for o in graph.outputs if o.name in keep]
     graph = fold_constants(prune(drop_trivial(fold_constants(graph))))
     graph = tidy_reshapes(fold_affine(prune(einsum_to_matmul(graph))))
-    if not exact:
-        graph = hoist_concats(graph) if join else graph
-        graph = tidy_reshapes(fold_affine(prune(fold_constants(graph)), exact=False))
     return prune(fold_constants(graph)).to_model().SerializeToString()  # reshaped constants
 
 
@@ -182,9 +157,8 @@ class OnnxBackend:
     def single(self, tag: int, mask: np.ndarray) -> SingleRun:
         """The batch-1 run of plant ``tag`` whose windows have mask ``mask`` (1, T, width).
 
-        Built once per plant (about 0.1 s a try) and checked against the general session
-        (module docstring): the graph of the first of :data:`_SHRINKS` that agrees is used; a
-        plant none of whose shrunk graphs agrees is run through the general session.
+        Built once per plant (about 0.1 s) and checked against the general session (module
+        docstring); a plant whose shrunk graph disagrees is run through the general session.
         """
         mask = np.ascontiguousarray(mask, np.float32)
         key = (int(tag), mask.tobytes())
@@ -192,14 +166,10 @@ class OnnxBackend:
             model = self._one_model or onnx.load_from_string(self._batch_one())
             self._one_model = model
             fixed = {"tag": np.array([tag], np.int64), "mask": mask}
-            worst = np.inf
-            for options in _SHRINKS:
-                graph = shrink(model, fixed, ["controls"], **options)
-                sess = session(graph, arena=False, disabled=_UNFUSED)
-                worst = self._disagreement(sess, fixed)
-                if worst <= AGREEMENT:
-                    self._single[key] = SingleRun(sess, self.horizon)
-                    break
+            sess = session(shrink(model, fixed, ["controls"]), arena=False, disabled=_UNFUSED)
+            worst = self._disagreement(sess, fixed)
+            if worst <= AGREEMENT:
+                self._single[key] = SingleRun(sess, self.horizon)
             else:
                 warnings.warn(
                     f"the shrunk batch-1 ONNX graph of tag {tag} differs from the general "
