@@ -78,7 +78,7 @@ def _run(rt: PolicyRuntime, name: str, amplitude: float, measured: bool) -> list
 
 @pytest.mark.parametrize("backend_name", ["torch", "onnx"])
 @pytest.mark.parametrize("measured", [False, True])
-def test_one_plant_steps_as_the_general_path_bit_for_bit_with_torch(policy, backend_name, measured):
+def test_one_plant_steps_exactly_as_the_general_path(policy, backend_name, measured):
     fast = PolicyRuntime(*policy, backend=backend_name)
     general = PolicyRuntime(*policy, backend=backend_name, specialise=False)
     for name, amplitude in (("cstr", 1.5), ("hydraulic_actuator", -3.0), ("two_mass_spring", 2)):
