@@ -224,8 +224,26 @@ def _ones_over_one(graph: Graph, node: onnx.NodeProto) -> str | None:
     return b
 
 
+#: Inputs of a recurrent node that are its initial states (ONNX: zero when left out).
+_STATES = {"LSTM": (5, 6), "GRU": (5,), "RNN": (5,)}
+
+
+def _drop_zero_states(graph: Graph, node: onnx.NodeProto) -> None:
+    """Leave out the all-zero constant initial states of a recurrent ``node``."""
+    for i in _STATES[node.op_type]:
+        if i < len(node.input) and node.input[i] in graph.consts:
+            if not np.any(graph.consts[node.input[i]]):
+                node.input[i] = ""
+    while node.input and not node.input[-1]:
+        node.input.pop()
+
+
 def drop_trivial(graph: Graph) -> Graph:
-    """Softmax over one element, products with ones over one element, unused LSTM outputs."""
+    """Softmax over one element, products with ones over one element, unused LSTM outputs.
+
+    Also zero initial states of a recurrent node (``initial_h``, ``initial_c``): left out,
+    they are zero by definition, and the node does not read them.
+    """
     graph.infer()
     alias: dict[str, str] = {}
     used = {i for n in graph.nodes for i in n.input} | {o.name for o in graph.outputs}
@@ -244,6 +262,7 @@ def drop_trivial(graph: Graph) -> Graph:
             continue
         if n.op_type in ("LSTM", "GRU", "RNN"):
             n.output[:] = [o if o in used else "" for o in n.output]
+            _drop_zero_states(graph, n)
         kept.append(n)
     graph.nodes = kept
     for o in graph.outputs:
