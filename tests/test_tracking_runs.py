@@ -224,3 +224,24 @@ def test_a_run_reopened_since_the_search_is_not_set_killed(tmp_path, monkeypatch
     client.set_tag(run_id, mlflow_utils.PID_TAG, str(gone.pid))  # now it is gone
     assert mlflow_utils.end_stale_runs(exp) == [run_id]
     assert client.get_run(run_id).info.status == "KILLED"
+
+
+def test_only_a_new_run_ends_the_runs_of_processes_that_are_gone(tmp_path):
+    """A run continued (an evaluation logging into its model's run) ends no other run: two
+    evaluations side by side each reopen their own; the next new run ends a dead one."""
+    logger = {"tracking_uri": f"sqlite:///{tmp_path / 'mlflow.db'}", "experiment_name": "gone"}
+    with mlflow_utils.mlflow_run(logger) as run:
+        model_run = run.info.run_id
+    client = mlflow.MlflowClient()
+    exp = client.get_run(model_run).info.experiment_id
+    dead = client.create_run(exp).info.run_id
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    client.set_tag(dead, mlflow_utils.HOST_TAG, socket.gethostname())
+    client.set_tag(dead, mlflow_utils.PID_TAG, str(gone.pid))
+    with mlflow_utils.mlflow_run(logger, resume_run_id=model_run):
+        pass
+    assert client.get_run(dead).info.status == "RUNNING"
+    with mlflow_utils.mlflow_run(logger):
+        pass
+    assert client.get_run(dead).info.status == "KILLED"

@@ -205,15 +205,18 @@ def mlflow_run(
     Notes
     -----
     Inside a sweep or an Optuna study, a new run is nested under the parent run given by
-    the environment (:func:`parent_run_tags`). Before the run opens, runs of this host whose
-    process is gone are ended (:func:`end_stale_runs`); the run is tagged with this
-    process (:func:`process_tags`).
+    the environment (:func:`parent_run_tags`). Before a new run opens, runs of this host
+    whose process is gone are ended (:func:`end_stale_runs`); a run continued
+    (``resume_run_id``, e.g. an evaluation logging into its model's run, two of which may
+    run side by side in the ablation) leaves that to the next new run. The run is tagged
+    with this process (:func:`process_tags`).
     """
     import mlflow
     from mlflow.exceptions import MlflowException
 
     exp_id = experiment_id(logger, kind=kind)
-    end_stale_runs(exp_id)
+    if not resume_run_id:  # a process that continues a run leaves the others alone
+        end_stale_runs(exp_id)
     run_id = None
     if resume_run_id:
         try:
