@@ -126,11 +126,11 @@ class MLflowSweepCallback(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         """Create the parent run and export its id to the jobs."""
-        import mlflow
-        from mlflow.entities import RunStatus
-
         if not self._active(config):
             return
+        import mlflow  # only a sweep that logs pays for its import
+        from mlflow.entities import RunStatus
+
         overrides = [str(o) for o in config.hydra.overrides.task]
         swept = [redact(o) for o in sweep_overrides(overrides)]
         overrides = [redact(o) for o in overrides]  # no password reaches the parent run
@@ -180,11 +180,11 @@ class MLflowSweepCallback(Callback):
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """Summarise the children into the parent and end it."""
+        if self.run_id is None:
+            return
         import mlflow
         from mlflow.entities import RunStatus
 
-        if self.run_id is None:
-            return
         try:
             if self._tracking_uri:
                 mlflow.set_tracking_uri(self._tracking_uri)
@@ -196,10 +196,10 @@ class MLflowSweepCallback(Callback):
             self._end(RunStatus.to_string(status))
 
     def _end(self, status: str) -> None:
-        import mlflow
-
         if self.run_id is None:
             return
+        import mlflow
+
         run_id, self.run_id = self.run_id, None
         atexit.unregister(self._end)
         _restore_env(self._saved_env)
