@@ -24,7 +24,12 @@ from generalist_control.evaluation.tables import (
     table_all_markdown,
 )
 from generalist_control.plants.catalog import load_plant
-from generalist_control.simulation.comparison import closed_loop_score, output_mse
+from generalist_control.simulation import comparison
+from generalist_control.simulation.comparison import (
+    ClosedLoopScore,
+    closed_loop_score,
+    output_mse,
+)
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.training.fit import train
 from helpers import tiny_train_overrides
@@ -233,6 +238,27 @@ def test_closed_loop_score_is_zero_for_the_expert_and_one_for_divergence():
     }
     half = closed_loop_score(RuntimeAdapter(LQIRuntime(PLANTS, gain=0.5)), plants, duration=4.0)
     assert all(0.0 < v < 1.0 for v in half.values())
+
+
+def test_a_kept_score_simulates_lqi_once_and_scores_as_the_function(monkeypatch):
+    plants = [load_plant(n) for n in PLANTS]
+    score = ClosedLoopScore(plants, duration=4.0)
+    calls: list[str] = []
+    real = comparison.simulate_many
+
+    def counted(runs, controller):
+        calls.append(type(controller).__name__)
+        return real(runs, controller)
+
+    monkeypatch.setattr(comparison, "simulate_many", counted)
+    for gain in (0.5, 1.3):
+        kept = score(RuntimeAdapter(LQIRuntime(PLANTS, gain=gain)))
+        calls_before = len(calls)
+        fresh = closed_loop_score(RuntimeAdapter(LQIRuntime(PLANTS, gain=gain)), plants,
+                                  duration=4.0)  # fmt: skip
+        assert kept == fresh and all(0.0 < v < 1.0 for v in kept.values())
+        assert calls[calls_before:].count("PerPlantController") == 1  # the function's own
+    assert calls.count("PerPlantController") == 1 + 2  # the kept score's, once
 
 
 def test_the_bar_counts_every_scenario_and_says_what_it_did_not_measure():

@@ -15,7 +15,7 @@ from generalist_control.evaluation.runner import (
     metric_rows,
     run_suite,
 )
-from generalist_control.evaluation.setpoint import hold_tail, tail_table
+from generalist_control.evaluation.setpoint import hold_tail, setpoint_stability, tail_table
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import (
     AntiWindupLQIController,
@@ -85,11 +85,10 @@ def _plain(runtime: PolicyRuntime, plants: list) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=columns)
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_the_one_loop_equals_a_loop_per_scenario_exactly(runtime, threads, monkeypatch):
-    monkeypatch.setattr("generalist_control.evaluation.runner.SPLIT_ROWS", 2)  # split these
+@pytest.mark.parametrize("processes", [1, 2, 3])
+def test_the_one_loop_equals_a_loop_per_scenario_exactly(runtime, processes):
     plants = [load_plant(n) for n in NAMES]
-    got = run_suite(runtime, plants, SCENARIOS, threads=threads).metrics
+    got = run_suite(runtime, plants, SCENARIOS, processes=processes).metrics
     want = _plain(runtime, plants)
     assert set(got.controller) == {*CONTROLLERS, GC_ANTI_WINDUP}
     pd.testing.assert_frame_equal(got, want, check_exact=True)
@@ -98,7 +97,12 @@ def test_the_one_loop_equals_a_loop_per_scenario_exactly(runtime, threads, monke
 
 def test_the_set_point_holds_in_the_loop_equal_their_own(runtime):
     plants = [load_plant(n) for n in NAMES]
-    held = run_suite(runtime, plants, SCENARIOS, hold=(1.0, 4.0, 1.0)).held
+    table = run_suite(runtime, plants, SCENARIOS, setpoint=(1.0, 4.0, 1.0), processes=2).setpoint
+    assert table is not None and list(table.system) == list(NAMES)
+    held = table[["system", "z_end_GC", *(c for c in table if c.startswith("tail_"))]]
+    # the linearisation at rest, each share its plants: as the check does it in one process
+    alone = setpoint_stability(runtime, plants, 1.0, 4.0, 1.0, held=held)
+    pd.testing.assert_frame_equal(table, alone, check_exact=True)
     # hold_tail alone has one row per plant: BLAS's path for a single row, the last bits
     pd.testing.assert_frame_equal(held, hold_tail(runtime, plants, 1.0, 4.0, 1.0), rtol=1e-6)
     # a plain loop of its own with two rows per plant takes the path of several rows: exact

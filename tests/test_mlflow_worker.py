@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from generalist_control.common.configs import as_dict
+from generalist_control.evaluation import tracker
 from generalist_control.evaluation.tracker import MlflowWorker, MlflowWorkerError
 from helpers import compose_cfg
 
@@ -39,3 +40,24 @@ def test_a_store_that_cannot_be_opened_is_an_error_of_the_evaluation(tmp_path):
     uri = f"sqlite:///{tmp_path / 'file' / 'mlflow.db'}"
     with MlflowWorker(_logger(uri, "x"), "eval") as worker, pytest.raises(MlflowWorkerError):
         worker.ready()
+
+
+def test_an_early_worker_is_taken_over_and_one_never_configured_opens_no_store(
+    tmp_path, mlflow_uri, monkeypatch
+):
+    monkeypatch.setattr(tracker, "_early", None)
+    tracker.start_early()
+    early = tracker._early
+    with MlflowWorker(_logger(mlflow_uri, tmp_path.name), "ev") as worker:
+        assert worker._proc is early and worker.ready() == mlflow_uri
+    assert tracker._early is None and early.returncode == 0
+    # a worker started early that is never sent its config ends when its stdin closes
+    monkeypatch.chdir(tmp_path)
+    tracker.start_early()
+    lone, tracker._early = tracker._early, None
+    assert lone is not None and lone.stdin is not None
+    lone.stdin.close()
+    assert lone.wait(timeout=120) == 0
+    if lone.stdout is not None:
+        lone.stdout.close()
+    assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "mlruns").exists()

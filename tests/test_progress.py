@@ -11,6 +11,7 @@ from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
 from omegaconf import OmegaConf
 
 from generalist_control.plants.catalog import load_plant
+from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.training.callbacks import ClosedLoopValidation
 from generalist_control.training.datamodule import DemoDataModule
 from generalist_control.training.lit_module import ImitationModule
@@ -28,6 +29,16 @@ def _shown(bar, value: float) -> str:
 def _readable(text: str, value: float) -> bool:
     """Three significant digits survive: the text reads back within 1% of the value."""
     return math.isclose(float(text), value, rel_tol=1e-2)
+
+
+class _Losses(L.Callback):
+    """Each training batch's loss and size, as the step returned it."""
+
+    def __init__(self) -> None:
+        self.seen: list[tuple[float, int]] = []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        self.seen.append((float(outputs["loss"]), int(batch["tag"].shape[0])))
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +60,7 @@ def fitted(tiny_data_dir):
         enable_progress_bar=True,
         limit_train_batches=2,
         num_sanity_val_steps=0,
-        callbacks=[ClosedLoopValidation(plants, duration=3.0)],
+        callbacks=[ClosedLoopValidation(ClosedLoopScore(plants, duration=3.0)), _Losses()],
     )
     trainer.fit(lit, datamodule=dm)
     return trainer, lit
@@ -76,3 +87,11 @@ def test_the_bar_prints_small_metrics_in_three_significant_digits(fitted):
 def test_other_bars_keep_their_own_format(fitted):
     """The format is set on the training's bar only (rich shares one default theme)."""
     assert RichProgressBar().theme.metrics_format == ".3f"
+
+
+def test_the_epoch_training_loss_is_the_mean_over_its_windows(fitted):
+    trainer, _ = fitted
+    seen = next(c for c in trainer.callbacks if isinstance(c, _Losses)).seen
+    assert len(seen) == 2  # logged once, with the epoch's last batch, from the sums of both
+    want = sum(loss * n for loss, n in seen) / sum(n for _, n in seen)
+    assert float(trainer.callback_metrics["train/loss"]) == pytest.approx(want, rel=1e-6)

@@ -103,20 +103,6 @@ def test_runs_end_on_their_own_sample_and_their_controller_is_told():
     assert rec.finished[0] == [0, 1] and rec.finished[1] == [2, 3, 4, 5]
 
 
-def test_concurrent_segments_give_the_same_numbers():
-    runs = _runs()
-    plain = simulate_stacked(
-        [Segment(PerPlantController(LQIController), runs[:6]),
-         Segment(PerPlantController(LQIController), runs[6:])]
-    )  # fmt: skip
-    threaded = simulate_stacked(
-        [Segment(PerPlantController(LQIController), runs[:6], concurrent=True),
-         Segment(PerPlantController(LQIController), runs[6:], concurrent=True)]
-    )  # fmt: skip
-    for a, b in zip(plain[0] + plain[1], threaded[0] + threaded[1], strict=True):
-        _same(a, b)
-
-
 def test_runs_of_other_sample_times_are_refused():
     p = load_plant("cstr")
     q = dataclasses.replace(p, dt=2 * p.dt)

@@ -19,6 +19,17 @@ imported and its store opened in a process of its own
 
 from __future__ import annotations
 
+import sys
+
+from generalist_control.evaluation.tracker import MlflowWorker, start_early
+
+#: Hydra's flags that only print (the stage does not run, so MLflow is not needed).
+_PRINT_ONLY = {"--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i", "--shell-completion"}
+
+if __name__ == "__main__" and not _PRINT_ONLY & set(sys.argv[1:]):
+    start_early()  # the MLflow worker imports MLflow while this process imports the rest
+
+import gc
 import json
 import logging
 from pathlib import Path
@@ -34,9 +45,8 @@ from generalist_control.deploy.resolve import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.background import figures_beside
 from generalist_control.evaluation.provenance import policy_record, provenance
-from generalist_control.evaluation.runner import crazyflie_flight, run_suite
-from generalist_control.evaluation.setpoint import setpoint_from_config, setpoint_settings
-from generalist_control.evaluation.tracker import MlflowWorker
+from generalist_control.evaluation.runner import run_suite
+from generalist_control.evaluation.setpoint import setpoint_settings
 from generalist_control.evaluation.variants import check_variants_dir, run_variants
 from generalist_control.evaluation.writer import check_reports_dir, write_reports
 from generalist_control.model.policy import POLICY_FILE, load_policy
@@ -68,25 +78,17 @@ def _evaluate(
     record: dict[str, Any],
     tracker: MlflowWorker,
 ) -> dict[str, Any]:
-    """Every scenario, the set-point check, the reports written; the summary."""
+    """Every scenario, the Crazyflie, the set-point check, the reports written; the summary."""
     scen = as_dict(cfg.evaluation.scenarios)
     cf = as_dict(cfg.evaluation.get("crazyflie") or {})
     spec = as_dict(cfg.evaluation.get("setpoint") or {})
-    # the set-point check's long holds run in the scenarios' loop
-    ev = run_suite(runtime, plants, scen, hold=setpoint_settings(spec, runtime))
+    ev = run_suite(runtime, plants, scen, cf, setpoint=setpoint_settings(spec, runtime))
     bar = as_dict(cfg.evaluation.get("quality_bar") or {})
-    # the figures are drawn in processes of their own while the Crazyflie flies and the set
-    # point is checked
+    # the figures are drawn in processes of their own while the reports are written
     with figures_beside(ev.trajectories, bool(cfg.evaluation.get("plots", True))) as figures:
-        flight = crazyflie_flight(runtime, plants, cf)
-        if flight is not None:
-            ev = ev.joined(flight)
-            if figures is not None:
-                figures.add(flight.trajectories)
-        setpoint = setpoint_from_config(spec, runtime, plants, held=ev.held)
         tracker.ready()  # a store that cannot be opened stops us before any output changes
         return write_reports(ev.metrics, ev.trajectories, Path(cfg.paths.reports_dir),
-                             figures or False, bar, setpoint, record)  # fmt: skip
+                             figures or False, bar, ev.setpoint, record)  # fmt: skip
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -122,4 +124,6 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    # what the imports built lives to the end: no collection walks it again (nor at exit)
+    gc.freeze()
     main()

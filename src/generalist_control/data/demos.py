@@ -275,10 +275,10 @@ def load_demos(data_dir: str | Path, verify: bool = True) -> tuple[DemoSet, dict
         y=col("y").reshape(B, N),
         tag=col("tag")[first].astype(np.int64),
         order=col("order")[first].astype(np.int64),
-        plant=np.asarray(tbl.column("plant").to_pylist())[first],
+        plant=np.asarray(tbl.column("plant").take(first).to_pylist()),
         amplitude=col("amplitude")[first],
         dt=float(manifest["dt"]),
-        family=np.asarray(tbl.column("family").to_pylist())[first],
+        family=np.asarray(tbl.column("family").take(first).to_pylist()),
         variant=col("variant")[first].astype(np.int64) if "variant" in tbl.column_names else None,
     )
     if verify:

@@ -4,7 +4,7 @@ Drawing the figures (:func:`~generalist_control.evaluation.plots.plot_all`) is s
 matplotlib that nothing else waits for until the report folder is published. Where the
 system can fork (Linux), :func:`figures_beside` forks two children as soon as the
 trajectories exist; they share the figures and draw them into a folder of their own while
-the parent checks the set point and writes the tables, and :meth:`FigureJob.collect` waits
+the parent writes the tables, and :meth:`FigureJob.collect` waits
 for them and moves the files where the report wants them. Elsewhere the figures are drawn
 at :meth:`FigureJob.collect`, in the process. Either way the files are the same.
 """

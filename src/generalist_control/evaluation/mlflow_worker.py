@@ -5,6 +5,10 @@ imports anything heavy, it imports MLflow and opens the tracking store
 (:func:`~generalist_control.tracking.mlflow_utils.set_tracking`) while the evaluation runs,
 then logs what it is sent (:func:`~generalist_control.evaluation.mlflow_log.log_to_mlflow`).
 
+MLflow is imported before the first line is read (a worker started early,
+:func:`~generalist_control.evaluation.tracker.start_early`, imports it while the evaluation
+composes its config); a stdin that closes before that line ends it without opening a store.
+
 Protocol: JSON lines. In on stdin: first ``{"logger": ..., "prefix": ...}``, then
 ``{"log": {"run_id", "summary", "out_dir"}}`` per evaluation; anything else ends it. Out on
 stdout, one line per request: ``{"uri": ...}`` once the store is open, ``{"run_id": ...}``
@@ -50,7 +54,12 @@ def _log(cfg: Any, req: dict[str, Any]) -> dict[str, Any]:
 def main() -> None:
     """Serve one evaluation: open the store, then log what comes (module docstring)."""
     replies, sys.stdout = sys.stdout, sys.stderr  # MLflow's own prints stay off the pipe
-    start = json.loads(sys.stdin.readline() or "{}")
+    import mlflow  # noqa: F401 - imported while the evaluation gets ready
+
+    first = sys.stdin.readline()
+    if not first:  # the evaluation ended (or never needed us): nothing to open
+        return
+    start = json.loads(first)
     cfg = OmegaConf.create(
         {"logger": start.get("logger", {}), "evaluation": {"mlflow_prefix": start.get("prefix")}}
     )

@@ -6,10 +6,12 @@ the learned Generalist Controller (GC), the LQI expert, and LQI with anti-windup
 integrates the tracking error (the ``integral`` channel) winds up like LQI, so in scenarios with
 actuator limits it also runs as GC-AW: the same policy, its runtime told the limits that
 LQI-AW knows (:meth:`~generalist_control.deploy.runtime.PolicyRuntime.set_actuator_limits`).
-Every scenario, plant and controller runs in one sampled loop
+Every scenario, plant and controller of a share of the plants runs in one sampled loop
 (:func:`~generalist_control.simulation.stacked.simulate_stacked`), so the policy is called once
 per sample for all of them, and the plants are advanced once per sample for all their runs;
-each run's numbers are those of a loop of its own (docs/evaluation.md). A run that diverges
+two shares of about equal work run side by side, one in a forked child
+(:mod:`~generalist_control.evaluation.split`). Each run's numbers are those of a loop of its
+own (docs/evaluation.md). A run that diverges
 is reported as diverged (metric ``diverged`` = 1, other metrics NaN), never as a huge number
 in an average.
 
@@ -19,37 +21,33 @@ The ``evaluate`` stage (:mod:`generalist_control.evaluate`) writes the results w
 
 from __future__ import annotations
 
-import copy
 import logging
 import os
-import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from functools import partial
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pandas as pd
-from tqdm.auto import tqdm
 
 from generalist_control.deploy.adapter import SinglePlantAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.live import FinishingAdapter
-from generalist_control.evaluation.setpoint import hold_runs, tail_table
+from generalist_control.evaluation.plan import GC_ANTI_WINDUP, Key, Progress, plan
+from generalist_control.evaluation.setpoint import hold_runs, rest_radii, tail_table
+from generalist_control.evaluation.split import balanced, fork_map
 from generalist_control.plants.plant import Plant
 from generalist_control.simulation.crazyflie import fly_many
-from generalist_control.simulation.lqi import AntiWindupLQIController, LQIController
+from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.metrics import step_metrics, tracking_metrics
 from generalist_control.simulation.references import state_envelopes
 from generalist_control.simulation.scenarios import envelope_amplitudes, perturbation, references
 from generalist_control.simulation.simulate import (
     Controller,
-    PerPlantController,
-    Perturbation,
     Run,
     Trajectory,
 )
-from generalist_control.simulation.stacked import Segment, controller_rows, simulate_stacked
+from generalist_control.simulation.stacked import controller_rows, simulate_stacked
 
 __all__ = [
     "CONTROLLERS",
@@ -64,8 +62,6 @@ __all__ = [
 ]
 
 CONTROLLERS = ("GC", "LQI", "LQI-AW")
-#: Run as well where a scenario limits the actuator and the policy integrates.
-GC_ANTI_WINDUP = "GC-AW"
 STEP_KINDS = ("step", "random_steps")
 #: The long form of the metrics.
 COLUMNS = ["system", "scenario", "controller", "run", "metric", "value"]
@@ -132,141 +128,6 @@ def _run(name: str, spec: Mapping[str, Any], plant: Plant) -> Run:
     return Run(plant, *references(name, spec, plant), perturbation(name, spec, plant))
 
 
-def _limits(runs: Sequence[Run]) -> Perturbation | None:
-    """The scenario's perturbation if it limits the actuator (the same for every plant)."""
-    pert = runs[0].perturbation
-    limited = pert is not None and (pert.u_limit is not None or pert.rate_limit is not None)
-    return pert if limited else None
-
-
-#: Where a run's trajectory comes back: (segment, run in that segment).
-Slot = tuple[int, int]
-
-
-@dataclass
-class _Plan:
-    """Every scenario's runs as segments of one loop, and where each result comes back.
-
-    GC is split by plant into ``parts`` segments, each with its own copy of the runtime
-    (the same network), stepped in threads side by side; one LQI segment holds every run.
-    The set-point holds join both. A scenario that limits the actuator adds an LQI-AW
-    segment and, for a policy that integrates the error, a GC-AW segment with its own copy
-    of the runtime (the limits are the runtime's). Elsewhere LQI-AW knows no limits and is
-    LQI exactly (the same law, the same arithmetic), so LQI's trajectories serve for it.
-    """
-
-    segments: list[Segment] = field(default_factory=list)
-    #: (scenario, controller) -> per plant of the scenario, its slot
-    where: dict[tuple[str, str], list[Slot]] = field(default_factory=dict)
-    held: dict[str, list[Slot]] = field(default_factory=dict)
-    gc: list[FinishingAdapter] = field(default_factory=list)
-
-    def add(self, segment: int, run: Run) -> Slot:
-        """Append ``run`` to a segment; its slot."""
-        runs = self.segments[segment].runs
-        assert isinstance(runs, list)
-        runs.append(run)
-        return segment, len(runs) - 1
-
-
-#: GC's rows are split between runtime copies from this many rows on. Fewer gain nothing
-#: from two threads, and a batch of a few rows can meet other kernels than the old loop's
-#: batch (ONNX Runtime's results depend on the batch size below about 8 rows for some
-#: networks: docs/evaluation.md).
-SPLIT_ROWS = 64
-#: The share of GC's rows that part 0 takes: it steps in the loop's own thread, which steps
-#: every other segment too while the other parts step in theirs.
-FIRST_SHARE = 0.4
-
-
-def _shares(runs: Sequence[Run], parts: int) -> dict[str, int]:
-    """Which GC part each plant goes to: contiguous groups of plants by their rows.
-
-    Part 0 takes about :data:`FIRST_SHARE` of the rows (all of them with one part), the
-    others share the rest equally.
-    """
-    rows: dict[str, int] = {}
-    for run in runs:
-        rows[run.plant.name] = rows.get(run.plant.name, 0) + np.atleast_2d(run.r).shape[0]
-    total, seen, out = max(sum(rows.values()), 1), 0, {}
-    first = FIRST_SHARE if parts > 1 else 1.0
-    for name, n in rows.items():
-        share = seen / total  # where the plant's rows start
-        later = 1 + int((parts - 1) * (share - first) / (1 - first)) if share >= first else 0
-        out[name] = min(parts - 1, later)
-        seen += n
-    return out
-
-
-def _plan(
-    runtime: PolicyRuntime, todo: Mapping[str, list[Run]], held: list[Run], parts: int
-) -> _Plan:
-    plan = _Plan()
-    every = [run for runs in todo.values() for run in runs] + held
-    if sum(np.atleast_2d(run.r).shape[0] for run in every) < SPLIT_ROWS:
-        parts = 1
-    parts = max(1, min(parts, len({run.plant.name for run in every})))  # a plant per part at least
-    share = _shares(every, parts)
-    for i in range(parts):  # part 0 drives the runtime itself, the others copies of it
-        plan.gc.append(FinishingAdapter(runtime if i == 0 else copy.copy(runtime)))
-        plan.segments.append(Segment(plan.gc[i], [], concurrent=i > 0))
-    lqi = len(plan.segments)
-    plan.segments.append(Segment(PerPlantController(LQIController), []))
-    for name, runs in todo.items():
-        plan.where[name, "GC"] = [plan.add(share[r.plant.name], r) for r in runs]
-        plan.where[name, "LQI"] = plan.where[name, "LQI-AW"] = [plan.add(lqi, r) for r in runs]
-        limits = _limits(runs)
-        if limits is None:
-            continue
-        aw = PerPlantController(partial(AntiWindupLQIController, limits=limits))
-        plan.segments.append(Segment(aw, []))
-        plan.where[name, "LQI-AW"] = [plan.add(len(plan.segments) - 1, r) for r in runs]
-        if runtime.integral:
-            twin = copy.copy(runtime)  # its own rows and limits, the same network
-            plan.segments.append(Segment(FinishingAdapter(twin, limits), []))
-            plan.where[name, GC_ANTI_WINDUP] = [plan.add(len(plan.segments) - 1, r) for r in runs]
-    plan.held = {"GC": [plan.add(share[r.plant.name], r) for r in held],
-                 "LQI": [plan.add(lqi, r) for r in held]}  # fmt: skip
-    return plan
-
-
-def _held(
-    plan: _Plan,
-    results: list[list[Trajectory]],
-    plants: Sequence[Plant],
-    hold: tuple[float, float, float],
-) -> pd.DataFrame:
-    """The set-point holds' table (:func:`~generalist_control.evaluation.setpoint.tail_table`)."""
-    local = controller_rows(plan.segments)
-    rows = [(plan.gc[s], local[s][i].start) for s, i in plan.held["GC"]]
-    refused = any(row in gc.refused for gc, row in rows)
-    z = np.nan if refused else np.array([gc.z_end[row] for gc, row in rows])
-    trajs = {c: [results[s][i] for s, i in plan.held[c]] for c in ("GC", "LQI")}
-    return tail_table(plants, trajs, z, hold[0], hold[2])
-
-
-class _Progress:
-    """A bar over the scenarios and one log line per scenario as its runs end."""
-
-    def __init__(self, plan: _Plan, todo: Mapping[str, list[Run]], progress: bool | None) -> None:
-        self.plan, self.todo, self.start = plan, todo, time.perf_counter()
-        disable = None if progress is None else not progress
-        self.bar = tqdm(total=len(todo), desc="evaluate", unit="scenario", disable=disable)
-
-    def __call__(self, k: int, done: list[Slot]) -> None:
-        ended = [n for n in self.todo if self.plan.where[n, "LQI"][0] in done]
-        for name in ended:
-            i = list(self.todo).index(name) + 1
-            controllers = sum((name, c) in self.plan.where for c in (*CONTROLLERS, GC_ANTI_WINDUP))
-            self.bar.set_postfix_str(name)
-            self.bar.update(1)
-            log.info(
-                "scenario %d/%d %s: %d plants, %d controllers, %d samples, done after %.1f s",
-                i, len(self.todo), name, len(self.todo[name]), controllers, k,
-                time.perf_counter() - self.start,
-            )  # fmt: skip
-
-
 @dataclass(frozen=True)
 class Evaluation:
     """What :func:`run_suite` returns.
@@ -277,19 +138,25 @@ class Evaluation:
         Columns ``system, scenario, controller, run, metric, value``.
     trajectories : dict
         ``trajectories[scenario][controller][system]``.
-    held : DataFrame or None
-        The set-point holds' table (:func:`~generalist_control.evaluation.setpoint.hold_tail`)
-        when ``hold`` was given.
+    setpoint : DataFrame or None
+        The set-point check's table
+        (:func:`~generalist_control.evaluation.setpoint.setpoint_stability`) when asked for.
     """
 
     metrics: pd.DataFrame
     trajectories: dict[str, dict[str, dict[str, Trajectory]]]
-    held: pd.DataFrame | None = None
+    setpoint: pd.DataFrame | None = None
 
-    def joined(self, other: Evaluation) -> Evaluation:
-        """The scenarios of both, these first (``other.held`` is ignored)."""
-        metrics = pd.concat([self.metrics, other.metrics], ignore_index=True)
-        return Evaluation(metrics, {**self.trajectories, **other.trajectories}, self.held)
+
+@dataclass
+class _Share:
+    """What one share of the plants gives back (pickled from a forked child)."""
+
+    rows: dict[Key, list[tuple]]
+    trajs: dict[Key, Trajectory]
+    held: pd.DataFrame | None = None
+    radii: pd.DataFrame | None = None
+    flight: Evaluation | None = None
 
 
 def _check_known(runtime: PolicyRuntime, plants: Sequence[Plant]) -> None:
@@ -301,21 +168,130 @@ def _check_known(runtime: PolicyRuntime, plants: Sequence[Plant]) -> None:
         )
 
 
+@dataclass(frozen=True)
+class _Suite:
+    """Everything a share needs: the runs of every plant, the checks asked for."""
+
+    runtime: PolicyRuntime
+    scenarios: Mapping[str, Mapping[str, Any]]
+    todo: Mapping[str, list[Run]]
+    held: list[Run]
+    crazyflie: Mapping[str, Any] | None
+    setpoint: tuple[float, float, float] | None
+    bar: Progress
+
+    def share(self, job: tuple[int, list[Plant]]) -> _Share:
+        """One loop for the runs of ``plants`` (the bar for share 0, this process's)."""
+        index, plants = job
+        mine = {id(p) for p in plants}
+        todo = {n: [r for r in runs if id(r.plant) in mine] for n, runs in self.todo.items()}
+        todo = {n: runs for n, runs in todo.items() if runs}
+        held = [r for r in self.held if id(r.plant) in mine]
+        layout = plan(self.runtime, todo, held)
+        results = simulate_stacked(layout.segments, on_end=self.bar if index == 0 else None)
+        out = _Share({}, {})
+        for (name, ctrl), slots in layout.where.items():
+            kind = self.scenarios[name]["kind"]
+            for run, (s, i) in zip(todo[name], slots, strict=True):
+                tr = results[s][i]
+                out.trajs[name, ctrl, run.plant.name] = tr
+                out.rows[name, ctrl, run.plant.name] = metric_rows(
+                    run.plant.name, name, ctrl, kind, tr
+                )
+        if self.setpoint is not None:
+            reference, _, tail = self.setpoint
+            local = controller_rows(layout.segments)
+            gc = layout.segments[0].controller
+            assert isinstance(gc, FinishingAdapter)
+            z = np.array([gc.z_end[local[s][i].start] for s, i in layout.held["GC"]])
+            trajs = {c: [results[s][i] for s, i in layout.held[c]] for c in ("GC", "LQI")}
+            out.held = tail_table(plants, trajs, z, reference, tail)
+            out.radii = rest_radii(self.runtime, plants, reference, z)
+        out.flight = crazyflie_flight(self.runtime, plants, self.crazyflie)
+        return out
+
+
+#: Suites of less work (samples times rows, both controllers) run in one process.
+SPLIT_WORK = 50_000
+#: Cost of a nonlinear plant's RK4 update per sample, in samples times rows.
+_RK4_COST = 50
+#: Cost of a Crazyflie stand-in's sample (100 Hz, nonlinear), in samples times rows.
+_FLIGHT_COST = 12
+
+
+def _costs(plants: Sequence[Plant], suite: _Suite) -> list[float]:
+    """Each plant's share of the work, roughly (samples times rows; the split's balance)."""
+    cost = {id(p): 0.0 for p in plants}
+    longest = {id(p): 0 for p in plants}
+    for run in [r for runs in suite.todo.values() for r in runs] + suite.held:
+        b, n = np.atleast_2d(run.r).shape
+        cost[id(run.plant)] += 2.0 * b * n  # GC and LQI
+        longest[id(run.plant)] = max(longest[id(run.plant)], n)
+    for p in plants:
+        if not p.is_linear:
+            cost[id(p)] += _RK4_COST * longest[id(p)]
+        if suite.crazyflie and p.name == "crazyflie_altitude":
+            spec = suite.crazyflie
+            cost[id(p)] += (
+                _FLIGHT_COST * int(spec.get("runs", 4)) * 100 * float(spec.get("duration", 15.0))
+            )
+    return [cost[id(p)] for p in plants]
+
+
+def _merge(plants: Sequence[Plant], suite: _Suite, shares: Sequence[_Share]) -> Evaluation:
+    """The shares' results in the order one loop gives them: scenario, controller, plant."""
+    rows_by = {k: v for sh in shares for k, v in sh.rows.items()}
+    trajs_by = {k: v for sh in shares for k, v in sh.trajs.items()}
+    rows: list[tuple] = []
+    trajs: dict[str, dict[str, dict[str, Trajectory]]] = {}
+    for name, runs in suite.todo.items():
+        trajs[name] = {}
+        for ctrl in (*CONTROLLERS, GC_ANTI_WINDUP):
+            keys = [(name, ctrl, run.plant.name) for run in runs]
+            if keys[0] not in trajs_by:
+                continue
+            trajs[name][ctrl] = {k[2]: trajs_by[k] for k in keys}
+            rows += [row for k in keys for row in rows_by[k]]
+    setpoint = None
+    if suite.setpoint is not None:
+        order = [p.name for p in plants]
+
+        def joined(tables: list[pd.DataFrame]) -> pd.DataFrame:
+            df = pd.concat(tables, ignore_index=True).set_index("system").loc[order]
+            return df.reset_index()
+
+        held = joined([sh.held for sh in shares if sh.held is not None])
+        radii = joined([sh.radii for sh in shares if sh.radii is not None])
+        setpoint = radii.merge(held, on="system")
+    ev = Evaluation(pd.DataFrame(rows, columns=COLUMNS), trajs, setpoint)
+    for flight in (sh.flight for sh in shares if sh.flight is not None):
+        metrics = pd.concat([ev.metrics, flight.metrics], ignore_index=True)
+        ev = Evaluation(metrics, {**ev.trajectories, **flight.trajectories}, ev.setpoint)
+    return ev
+
+
 def run_suite(
     runtime: PolicyRuntime,
     plants: Sequence[Plant],
     scenarios: Mapping[str, Mapping[str, Any]],
     crazyflie: Mapping[str, Any] | None = None,
-    hold: tuple[float, float, float] | None = None,
+    setpoint: tuple[float, float, float] | None = None,
     progress: bool | None = None,
-    threads: int | None = None,
+    processes: int | None = None,
 ) -> Evaluation:
-    """Every scenario under every controller in one loop (and the set-point holds).
+    """Every scenario under every controller in one loop, the Crazyflie, the set point.
 
-    ``hold``: ``(reference, hold, tail)`` of the set-point check's long steps
-    (:func:`~generalist_control.evaluation.setpoint.setpoint_settings`), run in the same loop.
-    ``threads``: how many runtime copies share GC's rows, stepped side by side (at most 2;
-    default: 2 where there are 2 cores); the numbers do not depend on it.
+    ``setpoint``: ``(reference, hold, tail)`` of the set-point check
+    (:func:`~generalist_control.evaluation.setpoint.setpoint_settings`): its long holds run
+    in the same loop, then each plant's loop at rest is linearised
+    (:func:`~generalist_control.evaluation.setpoint.rest_radii`).
+    ``crazyflie``: the sim-to-real stand-in's settings (:func:`crazyflie_flight`).
+    ``processes``: the plants are split into this many shares of about equal work, each run
+    in its own loop, the others in forked children beside this process
+    (:mod:`~generalist_control.evaluation.split`); default 2 where there are 2 cores and
+    the suite is large enough (:data:`SPLIT_WORK`). Every run's numbers are those of a loop
+    of its own either way: a plant's runs stay together, and the network's controls of a row
+    do not depend on the other rows of its batch (docs/evaluation.md).
     Progress: a bar over the scenarios (``progress``; by default only on a terminal) and
     one log line (INFO) per scenario as its runs end.
     """
@@ -325,25 +301,22 @@ def run_suite(
     state_envelopes([(p, a) for n, ps in chosen.items() for p in ps
                      for a in envelope_amplitudes(scenarios[n])])  # fmt: skip
     todo = {name: [_run(name, scenarios[name], p) for p in ps] for name, ps in chosen.items()}
-    held = hold_runs(plants, hold[0], hold[1]) if hold else []
-    parts = max(1, min(int(threads or os.cpu_count() or 1), 2))
-    plan = _plan(runtime, todo, held, parts)
-    bar = _Progress(plan, todo, progress)
-    results = simulate_stacked(plan.segments, on_end=bar)
-    bar.bar.close()
-    rows: list[tuple] = []
-    trajs: dict[str, dict[str, dict[str, Trajectory]]] = {}
-    for name, runs in todo.items():
-        trajs[name] = {}
-        for ctrl in (c for c in (*CONTROLLERS, GC_ANTI_WINDUP) if (name, c) in plan.where):
-            got = [results[s][i] for s, i in plan.where[name, ctrl]]
-            trajs[name][ctrl] = {run.plant.name: tr for run, tr in zip(runs, got, strict=True)}
-            for run, tr in zip(runs, got, strict=True):
-                rows += metric_rows(run.plant.name, name, ctrl, scenarios[name]["kind"], tr)
-    ev = Evaluation(pd.DataFrame(rows, columns=COLUMNS), trajs,
-                    _held(plan, results, plants, hold) if hold else None)  # fmt: skip
-    flight = crazyflie_flight(runtime, plants, crazyflie)
-    return ev if flight is None else ev.joined(flight)
+    held = hold_runs(plants, setpoint[0], setpoint[1]) if setpoint else []
+    bar = Progress(todo, runtime.integral, progress)
+    suite = _Suite(runtime, scenarios, todo, held, crazyflie, setpoint, bar)
+    costs = _costs(plants, suite)
+    if processes is None:
+        processes = 2 if (os.cpu_count() or 1) >= 2 and sum(costs) >= SPLIT_WORK else 1
+    groups = balanced(costs, max(1, min(int(processes), len(plants))))
+    # the share with the first plant here: its progress is this process's
+    jobs = [(i, [plants[j] for j in g]) for i, g in enumerate(groups)]
+    try:
+        shares = fork_map(suite.share, jobs)
+    except BaseException:
+        suite.bar.bar.close()
+        raise
+    suite.bar.close()
+    return _merge(plants, suite, shares)
 
 
 def crazyflie_flight(

@@ -47,6 +47,7 @@ __all__ = [
     "equilibrium",
     "hold_runs",
     "hold_tail",
+    "rest_radii",
     "setpoint_from_config",
     "setpoint_settings",
     "setpoint_stability",
@@ -163,8 +164,8 @@ def hold_tail(
     Columns ``tail_error_<c>``: the RMS tracking error over the tail relative to
     ``|reference|``; ``tail_du_<c>``: the RMS change of the control from sample to sample
     over the tail (zero once a loop rests); NaN for a diverged run. ``z_end_GC``: the
-    policy's error integral at the end of its hold (NaN for every plant if the runtime
-    refused any of them). The evaluation runs these holds in its own loop
+    policy's error integral at the end of its hold (NaN for a plant whose run the runtime
+    refused). The evaluation runs these holds in its own loop
     (:func:`~generalist_control.evaluation.runner.run_suite`).
     """
     check_hold(hold, tail)
@@ -173,8 +174,7 @@ def hold_tail(
     segments = [Segment(gc, runs), Segment(PerPlantController(LQIController), runs)]
     gc_trajs, lqi_trajs = simulate_stacked(segments)
     rows = [sl.start for sl in controller_rows(segments)[0]]
-    z = np.nan if gc.refused else gc.z_end[rows]
-    return tail_table(plants, {"GC": gc_trajs, "LQI": lqi_trajs}, z, reference, tail)
+    return tail_table(plants, {"GC": gc_trajs, "LQI": lqi_trajs}, gc.z_end[rows], reference, tail)
 
 
 def _radius_row(
@@ -205,6 +205,25 @@ def _radius_row(
                            jac[:, MAX_ORDER], ju)  # fmt: skip
     radius = float(np.abs(np.linalg.eigvals(A)).max())
     return plant.name, r, z_lqi, z_star, resid, radius, radius_lqi
+
+
+def rest_radii(
+    runtime: PolicyRuntime, plants: Sequence[Plant], reference: float, ends: Any
+) -> pd.DataFrame:
+    """Per plant, the spectral radii of the policy's and LQI's loops at the set point.
+
+    ``ends``: per plant, the error integral at which the policy's own hold ended (NaN:
+    unknown); the search for ``z*`` starts there. The columns of :func:`setpoint_stability`
+    up to ``settles``.
+    """
+    policy = copy.deepcopy(runtime.policy).double().eval()
+    with _one_thread():
+        rows = [_radius_row(runtime, policy, p, reference, float(z))
+                for p, z in zip(plants, ends, strict=True)]  # fmt: skip
+    cols = ["system", "reference", "z_LQI", "z_star", "residual", "radius_GC", "radius_LQI"]
+    df = pd.DataFrame(rows, columns=cols)
+    df["settles"] = df["radius_GC"] < 1.0
+    return df
 
 
 def setpoint_stability(
@@ -238,15 +257,8 @@ def setpoint_stability(
         )
     if held is None:
         held = hold_tail(runtime, plants, reference, hold, tail)
-    policy = copy.deepcopy(runtime.policy).double().eval()
     ends = held["z_end_GC"].to_numpy(dtype=float)
-    with _one_thread():
-        rows = [_radius_row(runtime, policy, p, reference, z)
-                for p, z in zip(plants, ends, strict=True)]  # fmt: skip
-    cols = ["system", "reference", "z_LQI", "z_star", "residual", "radius_GC", "radius_LQI"]
-    df = pd.DataFrame(rows, columns=cols)
-    df["settles"] = df["radius_GC"] < 1.0
-    return df.merge(held, on="system")
+    return rest_radii(runtime, plants, reference, ends).merge(held, on="system")
 
 
 def setpoint_summary(df: pd.DataFrame) -> dict[str, object]:

@@ -9,6 +9,10 @@ before). :meth:`MlflowWorker.ready` waits for the store: the stage calls it befo
 anything, so a store that cannot be opened still stops the evaluation before its outputs
 change, and before resolving a policy URI (``runs:/``, ``models:/``), which MLflow then
 fetches in this process as before.
+
+The stage's own command starts the worker earlier still (:func:`start_early`, before its
+heavy imports and Hydra's composition): the worker imports MLflow meanwhile, then waits for
+the config; the stage's :class:`MlflowWorker` takes that process over.
 """
 
 from __future__ import annotations
@@ -23,11 +27,32 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["MlflowWorker", "MlflowWorkerError"]
+__all__ = ["MlflowWorker", "MlflowWorkerError", "start_early"]
+
+#: A worker started by :func:`start_early`, not yet taken by a :class:`MlflowWorker`.
+_early: subprocess.Popen[str] | None = None
 
 
 class MlflowWorkerError(RuntimeError):
     """MLflow failed in the worker: the message is its error, type first (masked)."""
+
+
+def _spawn() -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "generalist_control.evaluation.mlflow_worker"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+
+
+def start_early() -> None:
+    """Start a worker now, for the next :class:`MlflowWorker` of this process to take.
+
+    It imports MLflow while this process imports and composes its config, and does nothing
+    else until it is sent the config; it ends when this process does (its stdin closes).
+    """
+    global _early
+    if _early is None:
+        _early = _spawn()
 
 
 def _plain(value: Any) -> Any:
@@ -51,10 +76,9 @@ class MlflowWorker:
     """
 
     def __init__(self, logger: Mapping[str, Any], prefix: str) -> None:
-        self._proc = subprocess.Popen(
-            [sys.executable, "-m", "generalist_control.evaluation.mlflow_worker"],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-        )  # fmt: skip
+        global _early
+        early, _early = _early, None
+        self._proc = early if early is not None and early.poll() is None else _spawn()
         self._uri: str | None = None
         self._send({"logger": dict(logger), "prefix": prefix})
 

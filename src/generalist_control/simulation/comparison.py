@@ -21,7 +21,7 @@ from generalist_control.simulation.simulate import (
     simulate_many,
 )
 
-__all__ = ["closed_loop_score", "output_mse"]
+__all__ = ["ClosedLoopScore", "closed_loop_score", "output_mse"]
 
 
 def output_mse(
@@ -43,6 +43,53 @@ def output_mse(
     }
 
 
+class ClosedLoopScore:
+    """:func:`closed_loop_score` for one set of plants and steps, LQI's responses kept.
+
+    LQI's responses do not depend on the controller scored, so a score taken again and
+    again (the closed-loop validation after every epoch) simulates them once, at the first
+    call; the numbers are those of :func:`closed_loop_score`.
+
+    Raises
+    ------
+    ValueError
+        ``labels`` does not name each plant once.
+    """
+
+    def __init__(
+        self,
+        plants: Sequence[Plant],
+        amplitudes: Sequence[float] = (1.0, -3.0),
+        duration: float = 10.0,
+        labels: Sequence[str] | None = None,
+    ) -> None:
+        self.keys = [p.name for p in plants] if labels is None else list(labels)
+        if len(self.keys) != len(plants) or len(set(self.keys)) != len(self.keys):
+            raise ValueError(
+                f"closed_loop_score needs one distinct label per plant, got {len(self.keys)} "
+                f"labels ({len(set(self.keys))} distinct) for {len(plants)} plants"
+            )
+        steps = int(round(duration / plants[0].dt)) if plants else 0
+        amps = np.asarray(amplitudes, dtype=float)
+        self.runs = [Run(p, np.repeat(amps[:, None] * p.amplitude_scale, steps, axis=1))
+                     for p in plants]  # fmt: skip
+        self._lqi: list | None = None
+
+    def __call__(self, controller: BatchController) -> dict[str, float]:
+        """Per plant (or label), ``controller``'s score (see :func:`closed_loop_score`)."""
+        ours = simulate_many(self.runs, controller)
+        if self._lqi is None:
+            self._lqi = simulate_many(self.runs, PerPlantController(LQIController))
+        out = {}
+        for key, a, b in zip(self.keys, ours, self._lqi, strict=True):
+            if a.diverged.any():
+                out[key] = 1.0
+                continue
+            err = np.mean((a.y - b.y) ** 2, axis=1) / np.maximum(np.mean(b.y**2, axis=1), 1e-300)
+            out[key] = float(min(1.0, err.mean()))
+        return out
+
+
 def closed_loop_score(
     controller: BatchController,
     plants: Sequence[Plant],
@@ -56,29 +103,12 @@ def closed_loop_score(
     plant's ``amplitude_scale``) from rest; 1 for a diverged run (and at most 1 anyway), so
     the mean over plants is a bounded closed-loop validation score. Keyed by ``labels``
     (one per plant, distinct; e.g. for variants, which share their plant's name), else by
-    the plants' names. Each plant's LQI is designed for that plant itself.
+    the plants' names. Each plant's LQI is designed for that plant itself. Scored again and
+    again: :class:`ClosedLoopScore`.
 
     Raises
     ------
     ValueError
         ``labels`` does not name each plant once.
     """
-    keys = [p.name for p in plants] if labels is None else list(labels)
-    if len(keys) != len(plants) or len(set(keys)) != len(keys):
-        raise ValueError(
-            f"closed_loop_score needs one distinct label per plant, got {len(keys)} labels "
-            f"({len(set(keys))} distinct) for {len(plants)} plants"
-        )
-    steps = int(round(duration / plants[0].dt))
-    amps = np.asarray(amplitudes, dtype=float)
-    runs = [Run(p, np.repeat(amps[:, None] * p.amplitude_scale, steps, axis=1)) for p in plants]
-    ours = simulate_many(runs, controller)
-    lqi = simulate_many(runs, PerPlantController(LQIController))
-    out = {}
-    for key, a, b in zip(keys, ours, lqi, strict=True):
-        if a.diverged.any():
-            out[key] = 1.0
-            continue
-        err = np.mean((a.y - b.y) ** 2, axis=1) / np.maximum(np.mean(b.y**2, axis=1), 1e-300)
-        out[key] = float(min(1.0, err.mean()))
-    return out
+    return ClosedLoopScore(plants, amplitudes, duration, labels)(controller)

@@ -25,8 +25,6 @@ controller that pays per row (the learned policy) can drop them.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,14 +48,10 @@ class Segment:
     The controller is reset with the segment's distinct plants in order of first appearance
     and, per plant, the rows of all its runs (runs in order, rows in order); it may have a
     ``finish(rows)`` method, called with the rows (of its own batch) whose runs ended.
-    A ``concurrent`` segment's controller is stepped in a worker thread while the others
-    step: for a controller that releases the GIL (ONNX Runtime does while it runs a network)
-    and shares no state with another segment's.
     """
 
     controller: BatchController
     runs: Sequence[Run]
-    concurrent: bool = False
 
 
 class _Layout:
@@ -194,12 +188,6 @@ def _noise(rows: slice, run: Run, k0: int) -> tuple[slice, np.ndarray, int]:
     return rows, rng.normal(size=(max(steps - k0, 0), b, plant.order)) * std, k0
 
 
-def _quiet(step: Callable[..., np.ndarray], *args: np.ndarray) -> np.ndarray:
-    """``step(*args)`` as the loop runs it: floating-point errors ignored (per thread)."""
-    with np.errstate(all="ignore"):
-        return step(*args)
-
-
 def _initial(layout: _Layout, segments: Sequence[Segment]) -> np.ndarray:
     x = np.zeros((layout.size, MAX_ORDER))
     for (s, i), rows in layout.rows.items():
@@ -261,27 +249,19 @@ class _Loop:
                 finish(np.concatenate([np.arange(sl.start, sl.stop) for sl in mine]))
         return done
 
-    def control(self, k: int, pool: ThreadPoolExecutor | None) -> np.ndarray:
+    def control(self, k: int) -> np.ndarray:
         """Every controller's controls at sample ``k`` (NaN for the runs that ended)."""
         xm, rk = self.act.measure(self.x, k), self.r[:, k]
         u = np.empty(self.layout.size)
-        parts = [(seg, rows) for seg, rows in zip(self.segments, self.layout.segment_rows,
-                 strict=True) if rows.size]  # fmt: skip
-        if pool is not None:
-            futures = [(pool.submit(_quiet, seg.controller.step, xm[rows], rk[rows]), rows)
-                       for seg, rows in parts if seg.concurrent]  # fmt: skip
-            parts = [(seg, rows) for seg, rows in parts if not seg.concurrent]
-        for seg, rows in parts:
-            u[rows] = np.asarray(seg.controller.step(xm[rows], rk[rows]), dtype=float)
-        if pool is not None:
-            for future, rows in futures:
-                u[rows] = np.asarray(future.result(), dtype=float)
+        for seg, rows in zip(self.segments, self.layout.segment_rows, strict=True):
+            if rows.size:
+                u[rows] = np.asarray(seg.controller.step(xm[rows], rk[rows]), dtype=float)
         u[self.ended] = np.nan
         return u
 
-    def step(self, k: int, pool: ThreadPoolExecutor | None = None) -> None:
+    def step(self, k: int) -> None:
         """Sample ``k``: every controller, the actuators, every plant, the divergence test."""
-        u = self.control(k, pool)
+        u = self.control(k)
         u = self.act.actuate(u)
         self.u[k] = u
         ua = self.act.applied(u, k)
@@ -339,13 +319,11 @@ def simulate_stacked(
     for s, seg in enumerate(segments):
         if seg.runs:  # a segment without runs is never stepped
             seg.controller.reset(*loop.layout.controller_groups(s, seg.runs))
-    workers = sum(seg.concurrent for seg in segments)
-    with ThreadPoolExecutor(workers) if workers else nullcontext() as pool:
-        for k in range(loop.steps + 1):
-            done = loop.end(k)
-            if done and on_end is not None:
-                on_end(k, done)
-            if k < loop.steps:
-                with np.errstate(all="ignore"):
-                    loop.step(k, pool)
+    for k in range(loop.steps + 1):
+        done = loop.end(k)
+        if done and on_end is not None:
+            on_end(k, done)
+        if k < loop.steps:
+            with np.errstate(all="ignore"):
+                loop.step(k)
     return [[loop.result(s, i) for i in range(len(seg.runs))] for s, seg in enumerate(segments)]

@@ -17,6 +17,7 @@ as ``python train.py``) and for every sweep job and Optuna trial. Outputs:
 
 from __future__ import annotations
 
+import gc
 import logging
 import warnings
 from pathlib import Path
@@ -153,7 +154,13 @@ def _fit(
     with warnings.catch_warnings():
         # batches are gathered from in-memory tensors: worker processes would only slow it
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-        trainer.fit(lit, datamodule=dm, ckpt_path=ckpt_path)
+        # what exists now (modules, data, trainer) lives through the fit: the collector's
+        # full passes, a third of a second each, need not walk it; collectable again after
+        gc.freeze()
+        try:
+            trainer.fit(lit, datamodule=dm, ckpt_path=ckpt_path)
+        finally:
+            gc.unfreeze()
         best = ckpt_cb.best_model_path or ckpt_cb.last_model_path
         train_loss = float(trainer.callback_metrics.get("train/loss", float("nan")))
         trainer.validate(lit, datamodule=dm, ckpt_path=best, verbose=False)

@@ -15,6 +15,7 @@ from generalist_control.data.generation import enabled_families
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.plants.plant import Plant
 from generalist_control.plants.variants import DEFAULT_RANGE, make_variant
+from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.training.callbacks import ClosedLoopValidation
 from generalist_control.training.dagger import DAggerCallback
 from generalist_control.training.labeller import ExpertLabeller
@@ -113,7 +114,7 @@ def closed_loop_validation(settings: TrainingSettings, plants: list[Plant]) -> L
     spec = settings.closed_loop_val
     if spec is None:
         return None
-    return ClosedLoopValidation(plants, list(spec.amplitudes), spec.duration)
+    return ClosedLoopValidation(ClosedLoopScore(plants, list(spec.amplitudes), spec.duration))
 
 
 def config_callbacks(cfg: DictConfig, run_dir: Path) -> list[L.Callback]:
