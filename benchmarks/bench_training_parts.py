@@ -5,7 +5,8 @@
 With the trained default policy on all 25 plants, times (median of ``--repeats``):
 
 * ``closed_loop_val``: one ``val/closed_loop`` score (``closed_loop_val`` of the config:
-  steps of each amplitude from rest, every training plant), run after every validation;
+  steps of each amplitude from rest, every training plant), run after every validation, with
+  LQI's responses kept from the first (``closed_loop_val_first``: that first one);
 * ``dagger_round``: one DAgger round as the default config runs it (``dagger.sampler``'s
   rollouts, labelled by the experts: ``dagger.labeller``), at the last round's beta.
 
@@ -32,7 +33,7 @@ from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import plants_from_config
-from generalist_control.simulation.comparison import closed_loop_score
+from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
 from generalist_control.training.settings import read_training
@@ -61,13 +62,16 @@ def main() -> None:
     plants = [p for p in plants_from_config(cfg.systems) if p.name in meta["tags"]]
     runtime = PolicyRuntime(policy, meta)
     spec = cfg.closed_loop_val
+    amps, duration = list(spec.amplitudes), float(spec.duration)
+
+    def first() -> None:  # a new score: LQI's responses simulated too
+        ClosedLoopScore(plants, amps, duration)(RuntimeAdapter(runtime))
+
+    score = ClosedLoopScore(plants, amps, duration)  # as the training's callback keeps it
     with torch.inference_mode():
-        t_val = _median_time(
-            lambda: closed_loop_score(
-                RuntimeAdapter(runtime), plants, list(spec.amplitudes), float(spec.duration)
-            ),
-            args.repeats,
-        )
+        t_first = _median_time(first, args.repeats)
+        score(RuntimeAdapter(runtime))
+        t_val = _median_time(lambda: score(RuntimeAdapter(runtime)), args.repeats)
     d = read_training(cfg).dagger
     assert d is not None, "the default config runs DAgger"
     sampler = RolloutSampler(
@@ -86,12 +90,16 @@ def main() -> None:
     t_dagger = _median_time(one_round, args.repeats)
     out = {
         "closed_loop_val_s": t_val,
+        "closed_loop_val_first_s": t_first,
         "dagger_round_s": t_dagger,
         "plants": len(plants),
         "dagger_rollouts_per_plant": len(sampler.specs(0, plants[:1])[0][0]),
         "repeats": args.repeats,
     }
-    print(f"closed-loop validation: {t_val:.2f} s per validation ({len(plants)} plants)")
+    print(
+        f"closed-loop validation: {t_val:.2f} s per validation ({len(plants)} plants; "
+        f"the first, with LQI's responses: {t_first:.2f} s)"
+    )
     print(f"DAgger round: {t_dagger:.2f} s ({out['dagger_rollouts_per_plant']} rollouts/plant)")
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "training_parts.json").write_text(json.dumps(out, indent=2) + "\n")
