@@ -24,7 +24,8 @@ import sys
 from generalist_control.evaluation.tracker import MlflowWorker, start_early
 
 #: Hydra's flags that only print (the stage does not run, so MLflow is not needed).
-_PRINT_ONLY = {"--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i", "--shell-completion"}
+_PRINT_ONLY = {"--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i",
+               "--shell-completion", "-sc"}  # fmt: skip
 
 if __name__ == "__main__" and not _PRINT_ONLY & set(sys.argv[1:]):
     start_early()  # the MLflow worker imports MLflow while this process imports the rest

@@ -90,6 +90,11 @@ def metric_rows(
     return out
 
 
+def _flight_shape(spec: Mapping[str, Any]) -> tuple[int, int]:
+    """The Crazyflie stand-in's references: (runs, samples at its 100 Hz)."""
+    return int(spec.get("runs", 4)), int(round(float(spec.get("duration", 15.0)) * 100))
+
+
 def _crazyflie(
     runtime: PolicyRuntime,
     plant: Plant,
@@ -101,8 +106,7 @@ def _crazyflie(
     GC and LQI fly in one loop on the same noise; LQI-AW knows no limits here, so it is LQI
     (the same law, the same trajectory).
     """
-    steps = int(round(float(spec.get("duration", 15.0)) * 100))
-    r = np.full((int(spec.get("runs", 4)), steps), float(spec.get("amplitude", 1.0)))
+    r = np.full(_flight_shape(spec), float(spec.get("amplitude", 1.0)))
     ctrls: list[Controller] = [SinglePlantAdapter(runtime, plant.name), LQIController(plant)]
     gc, lqi = fly_many(ctrls, r, control_dt=plant.dt, seed=int(spec.get("seed", 0)))
     flown = {"GC": gc, "LQI": lqi, "LQI-AW": lqi}
@@ -231,10 +235,7 @@ def _costs(plants: Sequence[Plant], suite: _Suite) -> list[float]:
         if not p.is_linear:
             cost[id(p)] += _RK4_COST * longest[id(p)]
         if suite.crazyflie and p.name == "crazyflie_altitude":
-            spec = suite.crazyflie
-            cost[id(p)] += (
-                _FLIGHT_COST * int(spec.get("runs", 4)) * 100 * float(spec.get("duration", 15.0))
-            )
+            cost[id(p)] += _FLIGHT_COST * float(np.prod(_flight_shape(suite.crazyflie)))
     return [cost[id(p)] for p in plants]
 
 

@@ -208,7 +208,10 @@ def _radius_row(
 
 
 def rest_radii(
-    runtime: PolicyRuntime, plants: Sequence[Plant], reference: float, ends: Any
+    runtime: PolicyRuntime,
+    plants: Sequence[Plant],
+    reference: float,
+    ends: Sequence[float] | np.ndarray,
 ) -> pd.DataFrame:
     """Per plant, the spectral radii of the policy's and LQI's loops at the set point.
 

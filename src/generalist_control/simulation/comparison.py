@@ -18,6 +18,7 @@ from generalist_control.simulation.simulate import (
     BatchController,
     PerPlantController,
     Run,
+    Trajectory,
     simulate_many,
 )
 
@@ -73,7 +74,7 @@ class ClosedLoopScore:
         amps = np.asarray(amplitudes, dtype=float)
         self.runs = [Run(p, np.repeat(amps[:, None] * p.amplitude_scale, steps, axis=1))
                      for p in plants]  # fmt: skip
-        self._lqi: list | None = None
+        self._lqi: list[Trajectory] | None = None
 
     def __call__(self, controller: BatchController) -> dict[str, float]:
         """Per plant (or label), ``controller``'s score (see :func:`closed_loop_score`)."""
