@@ -12,6 +12,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
+from generalist_control.common.memory import keep_freed_memory
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.training.fit import train
 
@@ -27,6 +28,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 @hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="config")
 def main(cfg: DictConfig) -> float:
     """Hydra entry point: train and return the optimised metric (``optimized_metric``)."""
+    keep_freed_memory()  # a step reuses freed pages instead of faulting (common.memory)
     metrics = run(cfg)
     return float(metrics.get(cfg.get("optimized_metric", "val/loss"), np.nan))
 
