@@ -1,11 +1,10 @@
 """Keep freed memory in the process: a training step then reuses its pages instead of faulting.
 
 A training step allocates and frees the same large tensors (activations, gradients) every
-step, much of it on PyTorch's worker threads. With glibc's defaults the freed memory of those
-threads' arenas is given back to the kernel (``madvise``/``munmap``) and the next step takes
-new pages, each a page fault: tens to hundreds per step, about 5 % of the default
-training's time on a 2-core machine (docs/training.md, "Data split, batches, epochs,
-threads"). :func:`keep_freed_memory` sets glibc's thresholds so that freed memory stays
+step. With glibc's defaults much of that freed memory is given back to the kernel, and the
+next step takes new pages, each a page fault: tens to hundreds per step, about 5 % of the
+default training's time on a 2-core machine (docs/training.md, "Data split, batches,
+epochs, threads"). :func:`keep_freed_memory` sets glibc's thresholds so that freed memory stays
 with the process for reuse. The arithmetic is untouched: the same weights, bit for bit.
 
 It changes the whole process for good (as ``MALLOC_*`` environment variables would), so
