@@ -11,7 +11,8 @@ p50 and p99. The paths:
 
 * ``lqi_step``: the LQI law's own step (:class:`LQIController`, batch 1), the yardstick;
 * ``onnx_step``: :meth:`PolicyRuntime.step` with the ONNX backend, one plant (``reset(name)``):
-  its per-sample path and the plant's own batch-1 graph (issue 38);
+  its per-sample path and the plant's own batch-1 graph, written from the weights
+  (deploy/onnx_plant.py; issue 38);
 * ``onnx_network_only``: that graph alone on the runtime's current window;
 * ``onnx_general_step``: the same runtime with ``specialise=False``: the general path
   (dynamic-batch session, array bookkeeping), which is what ``onnx_step`` was before;
@@ -27,8 +28,7 @@ the LQI step.
 Without ``--policy`` an untrained policy of the default architecture (conf/model/
 generalist.yaml: d = 32, M = 3, history 8, horizon 3, window scaling, error integral, linear
 skip) is timed, its normaliser fitted on LQI step responses of the plant (``--normaliser
-identity``: all scales one, which lets the plant's graph fold its scaling away): latency
-does not depend on the weights.
+identity``: all scales one): latency does not depend on the weights.
 """
 
 from __future__ import annotations

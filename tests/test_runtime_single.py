@@ -1,13 +1,17 @@
 """One plant stepped alone (issue 38): the per-sample path and the plant's own ONNX graph.
 
 ``PolicyRuntime.step`` for a runtime reset to one plant takes a path on Python numbers and,
-with ONNX, a graph made for that plant at batch 1. Both must give exactly what the general
-path gives (``specialise=False``): the same controls, plans, error integrals and windows,
-bit for bit, on every network variant. The graph rewrites behind the plant's graph are
-checked one by one in tests/test_runtime_onnx_graph.py.
+with ONNX, a graph made for that plant at batch 1: written from the weights (the paper's
+network and the default, deploy/onnx_plant.py) or the exported graph shrunk (the others).
+Both must give exactly what the general path gives (``specialise=False``): the same
+controls, plans, error integrals and windows, bit for bit, on every network variant. The
+graph rewrites behind the shrunk graph are checked one by one in
+tests/test_runtime_onnx_graph.py.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 import onnx
@@ -16,9 +20,10 @@ import torch
 from onnx import helper
 
 from generalist_control.data.windows import HistoryBuffer
-from generalist_control.deploy import onnx_backend
+from generalist_control.deploy import export, onnx_backend
 from generalist_control.deploy.export import backend, onnx_bytes
 from generalist_control.deploy.onnx_graph import Graph
+from generalist_control.deploy.onnx_plant import plant_graph
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
@@ -90,10 +95,15 @@ def test_one_plant_steps_exactly_as_the_general_path(policy, backend_name, measu
                 np.testing.assert_array_equal(x, y)
 
 
-def test_the_plant_graph_is_smaller_and_computes_what_the_general_session_does(policy):
+WRITTEN = ("paper", "default")  # the variants whose plant graph is written from the weights
+
+
+def test_the_plant_graph_is_smaller_and_computes_what_the_general_session_does(policy, request):
     pol, _ = policy
+    variant = request.node.callspec.params["policy"]
     run = backend(pol, "onnx")
     rng = np.random.default_rng(0)
+    one = onnx.load_from_string(onnx_bytes(pol, batch=1))
     for name in PLANTS:
         plant = load_plant(name)
         buffer = HistoryBuffer(np.array([plant.order]), 8, "integral" in pol.channels,
@@ -105,27 +115,48 @@ def test_the_plant_graph_is_smaller_and_computes_what_the_general_session_does(p
             ref = (rng.normal(size=(1, 8)) * scale).astype(np.float32)
             np.testing.assert_array_equal(single(state, ref), run(state, buffer.mask, ref, tag))
         fixed = {"tag": tag, "mask": buffer.mask}
-        one = onnx.load_from_string(onnx_bytes(pol, batch=1))
         shrunk = onnx.load_from_string(onnx_backend.shrink(one, fixed, ["controls"]))
         assert len(shrunk.graph.node) < 0.8 * len(one.graph.node)
+        written = plant_graph(pol, plant.tag, buffer.mask)
+        assert (written is not None) == (variant in WRITTEN)
+        if written is not None:  # fewer nodes still, and the one the runtime steps through
+            assert len(onnx.load_from_string(written).graph.node) < len(shrunk.graph.node)
+            width = buffer.mask.shape[2]
+            assert [i.shape for i in single._sess.get_inputs()] == [[8, width], [8, 1]]
 
 
-def test_a_plant_graph_that_disagrees_is_not_used(policy, monkeypatch):
-    """The check at reset: a wrong shrunk graph gives way to the plain batch-1 graph."""
+def _off(graph: bytes | None) -> bytes | None:
+    """``graph`` with every control 1 % off."""
+    if graph is None:
+        return None
+    g = Graph.from_model(onnx.load_from_string(graph))
+    g.consts["off"] = np.array(1.01, np.float32)
+    g.nodes[-1].output[0] = "controls/right"
+    g.nodes.append(helper.make_node("Mul", ["controls/right", "off"], ["controls"]))
+    return g.to_model().SerializeToString()
+
+
+@pytest.mark.parametrize("wrong", ["written", "both"])
+def test_a_plant_graph_that_disagrees_is_not_used(policy, monkeypatch, wrong):
+    """The check at reset: a wrong graph gives way to the next, at last the general session.
+
+    A wrong written graph to the shrunk one, silently; a wrong shrunk one too (or the only
+    one) to the general session, with a warning.
+    """
     pol, meta = policy
-    real = onnx_backend.shrink
-
-    def wrong(model, fixed, keep):  # every control 1 % off
-        g = Graph.from_model(onnx.load_from_string(real(model, fixed, keep)))
-        g.consts["off"] = np.array(1.01, np.float32)
-        g.nodes[-1].output[0] = "controls/right"
-        g.nodes.append(helper.make_node("Mul", ["controls/right", "off"], ["controls"]))
-        return g.to_model().SerializeToString()
-
-    monkeypatch.setattr(onnx_backend, "shrink", wrong)
+    monkeypatch.setattr(export, "plant_graph", lambda *args: _off(plant_graph(*args)))
+    real, shrunk = onnx_backend.shrink, []
+    monkeypatch.setattr(onnx_backend, "shrink", lambda *a: shrunk.append(1) or (
+        _off(real(*a)) if wrong == "both" else real(*a)))  # fmt: skip
     rt = PolicyRuntime(pol, meta, backend="onnx")
-    with pytest.warns(RuntimeWarning, match="differs from the general session by 0.01"):
-        rt.reset("cstr")
+    if wrong == "both":
+        with pytest.warns(RuntimeWarning, match="differs from the general session by 0.01"):
+            rt.reset("cstr")
+    else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            rt.reset("cstr")
+    assert shrunk == [1]
     general = PolicyRuntime(pol, meta, backend="onnx", specialise=False)
     general.reset("cstr")
     for k in range(5):
@@ -149,10 +180,17 @@ def test_stage_one_writes_the_window_stage_writes(integral, controls):
         x, r, z, u = rng.normal(size=3), float(rng.normal()), float(rng.normal()), rng.normal()
         padded = np.zeros((1, 4))
         padded[0, :3] = x
-        sa, ra = a.stage_one(x, r, z, u)
-        sb, _, rb = b.stage(padded, np.array([r]), np.array([z]), np.array([u]))
+        extras = np.array([r]), np.array([z]), np.array([u])
+        if k in (4, 7):  # the general path steps the same buffer now and then
+            sa, _, ra = a.stage(padded, *extras)
+        else:
+            sa, ra = a.stage_one(x, r, z, u)
+        sb, _, rb = b.stage(padded, *extras)
         np.testing.assert_array_equal(sa, sb)
         np.testing.assert_array_equal(ra, rb)
         if k % 3 != 2:  # some staged windows are dropped, as a refused step's are
             a.commit()
             b.commit()
+        if k == 8:  # a batch's rows selected: the buffer's arrays are new ones
+            a.select(np.array([0]))
+            b.select(np.array([0]))

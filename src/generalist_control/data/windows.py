@@ -204,6 +204,8 @@ class HistoryBuffer:
         self.ref = np.zeros((len(order), history), np.float32)
         self._next_state, self._next_ref = np.zeros_like(self.state), np.zeros_like(self.ref)
         self._empty, self._staged = True, False
+        # stage_one's views of the two sets of arrays (_one_views)
+        self._views: tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]] | None = None
 
     def stage(
         self,
@@ -249,22 +251,44 @@ class HistoryBuffer:
         ``z`` and ``u_prev`` used where the buffer keeps them. Returns ``(state, ref)``;
         the mask is :attr:`mask`. For the runtime's per-sample path: no argument checks.
         """
-        state, ref = self._next_state, self._next_ref
-        row = state[0, -1]  # the padding of this row is zero and is never written
-        row[: x.shape[0]] = x
+        (shift, older, row_x, row, ref_shift, ref_older, ref_row), _ = (
+            self._views or self._one_views()
+        )
+        row_x[:] = x  # the padding of this row is zero and is never written
         if self.integral:
             row[MAX_ORDER] = z
         if self.controls:
             row[-1] = u_prev
         if self._empty:
-            state[0, :-1] = row
-            ref[0] = r
+            self._next_state[0, :-1] = row
+            ref_row[:] = r
         else:
-            state[0, :-1] = self.state[0, 1:]
-            ref[0, :-1] = self.ref[0, 1:]
-            ref[0, -1] = r
+            shift[:] = older  # the samples but the oldest, one sample earlier
+            ref_shift[:] = ref_older
+            ref_row[-1] = r
         self._staged = True
-        return state, ref
+        return self._next_state, self._next_ref
+
+    def _one_views(self) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+        """Views :meth:`stage_one` writes through, staging into each set of arrays in turn.
+
+        Made once (slicing costs more than the copies of a sample): for the arrays staged
+        into next and for the others, swapped by :meth:`commit`.
+        """
+        order = int(self.mask[0, 0, :MAX_ORDER].sum())
+        w = self.mask.shape[-1]
+
+        def into(
+            state: np.ndarray, ref: np.ndarray, src: np.ndarray, src_ref: np.ndarray
+        ) -> tuple[np.ndarray, ...]:
+            return (state.reshape(-1)[:-w], src.reshape(-1)[w:], state[0, -1, :order],
+                    state[0, -1], ref[0, :-1], src_ref[0, 1:], ref[0])  # fmt: skip
+
+        self._views = (
+            into(self._next_state, self._next_ref, self.state, self.ref),
+            into(self.state, self.ref, self._next_state, self._next_ref),
+        )
+        return self._views
 
     def commit(self) -> None:
         """Make the window of the last :meth:`stage` the newest (swaps arrays, copies none)."""
@@ -273,6 +297,8 @@ class HistoryBuffer:
         self.state, self._next_state = self._next_state, self.state
         self.ref, self._next_ref = self._next_ref, self.ref
         self._empty = self._staged = False
+        if self._views is not None:
+            self._views = (self._views[1], self._views[0])
 
     def push(
         self,
@@ -299,6 +325,7 @@ class HistoryBuffer:
         self.state, self.ref = self.state[rows], self.ref[rows]
         self._next_state, self._next_ref = np.zeros_like(self.state), np.zeros_like(self.ref)
         self._staged = False
+        self._views = None
 
 
 def build_windows(

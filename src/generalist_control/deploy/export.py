@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from generalist_control.deploy.onnx_backend import OnnxBackend
+from generalist_control.deploy.onnx_plant import plant_graph
 from generalist_control.model.policy import Policy
 
 __all__ = ["Backend", "backend", "export_onnx", "export_torchscript", "onnx_bytes"]
@@ -106,5 +107,10 @@ def backend(policy: Policy, name: str) -> Backend:
 
         return run
     if name == "onnx":
-        return OnnxBackend(onnx_bytes(policy), lambda: onnx_bytes(policy, batch=1), policy.horizon)
+        return OnnxBackend(
+            onnx_bytes(policy),
+            lambda: onnx_bytes(policy, batch=1),
+            policy.horizon,
+            lambda tag, mask: plant_graph(policy, tag, mask),
+        )
     raise ValueError(f"unknown backend '{name}'; choose torch, torchscript or onnx")

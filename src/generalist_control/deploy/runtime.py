@@ -35,8 +35,8 @@ Backends: ``"torch"`` (eager), ``"torchscript"`` and ``"onnx"`` (ONNX Runtime); 
 **One plant** (``reset(name)``) is stepped on Python numbers
 (:class:`~generalist_control.deploy.single.OnePlant`) and, with ONNX, through a graph made for
 that plant at batch 1 (:meth:`~generalist_control.deploy.onnx_backend.OnnxBackend.single`):
-the general path's controls, bit for bit, in a third of its time (issue 38). Inputs out of
-range, actuator limits and other unusual steps take the general path.
+the general path's controls, bit for bit, in about a third of its time (issue 38). Inputs
+out of range, actuator limits and other unusual steps take the general path.
 """
 
 from __future__ import annotations

@@ -18,6 +18,8 @@ import numpy as np
 
 __all__ = ["OnePlant", "output_of"]
 
+_FLOAT64 = np.dtype(np.float64)
+
 
 def output_of(c: list[float], x: list[float]) -> float:
     """``y = C x`` for one plant, summed in the order of the states (float64)."""
@@ -76,7 +78,7 @@ class OnePlant:
     def step(self, x: Any, r: Any, y: Any = None) -> float | None:
         """The control for this sample, or None (nothing changed: take the general path)."""
         rt = self.rt
-        if type(x) is not np.ndarray or x.dtype != np.float64:
+        if type(x) is not np.ndarray or x.dtype is not _FLOAT64:
             x = np.asarray(x)
             if x.dtype.kind not in "fiub":
                 return None
@@ -103,7 +105,7 @@ class OnePlant:
         plan = net(state, ref)
         if plan.shape != self.plan_shape:
             return None
-        ps = plan[0].tolist()
+        ps = plan.tolist()[0]
         for v in ps:
             if not abs(v) <= self.lim_u:
                 return None
