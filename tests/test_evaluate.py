@@ -158,7 +158,9 @@ def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
 ):
     policy = _tiny_policy(tiny_data_dir, tmp_path, mlflow_uri)
     reports = tmp_path / "reports"
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    temp = tmp_path / "temp"  # the figures' folders are made here, and removed
+    temp.mkdir()
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "TMPDIR": str(temp)}
     env.pop("MLFLOW_TRACKING_URI", None)
     cmd = [
         sys.executable, "-m", "generalist_control.evaluate",
@@ -171,6 +173,9 @@ def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
     ]  # fmt: skip
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    # the last line is logged, to the terminal and the run's log file, before the fast exit
+    assert f"evaluation written to {reports}" in proc.stdout
+    assert f"evaluation written to {reports}" in (tmp_path / "hydra" / "evaluate.log").read_text()
 
     df = pd.read_csv(reports / "metrics.csv")
     assert list(df.columns) == ["system", "scenario", "controller", "run", "metric", "value"]
@@ -222,6 +227,27 @@ def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
     assert proc.returncode == 0, proc.stderr[-3000:]
     pd.testing.assert_frame_equal(pd.read_csv(reports / "metrics.csv"), df)
     assert not (reports / "plots").exists()
+    assert not list(temp.glob("gc-figures-*"))  # the figures' process was sent away
+
+
+def test_a_failed_entry_point_says_why_and_leaves_no_figure_folder(tmp_path):
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    env = {**os.environ, "TMPDIR": str(temp)}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    cmd = [
+        sys.executable, "-m", "generalist_control.evaluate",
+        f"policy={tmp_path / 'missing.ckpt'}",
+        f"paths.reports_dir={tmp_path / 'reports'}",
+        f"logger.tracking_uri=sqlite:///{tmp_path / 'mlflow.db'}",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    ]  # fmt: skip
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 1
+    assert f"no policy at '{tmp_path / 'missing.ckpt'}'" in proc.stderr
+    assert not (tmp_path / "reports").exists()
+    # the figures' process, started before the config was read, was closed at exit
+    assert not list(temp.glob("gc-figures-*"))
 
 
 def test_closed_loop_score_is_zero_for_the_expert_and_one_for_divergence():

@@ -5,9 +5,10 @@ imports anything heavy, it imports MLflow and opens the tracking store
 (:func:`~generalist_control.tracking.mlflow_utils.set_tracking`) while the evaluation runs,
 then logs what it is sent (:func:`~generalist_control.evaluation.mlflow_log.log_to_mlflow`).
 
-MLflow is imported before the first line is read (a worker started early,
-:func:`~generalist_control.evaluation.tracker.start_early`, imports it while the evaluation
-composes its config); a stdin that closes before that line ends it without opening a store.
+MLflow and its SQL store's module (the default store's) are imported before the first line
+is read (a worker started early, :func:`~generalist_control.evaluation.tracker.start_early`,
+imports them while the evaluation composes its config); a stdin that closes before that line
+ends it without opening a store.
 
 Protocol: JSON lines. In on stdin: first ``{"logger": ..., "prefix": ...}``, then
 ``{"log": {"run_id", "summary", "out_dir"}}`` per evaluation; anything else ends it. Out on
@@ -51,10 +52,25 @@ def _log(cfg: Any, req: dict[str, Any]) -> dict[str, Any]:
     return {"run_id": log_to_mlflow(cfg, meta, req["summary"], Path(req["out_dir"]))}
 
 
+def _import_sql_store() -> None:
+    """Import the SQL store's module and set up its ORM mappers (about a second).
+
+    The default store is SQLite, and opening one would do both; done here, before the
+    config comes, it runs while the evaluation composes its config, not beside its
+    simulation. The store itself is opened only once the config names it.
+    """
+    from mlflow.store.tracking import sqlalchemy_store  # noqa: F401
+    from sqlalchemy.orm import configure_mappers
+
+    configure_mappers()
+
+
 def main() -> None:
     """Serve one evaluation: open the store, then log what comes (module docstring)."""
     replies, sys.stdout = sys.stdout, sys.stderr  # MLflow's own prints stay off the pipe
     import mlflow  # noqa: F401 - imported while the evaluation gets ready
+
+    _import_sql_store()
 
     first = sys.stdin.readline()
     if not first:  # the evaluation ended (or never needed us): nothing to open

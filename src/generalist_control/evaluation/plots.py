@@ -25,7 +25,7 @@ import numpy as np
 
 from generalist_control.simulation.simulate import Trajectory
 
-__all__ = ["PER_PLANT", "plot_all", "pyplot"]
+__all__ = ["PER_PLANT", "plot_all", "plotted", "pyplot", "warm_up"]
 
 _STYLE = {
     "GC": ("tab:blue", "-"),
@@ -202,6 +202,45 @@ def _grid(runs: Runs, scen: str, out: Path) -> Path:
     return path
 
 
+def _sheet() -> _StepSine:
+    """The step and sine sheet of this process, built on first use."""
+    global _SHEET
+    if _SHEET is None:
+        _SHEET = _StepSine()
+    return _SHEET
+
+
+_SHEET: _StepSine | None = None
+
+
+def warm_up() -> None:
+    """Import pyplot, build the step and sine sheet and render it once (fonts loaded).
+
+    What a drawing process can do before its trajectories exist
+    (:class:`~generalist_control.evaluation.background.FigureJob`): about half a second.
+    """
+    _sheet().fig.canvas.draw()
+
+
+def _first(tr: Trajectory) -> Trajectory:
+    return Trajectory(t=tr.t, x=tr.x[:1, :, :0], u=tr.u[:1], r=tr.r[:1], y=tr.y[:1],
+                      diverged=tr.diverged[:1])  # fmt: skip
+
+
+def plotted(trajs: Trajs) -> dict[str, dict[str, dict[str, Trajectory]]]:
+    """What :func:`plot_all` draws of ``trajs``: the same figures from a few MB.
+
+    The scenarios and controllers it shows, the first run of each, without the states.
+    """
+    out: dict[str, dict[str, dict[str, Trajectory]]] = {}
+    for scen, runs in trajs.items():
+        ctrls = _PAIR if scen in ("step", "sine") else () if scen in _BASIC else tuple(runs)
+        shown = {c: {s: _first(tr) for s, tr in runs[c].items()} for c in ctrls if c in runs}
+        if shown:
+            out[scen] = shown
+    return out
+
+
 def plot_all(trajs: Trajs, out: Path, share: tuple[int, int] = (0, 1)) -> list[Path]:
     """Write the evaluation's figures (the module docstring) into ``out``; their paths.
 
@@ -211,13 +250,9 @@ def plot_all(trajs: Trajs, out: Path, share: tuple[int, int] = (0, 1)) -> list[P
     out.mkdir(parents=True, exist_ok=True)
     i, n = share
     written = []
-    systems = sorted(trajs.get("step", {}).get("GC", {}))[i::n]
-    if systems:
-        sheet = _StepSine()
-        for s in systems:
-            written.append(out / f"{s}_step_sine.png")
-            sheet.draw(trajs, s, written[-1])
-        pyplot().close(sheet.fig)
+    for s in sorted(trajs.get("step", {}).get("GC", {}))[i::n]:
+        written.append(out / f"{s}_step_sine.png")
+        _sheet().draw(trajs, s, written[-1])
     figures: list[tuple[str, str | None]] = []  # (scenario, plant), or one grid: (scenario, None)
     for scen, runs in trajs.items():
         if scen not in _BASIC:
