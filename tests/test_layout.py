@@ -38,10 +38,11 @@ SEPARATE = [{"training", "evaluation"}, {"reports", "sweeps"}]
 #: Heavy, optional dependencies that may be imported inside a function (matplotlib: the
 #: evaluation draws its figures in a process of its own and keeps it out of its imports;
 #: mlflow: a second of imports that a command which logs nothing, e.g. evaluate's main
-#: process, does not pay).
+#: process, does not pay; its SQL store and SQLAlchemy's ORM: another second, which the
+#: evaluation's MLflow worker pays while it waits for the config).
 LAZY_OK = {
     "mlflow", "mlflow.entities", "mlflow.exceptions", "mlflow.tracking", "onnxruntime",
-    "matplotlib", "matplotlib.pyplot",
+    "matplotlib", "matplotlib.pyplot", "mlflow.store.tracking", "sqlalchemy.orm",
 }  # fmt: skip
 
 
