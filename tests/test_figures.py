@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import tempfile
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -106,3 +108,29 @@ def test_the_early_job_is_taken_over_or_closed(monkeypatch):
     with figures_beside(enabled=False) as job:
         assert job is None
     assert not early.dir.exists() and early.proc is not None and not early.proc.is_alive()
+
+
+def _children(pid: int) -> list[int]:
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    return [int(c) for c in path.read_text().split()] if path.exists() else []
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux's /proc")
+def test_closing_a_job_while_it_draws_stops_every_drawer(tmp_path, capfd):
+    many = [f"plant{i}" for i in range(60)]  # seconds of drawing
+    trajs = {"step": {c: {s: _tr(i) for i, s in enumerate(many)} for c in ("GC", "LQI")}}
+    job = FigureJob()
+    assert job.proc is not None and job.proc.pid is not None
+    job.draw(trajs)
+    deadline = time.monotonic() + 60
+    while not (drawers := _children(job.proc.pid)) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert drawers, "the drawing process forked no second drawer"
+    job.close()
+    deadline = time.monotonic() + 10
+    while any(Path(f"/proc/{pid}").exists() for pid in drawers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(Path(f"/proc/{pid}").exists() for pid in drawers)
+    assert not job.dir.exists()
+    # stopped, not left to fail on the folder that close() removed
+    assert "Traceback" not in capfd.readouterr().err
