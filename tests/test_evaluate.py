@@ -152,25 +152,31 @@ def _tiny_policy(tiny_data_dir: Path, out: Path, uri: str) -> Path:
     return Path(objects["policy_path"])
 
 
+def _evaluate_command(tmp_path: Path, *overrides: str) -> tuple[list[str], dict[str, str], Path]:
+    """``python -m generalist_control.evaluate`` with ``overrides``, its environment (the
+    figures' folders made in a temporary directory of the test's own) and that directory."""
+    temp = tmp_path / "temp"
+    temp.mkdir(exist_ok=True)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "TMPDIR": str(temp)}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    return [sys.executable, "-m", "generalist_control.evaluate", *overrides], env, temp
+
+
 @pytest.mark.slow
 def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
     tiny_data_dir, tmp_path, mlflow_uri
 ):
     policy = _tiny_policy(tiny_data_dir, tmp_path, mlflow_uri)
     reports = tmp_path / "reports"
-    temp = tmp_path / "temp"  # the figures' folders are made here, and removed
-    temp.mkdir()
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "TMPDIR": str(temp)}
-    env.pop("MLFLOW_TRACKING_URI", None)
-    cmd = [
-        sys.executable, "-m", "generalist_control.evaluate",
+    cmd, env, temp = _evaluate_command(
+        tmp_path,
         f"policy={policy}",
         f"systems.include=[{','.join(PLANTS)}]",
         f"paths.reports_dir={reports}",
         f"logger.tracking_uri={mlflow_uri}",
         f"logger.experiment_name={tmp_path.name}",
         f"hydra.run.dir={tmp_path / 'hydra'}",
-    ]  # fmt: skip
+    )
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     # the last line is logged, to the terminal and the run's log file, before the fast exit
@@ -231,17 +237,13 @@ def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
 
 
 def test_a_failed_entry_point_says_why_and_leaves_no_figure_folder(tmp_path):
-    temp = tmp_path / "temp"
-    temp.mkdir()
-    env = {**os.environ, "TMPDIR": str(temp)}
-    env.pop("MLFLOW_TRACKING_URI", None)
-    cmd = [
-        sys.executable, "-m", "generalist_control.evaluate",
+    cmd, env, temp = _evaluate_command(
+        tmp_path,
         f"policy={tmp_path / 'missing.ckpt'}",
         f"paths.reports_dir={tmp_path / 'reports'}",
         f"logger.tracking_uri=sqlite:///{tmp_path / 'mlflow.db'}",
         f"hydra.run.dir={tmp_path / 'hydra'}",
-    ]  # fmt: skip
+    )
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 1
     assert f"no policy at '{tmp_path / 'missing.ckpt'}'" in proc.stderr
