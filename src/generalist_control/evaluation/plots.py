@@ -202,15 +202,16 @@ def _grid(runs: Runs, scen: str, out: Path) -> Path:
     return path
 
 
+#: The step and sine sheet of this process (:func:`_sheet`).
+_SHEET: _StepSine | None = None
+
+
 def _sheet() -> _StepSine:
     """The step and sine sheet of this process, built on first use."""
     global _SHEET
     if _SHEET is None:
         _SHEET = _StepSine()
     return _SHEET
-
-
-_SHEET: _StepSine | None = None
 
 
 def warm_up() -> None:
