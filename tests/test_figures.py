@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -115,7 +116,10 @@ def _children(pid: int) -> list[int]:
     return [int(c) for c in path.read_text().split()] if path.exists() else []
 
 
-@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux's /proc")
+@pytest.mark.skipif(
+    not Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children").exists(),
+    reason="needs Linux's /proc/<pid>/task/<tid>/children",
+)
 def test_closing_a_job_while_it_draws_stops_every_drawer(tmp_path, capfd):
     many = [f"plant{i}" for i in range(60)]  # seconds of drawing
     trajs = {"step": {c: {s: _tr(i) for i, s in enumerate(many)} for c in ("GC", "LQI")}}
