@@ -138,3 +138,15 @@ def test_closing_a_job_while_it_draws_stops_every_drawer(tmp_path, capfd):
     assert not job.dir.exists()
     # stopped, not left to fail on the folder that close() removed
     assert "Traceback" not in capfd.readouterr().err
+
+
+def test_an_early_job_whose_process_died_is_replaced_and_its_folder_removed(monkeypatch):
+    monkeypatch.setattr(background, "_early", None)
+    background.start_early()
+    dead = background._early
+    assert dead is not None and dead.proc is not None
+    dead.proc.kill()
+    dead.proc.join()
+    with figures_beside() as job:
+        assert job is not None and job is not dead and job.proc is not None
+        assert job.proc.is_alive() and not dead.dir.exists()

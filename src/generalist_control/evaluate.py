@@ -47,7 +47,6 @@ from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.deploy.resolve import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation import background
-from generalist_control.evaluation.background import figures_beside
 from generalist_control.evaluation.provenance import policy_record, provenance
 from generalist_control.evaluation.runner import run_suite
 from generalist_control.evaluation.setpoint import setpoint_settings
@@ -88,7 +87,7 @@ def _evaluate(
     spec = as_dict(cfg.evaluation.get("setpoint") or {})
     bar = as_dict(cfg.evaluation.get("quality_bar") or {})
     # the figures are drawn in processes of their own while the reports are written
-    with figures_beside(bool(cfg.evaluation.get("plots", True))) as figures:
+    with background.figures_beside(bool(cfg.evaluation.get("plots", True))) as figures:
         ev = run_suite(runtime, plants, scen, cf, setpoint=setpoint_settings(spec, runtime))
         if figures is not None:
             figures.draw(ev.trajectories)

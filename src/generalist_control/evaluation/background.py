@@ -186,7 +186,10 @@ def figures_beside(enabled: bool = True) -> Iterator[FigureJob | None]:
             job.close()
         yield None
         return
-    job = job if job is not None and (job.proc is None or job.proc.is_alive()) else FigureJob()
+    if job is not None and job.proc is not None and not job.proc.is_alive():
+        job.close()  # its drawing process is gone (e.g. killed): its folder goes too
+        job = None
+    job = job if job is not None else FigureJob()
     try:
         yield job
     finally:
