@@ -258,10 +258,7 @@ def test_refuses_bad_recorded_demonstrations(base, tmp_path, edit, match):
     _refused(base, tmp_path, "mass_spring_damper", match, f"demos={path}", error=RecordingError)
 
 
-def test_refuses_the_hybrid_and_a_tag_free_row(tiny_demos, tmp_path):
-    hybrid = _policy(tmp_path, tiny_demos, "hybrid.ckpt", table=1)
-    _refused(hybrid, tmp_path, "mass_spring_damper", "hybrid.*per-tag table.*Retrain with the "
-             "plant", error=RecipeError)  # fmt: skip
+def test_refuses_a_tag_free_row(tiny_demos, tmp_path):
     free = _policy(tmp_path, tiny_demos, "free.ckpt", plant="inferred", models=None)
     _refused(free, tmp_path, "mass_spring_damper", "tag-free.*no row to learn.*Evaluate it "
              "directly: adapt.learn=false", error=RecipeError)  # fmt: skip

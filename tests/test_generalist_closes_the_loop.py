@@ -73,7 +73,6 @@ def test_a_short_training_of_the_default_recipe_closes_the_loop(tmp_path):
     generate(compose_cfg(*DATA, f"paths.data_dir={data}"))
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     cfg = compose_cfg(*tiny_train_overrides(data, tmp_path / "run", uri), *TRAIN)
-    assert "table" not in cfg.model  # the learned generalist, not the hybrid
     _, objects = train(cfg)
     runtime = PolicyRuntime(objects["policy"], objects["datamodule"].meta())
     df, _ = evaluate(runtime, [load_plant(p) for p in PLANTS], SCENARIOS)

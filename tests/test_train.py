@@ -173,7 +173,7 @@ def test_experiment_paper_is_the_baseline():
     assert cfg.data.history == 8 and cfg.data.horizon == 3
     assert cfg.systems.name == "all"
     # the paper's policy sees no error integral and has no linear path
-    assert not cfg.model.channels and "skip" not in cfg.model and "table" not in cfg.model
+    assert not cfg.model.channels and "skip" not in cfg.model
     assert not cfg.model.window_scale and cfg.dagger is None
 
 
@@ -183,9 +183,19 @@ def test_default_recipe_config_composes_the_learned_generalist():
 
     cfg = _cfg([])
     policy = Policy(read_training(cfg).model)
-    # the learned generalist: the integral channel and window scaling, no per-plant table
+    # the learned generalist: the integral channel, window scaling and the shared skip path
     assert policy.channels == ("integral",) and policy.net.window_scale
-    assert policy.net.table is None and policy.net.skip is not None
+    assert policy.net.skip is not None
     assert cfg.dagger.sampler.families == 1 and set(cfg.data.families) >= {"staircase", "hold"}
-    hybrid = Policy(read_training(_cfg(["experiment=lqi_head"])).model)
-    assert hybrid.net.table is not None and hybrid.net.table.samples == 1
+
+
+def test_conf_model_is_instantiated_alone_with_hydra():
+    """`hydra.utils.instantiate(cfg.model)` builds the network; `experts=5` reaches it."""
+    from hydra.utils import instantiate
+
+    from generalist_control.model.network import GeneralistNetwork
+
+    net = instantiate(_cfg(["experts=5", "data.history=6"]).model)
+    assert isinstance(net, GeneralistNetwork)
+    assert net.n_experts == 5 and len(net.experts) == 5 and net.history == 6
+    assert net.horizon == 3 and net.skip is not None and net.n_tags == 25

@@ -8,7 +8,7 @@ loss on :meth:`Policy.output`, and evaluation and deployment call :meth:`Policy.
 A policy file (``models/policy.ckpt``) holds plain types and tensors only, so it loads with
 ``torch.load(path, weights_only=True)``::
 
-    {"format_version": 2, "model": {...the network's config, _target_ and parts...},
+    {"format_version": 3, "model": {...the network's config, _target_ and parts...},
      "state_dict": {...}, "meta": {"tags": {plant: tag}, "orders": {plant: n}, "dt": ...,
      "history": ..., "horizon": ..., "content_hash": "sha256:...", "metrics": {...}, ...}}
 
@@ -28,7 +28,6 @@ from torch import Tensor, nn
 
 from generalist_control.data.windows import Windows
 from generalist_control.model.build import build_network
-from generalist_control.model.linear import linear_features
 from generalist_control.model.meta import check_meta
 from generalist_control.model.normalise import Normaliser
 from generalist_control.model.output import NetOutput
@@ -43,7 +42,8 @@ __all__ = [
     "save_policy",
 ]
 
-POLICY_FORMAT_VERSION = 2
+#: 3: parts marked ``_partial_`` in the network config (2: marked by the loader).
+POLICY_FORMAT_VERSION = 3
 
 #: File name of a policy: ``models/policy.ckpt`` and the MLflow artifact ``policy/policy.ckpt``.
 POLICY_FILE = "policy.ckpt"
@@ -122,36 +122,6 @@ class Policy(nn.Module):
         """
         u, gates = self.normalised(state, mask, ref, tag)
         return self.normaliser.denormalise_controls(u, tag), gates
-
-    @torch.no_grad()
-    def fit_table(
-        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor, target: Tensor
-    ) -> dict[int, float]:
-        """Start the per-tag table at the least-squares fit of ``target``; zero the experts.
-
-        The hybrid's start (``model.table``): per tag, the table's gains solve the
-        ridge-regularised least-squares problem from its features of the windows the
-        network sees to the targets in the units of the loss, and each expert's last layer
-        is zeroed, so the policy starts as exactly that linear law; the experts then learn
-        the remainder.
-
-        Returns
-        -------
-        dict
-            Per tag, the fit's relative RMS residual.
-        """
-        table = self.net.table
-        if table is None:
-            raise ValueError("the policy has no per-tag table (model.table is null)")
-        x, m, r, t, s = self.network_inputs(state, mask, ref, tag)
-        n = self.net.law_history
-        feats = linear_features(self.net.law_state(x[:, -n:], m[:, -n:]), r[:, -n:], table.samples)
-        residuals = table.fit(feats, self.normaliser.normalise_controls(target, tag) / s, t)
-        for expert in self.net.experts:
-            last = expert[-1]  # type: ignore[index]  # an ExpertMLP (nn.Sequential)
-            last.weight.zero_()
-            last.bias.zero_()
-        return residuals
 
     @torch.no_grad()
     def predict_windows(

@@ -86,7 +86,7 @@ def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
 def _module(
     settings: TrainingSettings, dm: DemoDataModule, meta: dict[str, Any], resume: bool
 ) -> ImitationModule:
-    """The Lightning module, its normaliser fitted, a per-tag table started by least squares."""
+    """The Lightning module, its normaliser fitted on the training windows."""
     lit = ImitationModule(
         model=settings.model,
         optimizer=settings.optimizer,
@@ -94,16 +94,6 @@ def _module(
         meta=meta,
     )
     lit.policy.normaliser.fit(**_tensors(dm.train_set))
-    if lit.policy.net.table is not None and not resume:
-        t = _tensors(dm.train_set)
-        residuals = lit.policy.fit_table(t["state"], t["mask"], t["ref"], t["tag"], t["target"])
-        names = {t: n for n, t in dm.tags.items()}
-        worst = max(residuals, key=residuals.__getitem__)
-        log.info(
-            "per-tag table: least-squares start, worst relative residual %.3g (%s)",
-            residuals[worst],
-            names.get(worst, worst),
-        )
     return lit
 
 

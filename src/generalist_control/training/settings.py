@@ -229,16 +229,11 @@ def _optimizer(spec: Any, scheduler: Any, max_epochs: int) -> tuple[dict, dict |
 
 
 def model_config(cfg: DictConfig) -> dict[str, Any]:
-    """The network's config: ``model`` with ``experts`` and the data's window sizes.
-
-    ``experts`` is a top-level key (``experts=5`` works as typed); ``history`` and
-    ``horizon`` come from the data config, so the network always matches its windows.
-    """
+    """The network's config, ``model`` resolved to plain types (``conf/model``)."""
     model = _plain(cfg, "model")
     if not isinstance(model, dict):
         raise ValueError("model must be a network config (conf/model)")
-    keys = {"experts": "experts", "history": "data.history", "horizon": "data.horizon"}
-    return {**model, **{k: _plain(cfg, key) for k, key in keys.items()}}
+    return model
 
 
 def read_training(cfg: DictConfig) -> TrainingSettings:
