@@ -13,6 +13,19 @@ def compose_cfg(*overrides: str, config: str = "config"):
         return compose(config, overrides=list(overrides))
 
 
+def config_section(cls, key: str, **changes):
+    """The settings dataclass ``cls`` read from the default config's section ``key``, with
+    ``changes`` (the defaults live in conf/ only)."""
+    import dataclasses
+
+    from omegaconf import OmegaConf
+
+    from generalist_control.common.settings import read_section
+
+    node = OmegaConf.to_container(OmegaConf.select(compose_cfg(), key), resolve=True)
+    return dataclasses.replace(read_section(cls, node, key), **changes)
+
+
 #: The tiny data config: eight step amplitudes, 2 s (40 samples) per trajectory.
 TINY_DATA = {
     "history": 8,
@@ -186,3 +199,11 @@ def build_net(**kwargs):
     from generalist_control.model.build import build_network
 
     return build_network(net_config(**kwargs))
+
+
+def train(cfg):
+    """Train as ``python train.py`` does: the config read once, then the work."""
+    from generalist_control.training.fit import train as fit
+    from generalist_control.training.settings import read_training
+
+    return fit(read_training(cfg))

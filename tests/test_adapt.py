@@ -326,7 +326,7 @@ def _unit_step_errors(policy_path, plant_name: str) -> tuple[float, bool]:
 @pytest.mark.slow
 def test_adapted_tiny_policy_closes_the_loop(tiny_data_dir, tmp_path, mlflow_uri):
     """Tiny: a policy trained 15 epochs on cstr and hydraulic_actuator, adapted to a third."""
-    from generalist_control.training.fit import train
+    from helpers import train
 
     out = tmp_path / "train"
     over = tiny_train_overrides(tiny_data_dir, out, mlflow_uri, "trainer.max_epochs=15",
@@ -348,7 +348,7 @@ def test_adapted_tiny_policy_closes_the_loop(tiny_data_dir, tmp_path, mlflow_uri
 @pytest.mark.slow
 def test_command_line_adapts_a_registered_version(tiny_data_dir, tmp_path, mlflow_uri):
     """`python adapt.py plant=... policy=models:/<name>/1`: version 2, tagged with its base."""
-    from generalist_control.training.fit import train
+    from helpers import train
 
     name = f"tiny-{tmp_path.name}"
     over = tiny_train_overrides(tiny_data_dir, tmp_path / "train", mlflow_uri,

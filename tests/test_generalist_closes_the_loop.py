@@ -16,8 +16,7 @@ from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.summary import summarise
 from generalist_control.generate import run as generate
 from generalist_control.plants.catalog import load_plant
-from generalist_control.training.fit import train
-from helpers import compose_cfg, tiny_train_overrides
+from helpers import compose_cfg, tiny_train_overrides, train
 
 PLANTS = ("cstr", "hydraulic_actuator")
 DATA = (

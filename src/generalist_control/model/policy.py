@@ -18,6 +18,7 @@ refuses anything else with :class:`PolicyFileError`, naming the file and how to 
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,7 @@ __all__ = [
     "Policy",
     "PolicyFileError",
     "load_policy",
+    "policy_sha256",
     "save_policy",
 ]
 
@@ -161,6 +163,11 @@ def save_policy(path: str | Path, policy: Policy, meta: dict[str, Any]) -> Path:
     torch.save(blob, tmp)
     tmp.replace(path)
     return path
+
+
+def policy_sha256(path: str | Path) -> str:
+    """``sha256:<hex>`` of a policy file's bytes: its identity (same weights, same bytes)."""
+    return "sha256:" + hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def _read(path: Path, map_location: str | torch.device) -> dict[str, Any]:
