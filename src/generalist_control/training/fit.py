@@ -33,7 +33,7 @@ from omegaconf import DictConfig
 
 from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.secrets import redact
-from generalist_control.deploy.facts import integral_facts
+from generalist_control.deploy.integral_facts import integral_facts
 from generalist_control.model.network import count_parameters
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy, save_policy
 from generalist_control.tracking import training_run
