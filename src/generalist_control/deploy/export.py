@@ -24,7 +24,6 @@ import torch
 from generalist_control.deploy.onnx_affine import fold_affine
 from generalist_control.deploy.onnx_graph import (
     Graph,
-    drop_trivial,
     einsum_to_matmul,
     fold_constants,
     freeze,
@@ -145,7 +144,7 @@ def plant_model(batch_one: onnx.ModelProto, fixed: dict[str, np.ndarray]) -> byt
     """
     graph = freeze(Graph.from_model(batch_one), fixed)
     graph.outputs = [o for o in graph.outputs if o.name == "controls"]
-    graph = fold_constants(prune(drop_trivial(fold_constants(graph))))
+    graph = prune(fold_constants(graph))
     graph = tidy_reshapes(fold_affine(prune(einsum_to_matmul(graph))))
     return prune(fold_constants(graph)).to_model().SerializeToString()
 

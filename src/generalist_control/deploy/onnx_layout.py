@@ -1,16 +1,8 @@
 """Fewer reshapes in a static-shape ONNX graph: each one is a node ONNX Runtime runs.
 
-:func:`tidy_reshapes` rewrites, until nothing changes:
-
-* a ``Squeeze``, ``Unsqueeze``, ``Flatten``, or a ``Transpose`` that moves only axes of
-  size one, as the ``Reshape`` it is (to its static shape);
-* a reshape of a reshape as one reshape, and a reshape to its input's own shape as nothing;
-* an elementwise function of a reshape as the reshape of the function (so that reshapes
-  meet, and cancel, further down);
-* a ``Concat`` along the last axis of tensors reshaped alike as the reshape of the
-  ``Concat`` of the tensors.
-
-None of these changes a value: they move elements, never compute them.
+:func:`tidy_reshapes` writes reshape-like nodes as static ``Reshape``, merges chains of them,
+drops those to their input's own shape, and moves them past elementwise nodes and last-axis
+``Concat`` so that they meet and cancel. None of this computes a value: it moves elements.
 """
 
 from __future__ import annotations
