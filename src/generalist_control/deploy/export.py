@@ -1,13 +1,12 @@
 """Backends of a trained policy: eager PyTorch, TorchScript and ONNX Runtime.
 
 A backend maps raw float32 windows (the window builder's arrays) to the ``horizon`` controls
-in plant units, for any batch: ``backend(state, mask, ref, tag)``; and, for one plant stepped
-alone, ``backend.plant(tag, mask)(state, ref)``. With ONNX Runtime the latter is the policy's
-own batch-1 export with that plant's tag and mask made constants, which ONNX Runtime's
-optimiser folds (the plant's code, scales and gains are computed once, not every step); its
-controls agree with the batch session's to float32 rounding (tests/test_runtime_single.py).
-Exports are traced from the :class:`~generalist_control.model.policy.Policy` (normaliser
-included) and built in memory; :func:`export_onnx` and :func:`export_torchscript` write files.
+in plant units, for any batch, ``backend(state, mask, ref, tag)``, and for one plant stepped
+alone, ``backend.plant(tag, mask)(state, ref)``. With ONNX Runtime the latter runs the
+policy's own batch-1 export with the plant's tag and mask made constants and the graph
+shrunk (:func:`plant_model`): the batch session's controls, bit for bit, in a third of its
+time. Exports are traced from the :class:`~generalist_control.model.policy.Policy`
+(normaliser included) in memory; :func:`export_onnx` and :func:`export_torchscript` write files.
 """
 
 from __future__ import annotations

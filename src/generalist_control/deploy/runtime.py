@@ -139,10 +139,10 @@ class PolicyRuntime:
         return sorted(self.tags)
 
     def _plants(self, system: Any) -> tuple[list[str], bool]:
-        """The plants ``reset`` starts: ``(names, single)``; refuses what names none it knows.
+        """The plants ``reset(system)`` starts, ``(names, single)``: the one place that reads it.
 
         ``system``: a plant's name (one plant stepped alone, unpadded states) or a list of
-        names (a batch, zero-padded states).
+        names (a batch, zero-padded states); anything else is refused naming the known plants.
         """
         single = isinstance(system, str)
         items = [system] if single else system
@@ -169,7 +169,18 @@ class PolicyRuntime:
 
     @_one_thread
     def reset(self, system: str | Sequence[str]) -> None:
-        """Start a new run on ``system`` (a name) or a batch of runs (a list of names)."""
+        """Start a new run on ``system`` (a name) or a batch of runs (a list of names).
+
+        Raises
+        ------
+        TypeError
+            If ``system`` is not a name or a list of names (e.g. None, a number).
+        KeyError
+            If a name is not one of the policy's plants (:attr:`systems`).
+        ValueError
+            If the list is empty, or actuator limits are known and a plant's integral
+            direction is not.
+        """
         names, single = self._plants(system)
         limited = self.limits is not None and self.integral
         direction = self._facts.directions_of(names) if limited else None
@@ -244,12 +255,6 @@ class PolicyRuntime:
         """The newest window ``(state, mask, ref, tag)`` the policy saw (after a step)."""
         b = self._buffer
         return b.state, b.mask, b.ref, self._tag
-
-    def run_window(
-        self, state: np.ndarray, mask: np.ndarray, ref: np.ndarray, tag: np.ndarray
-    ) -> np.ndarray:
-        """The backend's controls (B, horizon) for raw windows (no history bookkeeping)."""
-        return self._run(state, mask, ref, tag)
 
     @_one_thread
     def set_actuator_limits(
