@@ -42,7 +42,7 @@ INPUT_LIMIT = 1e3
 _F = TypeVar("_F", bound=Callable[..., Any])
 
 
-def _busy(method: str) -> RuntimeError:
+def _busy_error(method: str) -> RuntimeError:
     return RuntimeError(
         f"PolicyRuntime.{method}: another thread is inside this runtime. A runtime holds one "
         "control loop's state (history, error integral, last control) and serves one thread "
@@ -57,7 +57,7 @@ def _one_thread(method: _F) -> _F:
     @functools.wraps(method)
     def guarded(self: PolicyRuntime, *args: Any, **kwargs: Any) -> Any:
         if not self._busy.acquire(blocking=False):
-            raise _busy(method.__name__)
+            raise _busy_error(method.__name__)
         try:
             return method(self, *args, **kwargs)
         finally:
@@ -340,7 +340,7 @@ class PolicyRuntime:
             If an input is complex.
         """
         if not self._busy.acquire(blocking=False):  # as _one_thread, inline: per sample
-            raise _busy("step")
+            raise _busy_error("step")
         try:  # one plant: the same step on Python numbers, if nothing is unusual
             fast = None if self._one is None else self._one.step(x, r, y)
             return self._step(x, r, y) if fast is None else fast
