@@ -12,7 +12,6 @@ from __future__ import annotations
 import atexit
 import json
 import logging
-import os
 from collections.abc import Sequence
 from typing import Any
 
@@ -28,30 +27,15 @@ from generalist_control.tracking import mlflow_utils
 from generalist_control.tracking.experiments import experiment_name
 from generalist_control.tracking.parents import (
     create_parent_run,
+    export_parent,
     named_parent,
+    restore_parent,
     summarise_children,
 )
 
 __all__ = ["MLflowSweepCallback", "sweep_overrides"]
 
 log = logging.getLogger(__name__)
-
-_ENV_KEYS = (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV)
-
-
-def _set_env(values: Sequence[str]) -> dict[str, str | None]:
-    """Set the parent's variables; return their previous values."""
-    saved = {k: os.environ.get(k) for k in _ENV_KEYS}
-    os.environ.update(dict(zip(_ENV_KEYS, values, strict=True)))
-    return saved
-
-
-def _restore_env(saved: dict[str, str | None]) -> None:
-    for key, value in saved.items():
-        if value is None:
-            os.environ.pop(key, None)
-        else:
-            os.environ[key] = value
 
 
 def sweep_overrides(overrides: Sequence[str]) -> list[str]:
@@ -126,7 +110,7 @@ class MLflowSweepCallback(Callback):
         self._parent_name = name
         self._tracking_uri = mlflow.get_tracking_uri()
         self._failed = 0
-        self._saved_env = _set_env((self.run_id, name))
+        self._saved_env = export_parent(self.run_id, name)
         # A failed job or a signal makes Hydra raise before on_multirun_end: end it at exit.
         atexit.register(self._end_at_exit)
         self._stops = stop_signals.install()
@@ -144,12 +128,12 @@ class MLflowSweepCallback(Callback):
     def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
         """Export the parent to this job, in whichever process the launcher runs it."""
         if self.run_id and self._parent_name and self._active(config):
-            self._job_env = _set_env((self.run_id, self._parent_name))
+            self._job_env = export_parent(self.run_id, self._parent_name)
 
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
         """Count the failed jobs (the parent then ends ``FAILED``); restore the environment."""
         if self._job_env is not None:
-            _restore_env(self._job_env)
+            restore_parent(self._job_env)
             self._job_env = None
         if self.run_id and job_return.status == JobStatus.FAILED:
             self._failed += 1
@@ -186,7 +170,7 @@ class MLflowSweepCallback(Callback):
         atexit.unregister(self._end_at_exit)
         if self._stops:
             stop_signals.restore()
-        _restore_env(self._saved_env)
+        restore_parent(self._saved_env)
         self._parent_name = None
         if self._tracking_uri:
             mlflow.set_tracking_uri(self._tracking_uri)
