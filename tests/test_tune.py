@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 
 import mlflow
@@ -370,3 +373,69 @@ def test_fit_pruning_reports_during_the_fit_only():
     trainer.callback_metrics = {"val/los": torch.tensor(1.0)}
     with pytest.raises(KeyError, match=r"'val/loss' \(hparams_search\.monitor\); logged: val/los"):
         callback.on_validation_end(trainer, module)
+
+
+# ------------------------------------------------------------------------------- dashboard
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _get(url: str) -> dict:
+    with urllib.request.urlopen(url, timeout=10) as answer:
+        return json.load(answer)
+
+
+def test_the_dashboard_command_serves_the_studys_trials(tmp_path):
+    """The README's ``optuna-dashboard <storage>``: the configured storage, served headless."""
+    line = next(
+        x for x in (REPO / "README.md").read_text().splitlines() if "optuna-dashboard" in x
+    )
+    command = line.split("#")[0].split()
+    storage = compose_cfg(config="tune").hparams_search.storage
+    assert command == ["optuna-dashboard", storage]  # the study tune.py writes by default
+    url = f"sqlite:///{tmp_path / 'optuna.db'}"
+    study = optuna.create_study(study_name="tiny", storage=url)
+    for hidden in (8, 16, 32):
+        study.enqueue_trial({"model.hidden": hidden})
+    study.optimize(lambda t: t.suggest_categorical("model.hidden", [8, 16, 32]) / 8, n_trials=3)
+    port = _free_port()
+    env = {**os.environ, "HOME": str(tmp_path)}  # gunicorn's control socket goes there
+    server = subprocess.Popen(
+        [str(Path(sys.executable).parent / command[0]), url, "--host", "127.0.0.1",
+         "--port", str(port)],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True,
+    )  # fmt: skip
+    base = f"http://127.0.0.1:{port}/api/studies"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            assert server.poll() is None, server.communicate()[0][-3000:]
+            try:
+                summaries = _get(base)["study_summaries"]
+                break
+            except OSError:
+                assert time.monotonic() < deadline, "the dashboard did not answer in 60 s"
+                time.sleep(0.5)
+        (summary,) = summaries
+        assert summary["study_name"] == "tiny"
+        trials = _get(f"{base}/{summary['study_id']}")["trials"]
+        served = [
+            (t["number"], t["state"], t["values"], [(p["name"], p["param_external_value"])
+                                                    for p in t["params"]])
+            for t in trials
+        ]  # fmt: skip
+        assert served == [
+            (0, "Complete", [1.0], [("model.hidden", "8")]),
+            (1, "Complete", [2.0], [("model.hidden", "16")]),
+            (2, "Complete", [4.0], [("model.hidden", "32")]),
+        ]
+    finally:
+        os.killpg(server.pid, signal.SIGTERM)
+        server.communicate(timeout=30)
+    left = subprocess.run(
+        ["ps", "-o", "pid=", "-s", str(server.pid)], capture_output=True, text=True
+    )
+    assert left.stdout.split() == []  # gunicorn's worker went with it
