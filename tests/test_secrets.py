@@ -22,10 +22,12 @@ import mlflow
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.utils import JobReturn, JobStatus
+from omegaconf import OmegaConf
 
 from generalist_control.common.hydra_redact import RedactSecrets, redact_log_records
 from generalist_control.common.paths import conf_dir
 from generalist_control.common.secrets import RedactedError, redact, redact_exception
+from generalist_control.sweeps.hydra_callback import MLflowSweepCallback
 from generalist_control.tracking import mlflow_utils, parents, training_run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -187,6 +189,38 @@ def test_a_credential_in_a_run_name_is_masked(tmp_path, mlflow_uri, kind):
     run_id = OPENERS[kind](logger)
     run = mlflow.MlflowClient(mlflow_uri).get_run(run_id)
     assert run.info.run_name == "d32?token=***"
+    assert all(SECRET not in v for v in run.data.tags.values())
+
+
+def test_a_sweeps_parent_run_holds_no_password(tmp_path, mlflow_uri):
+    """The parent's name and tags carry the overrides as Hydra renders them (escaped)."""
+    cfg = OmegaConf.create(
+        {
+            "hydra": {
+                "job": {"name": "train"},
+                "overrides": {
+                    "task": [
+                        "model.hidden=8,16",
+                        f"logger.tracking_uri=http\\://u\\:pa/{SECRET}@h/?token\\={SECRET}",
+                        f"+note='http://u:p@{SECRET}@h/','u:p@{SECRET}@h'",  # swept too
+                    ]
+                },
+                "sweep": {"dir": str(tmp_path)},
+            },
+            "logger": {
+                "tracking_uri": mlflow_uri,
+                "experiment_name": tmp_path.name,
+                "artifact_location": str(tmp_path / "mlruns"),
+            },
+            "optimized_metric": "val/loss",
+        }
+    )
+    callback = MLflowSweepCallback()
+    callback.on_multirun_start(cfg)
+    run = mlflow.MlflowClient(mlflow_uri).get_run(callback.run_id)
+    callback.on_multirun_end(cfg)
+    assert "***" in run.info.run_name and SECRET not in run.info.run_name
+    assert "***" in run.data.tags["sweep.overrides"]
     assert all(SECRET not in v for v in run.data.tags.values())
 
 
