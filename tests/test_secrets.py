@@ -274,7 +274,7 @@ def test_evaluate_masks_an_error_raised_inside_mlflow(tmp_path):
     assert "RedactedError: mlflow.exceptions.MlflowException" in out
 
 
-@pytest.mark.parametrize("launcher", ["basic", "joblib"])
+@pytest.mark.parametrize("launcher", ["basic", pytest.param("joblib", marks=pytest.mark.slow)])
 def test_a_multirun_prints_and_saves_no_password(tmp_path, tiny_data_dir, launcher):
     """Hydra's own ``#0 : <overrides>`` lines, the jobs' and the sweep's saved configs."""
     uri = f"http://user:pa/{SECRET}@127.0.0.1:9/?token\\={SECRET}"
