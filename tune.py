@@ -1,4 +1,4 @@
-"""``python tune.py [overrides]``: the Optuna study (:mod:`generalist_control.tune`, docs/sweeps.md)."""
+"""``python tune.py [overrides]``: the Optuna study (generalist_control.tune, docs/sweeps.md)."""
 
 from generalist_control.tune import main
 
