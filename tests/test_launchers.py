@@ -25,9 +25,8 @@ from hydra.core.utils import JobReturn, JobStatus
 from omegaconf import OmegaConf
 
 from generalist_control.common.paths import conf_dir
-from generalist_control.sweeps.hydra_callback import MLflowSweepCallback
 from generalist_control.tracking import mlflow_utils, parents
-from helpers import quick_overrides
+from helpers import quick_overrides, sweep_callback
 
 REPO = Path(__file__).resolve().parents[1]
 ENV_KEYS = (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV)
@@ -169,7 +168,7 @@ def test_the_parent_reaches_a_job_whose_process_did_not_inherit_it(
     for key in ENV_KEYS:
         monkeypatch.delenv(key, raising=False)
     cfg = _cfg(tmp_path, mlflow_uri)
-    callback = MLflowSweepCallback()
+    callback = sweep_callback()
     callback.on_multirun_start(cfg)
     parent_id = callback.run_id
     shipped = pickle.dumps(callback)  # as Hydra's launchers ship the callbacks to a job
@@ -193,7 +192,7 @@ def test_a_group_files_separate_single_runs_under_one_parent(tmp_path, mlflow_ur
     cfg = _cfg(tmp_path, mlflow_uri)
     ids = []
     for _ in range(2):  # two commands, e.g. two DVC stages
-        callback = MLflowSweepCallback(group="ablation:default")
+        callback = sweep_callback(group="ablation:default")
         callback.on_run_start(cfg)
         callback.on_job_start(cfg)
         ids.append(os.environ[mlflow_utils.PARENT_RUN_ENV])
@@ -207,7 +206,7 @@ def test_a_group_files_separate_single_runs_under_one_parent(tmp_path, mlflow_ur
     assert parent.data.tags["gc.role"] == "group"
     assert mlflow.get_experiment(parent.info.experiment_id).name == tmp_path.name
     # a multirun ignores the group: its own parent, named after the sweep
-    sweep = MLflowSweepCallback(group="ablation:default")
+    sweep = sweep_callback(group="ablation:default")
     sweep.on_multirun_start(cfg)
     assert sweep.run_id != ids[0]
     sweep.on_multirun_end(cfg)

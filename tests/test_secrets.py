@@ -27,8 +27,8 @@ from omegaconf import OmegaConf
 from generalist_control.common.hydra_redact import RedactSecrets, redact_log_records
 from generalist_control.common.paths import conf_dir
 from generalist_control.common.secrets import RedactedError, redact, redact_exception
-from generalist_control.sweeps.hydra_callback import MLflowSweepCallback
 from generalist_control.tracking import mlflow_utils, parents, training_run
+from helpers import sweep_callback
 
 REPO = Path(__file__).resolve().parents[1]
 SECRET = "Zq7-s3cr3t-PW"  # found nowhere else in the project's output
@@ -215,7 +215,7 @@ def test_a_sweeps_parent_run_holds_no_password(tmp_path, mlflow_uri):
             "optimized_metric": "val/loss",
         }
     )
-    callback = MLflowSweepCallback()
+    callback = sweep_callback()
     callback.on_multirun_start(cfg)
     run = mlflow.MlflowClient(mlflow_uri).get_run(callback.run_id)
     callback.on_multirun_end(cfg)

@@ -14,10 +14,10 @@ import pytest
 from hydra.core.utils import JobReturn, JobStatus
 from omegaconf import OmegaConf
 
-from generalist_control.sweeps.hydra_callback import MLflowSweepCallback, sweep_overrides
+from generalist_control.sweeps.hydra_callback import sweep_overrides
 from generalist_control.sweeps.stop_signals import Stopped
 from generalist_control.tracking import mlflow_utils
-from helpers import quick_overrides
+from helpers import quick_overrides, sweep_callback
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -100,7 +100,7 @@ def test_sweep_callback_parents_runs_and_ends_failed_on_a_failed_job(
     for key in (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV):
         monkeypatch.delenv(key, raising=False)
     cfg = _sweep_config(tmp_path, mlflow_uri)
-    callback = MLflowSweepCallback()
+    callback = sweep_callback()
     callback.on_multirun_start(cfg)
     parent_id = callback.run_id
     assert os.environ[mlflow_utils.PARENT_RUN_ENV] == parent_id
@@ -126,7 +126,7 @@ def test_sweep_callback_parents_runs_and_ends_failed_on_a_failed_job(
 
 
 def test_sweep_callback_ignores_other_entry_points(tmp_path, mlflow_uri):
-    callback = MLflowSweepCallback(jobs=["train"])
+    callback = sweep_callback(jobs=["train"])
     callback.on_multirun_start(_sweep_config(tmp_path, mlflow_uri, job="generate"))
     assert callback.run_id is None
     assert mlflow_utils.PARENT_RUN_ENV not in os.environ
@@ -142,7 +142,7 @@ def test_a_signal_stops_the_sweep_and_ends_its_parent_killed(tmp_path, mlflow_ur
     the runs of its jobs whose process is gone KILLED at exit, the handlers restored."""
     before = signal.getsignal(signal.SIGTERM)
     cfg = _sweep_config(tmp_path, mlflow_uri)
-    callback = MLflowSweepCallback()
+    callback = sweep_callback()
     callback.on_multirun_start(cfg)
     client = mlflow.MlflowClient()
     exp_id = client.get_run(callback.run_id).info.experiment_id

@@ -53,28 +53,20 @@ def sweep_overrides(overrides: Sequence[str]) -> list[str]:
 class MLflowSweepCallback(Callback):
     """Hydra callback: one MLflow parent run per multirun of the training.
 
-    Parameters
+    Parameters (``hydra.callbacks.mlflow_sweep`` in ``conf/hydra_settings.yaml``)
     ----------
     jobs : sequence of str
         Hydra job names (``hydra.job.name``) whose multiruns are grouped; other entry points
-        sharing ``conf/config.yaml`` (``generate``, ``evaluate``) log no MLflow runs and get
-        no parent.
-    name : str, optional
-        The parent run's name and the children's ``sweep`` tag; default ``sweep:`` followed
-        by the sweeping overrides, e.g. ``sweep:model.hidden=16,32,64``.
-    group : str, optional
+        (``generate``, ``evaluate``) log no training runs and get no parent.
+    name : str or None
+        The parent run's name and the children's ``sweep`` tag; None: ``sweep:`` followed by
+        the sweeping overrides, e.g. ``sweep:model.hidden=16,32,64``.
+    group : str or None
         A single run (no ``-m``) is filed under the parent run of this name in its
         experiment, made if missing (e.g. ``ablation:default``); a multirun ignores it.
-
-    Each job of a multirun writes its model to ``<its output dir>/models`` unless
-    ``paths.models_dir`` is on the command line
-    (:func:`generalist_control.training.outputs.job_models_dir`),
-    so the jobs overwrite neither each other's model nor the DVC output ``models/``.
     """
 
-    def __init__(
-        self, jobs: Sequence[str] = ("train",), name: str | None = None, group: str | None = None
-    ) -> None:
+    def __init__(self, *, jobs: Sequence[str], name: str | None, group: str | None) -> None:
         self.jobs = tuple(jobs)
         self.name = name
         self.group = group
