@@ -26,6 +26,15 @@ def config_section(cls, key: str, **changes):
     return dataclasses.replace(read_section(cls, node, key), **changes)
 
 
+def sweep_callback(**changes):
+    """The Hydra callback ``hydra.callbacks.mlflow_sweep`` as configured, with ``changes``."""
+    from hydra.utils import instantiate
+
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        node = compose("config", return_hydra_config=True).hydra.callbacks.mlflow_sweep
+    return instantiate(node, **changes)
+
+
 #: The tiny data config: eight step amplitudes, 2 s (40 samples) per trajectory.
 TINY_DATA = {
     "history": 8,
