@@ -50,6 +50,8 @@ class TagEmbedding(nn.Module):
 
     #: Window channels the part reads (see ``GeneralistNetwork.channels``).
     needs: tuple[str, ...] = ()
+    #: The code is the tag's row: a new plant needs a row of its own (``adapt``).
+    reads_tag = True
     #: Size of what it adds to a context skip's summary.
     summary_size = 0
 
@@ -94,6 +96,8 @@ class InferredPlant(nn.Module):
     """
 
     needs: tuple[str, ...] = ("previous_control",)
+    #: The tag is a training label only: a new plant needs no row (``adapt``).
+    reads_tag = False
 
     def __init__(
         self,
