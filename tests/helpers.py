@@ -213,10 +213,13 @@ def untrained_policy(tmp, tiny_demos, name: str = "base.ckpt", **kind):
 
 def adapt_request(policy, run_dir, uri: str, plant: str = "mass_spring_damper", *extra: str):
     """The adapt command's settings as its entry point reads them: conf/adapt.yaml composed."""
+    from pathlib import Path
+
     from omegaconf import OmegaConf
 
     from generalist_control.adaptation.request import read_request
 
-    cfg = compose_cfg(f"plant={plant}", f"policy={policy}", f"logger.tracking_uri={uri}",
+    where = f"logger.artifact_location={Path(run_dir).parent / 'mlruns'}"  # a new experiment's
+    cfg = compose_cfg(f"plant={plant}", f"policy={policy}", f"logger.tracking_uri={uri}", where,
                       *TINY_ADAPT, *extra, config="adapt")  # fmt: skip
     return read_request(OmegaConf.to_container(cfg, resolve=True), run_dir)

@@ -150,6 +150,7 @@ def test_an_interrupted_publish_leaves_no_run_folder_and_ends_the_run_killed(
 def _command(base: Path, tmp_path: Path, uri: str, plant: str) -> list[str]:
     overrides = [f"plant={plant}", f"policy={base}", f"run_dir={tmp_path / 'run'}",
                  f"logger.tracking_uri={uri}", f"hydra.run.dir={tmp_path / 'hydra'}",
+                 f"logger.artifact_location={tmp_path / 'mlruns'}",
                  "adapt.rounds=0", *TINY_ADAPT]  # fmt: skip
     return [sys.executable, "adapt.py", *overrides]
 
