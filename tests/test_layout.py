@@ -28,13 +28,13 @@ LAYERS = [
     {"model"},
     {"deploy"},
     {"tracking"},
-    {"training", "evaluation"},
+    {"training", "evaluation", "adaptation"},
     {"reports", "sweeps"},
     # entry points
     {"generate", "train", "evaluate", "report", "tune", "sweep", "adapt", "unseen"},
 ]
 #: Sibling packages of one layer that must not import each other.
-SEPARATE = [{"training", "evaluation"}, {"reports", "sweeps"}]
+SEPARATE = [{"training", "evaluation"}, {"adaptation", "evaluation"}, {"reports", "sweeps"}]
 #: Heavy, optional dependencies that may be imported inside a function (matplotlib: the
 #: evaluation draws its figures in a process of its own and keeps it out of its imports;
 #: mlflow: a second of imports that a command which logs nothing, e.g. evaluate's main

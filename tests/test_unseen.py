@@ -18,8 +18,8 @@ import yaml
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import available_plants, load_plant
 from generalist_control.reports.held_out import POLICIES, judge, plant_class
-from generalist_control.training.setup import included_plants
-from helpers import compose_cfg, tiny_train_overrides
+from generalist_control.training.settings import read_training
+from helpers import compose_cfg, tiny_train_overrides, untrained_policy
 
 REPO = Path(__file__).resolve().parents[1]
 STAGE = yaml.safe_load((REPO / "beyond" / "dvc.yaml").read_text())["stages"]["unseen"]
@@ -58,11 +58,30 @@ def test_the_held_out_plants_span_the_classes_and_each_class_stays_in_training()
 
 def test_held_out_plants_are_left_out_of_training():
     cfg = compose_cfg("systems.include=[cstr,hydraulic_actuator]", "held_out=[cstr]")
-    assert included_plants(cfg) == ["hydraulic_actuator"]
+    assert read_training(cfg).trained_names == ["hydraulic_actuator"]
     with pytest.raises(ValueError, match=r"held_out names \['nowhere'\].*does not hold"):
-        included_plants(compose_cfg("held_out=[nowhere]"))
+        read_training(compose_cfg("held_out=[nowhere]"))
     with pytest.raises(ValueError, match="leaves no plant of the set to train on"):
-        included_plants(compose_cfg("systems.include=[cstr]", "held_out=[cstr]"))
+        read_training(compose_cfg("systems.include=[cstr]", "held_out=[cstr]"))
+
+
+def test_a_held_out_typo_is_refused_before_anything_is_adapted(tiny_demos, tmp_path):
+    """The three policies in place: the typo is named before the first plant is adapted."""
+    from generalist_control.unseen import run
+
+    for folder in ("default", "tag_free", "with"):
+        (tmp_path / "models" / folder).mkdir(parents=True)
+        untrained_policy(tmp_path / "models" / folder, tiny_demos, "policy.ckpt")
+    cfg = compose_cfg(
+        "held_out=[damped_oscillator,nosuchplant]", f"unseen.models={tmp_path / 'models'}",
+        f"unseen.trained_with={tmp_path / 'models/with/policy.ckpt'}",
+        f"logger.tracking_uri=sqlite:///{tmp_path / 'mlflow.db'}", "logger.log_model=false",
+        f"paths.reports_dir={tmp_path / 'reports'}", config="unseen",
+    )  # fmt: skip
+    with pytest.raises(ValueError, match=r"held_out names \['nosuchplant'\].*known: auv_yaw"):
+        run(cfg)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["models"]
+    assert not (tmp_path / "models" / "adapted").exists()
 
 
 def _commands() -> list[list[str]]:

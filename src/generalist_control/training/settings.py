@@ -31,9 +31,7 @@ from generalist_control.plants.plant import Plant
 from generalist_control.plants.variants import variant_range
 
 __all__ = [
-    "INITS",
     "ActuatorSettings",
-    "AdaptSettings",
     "ClosedLoopSettings",
     "ClosedLoopValSettings",
     "DaggerSettings",
@@ -178,41 +176,6 @@ class RolloutData:
     families: dict[str, dict[str, Any]]  #: the enabled ``data.families``
     variant_range: float  #: ``data.variants.range``: fresh variants' half-width
     variant_tries: int  #: ``data.variants.max_tries``
-
-
-#: Where a new plant's row starts (``adapt.init``).
-INITS = ("nearest", "mean")
-
-
-@dataclass(frozen=True)
-class AdaptSettings:
-    """``adapt``: how a new plant's row is learned (``python -m generalist_control.adapt``)."""
-
-    learn: bool = True  #: false: name the plant only (its scales and start row)
-    init: str = "nearest"  #: the row's start: nearest (a trained row) or mean
-    epochs: int = 20  #: passes over the windows, first and after each round
-    lr: float = 1.0e-2
-    batch_size: int = 512
-    rounds: int = 3  #: DAgger rounds on the plant (generated demonstrations only)
-    beta: float = 0.5  #: the expert's share in round 0 ...
-    beta_decay: float = 0.5  #: ... times this per round
-    unfreeze: tuple[str, ...] = ()  #: parameters learned beside the row, by name prefix
-
-    def __post_init__(self) -> None:
-        if self.init not in INITS:
-            raise SettingError("init", f"must be one of {list(INITS)}, got {self.init!r}")
-        for name in ("epochs", "rounds"):
-            if getattr(self, name) < 0:
-                raise SettingError(name, f"must be >= 0, got {getattr(self, name)}")
-        if self.batch_size < 1:
-            raise SettingError("batch_size", f"must be >= 1, got {self.batch_size}")
-        positive("lr", self.lr)
-        unit_interval("beta", self.beta)
-        unit_interval("beta_decay", self.beta_decay)
-
-    def beta_at(self, round_index: int) -> float:
-        """The expert's share in round ``round_index`` (0-based)."""
-        return self.beta * self.beta_decay**round_index
 
 
 @dataclass(frozen=True)
