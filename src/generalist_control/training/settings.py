@@ -272,10 +272,8 @@ def _run_dir(cfg: DictConfig) -> Path:
 def _models_dir(cfg: DictConfig, run_dir: Path) -> Path:
     """Where the run writes ``policy.ckpt`` and ``metrics.json``.
 
-    ``paths.published_dir`` (``models/``, the DVC stage's output and evaluate's default) is
-    written only by a run that publishes (``publish=true``: ``dvc repro train``). Any other
-    run writes to ``paths.models_dir`` when that is another folder (e.g. an Optuna trial's
-    own), else to ``<run_dir>/models``.
+    ``paths.published_dir`` only when it publishes (``publish=true``: the DVC stage); else
+    ``paths.models_dir`` if that is another folder (an Optuna trial's), else ``<run_dir>/models``.
     """
     published = _plain(cfg, "paths.published_dir")
     models_dir = Path(str(_plain(cfg, "paths.models_dir")))
@@ -310,10 +308,8 @@ def read_training(cfg: DictConfig) -> TrainingSettings:
     Raises
     ------
     ValueError
-        Naming the key: a value of the wrong type or out of range, an unknown key, an
-        optimiser that refuses its settings, sections that do not fit together (``monitor:
-        val/closed_loop`` without ``closed_loop_val``), ``held_out`` or ``systems.include``
-        naming a plant the set does not hold.
+        Naming the key: a wrong type or range, an unknown key, an optimiser that refuses its
+        settings, sections that do not fit together, a plant the set does not hold.
     """
     max_epochs = require_int("trainer.max_epochs", _plain(cfg, "trainer.max_epochs"))
     monitor = _plain(cfg, "monitor")
