@@ -2,26 +2,26 @@
 
 ``systems.include=[]`` is refused (it named every plant); ``evaluation.variants.range`` must
 be a number in (0, 1) (5 drew sign-flipped variants, 0 became 0.25); ``summary.json`` says
-which policy it describes; an Optuna study name must be a plain name (``../x`` wrote its
-trials outside the project).
+which policy it describes, the same way each time; an Optuna study name must be a plain name
+(``../x`` wrote its trials outside the project).
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
 from generalist_control.data.variants import variants_config
 from generalist_control.evaluate import run as evaluate_run
-from generalist_control.evaluation.variants import draw_eval_variants
+from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.generate import run as generate_run
 from generalist_control.model.policy import save_policy
-from generalist_control.plants.catalog import load_plant, plants_from_config
+from generalist_control.plants.catalog import plants_from_config
 from generalist_control.plants.plant import PlantConfigError
 from generalist_control.plants.variants import DEFAULT_RANGE, variant_range
 from generalist_control.simulation.lqi import LQIGains, design_lqi
@@ -47,8 +47,10 @@ def test_an_empty_include_list_names_no_plant_and_is_refused(tmp_path):
 
 @pytest.mark.parametrize("value", [5, 1.0, 0, 0.0, -0.1, "wide", True])
 def test_a_variant_range_outside_zero_one_is_refused_naming_the_key(value):
-    with pytest.raises(ValueError, match=r"evaluation\.variants\.range = .* must be a number"):
-        draw_eval_variants([load_plant("cstr")], {"count": 6, "seed": 1, "range": value}, 100)
+    node = as_dict(compose_cfg().evaluation)
+    node["variants"]["range"] = value
+    with pytest.raises(ValueError, match=r"evaluation\.variants\.range must (be a number|lie in)"):
+        read_evaluation(node)
     with pytest.raises(ValueError, match=r"data\.variants\.range = .* in \(0, 1\)"):
         variants_config({"variants": {"enabled": True, "range": value}})
 
@@ -85,24 +87,30 @@ def _evaluate(policy: Path, reports: Path, tmp_path: Path, uri: str) -> dict:
     return json.loads((reports / "summary.json").read_text())
 
 
-def test_two_evaluations_into_one_folder_each_say_which_policy(tmp_path, mlflow_uri):
-    paths = {}
-    for name, gains in (("full", design_lqi), ("half", _half)):
-        pol, meta = lqi_law_policy(["cstr"], gains)
-        meta = {**meta, "mlflow_run_id": "0123abcd"} if name == "half" else meta
-        paths[name] = save_policy(tmp_path / name / "policy.ckpt", pol, meta)
+def test_summary_json_is_the_same_for_the_same_weights_and_says_which_policy(tmp_path, mlflow_uri):
+    """What reproduces is in summary.json (committed); run ids, date, machine are not."""
+    policy = tmp_path / "models" / "policy.ckpt"
     reports = tmp_path / "reports"
-    first = _evaluate(paths["full"], reports, tmp_path, mlflow_uri)
-    second = _evaluate(paths["half"], reports, tmp_path, mlflow_uri)
-    for summary, name in ((first, "full"), (second, "half")):
-        digest = hashlib.sha256(paths[name].read_bytes()).hexdigest()
-        assert summary["policy"] == {
-            "source": str(paths[name]),
-            "mlflow_run_id": "0123abcd" if name == "half" else None,
-            "sha256": f"sha256:{digest}",
-        }
-    assert first["policy"]["sha256"] != second["policy"]["sha256"]
-    assert {"diverged", "ratios", "tracking", "anti_windup", "quality_bar"} <= set(second)
+    full, meta = lqi_law_policy(["cstr"], design_lqi)
+    summaries, records = [], []
+    for run_id, data_dir in (("0123abcd", "/here/demos"), ("4567ef01", "/there/demos")):
+        save_policy(policy, full, {**meta, "mlflow_run_id": run_id, "data_dir": data_dir})
+        _evaluate(policy, reports, tmp_path, mlflow_uri)
+        summaries.append((reports / "summary.json").read_bytes())
+        records.append(json.loads((reports / "provenance.json").read_text()))
+    assert summaries[0] == summaries[1]  # other file bytes, the same weights
+    assert [r["policy"]["mlflow_run_id"] for r in records] == ["0123abcd", "4567ef01"]
+    assert records[0]["mlflow"]["run_id"] != records[1]["mlflow"]["run_id"]
+    assert {"date", "machine", "command"} <= set(records[0])
+    summary = json.loads(summaries[0])
+    assert set(summary["policy"]) == {"source", "weights_sha256"}
+    assert summary["policy"]["source"] == str(policy)
+    assert set(summary["provenance"]) == {"command"}
+    half, meta = lqi_law_policy(["cstr"], _half)
+    save_policy(policy, half, {**meta, "mlflow_run_id": "0123abcd", "data_dir": "/here/demos"})
+    other = _evaluate(policy, reports, tmp_path, mlflow_uri)
+    assert other["policy"]["weights_sha256"] != summary["policy"]["weights_sha256"]
+    assert {"diverged", "ratios", "tracking", "anti_windup", "quality_bar"} <= set(other)
 
 
 # --- hparams_search.study_name -------------------------------------------------------------
