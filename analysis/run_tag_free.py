@@ -30,6 +30,7 @@ from analysis.tag_free import write_tag_free_report
 from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.model.plant import InferredPlant
 from generalist_control.model.policy import POLICY_FILE, load_policy
@@ -52,7 +53,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     opts = {**DEFAULTS, **as_dict(cfg.get("analysis") or {})}
     source = cfg.get("policy") or str(Path(cfg.paths.models_dir) / POLICY_FILE)
     policy, meta = load_policy(source)
-    runtime = PolicyRuntime(policy, meta, backend=cfg.evaluation.get("backend", "torch"))
+    settings = read_evaluation(as_dict(cfg.evaluation))
+    runtime = PolicyRuntime(policy, meta, backend=settings.backend)
     metrics = Path(cfg.paths.reports_dir) / "metrics.csv"
     if not metrics.is_file():
         raise FileNotFoundError(
@@ -61,12 +63,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         )
     df = pd.read_csv(metrics)
     plants = [p for p in plants_from_config(cfg.systems) if p.name in set(df.system)]
-    scenarios = as_dict(cfg.evaluation.scenarios)
+    scenarios = settings.scenarios
     trajectories: dict = {}  # no diverged run: an empty departures table
     gc = df[(df.controller == "GC") & (df.metric == "diverged")]
     if (gc.value > 0).any():  # when each diverged run left its expert
-        crazyflie = as_dict(cfg.evaluation.get("crazyflie") or {})
-        _, trajectories = evaluate(runtime, plants, scenarios, crazyflie)
+        _, trajectories = evaluate(runtime, plants, scenarios, settings.crazyflie)
     step = scenarios["step"]
     after = int(opts["gain_samples"])
     trace = None

@@ -11,7 +11,7 @@ import sys
 
 import pandas as pd
 
-from generalist_control.evaluation.tables import recipes_markdown, scenarios_markdown
+from generalist_control.evaluation.result_tables import recipes_markdown, scenarios_markdown
 
 
 def main(argv: list[str]) -> None:

@@ -2,26 +2,26 @@
 
 ``systems.include=[]`` is refused (it named every plant); ``evaluation.variants.range`` must
 be a number in (0, 1) (5 drew sign-flipped variants, 0 became 0.25); ``summary.json`` says
-which policy it describes; an Optuna study name must be a plain name (``../x`` wrote its
-trials outside the project).
+which policy it describes, the same way each time; an Optuna study name must be a plain name
+(``../x`` wrote its trials outside the project).
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
 from generalist_control.data.variants import variants_config
 from generalist_control.evaluate import run as evaluate_run
-from generalist_control.evaluation.variants import draw_eval_variants
+from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.generate import run as generate_run
 from generalist_control.model.policy import save_policy
-from generalist_control.plants.catalog import load_plant, plants_from_config
+from generalist_control.plants.catalog import plants_from_config
 from generalist_control.plants.plant import PlantConfigError
 from generalist_control.plants.variants import DEFAULT_RANGE, variant_range
 from generalist_control.simulation.lqi import LQIGains, design_lqi
@@ -47,16 +47,24 @@ def test_an_empty_include_list_names_no_plant_and_is_refused(tmp_path):
 
 @pytest.mark.parametrize("value", [5, 1.0, 0, 0.0, -0.1, "wide", True])
 def test_a_variant_range_outside_zero_one_is_refused_naming_the_key(value):
-    with pytest.raises(ValueError, match=r"evaluation\.variants\.range = .* must be a number"):
-        draw_eval_variants([load_plant("cstr")], {"count": 6, "seed": 1, "range": value}, 100)
+    node = as_dict(compose_cfg().evaluation)
+    node["variants"]["range"] = value
+    with pytest.raises(ValueError, match=r"evaluation\.variants\.range must (be a number|lie in)"):
+        read_evaluation(node)
     with pytest.raises(ValueError, match=r"data\.variants\.range = .* in \(0, 1\)"):
-        variants_config({"variants": {"enabled": True, "range": value}})
+        variants_config({"variants": {**_VARIANTS, "range": value}})
+
+
+#: A data.variants block as conf/data/demos.yaml writes one, switched on.
+_VARIANTS = {"enabled": True, "count": 8, "seed": 1013, "max_tries": 10, "range": 0.25}
 
 
 def test_a_range_left_out_is_the_default_and_a_valid_one_is_kept():
     assert variant_range(None, "evaluation.variants.range") == DEFAULT_RANGE == 0.25
     assert variant_range(0.4, "evaluation.variants.range") == 0.4
-    assert variants_config({"variants": {"enabled": True, "range": 0.1}})["range"] == 0.1
+    assert variants_config({"variants": {**_VARIANTS, "range": 0.1}})["range"] == 0.1
+    with pytest.raises(ValueError, match=r"data.variants needs \['count'\]"):
+        variants_config({"variants": {k: v for k, v in _VARIANTS.items() if k != "count"}})
 
 
 # --- summary.json names its policy ---------------------------------------------------------
@@ -85,24 +93,30 @@ def _evaluate(policy: Path, reports: Path, tmp_path: Path, uri: str) -> dict:
     return json.loads((reports / "summary.json").read_text())
 
 
-def test_two_evaluations_into_one_folder_each_say_which_policy(tmp_path, mlflow_uri):
-    paths = {}
-    for name, gains in (("full", design_lqi), ("half", _half)):
-        pol, meta = lqi_law_policy(["cstr"], gains)
-        meta = {**meta, "mlflow_run_id": "0123abcd"} if name == "half" else meta
-        paths[name] = save_policy(tmp_path / name / "policy.ckpt", pol, meta)
+def test_summary_json_is_the_same_for_the_same_weights_and_says_which_policy(tmp_path, mlflow_uri):
+    """What reproduces is in summary.json (committed); run ids, date, machine are not."""
+    policy = tmp_path / "models" / "policy.ckpt"
     reports = tmp_path / "reports"
-    first = _evaluate(paths["full"], reports, tmp_path, mlflow_uri)
-    second = _evaluate(paths["half"], reports, tmp_path, mlflow_uri)
-    for summary, name in ((first, "full"), (second, "half")):
-        digest = hashlib.sha256(paths[name].read_bytes()).hexdigest()
-        assert summary["policy"] == {
-            "source": str(paths[name]),
-            "mlflow_run_id": "0123abcd" if name == "half" else None,
-            "sha256": f"sha256:{digest}",
-        }
-    assert first["policy"]["sha256"] != second["policy"]["sha256"]
-    assert {"diverged", "ratios", "tracking", "anti_windup", "quality_bar"} <= set(second)
+    full, meta = lqi_law_policy(["cstr"], design_lqi)
+    summaries, records = [], []
+    for data_dir in ("/here/demos", "/there/demos"):
+        save_policy(policy, full, {**meta, "data_dir": data_dir})
+        _evaluate(policy, reports, tmp_path, mlflow_uri)
+        summaries.append((reports / "summary.json").read_bytes())
+        records.append(json.loads((reports / "provenance.json").read_text()))
+    assert summaries[0] == summaries[1]  # other file bytes, the same weights
+    assert [r["policy"]["mlflow_run_id"] for r in records] == [None, None]  # no run wrote it
+    assert records[0]["mlflow"]["run_id"] != records[1]["mlflow"]["run_id"]
+    assert {"date", "machine", "command"} <= set(records[0])
+    summary = json.loads(summaries[0])
+    assert set(summary["policy"]) == {"source", "weights_sha256"}
+    assert summary["policy"]["source"] == str(policy)
+    assert set(summary["provenance"]) == {"command"}
+    half, meta = lqi_law_policy(["cstr"], _half)
+    save_policy(policy, half, {**meta, "data_dir": "/here/demos"})
+    other = _evaluate(policy, reports, tmp_path, mlflow_uri)
+    assert other["policy"]["weights_sha256"] != summary["policy"]["weights_sha256"]
+    assert {"diverged", "ratios", "tracking", "anti_windup", "quality_bar"} <= set(other)
 
 
 # --- hparams_search.study_name -------------------------------------------------------------

@@ -16,13 +16,13 @@ from hydra import compose, initialize_config_dir
 
 from generalist_control.common.paths import conf_dir
 from generalist_control.deploy.adapter import RuntimeAdapter
-from generalist_control.evaluation.runner import evaluate
-from generalist_control.evaluation.summary import summarise
-from generalist_control.evaluation.tables import (
+from generalist_control.evaluation.result_tables import (
     recipes_markdown,
     table2_markdown,
     table_all_markdown,
 )
+from generalist_control.evaluation.runner import evaluate
+from generalist_control.evaluation.summary import summarise
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation import comparison
 from generalist_control.simulation.comparison import (
@@ -151,23 +151,24 @@ def _tiny_policy(tiny_data_dir: Path, out: Path, uri: str) -> Path:
     return Path(objects["policy_path"])
 
 
-def _evaluate_command(tmp_path: Path, *overrides: str) -> tuple[list[str], dict[str, str], Path]:
-    """``python -m generalist_control.evaluate`` with ``overrides``, its environment (the
-    figures' folders made in a temporary directory of the test's own) and that directory."""
-    temp = tmp_path / "temp"
-    temp.mkdir(exist_ok=True)
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "TMPDIR": str(temp)}
+def _evaluate_command(tmp_path: Path, *overrides: str) -> tuple[list[str], dict[str, str]]:
+    """``python -m generalist_control.evaluate`` with ``overrides``, and its environment."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
     env.pop("MLFLOW_TRACKING_URI", None)
-    return [sys.executable, "-m", "generalist_control.evaluate", *overrides], env, temp
+    return [sys.executable, "-m", "generalist_control.evaluate", *overrides], env
+
+
+def _duration(run) -> int:
+    return run.info.end_time - run.info.start_time
 
 
 @pytest.mark.slow
-def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
+def test_entry_point_writes_csv_tables_plots_and_logs_a_run_of_its_own(
     tiny_data_dir, tmp_path, mlflow_uri
 ):
     policy = _tiny_policy(tiny_data_dir, tmp_path, mlflow_uri)
     reports = tmp_path / "reports"
-    cmd, env, temp = _evaluate_command(
+    cmd, env = _evaluate_command(
         tmp_path,
         f"policy={policy}",
         f"systems.include=[{','.join(PLANTS)}]",
@@ -176,9 +177,10 @@ def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
         f"logger.experiment_name={tmp_path.name}",
         f"hydra.run.dir={tmp_path / 'hydra'}",
     )
+    mlflow.set_tracking_uri(mlflow_uri)
+    (training,) = mlflow.search_runs(experiment_names=[tmp_path.name], output_format="list")
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    # the last line is logged, to the terminal and the run's log file, before the fast exit
     assert f"evaluation written to {reports}" in proc.stdout
     assert f"evaluation written to {reports}" in (tmp_path / "hydra" / "evaluate.log").read_text()
 
@@ -210,8 +212,12 @@ def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
     responses = pd.read_csv(reports / "responses.csv")
     assert {"system", "controller", "t", "y", "u"} <= set(responses.columns)
 
-    mlflow.set_tracking_uri(mlflow_uri)
-    (run,) = mlflow.search_runs(experiment_names=[tmp_path.name], output_format="list")
+    # a run of its own, nested under the training run, which keeps its own duration
+    runs = mlflow.search_runs(experiment_names=[tmp_path.name], output_format="list")
+    (run,) = [r for r in runs if r.info.run_id != training.info.run_id]
+    assert run.data.tags["mlflow.parentRunId"] == training.info.run_id
+    assert run.data.tags["gc.source_run_id"] == training.info.run_id
+    assert run.info.status == "FINISHED"
     assert "eval/diverged/GC" in run.data.metrics
     # the quality-bar verdicts as 0/1 metrics, for MLflow's Compare view
     measured = {k: v for k, v in summary["quality_bar"].items() if v is not None}
@@ -225,18 +231,23 @@ def test_entry_point_writes_csv_tables_plots_and_logs_to_the_model_run(
 
     # the same policy through its MLflow URI gives the same closed loops
     proc = subprocess.run(
-        [*cmd[:3], f"policy=runs:/{run.info.run_id}", *cmd[4:-1], "evaluation.plots=false",
-         f"hydra.run.dir={tmp_path / 'hydra2'}"],
+        [*cmd[:3], f"policy=runs:/{training.info.run_id}", *cmd[4:-1],
+         "evaluation.plots=false", f"hydra.run.dir={tmp_path / 'hydra2'}"],
         cwd=REPO, capture_output=True, text=True, env=env, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     pd.testing.assert_frame_equal(pd.read_csv(reports / "metrics.csv"), df)
     assert not (reports / "plots").exists()
-    assert not list(temp.glob("gc-figures-*"))  # the figures' process was sent away
+    after = mlflow.get_run(training.info.run_id)
+    assert _duration(after) == _duration(training) and after.info.status == "FINISHED"
+    evaluations = [r for r in mlflow.search_runs(experiment_names=[tmp_path.name],
+                   output_format="list") if r.info.run_id != training.info.run_id]  # fmt: skip
+    assert len(evaluations) == 2
+    assert not [p.name for p in tmp_path.iterdir() if ".tmp-" in p.name]
 
 
-def test_a_failed_entry_point_says_why_and_leaves_no_figure_folder(tmp_path):
-    cmd, env, temp = _evaluate_command(
+def test_a_failed_entry_point_says_why_and_writes_nothing(tmp_path):
+    cmd, env = _evaluate_command(
         tmp_path,
         f"policy={tmp_path / 'missing.ckpt'}",
         f"paths.reports_dir={tmp_path / 'reports'}",
@@ -247,8 +258,7 @@ def test_a_failed_entry_point_says_why_and_leaves_no_figure_folder(tmp_path):
     assert proc.returncode == 1
     assert f"no policy at '{tmp_path / 'missing.ckpt'}'" in proc.stderr
     assert not (tmp_path / "reports").exists()
-    # the figures' process, started before the config was read, was closed at exit
-    assert not list(temp.glob("gc-figures-*"))
+    assert not [p.name for p in tmp_path.iterdir() if ".tmp-" in p.name]
 
 
 def test_closed_loop_score_is_zero_for_the_expert_and_one_for_divergence():

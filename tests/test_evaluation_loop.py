@@ -9,6 +9,7 @@ import torch
 
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.evaluation.eval_config import SetpointSettings
 from generalist_control.evaluation.runner import (
     CONTROLLERS,
     GC_ANTI_WINDUP,
@@ -97,7 +98,8 @@ def test_the_one_loop_equals_a_loop_per_scenario_exactly(runtime, processes):
 
 def test_the_set_point_holds_in_the_loop_equal_their_own(runtime):
     plants = [load_plant(n) for n in NAMES]
-    table = run_suite(runtime, plants, SCENARIOS, setpoint=(1.0, 4.0, 1.0), processes=2).setpoint
+    check = SetpointSettings(reference=1.0, hold=4.0, tail=1.0)
+    table = run_suite(runtime, plants, SCENARIOS, setpoint=check, processes=2).setpoint
     assert table is not None and list(table.system) == list(NAMES)
     held = table[["system", "z_end_GC", *(c for c in table if c.startswith("tail_"))]]
     # the linearisation at rest, each share its plants: as the check does it in one process

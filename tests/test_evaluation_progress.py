@@ -21,9 +21,9 @@ def _run(**kwargs):
 
 
 def test_one_log_line_per_scenario_with_its_counts(caplog):
-    with caplog.at_level(logging.INFO, logger="generalist_control.evaluation.plan"):
+    with caplog.at_level(logging.INFO, logger="generalist_control.evaluation.loop_layout"):
         _, trajs = _run()
-    lines = [r.getMessage() for r in caplog.records if r.name.endswith("evaluation.plan")]
+    lines = [r.getMessage() for r in caplog.records if r.name.endswith("evaluation.loop_layout")]
     assert len(lines) == 2, lines  # a scenario without plants runs nothing and says nothing
     assert lines[0].startswith("scenario 1/2 step: 2 plants, 3 controllers, ")
     assert lines[1].startswith("scenario 2/2 sine: 1 plants, 3 controllers, ")

@@ -35,14 +35,12 @@ LAYERS = [
 ]
 #: Sibling packages of one layer that must not import each other.
 SEPARATE = [{"training", "evaluation"}, {"adaptation", "evaluation"}, {"reports", "sweeps"}]
-#: Heavy, optional dependencies that may be imported inside a function (matplotlib: the
-#: evaluation draws its figures in a process of its own and keeps it out of its imports;
-#: mlflow: a second of imports that a command which logs nothing, e.g. evaluate's main
-#: process, does not pay; its SQL store and SQLAlchemy's ORM: another second, which the
-#: evaluation's MLflow worker pays while it waits for the config).
+#: Heavy, optional dependencies that may be imported inside a function (matplotlib: only
+#: where figures are drawn; mlflow: a second of imports that a command which logs nothing
+#: does not pay; onnxruntime: only for the ONNX backend).
 LAZY_OK = {
     "mlflow", "mlflow.entities", "mlflow.exceptions", "mlflow.tracking", "onnxruntime",
-    "matplotlib", "matplotlib.pyplot", "mlflow.store.tracking", "sqlalchemy.orm",
+    "matplotlib", "matplotlib.pyplot",
 }  # fmt: skip
 
 

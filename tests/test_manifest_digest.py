@@ -15,7 +15,7 @@ import pytest
 
 from generalist_control.common.paths import GENERATE_COMMAND
 from generalist_control.data.demos import CorruptDataError, content_hash, load_demos
-from generalist_control.evaluation.variants import check_disjoint
+from generalist_control.evaluation.variant_eval import TrainingDraws, check_disjoint
 
 REFUSED = r"manifest\.json.*" + "python -m generalist_control.generate"
 
@@ -82,4 +82,4 @@ def test_the_variants_evaluation_reads_the_checked_manifest(tmp_path, tiny_data_
     out = _copy(tiny_data_dir, tmp_path)
     _edit(out, lambda m: m.update(variants={"cstr": {"kept": []}}))
     with pytest.raises(CorruptDataError, match=REFUSED):
-        check_disjoint({}, [], {}, out, seed=5)
+        check_disjoint({}, [], TrainingDraws(out, 1013, 0.25, 8, 10, range(0), 0), seed=5)

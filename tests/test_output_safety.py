@@ -19,6 +19,7 @@ import pytest
 
 from generalist_control.common import atomic
 from generalist_control.common.atomic import ForeignDirectoryError
+from generalist_control.common.configs import as_dict
 from generalist_control.data.demos import (
     CorruptDataError,
     DemoSet,
@@ -28,6 +29,8 @@ from generalist_control.data.demos import (
     write_demos,
 )
 from generalist_control.evaluate import run as evaluate_run
+from generalist_control.evaluation.eval_config import read_evaluation
+from generalist_control.evaluation.runner import Evaluation
 from generalist_control.evaluation.writer import write_reports
 from generalist_control.generate import run as generate_run
 from generalist_control.reports.ablation import Inputs, write_report
@@ -91,8 +94,10 @@ def test_evaluate_refuses_a_reports_folder_of_user_files(tmp_path):
     assert _tree(tmp_path / "reports") == before
     import pandas as pd
 
+    bar = read_evaluation(as_dict(cfg.evaluation)).quality_bar
+    nothing = Evaluation(pd.DataFrame(), {})
     with pytest.raises(ForeignDirectoryError):
-        write_reports(pd.DataFrame(), {}, tmp_path / "reports", plots=False)
+        write_reports(nothing, tmp_path / "reports", bar, {}, plots=False)
     assert _tree(tmp_path / "reports") == before
 
 

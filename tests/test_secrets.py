@@ -265,13 +265,14 @@ def test_tune_with_an_unreachable_storage(tmp_path):
     assert "postgresql://user:***@127.0.0.1:9/optuna" in out
 
 
-def test_evaluate_masks_an_error_raised_inside_mlflow(tmp_path):
-    """An error the project does not wrap (MLflow's, fetching a runs:/ policy): the callback."""
+def test_evaluate_refuses_an_unreachable_tracking_server_masked(tmp_path):
+    """Asked before the policy (here a runs:/ URI MLflow would fetch) or anything else."""
     uri = f"http://user:{SECRET}@127.0.0.1:9/"
     cmd = [sys.executable, "-m", "generalist_control.evaluate", f"logger.tracking_uri={uri}"]
     cmd += ["policy=runs:/0123456789abcdef/policy", f"paths.reports_dir={tmp_path / 'eval'}"]
     out = _run(cmd, tmp_path / "run")
-    assert "RedactedError: mlflow.exceptions.MlflowException" in out
+    assert "the MLflow tracking store http://user:***@127.0.0.1:9/ (logger.tracking_uri)" in out
+    assert not (tmp_path / "eval").exists()
 
 
 @pytest.mark.parametrize("launcher", ["basic", pytest.param("joblib", marks=pytest.mark.slow)])

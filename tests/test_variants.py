@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import replace
 
 import control
 import mlflow
@@ -16,7 +17,11 @@ from generalist_control import evaluate as evaluate_stage
 from generalist_control import generate as generate_stage
 from generalist_control.data.demos import content_hash, load_demos, write_demos
 from generalist_control.data.generation import build_manifest, generate_demos
-from generalist_control.evaluation.variants import check_disjoint, evaluate_variants
+from generalist_control.evaluation.variant_eval import (
+    TrainingDraws,
+    check_disjoint,
+    evaluate_variants,
+)
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.config import plant_from_config
 from generalist_control.plants.plant import PlantConfigError
@@ -252,25 +257,26 @@ def test_lqi_nominal_and_oracle_match_python_control_on_a_hand_case():
 
 def test_evaluation_variants_must_differ_from_the_training_ones(tmp_path):
     plant = load_plant("cstr")
-    data = {"variants": {"enabled": True, "count": 3, "seed": 7, "range": 0.25}}
+    data = TrainingDraws(tmp_path, data_seed=7, data_range=0.25, data_count=3, data_tries=10,
+                         dagger_seeds=range(0), dagger_fresh=0)  # fmt: skip
     same = sample_variants(plant, 3, seed=7, default_range=0.25, steps=40)
     with pytest.raises(ValueError, match="equals a training variant"):
-        check_disjoint({"cstr": same}, [plant], data, tmp_path, seed=8)
+        check_disjoint({"cstr": same}, [plant], data, seed=8)
     with pytest.raises(ValueError, match="is data.variants.seed"):
-        check_disjoint({"cstr": same}, [plant], data, tmp_path, seed=7)
+        check_disjoint({"cstr": same}, [plant], data, seed=7)
     other = sample_variants(plant, 3, seed=8, default_range=0.25, steps=40)
-    got = check_disjoint({"cstr": other}, [plant], data, tmp_path, seed=8)
+    got = check_disjoint({"cstr": other}, [plant], data, seed=8)
     assert got["checked_against"].startswith("seed stream") and got["min_factor_distance"] > 0
     # DAgger's fresh variants (seeds 11, 12: one per round) count as training variants too
-    dagger = {"rounds": 2, "sampler": {"variants": {"fresh": 2, "seed": 11}}}
+    dagger = replace(data, dagger_seeds=range(11, 13), dagger_fresh=2)
     fresh = sample_variants(plant, 2, seed=12, default_range=0.25, steps=40)  # round 1's
     with pytest.raises(ValueError, match=r"equals a training variant \(.*DAgger's fresh"):
-        check_disjoint({"cstr": fresh}, [plant], data, tmp_path, 8, dagger)
+        check_disjoint({"cstr": fresh}, [plant], dagger, 8)
     with pytest.raises(ValueError, match="one of DAgger's fresh-variant seeds"):
-        check_disjoint({"cstr": other}, [plant], data, tmp_path, 12, dagger)
-    got = check_disjoint({"cstr": other}, [plant], data, tmp_path, 8, dagger)
+        check_disjoint({"cstr": other}, [plant], dagger, 12)
+    got = check_disjoint({"cstr": other}, [plant], dagger, 8)
     assert "DAgger's fresh variants (seeds 11..12)" in got["checked_against"]
-    off = check_disjoint({"cstr": fresh}, [plant], data, tmp_path, 8, {})  # dagger: null
+    off = check_disjoint({"cstr": fresh}, [plant], data, 8)  # dagger: null
     assert "DAgger" not in off["checked_against"]
 
 

@@ -68,7 +68,7 @@ def amplitude_grid(cfg: Mapping[str, Any]) -> np.ndarray:
     ...                 "segments": [{"start": 5, "stop": 20, "step": 5}]}).tolist()
     [-20.0, -15.0, -10.0, -5.0, 5.0, 10.0, 15.0, 20.0]
     """
-    limit = float(cfg.get("limit", 20.0))
+    limit = float(cfg["limit"])
     values: list[np.ndarray] = []
     segments = cfg.get("segments") or []
     if not segments:
@@ -92,7 +92,7 @@ def amplitude_grid(cfg: Mapping[str, Any]) -> np.ndarray:
         count = int(np.floor((stop - start) / step + 1e-9)) + 1
         values.append(np.round(start + step * np.arange(count), 10))
     grid = np.concatenate(values)
-    if cfg.get("symmetric", False):
+    if cfg["symmetric"]:
         grid = np.concatenate([grid, -grid])
     grid = np.unique(grid[grid != 0.0])
     return grid

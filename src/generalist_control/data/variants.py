@@ -48,12 +48,15 @@ def variants_config(data: Mapping[str, Any]) -> dict[str, Any] | None:
         A count below 1, a range outside (0, 1), a non-integer seed or max_tries.
     """
     block = dict(data.get("variants") or {})
-    if not block.get("enabled", False):
+    if not block or not block["enabled"]:
         return None
-    count = require_int("data.variants.count", block.get("count", 8))
-    seed = require_int("data.variants.seed", block.get("seed", 0), minimum=0)
-    tries = require_int("data.variants.max_tries", block.get("max_tries", 10))
-    rng = variant_range(block.get("range"), "data.variants.range")
+    missing = sorted({"count", "seed", "max_tries", "range"} - set(block))
+    if missing:
+        raise ValueError(f"data.variants needs {missing} (conf/data/demos.yaml has them all)")
+    count = require_int("data.variants.count", block["count"])
+    seed = require_int("data.variants.seed", block["seed"], minimum=0)
+    tries = require_int("data.variants.max_tries", block["max_tries"])
+    rng = variant_range(block["range"], "data.variants.range")
     if count < 1 or tries < 1:
         raise ValueError("data.variants.count and data.variants.max_tries must be at least 1")
     return {"count": count, "seed": seed, "range": rng, "max_tries": tries}

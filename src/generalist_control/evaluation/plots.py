@@ -25,7 +25,7 @@ import numpy as np
 
 from generalist_control.simulation.simulate import Trajectory
 
-__all__ = ["PER_PLANT", "plot_all", "plotted", "pyplot", "warm_up"]
+__all__ = ["PER_PLANT", "plot_all", "pyplot"]
 
 _STYLE = {
     "GC": ("tab:blue", "-"),
@@ -45,11 +45,7 @@ Trajs = Mapping[str, Runs]
 
 
 def pyplot() -> Any:
-    """The pyplot of matplotlib on the Agg backend, imported on first use.
-
-    Half a second of imports that an evaluation spends in the process drawing its figures
-    (:mod:`~generalist_control.evaluation.background`), not in its own.
-    """
+    """The pyplot of matplotlib on the Agg backend, imported on first use (half a second)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -214,39 +210,11 @@ def _sheet() -> _StepSine:
     return _SHEET
 
 
-def warm_up() -> None:
-    """Import pyplot, build the step and sine sheet and render it once (fonts loaded).
-
-    What a drawing process can do before its trajectories exist
-    (:class:`~generalist_control.evaluation.background.FigureJob`): about half a second.
-    """
-    _sheet().fig.canvas.draw()
-
-
-def _first(tr: Trajectory) -> Trajectory:
-    return Trajectory(t=tr.t, x=tr.x[:1, :, :0], u=tr.u[:1], r=tr.r[:1], y=tr.y[:1],
-                      diverged=tr.diverged[:1])  # fmt: skip
-
-
-def plotted(trajs: Trajs) -> dict[str, dict[str, dict[str, Trajectory]]]:
-    """What :func:`plot_all` draws of ``trajs``: the same figures from a few MB.
-
-    The scenarios and controllers it shows, the first run of each, without the states.
-    """
-    out: dict[str, dict[str, dict[str, Trajectory]]] = {}
-    for scen, runs in trajs.items():
-        ctrls = _PAIR if scen in ("step", "sine") else () if scen in _BASIC else tuple(runs)
-        shown = {c: {s: _first(tr) for s, tr in runs[c].items()} for c in ctrls if c in runs}
-        if shown:
-            out[scen] = shown
-    return out
-
-
 def plot_all(trajs: Trajs, out: Path, share: tuple[int, int] = (0, 1)) -> list[Path]:
     """Write the evaluation's figures (the module docstring) into ``out``; their paths.
 
     ``share``: ``(i, n)`` draws only every ``n``-th figure from the ``i``-th, so that ``n``
-    processes draw them all (:class:`~generalist_control.evaluation.background.FigureJob`).
+    processes draw them all (:func:`~generalist_control.evaluation.forked_shares.fork_map`).
     """
     out.mkdir(parents=True, exist_ok=True)
     i, n = share

@@ -1,36 +1,41 @@
-"""What an evaluation's ``summary.json`` says of where it came from: the policy, when, where.
+"""Where an evaluation came from: the policy it evaluated, and when, where and how.
 
-``policy``: the source it was given, the MLflow run that trained it and the SHA-256 of the
-file evaluated, so two evaluations written to one folder can be told apart.
-``provenance``: the date, the machine and the command, which the generated results page
-(:mod:`generalist_control.reports.results_page`) prints beside each recipe's figures.
+What reproduces goes into ``summary.json`` (committed: the same policy evaluated again gives
+the same file): the policy's source as given and :func:`weights_digest`, and the command.
+What does not (the date, the machine, MLflow's run ids, the file's own hash) goes into the
+git-ignored ``provenance.json`` beside it and into the evaluation's MLflow run.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import platform
 import sys
-from collections.abc import Mapping
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from generalist_control.common.secrets import redact
 
-__all__ = ["command", "machine", "policy_record", "provenance"]
+__all__ = ["command", "machine", "provenance", "weights_digest"]
 
 
-def policy_record(source: str, path: Path, meta: Mapping[str, Any]) -> dict[str, Any]:
-    """The evaluated policy: ``source`` as given (credentials masked), its run, its file."""
-    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    run_id = meta.get("mlflow_run_id")
-    return {
-        "source": redact(str(source)),
-        "mlflow_run_id": str(run_id) if run_id else None,
-        "sha256": f"sha256:{digest}",
-    }
+def weights_digest(policy: torch.nn.Module, config: Any) -> str:
+    """SHA-256 of a network's config and weights (names, dtypes, shapes, bytes).
+
+    Unlike the policy file's hash it does not change with what the file says of the run
+    that wrote it (its MLflow run id, its folders).
+    """
+    digest = hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode())
+    for name, tensor in sorted(policy.state_dict().items()):
+        t = tensor.detach().cpu().contiguous()
+        digest.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode())
+        digest.update(t.flatten().view(torch.uint8).numpy().tobytes())
+    return f"sha256:{digest.hexdigest()}"
 
 
 def machine() -> str:

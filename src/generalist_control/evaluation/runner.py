@@ -10,13 +10,9 @@ Every scenario, plant and controller of a share of the plants runs in one sample
 (:func:`~generalist_control.simulation.stacked.simulate_stacked`), so the policy is called once
 per sample for all of them, and the plants are advanced once per sample for all their runs;
 two shares of about equal work run side by side, one in a forked child
-(:mod:`~generalist_control.evaluation.split`). Each run's numbers are those of a loop of its
-own (docs/evaluation.md). A run that diverges
-is reported as diverged (metric ``diverged`` = 1, other metrics NaN), never as a huge number
-in an average.
-
-The ``evaluate`` stage (:mod:`generalist_control.evaluate`) writes the results with
-:mod:`generalist_control.evaluation.writer`.
+(:mod:`~generalist_control.evaluation.forked_shares`). Each run's numbers are those of a loop
+of its own (docs/evaluation.md). A run that diverges is reported as diverged (metric
+``diverged`` = 1, other metrics NaN), never as a huge number in an average.
 """
 
 from __future__ import annotations
@@ -32,10 +28,11 @@ import pandas as pd
 
 from generalist_control.deploy.adapter import SinglePlantAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.live import FinishingAdapter
-from generalist_control.evaluation.plan import GC_ANTI_WINDUP, Key, Progress, plan
+from generalist_control.evaluation.eval_config import CrazyflieSettings, SetpointSettings
+from generalist_control.evaluation.finishing_adapter import FinishingAdapter
+from generalist_control.evaluation.forked_shares import balanced, fork_map
+from generalist_control.evaluation.loop_layout import GC_ANTI_WINDUP, Key, Progress, plan
 from generalist_control.evaluation.setpoint import hold_runs, rest_radii, tail_table
-from generalist_control.evaluation.split import balanced, fork_map
 from generalist_control.plants.plant import Plant
 from generalist_control.simulation.crazyflie import fly_many
 from generalist_control.simulation.lqi import LQIController
@@ -90,15 +87,15 @@ def metric_rows(
     return out
 
 
-def _flight_shape(spec: Mapping[str, Any]) -> tuple[int, int]:
+def _flight_shape(spec: CrazyflieSettings) -> tuple[int, int]:
     """The Crazyflie stand-in's references: (runs, samples at its 100 Hz)."""
-    return int(spec.get("runs", 4)), int(round(float(spec.get("duration", 15.0)) * 100))
+    return spec.runs, int(round(spec.duration * 100))
 
 
 def _crazyflie(
     runtime: PolicyRuntime,
     plant: Plant,
-    spec: Mapping[str, Any],
+    spec: CrazyflieSettings,
     trajs: dict[str, dict[str, dict[str, Trajectory]]],
 ) -> list[tuple[str, str, str, int, str, float]]:
     """The sim-to-real stand-in (:mod:`~generalist_control.simulation.crazyflie`): metric rows.
@@ -106,9 +103,9 @@ def _crazyflie(
     GC and LQI fly in one loop on the same noise; LQI-AW knows no limits here, so it is LQI
     (the same law, the same trajectory).
     """
-    r = np.full(_flight_shape(spec), float(spec.get("amplitude", 1.0)))
+    r = np.full(_flight_shape(spec), spec.amplitude)
     ctrls: list[Controller] = [SinglePlantAdapter(runtime, plant.name), LQIController(plant)]
-    gc, lqi = fly_many(ctrls, r, control_dt=plant.dt, seed=int(spec.get("seed", 0)))
+    gc, lqi = fly_many(ctrls, r, control_dt=plant.dt, seed=spec.seed)
     flown = {"GC": gc, "LQI": lqi, "LQI-AW": lqi}
     trajs["crazyflie_sim2real"] = {c: {plant.name: tr} for c, tr in flown.items()}
     rows = []
@@ -180,8 +177,8 @@ class _Suite:
     scenarios: Mapping[str, Mapping[str, Any]]
     todo: Mapping[str, list[Run]]
     held: list[Run]
-    crazyflie: Mapping[str, Any] | None
-    setpoint: tuple[float, float, float] | None
+    crazyflie: CrazyflieSettings | None
+    setpoint: SetpointSettings | None
     bar: Progress
 
     def share(self, job: tuple[int, list[Plant]]) -> _Share:
@@ -203,7 +200,7 @@ class _Suite:
                     run.plant.name, name, ctrl, kind, tr
                 )
         if self.setpoint is not None:
-            reference, _, tail = self.setpoint
+            reference, tail = self.setpoint.reference, self.setpoint.tail
             local = controller_rows(layout.segments)
             gc = layout.segments[0].controller
             assert isinstance(gc, FinishingAdapter)
@@ -234,7 +231,7 @@ def _costs(plants: Sequence[Plant], suite: _Suite) -> list[float]:
     for p in plants:
         if not p.is_linear:
             cost[id(p)] += _RK4_COST * longest[id(p)]
-        if suite.crazyflie and p.name == "crazyflie_altitude":
+        if suite.crazyflie is not None and p.name == "crazyflie_altitude":
             cost[id(p)] += _FLIGHT_COST * float(np.prod(_flight_shape(suite.crazyflie)))
     return [cost[id(p)] for p in plants]
 
@@ -275,22 +272,21 @@ def run_suite(
     runtime: PolicyRuntime,
     plants: Sequence[Plant],
     scenarios: Mapping[str, Mapping[str, Any]],
-    crazyflie: Mapping[str, Any] | None = None,
-    setpoint: tuple[float, float, float] | None = None,
+    crazyflie: CrazyflieSettings | None = None,
+    setpoint: SetpointSettings | None = None,
     progress: bool | None = None,
     processes: int | None = None,
 ) -> Evaluation:
     """Every scenario under every controller in one loop, the Crazyflie, the set point.
 
-    ``setpoint``: ``(reference, hold, tail)`` of the set-point check
-    (:func:`~generalist_control.evaluation.setpoint.setpoint_settings`): its long holds run
-    in the same loop, then each plant's loop at rest is linearised
+    ``setpoint``: the set-point check (for a policy with the ``integral`` channel): its long
+    holds run in the same loop, then each plant's loop at rest is linearised
     (:func:`~generalist_control.evaluation.setpoint.rest_radii`).
     ``crazyflie``: the sim-to-real stand-in's settings (:func:`crazyflie_flight`).
     ``processes``: the plants are split into this many shares of about equal work, each run
     in its own loop, the others in forked children beside this process
-    (:mod:`~generalist_control.evaluation.split`); default 2 where there are 2 cores and
-    the suite is large enough (:data:`SPLIT_WORK`). Every run's numbers are those of a loop
+    (:mod:`~generalist_control.evaluation.forked_shares`); default 2 where there are 2 cores
+    and the suite is large enough (:data:`SPLIT_WORK`). Every run's numbers are those of a loop
     of its own either way: a plant's runs stay together, and the network's controls of a row
     do not depend on the other rows of its batch (docs/evaluation.md).
     Progress: a bar over the scenarios (``progress``; by default only on a terminal) and
@@ -300,9 +296,9 @@ def run_suite(
     chosen = _plants_per_scenario(plants, scenarios)
     # the envelopes of random initial states and relative noise, all in one loop
     state_envelopes([(p, a) for n, ps in chosen.items() for p in ps
-                     for a in envelope_amplitudes(scenarios[n])])  # fmt: skip
+                     for a in envelope_amplitudes(n, scenarios[n])])  # fmt: skip
     todo = {name: [_run(name, scenarios[name], p) for p in ps] for name, ps in chosen.items()}
-    held = hold_runs(plants, setpoint[0], setpoint[1]) if setpoint else []
+    held = hold_runs(plants, setpoint.reference, setpoint.hold) if setpoint else []
     bar = Progress(todo, runtime.integral, progress)
     suite = _Suite(runtime, scenarios, todo, held, crazyflie, setpoint, bar)
     costs = _costs(plants, suite)
@@ -321,11 +317,11 @@ def run_suite(
 
 
 def crazyflie_flight(
-    runtime: PolicyRuntime, plants: Sequence[Plant], spec: Mapping[str, Any] | None
+    runtime: PolicyRuntime, plants: Sequence[Plant], spec: CrazyflieSettings | None
 ) -> Evaluation | None:
     """The sim-to-real stand-in's scenario ``crazyflie_sim2real`` (None: off, or no plant)."""
     plant = next((p for p in plants if p.name == "crazyflie_altitude"), None)
-    if not spec or plant is None:
+    if spec is None or plant is None:
         return None
     trajs: dict[str, dict[str, dict[str, Trajectory]]] = {}
     rows = _crazyflie(runtime, plant, spec, trajs)
@@ -337,7 +333,7 @@ def evaluate(
     runtime: PolicyRuntime,
     plants: Sequence[Plant],
     scenarios: Mapping[str, Mapping[str, Any]],
-    crazyflie: Mapping[str, Any] | None = None,
+    crazyflie: CrazyflieSettings | None = None,
     progress: bool | None = None,
 ) -> tuple[pd.DataFrame, dict[str, dict[str, dict[str, Trajectory]]]]:
     """Run every scenario for every controller; return long-form metrics and trajectories.

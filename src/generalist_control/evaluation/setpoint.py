@@ -26,7 +26,6 @@ from __future__ import annotations
 import copy
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -34,7 +33,7 @@ import torch
 from scipy.optimize import brentq
 
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.live import FinishingAdapter
+from generalist_control.evaluation.finishing_adapter import FinishingAdapter
 from generalist_control.model.rest_loop import closed_loop_matrix, equilibrium, rest_window
 from generalist_control.plants.plant import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi, sampled_closed_loop
@@ -48,8 +47,6 @@ __all__ = [
     "hold_runs",
     "hold_tail",
     "rest_radii",
-    "setpoint_from_config",
-    "setpoint_settings",
     "setpoint_stability",
     "setpoint_summary",
     "tail_table",
@@ -279,41 +276,3 @@ def setpoint_summary(df: pd.DataFrame) -> dict[str, object]:
         "worst_tail_system": str(df.loc[tail.idxmax(), "system"]),
         "worst_tail_error_LQI": float(df["tail_error_LQI"].max()),
     }
-
-
-def setpoint_settings(
-    spec: Mapping[str, Any] | None, runtime: PolicyRuntime
-) -> tuple[float, float, float] | None:
-    """``(reference, hold, tail)`` as ``evaluation.setpoint`` asks; None: no check.
-
-    Keys ``reference``, ``hold``, ``tail`` (defaults 1.0, 60.0, 20.0); None or ``{}``: off.
-    A policy without the error integral has no such check: None.
-    """
-    if not spec or not runtime.integral:
-        return None
-    unknown = set(spec) - {"reference", "hold", "tail"}
-    if unknown:
-        raise ValueError(
-            f"evaluation.setpoint has unknown keys {sorted(unknown)}; it takes reference, "
-            "hold and tail"
-        )
-    settings = tuple(float(spec.get(k, d)) for k, d in (("reference", 1.0), ("hold", 60.0),
-                                                        ("tail", 20.0)))  # fmt: skip
-    check_hold(settings[1], settings[2])
-    return settings  # type: ignore[return-value]
-
-
-def setpoint_from_config(
-    spec: Mapping[str, Any] | None,
-    runtime: PolicyRuntime,
-    plants: Sequence[Plant],
-    held: pd.DataFrame | None = None,
-) -> pd.DataFrame | None:
-    """:func:`setpoint_stability` as ``evaluation.setpoint`` asks (:func:`setpoint_settings`).
-
-    ``held``: :func:`hold_tail`'s table if the holds already ran (the evaluation's loop).
-    """
-    settings = setpoint_settings(spec, runtime)
-    if settings is None:
-        return None
-    return setpoint_stability(runtime, plants, *settings, held=held)

@@ -3,7 +3,7 @@
 Every scenario counts. Step scenarios (those with step metrics) give the worst GC/LQI
 ratios of the mean ISE and ITAE and the worst relative steady-state error of GC; tracking
 scenarios give the worst GC/LQI ratio of the tracking RMSE. The quality bar
-(:data:`DEFAULT_BAR`, ``evaluation.quality_bar``) is then judged on:
+(``evaluation.quality_bar``) is then judged on:
 
 - ``stable_everywhere``: no run of a learned controller (GC, GC-AW) diverged in any scenario;
 - ``ISE_ratio_le_<x>``, ``ITAE_ratio_le_<x>``: the unit step (scenario ``step``);
@@ -20,20 +20,20 @@ from collections.abc import Mapping
 from typing import Any
 
 import pandas as pd
+import yaml
 
+from generalist_control.common.paths import conf_dir
+from generalist_control.common.settings import read_section
+from generalist_control.evaluation.eval_config import QualityBar
 from generalist_control.evaluation.runner import CONTROLLERS, GC_ANTI_WINDUP, STEP_KINDS
 
 __all__ = ["DEFAULT_BAR", "summarise"]
 
-#: The thresholds of the quality bar (issue 11's): GC against LQI.
-DEFAULT_BAR: dict[str, Any] = {
-    "ISE_ratio": 1.05,
-    "ITAE_ratio": 1.25,
-    "relative_ess": 0.005,
-    "RMSE_ratio": 1.1,
-    "anti_windup": ["saturation_0.25"],
-    "anti_windup_tolerance": 1e-6,
-}
+#: The quality bar of ``conf/evaluation/default.yaml``, for readers of evaluations that
+#: have no config of their own (the ablation report).
+DEFAULT_BAR: dict[str, Any] = yaml.safe_load(
+    (conf_dir() / "evaluation" / "default.yaml").read_text()
+)["quality_bar"]
 LEARNED = ("GC", GC_ANTI_WINDUP)
 
 
@@ -99,7 +99,7 @@ def _at_most(values: list[float], limit: float) -> bool | None:
     return None if not values else bool(max(values) <= limit)
 
 
-def _quality_bar(out: Mapping[str, Any], bar: Mapping[str, Any]) -> dict[str, bool | None]:
+def _quality_bar(out: Mapping[str, Any], bar: QualityBar) -> dict[str, bool | None]:
     """The bar's verdicts (None: not measured by this evaluation's scenarios)."""
     ratios, step = out["ratios"], out["ratios"].get("step")
     ess = [ratios[s]["worst_relative_ess_GC"] for s in STEP_KINDS if s in ratios]
@@ -107,24 +107,28 @@ def _quality_bar(out: Mapping[str, Any], bar: Mapping[str, Any]) -> dict[str, bo
     aw = [v["worst_ISE_ratio"] for v in out["anti_windup"].values()]
     return {
         "stable_everywhere": not any(out["diverged"].get(c) for c in LEARNED),
-        f"ess_within_{100 * bar['relative_ess']:g}pct": _at_most(ess, bar["relative_ess"]),
-        f"ISE_ratio_le_{bar['ISE_ratio']:g}": _at_most(
-            [step["worst_ISE_ratio"]] if step else [], bar["ISE_ratio"]
+        f"ess_within_{100 * bar.relative_ess:g}pct": _at_most(ess, bar.relative_ess),
+        f"ISE_ratio_le_{bar.ISE_ratio:g}": _at_most(
+            [step["worst_ISE_ratio"]] if step else [], bar.ISE_ratio
         ),
-        f"ITAE_ratio_le_{bar['ITAE_ratio']:g}": _at_most(
-            [step["worst_ITAE_ratio"]] if step else [], bar["ITAE_ratio"]
+        f"ITAE_ratio_le_{bar.ITAE_ratio:g}": _at_most(
+            [step["worst_ITAE_ratio"]] if step else [], bar.ITAE_ratio
         ),
-        f"RMSE_ratio_le_{bar['RMSE_ratio']:g}": _at_most(rmse, bar["RMSE_ratio"]),
-        "GC_AW_no_worse_than_LQI_AW": _at_most(aw, 1.0 + bar["anti_windup_tolerance"]),
+        f"RMSE_ratio_le_{bar.RMSE_ratio:g}": _at_most(rmse, bar.RMSE_ratio),
+        "GC_AW_no_worse_than_LQI_AW": _at_most(aw, 1.0 + bar.anti_windup_tolerance),
     }
 
 
-def summarise(df: pd.DataFrame, bar: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Quality-bar figures: divergences, worst GC/LQI ratios per scenario, the bar itself."""
-    bar = {**DEFAULT_BAR, **(bar or {})}
+def summarise(df: pd.DataFrame, bar: QualityBar | None = None) -> dict[str, Any]:
+    """Quality-bar figures: divergences, worst GC/LQI ratios per scenario, the bar itself.
+
+    ``bar``: ``evaluation.quality_bar`` (None: :data:`DEFAULT_BAR`).
+    """
+    if bar is None:
+        bar = read_section(QualityBar, DEFAULT_BAR, "evaluation.quality_bar")
     means = df.groupby(["scenario", "controller", "system", "metric"])["value"].mean()
     out: dict[str, Any] = {"diverged": _divergences(df)}
     out["ratios"], out["tracking"] = _scenario_figures(df, means)
-    out["anti_windup"] = _anti_windup(means, list(bar["anti_windup"]))
+    out["anti_windup"] = _anti_windup(means, list(bar.anti_windup))
     out["quality_bar"] = _quality_bar(out, bar)
     return out

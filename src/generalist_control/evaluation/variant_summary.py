@@ -14,23 +14,16 @@ applied to the variant. A diverged run's ISE counts as infinite. The bars:
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from generalist_control.evaluation.eval_config import VariantBar
 from generalist_control.evaluation.plots import pyplot
 
-__all__ = ["DEFAULT_BAR", "ise_table", "plot_variants", "summarise_variants"]
-
-DEFAULT_BAR = {
-    "median_ISE_ratio": 1.1,
-    "worst_ISE_ratio": 1.5,
-    "nominal_worse": 1.2,
-    "min_variants": 5,
-}
+__all__ = ["ise_table", "plot_variants", "summarise_variants"]
 
 
 def ise_table(df: pd.DataFrame, scenario: str) -> pd.DataFrame:
@@ -54,38 +47,35 @@ def _verdict(value: float, limit: float, below: bool = False) -> bool:
     return bool(value < limit) if below else bool(value <= limit)
 
 
-def summarise_variants(
-    df: pd.DataFrame, scenario: str, bar: Mapping[str, Any] | None = None
-) -> dict[str, Any]:
+def summarise_variants(df: pd.DataFrame, scenario: str, bar: VariantBar) -> dict[str, Any]:
     """The bars (module docstring) with their figures and a verdict each, plus per plant."""
-    b = {**DEFAULT_BAR, **(bar or {})}
     t = ise_table(df, scenario)
     gc_div = df[(df.controller == "GC") & (df.metric == "diverged")]
     n_div = int(gc_div.value.sum())
     per_plant_n = t.groupby(level="system").size()
     ratio = t["GC/LQI"].to_numpy(float)
-    bad = t[t["LQI-nominal/LQI"] > float(b["nominal_worse"])]
+    bad = t[t["LQI-nominal/LQI"] > bar.nominal_worse]
     beat = float(np.median(bad["GC/LQI-nominal"])) if len(bad) else None
     bars: dict[str, dict[str, Any]] = {
         "no_divergence": {"GC_diverged_runs": n_div, "pass": n_div == 0},
         "variants_per_plant": {
             "min": int(per_plant_n.min()),
-            "limit": int(b["min_variants"]),
-            "pass": bool(per_plant_n.min() >= int(b["min_variants"])),
+            "limit": bar.min_variants,
+            "pass": bool(per_plant_n.min() >= bar.min_variants),
         },
         "median_ISE_ratio": {
             "value": float(np.median(ratio)),
-            "limit": float(b["median_ISE_ratio"]),
-            "pass": _verdict(float(np.median(ratio)), float(b["median_ISE_ratio"])),
+            "limit": bar.median_ISE_ratio,
+            "pass": _verdict(float(np.median(ratio)), bar.median_ISE_ratio),
         },
         "worst_ISE_ratio": {
             "value": float(np.max(ratio)),
-            "limit": float(b["worst_ISE_ratio"]),
-            "pass": _verdict(float(np.max(ratio)), float(b["worst_ISE_ratio"])),
+            "limit": bar.worst_ISE_ratio,
+            "pass": _verdict(float(np.max(ratio)), bar.worst_ISE_ratio),
         },
         "beats_nominal": {
             "variants": len(bad),
-            "nominal_worse_than": float(b["nominal_worse"]),
+            "nominal_worse_than": bar.nominal_worse,
             "median_GC_over_nominal": beat,
             "pass": None if beat is None else _verdict(beat, 1.0, below=True),
         },

@@ -1,22 +1,25 @@
-"""Writing an evaluation's outputs: CSV, tables, summary and plots, atomically, in one folder.
+"""An evaluation's outputs in one folder: one snapshot, written under one lock.
 
-The folder (``paths.reports_dir``, default ``reports/eval``) is replaced as a whole
-(:func:`~generalist_control.common.atomic.publish_directory`), and only if it holds nothing
-but an evaluation's own outputs (:data:`OWNED`).
-
-``summary.json`` holds the quality-bar figures in full; ``scores.json`` (the DVC metric of the
-``evaluate`` stage) a handful of headline numbers in units that read well at
-``dvc metrics show``'s default rounding to 5 decimals (:func:`headline_scores`).
+The folder (``paths.reports_dir``) is replaced as a whole
+(:func:`~generalist_control.common.atomic.publish_directory`), only if it holds nothing but
+an evaluation's own outputs (:data:`OWNED`), and by one evaluation at a time
+(:func:`folder_lock`). The MLflow run gets the files of the snapshot it publishes, logged
+before the swap. ``scores.json`` (the DVC metric) holds headline figures in units that read
+well at ``dvc metrics show``'s 5 decimals (:func:`headline_scores`).
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
-from collections.abc import Mapping
+import logging
+import os
+import socket
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 from typing import Any
-
-import pandas as pd
 
 from generalist_control.common.atomic import (
     check_replaceable,
@@ -24,27 +27,44 @@ from generalist_control.common.atomic import (
     staging_directory,
 )
 from generalist_control.common.jsonsafe import strict
-from generalist_control.evaluation import tables
-from generalist_control.evaluation.background import FigureJob
+from generalist_control.evaluation import result_tables
+from generalist_control.evaluation.eval_config import QualityBar
+from generalist_control.evaluation.eval_run import EvalRun
+from generalist_control.evaluation.forked_shares import fork_map
 from generalist_control.evaluation.plots import plot_all
-from generalist_control.evaluation.runner import STEP_KINDS
+from generalist_control.evaluation.runner import STEP_KINDS, Evaluation
 from generalist_control.evaluation.setpoint import setpoint_summary
 from generalist_control.evaluation.summary import summarise
-from generalist_control.simulation.simulate import Trajectory
 
-__all__ = ["OWNED", "check_reports_dir", "headline_scores", "write_reports"]
+__all__ = [
+    "OWNED",
+    "Record",
+    "check_reports_dir",
+    "folder_lock",
+    "headline_scores",
+    "publish_snapshot",
+    "write_json",
+    "write_reports",
+]
+
+log = logging.getLogger(__name__)
 
 #: What an evaluation folder holds: the only entries an evaluation may replace.
 OWNED: dict[str, str | None] = {
     "metrics.csv": None,
     "summary.json": None,
     "scores.json": None,
+    "provenance.json": None,
     "table2.md": None,
     "table_all.md": None,
     "responses.csv": None,
     "setpoint.csv": None,
     "plots": "*.png",
 }
+
+#: What the evaluation says of where it came from: ``summary`` (what reproduces, into
+#: ``summary.json``) and ``provenance`` (the rest, into ``provenance.json``).
+Record = Mapping[str, Mapping[str, Any]]
 
 
 def headline_scores(summary: Mapping[str, Any]) -> dict[str, Any]:
@@ -74,54 +94,90 @@ def headline_scores(summary: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
-def check_reports_dir(out_dir: str | Path) -> None:
+def check_reports_dir(out_dir: str | Path, owned: Mapping[str, str | None] = OWNED) -> None:
     """Refuse (before any work) a ``paths.reports_dir`` that holds other files."""
-    check_replaceable(out_dir, OWNED, "paths.reports_dir")
+    check_replaceable(out_dir, owned, "paths.reports_dir")
+
+
+@contextmanager
+def folder_lock(out_dir: str | Path) -> Iterator[None]:
+    """Hold ``.<name>.lock`` beside ``out_dir``: an evaluation into the same folder waits.
+
+    The lock (``flock``) ends with the process, however it ends; the file stays.
+    """
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(out_dir.parent / f".{out_dir.name}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+            log.warning("%s is being written by %s: waiting for it", out_dir, holder)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"evaluation pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # the lock goes with the last descriptor
+
+
+def write_json(path: Path, content: Any) -> None:
+    """``content`` as strict JSON (NaN and inf as null), indented, one trailing newline."""
+    path.write_text(json.dumps(strict(content), indent=2) + "\n")
+
+
+@contextmanager
+def publish_snapshot(
+    out_dir: Path, owned: Mapping[str, str | None], run: EvalRun | None
+) -> Iterator[tuple[Path, dict[str, Any]]]:
+    """A staging folder to write; on exit its files are logged to ``run`` and published.
+
+    Yields the folder and the summary to log (filled in by the caller).
+    """
+    with staging_directory(out_dir) as staging:
+        summary: dict[str, Any] = {}
+        yield staging, summary
+        if run is not None:
+            run.log(summary, staging)
+        publish_directory(staging, out_dir, owned, "paths.reports_dir")
 
 
 def write_reports(
-    df: pd.DataFrame,
-    trajs: Mapping[str, Mapping[str, Mapping[str, Trajectory]]],
+    ev: Evaluation,
     out_dir: str | Path,
-    plots: bool | FigureJob = True,
-    bar: Mapping[str, Any] | None = None,
-    setpoint: pd.DataFrame | None = None,
-    record: Mapping[str, Any] | None = None,
+    bar: QualityBar,
+    record: Record,
+    run: EvalRun | None = None,
+    plots: bool = True,
 ) -> dict[str, Any]:
-    """Write the CSV, tables, summary and plots atomically to ``out_dir``; return the summary.
+    """Write the CSV, tables, summary and figures of ``ev`` to ``out_dir``; return the summary.
 
-    ``plots``: draw the figures (True), collect them from a job drawing them beside the
-    evaluation (:class:`~generalist_control.evaluation.background.FigureJob`), or none.
-    ``bar`` overrides thresholds of the quality bar
-    (:data:`~generalist_control.evaluation.summary.DEFAULT_BAR`). ``setpoint``: the
-    set-point check (:func:`~generalist_control.evaluation.setpoint.setpoint_stability`),
-    written as ``setpoint.csv`` and summarised in ``summary.json``'s ``setpoint``.
-    ``record``: which policy was evaluated, when and where
-    (:mod:`~generalist_control.evaluation.provenance`: ``policy`` and ``provenance``),
-    added to ``summary.json``.
+    ``record``: :data:`Record`; ``run``: the MLflow run that gets the same files and the
+    summary's figures (None: none). The figures are drawn in two processes
+    (:func:`~generalist_control.evaluation.forked_shares.fork_map`).
 
     Raises
     ------
     generalist_control.common.atomic.ForeignDirectoryError
         If ``out_dir`` holds files an evaluation does not write; nothing is changed.
     """
+    out_dir = Path(out_dir)
     check_reports_dir(out_dir)
-    with staging_directory(out_dir) as staging:
-        df.to_csv(staging / "metrics.csv", index=False)
-        summary = summarise(df, bar)
-        if setpoint is not None:
-            setpoint.to_csv(staging / "setpoint.csv", index=False)
-            summary["setpoint"] = setpoint_summary(setpoint)
-        summary.update(record or {})
-        (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
-        scores = strict(headline_scores(summary))
-        (staging / "scores.json").write_text(json.dumps(scores, indent=2) + "\n")
-        (staging / "table2.md").write_text(tables.table2_markdown(df))
-        (staging / "table_all.md").write_text(tables.table_all_markdown(df))
-        tables.responses_csv(trajs).to_csv(staging / "responses.csv", index=False)
-        if isinstance(plots, FigureJob):
-            plots.collect(staging / "plots")
-        elif plots:
-            plot_all(trajs, staging / "plots")
-        publish_directory(staging, out_dir, OWNED, "paths.reports_dir")
+    with publish_snapshot(out_dir, OWNED, run) as (staging, summary):
+        ev.metrics.to_csv(staging / "metrics.csv", index=False)
+        summary.update(summarise(ev.metrics, bar))
+        if ev.setpoint is not None:
+            ev.setpoint.to_csv(staging / "setpoint.csv", index=False)
+            summary["setpoint"] = setpoint_summary(ev.setpoint)
+        summary.update(record["summary"])
+        write_json(staging / "summary.json", summary)
+        write_json(staging / "scores.json", headline_scores(summary))
+        write_json(staging / "provenance.json", record["provenance"])
+        (staging / "table2.md").write_text(result_tables.table2_markdown(ev.metrics))
+        (staging / "table_all.md").write_text(result_tables.table_all_markdown(ev.metrics))
+        result_tables.responses_csv(ev.trajectories).to_csv(staging / "responses.csv", index=False)
+        if plots:
+            draw = partial(plot_all, ev.trajectories, staging / "plots")
+            fork_map(draw, [(0, 2), (1, 2)])
     return summary

@@ -32,6 +32,7 @@ from generalist_control.common.atomic import (
 from generalist_control.common.configs import as_dict
 from generalist_control.common.jsonsafe import strict
 from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.summary import summarise
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
@@ -142,10 +143,9 @@ def _evaluated(
     cfg: DictConfig, label: str, policy: Policy, meta: dict[str, Any], plant: Plant
 ) -> pd.DataFrame:
     """Every scenario on ``plant``: GC (this policy), LQI and LQI-AW; a ``policy`` column."""
-    runtime = PolicyRuntime(policy, meta, backend=cfg.evaluation.backend)
-    scenarios = as_dict(cfg.evaluation.scenarios)
-    crazyflie = as_dict(cfg.evaluation.get("crazyflie") or {})
-    df, _ = evaluate(runtime, [plant], scenarios, crazyflie)
+    settings = read_evaluation(as_dict(cfg.evaluation))
+    runtime = PolicyRuntime(policy, meta, backend=settings.backend)
+    df, _ = evaluate(runtime, [plant], settings.scenarios, settings.crazyflie)
     df.insert(0, "policy", label)
     return df
 

@@ -22,14 +22,15 @@ from generalist_control.simulation.stacked import Segment, simulate_stacked
 __all__ = [
     "FAMILIES",
     "family_references",
+    "family_spec",
     "random_initial_states",
     "state_envelope",
     "state_envelopes",
 ]
 
 
-def _range(spec: Mapping[str, Any], key: str, default: tuple[float, float]) -> tuple[float, float]:
-    value = spec.get(key, default)
+def _range(spec: Mapping[str, Any], key: str) -> tuple[float, float]:
+    value = spec[key]
     if isinstance(value, int | float):
         return float(value), float(value)
     lo, hi = (float(v) for v in value)
@@ -39,8 +40,8 @@ def _range(spec: Mapping[str, Any], key: str, default: tuple[float, float]) -> t
 
 
 def _staircase(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    count, limit = int(spec.get("count", 8)), float(spec.get("limit", 10.0))
-    lo, hi = _range(spec, "levels", (2, 4))
+    count, limit = int(spec["count"]), float(spec["limit"])
+    lo, hi = _range(spec, "levels")
     r = np.empty((count, len(t)))
     for b in range(count):
         n = int(rng.integers(int(lo), int(hi) + 1))
@@ -50,9 +51,9 @@ def _staircase(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator)
 
 
 def _sines(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    count, offset = int(spec.get("count", 8)), float(spec.get("offset", 2.0))
-    amp = rng.uniform(*_range(spec, "amplitude", (0.2, 3.0)), size=(count, 1))
-    w_lo, w_hi = _range(spec, "omega", (0.2, 3.0))
+    count, offset = int(spec["count"]), float(spec["offset"])
+    amp = rng.uniform(*_range(spec, "amplitude"), size=(count, 1))
+    w_lo, w_hi = _range(spec, "omega")
     omega = np.exp(rng.uniform(np.log(w_lo), np.log(w_hi), size=(count, 1)))
     phase = rng.uniform(0.0, 2 * np.pi, size=(count, 1))
     c = rng.uniform(-offset, offset, size=(count, 1))
@@ -60,9 +61,9 @@ def _sines(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> 
 
 
 def _sweep(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    count, offset = int(spec.get("count", 1)), float(spec.get("offset", 0.0))
-    amp = rng.uniform(*_range(spec, "amplitude", (1.0, 1.0)), size=(count, 1))
-    w0, w1 = _range(spec, "omega", (0.1, 2.0))
+    count, offset = int(spec["count"]), float(spec["offset"])
+    amp = rng.uniform(*_range(spec, "amplitude"), size=(count, 1))
+    w0, w1 = _range(spec, "omega")
     phase = rng.uniform(0.0, 2 * np.pi, size=(count, 1)) if count > 1 else np.zeros((1, 1))
     c = rng.uniform(-offset, offset, size=(count, 1))
     span = max(float(t[-1]), 1e-12)
@@ -71,15 +72,15 @@ def _sweep(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> 
 
 
 def _ramps(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    count, offset = int(spec.get("count", 6)), float(spec.get("offset", 2.0))
-    slope = rng.uniform(*_range(spec, "slope", (0.05, 1.0)), size=(count, 1))
+    count, offset = int(spec["count"]), float(spec["offset"])
+    slope = rng.uniform(*_range(spec, "slope"), size=(count, 1))
     slope *= rng.choice([-1.0, 1.0], size=(count, 1))
     c = rng.uniform(-offset, offset, size=(count, 1))
     return c + slope * t[None, :]
 
 
 def _hold(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    count, limit = int(spec.get("count", 8)), float(spec.get("limit", 5.0))
+    count, limit = int(spec["count"]), float(spec["limit"])
     return np.repeat(rng.uniform(-limit, limit, size=(count, 1)), len(t), axis=1)
 
 
@@ -93,6 +94,39 @@ FAMILIES: dict[str, Family] = {
     "ramps": _ramps,
     "hold": _hold,
 }
+
+
+#: Each family's parameters and their defaults: the one place a family's default lives. Every
+#: family also takes ``seed`` (0), ``x0_amplitude`` (3: the envelope's steps), ``x0_scale`` (1)
+#: and ``x0_fraction`` (the share of runs from a random state; 1 for ``hold``, else 0).
+FAMILY_PARAMETERS: dict[str, dict[str, Any]] = {
+    "staircase": {"count": 8, "limit": 10.0, "levels": [2, 4]},
+    "sines": {"count": 8, "offset": 2.0, "amplitude": [0.2, 3.0], "omega": [0.2, 3.0]},
+    "sweep": {"count": 1, "offset": 0.0, "amplitude": 1.0, "omega": [0.1, 2.0]},
+    "ramps": {"count": 6, "offset": 2.0, "slope": [0.05, 1.0]},
+    "hold": {"count": 8, "limit": 5.0},
+}
+_COMMON = {"seed": 0, "x0_amplitude": 3.0, "x0_scale": 1.0, "x0_fraction": 0.0}
+
+
+def family_spec(spec: Mapping[str, Any], extra: tuple[str, ...] = ()) -> dict[str, Any]:
+    """``spec`` of a family with its kind's defaults filled in (:data:`FAMILY_PARAMETERS`).
+
+    Raises
+    ------
+    ValueError
+        An unknown ``kind``, or a key the kind does not take (``extra``: keys the caller reads).
+    """
+    kind = spec.get("kind")
+    if kind not in FAMILIES:
+        raise ValueError(f"family kind '{kind}' is not one of {', '.join(FAMILIES)}")
+    defaults = {**_COMMON, **FAMILY_PARAMETERS[kind]}
+    if kind == "hold":
+        defaults["x0_fraction"] = 1.0
+    unknown = sorted(set(spec) - set(defaults) - {"kind", *extra})
+    if unknown:
+        raise ValueError(f"{unknown} are not parameters of a '{kind}' family: {sorted(defaults)}")
+    return {**defaults, **spec}
 
 
 #: Envelopes per plant (plants are immutable; a dropped plant drops its entries).
@@ -134,11 +168,13 @@ def state_envelopes(
 def random_initial_states(
     plant: Plant, spec: Mapping[str, Any], count: int, rng: np.random.Generator
 ) -> np.ndarray:
-    """Initial states (count, n): a share ``x0_fraction`` random within the envelope."""
-    default = 1.0 if spec.get("kind") == "hold" else 0.0
-    fraction = float(spec.get("x0_fraction", default))
-    env = state_envelope(plant, float(spec.get("x0_amplitude", 3.0)))
-    x0 = rng.uniform(-1.0, 1.0, size=(count, plant.order)) * float(spec.get("x0_scale", 1.0))
+    """Initial states (count, n): a share ``x0_fraction`` random within the envelope.
+
+    ``spec``: a family's, complete (:func:`family_spec`).
+    """
+    fraction = float(spec["x0_fraction"])
+    env = state_envelope(plant, float(spec["x0_amplitude"]))
+    x0 = rng.uniform(-1.0, 1.0, size=(count, plant.order)) * float(spec["x0_scale"])
     x0 *= env
     x0[int(round(fraction * count)) :] = 0.0
     return x0
@@ -154,10 +190,8 @@ def family_references(
     ValueError
         An unknown ``kind`` or a malformed range.
     """
-    kind = spec.get("kind")
-    if kind not in FAMILIES:
-        raise ValueError(f"family kind '{kind}' is not one of {', '.join(FAMILIES)}")
-    rng = np.random.default_rng(int(spec.get("seed", 0)) + 1000 * plant.tag)
+    spec = family_spec(spec, extra=("duration", "plants", "perturbation"))
+    rng = np.random.default_rng(int(spec["seed"]) + 1000 * plant.tag)
     t = np.arange(steps) * plant.dt
-    r = FAMILIES[kind](spec, t, rng) * plant.amplitude_scale
+    r = FAMILIES[spec["kind"]](spec, t, rng) * plant.amplitude_scale
     return r, random_initial_states(plant, spec, r.shape[0], rng)

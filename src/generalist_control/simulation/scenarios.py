@@ -17,13 +17,25 @@ from generalist_control.plants.plant import Plant
 from generalist_control.simulation.references import (
     FAMILIES,
     family_references,
+    family_spec,
     state_envelope,
 )
 from generalist_control.simulation.simulate import Perturbation
 
 __all__ = ["KINDS", "ScenarioError", "envelope_amplitudes", "perturbation", "references"]
 
-KINDS = ("step", "random_steps", "sine", "ramp", "composite", *FAMILIES)
+#: Each scenario kind's parameters and their defaults, the one place they live (a family's:
+#: :data:`~generalist_control.simulation.references.FAMILY_PARAMETERS`).
+PARAMETERS: dict[str, dict[str, Any]] = {
+    "step": {"amplitude": 1.0},
+    "random_steps": {"count": 8, "limit": 20.0, "seed": 0},
+    "sine": {"amplitude": 1.0, "omega": 0.5, "y0": 0.5},
+    "ramp": {"slope": 0.2},
+    "composite": {"amplitude": 1.0, "omega": 1.0},
+}
+#: What every scenario takes beside its kind's parameters.
+SCENARIO = {"duration": 15.0, "plants": None, "perturbation": None}
+KINDS = (*PARAMETERS, *FAMILIES)
 
 
 class ScenarioError(ValueError):
@@ -53,54 +65,72 @@ def references(
     - a family of :mod:`~generalist_control.simulation.references` (random references and
       initial states).
     """
-    kind = spec.get("kind")
-    if kind not in KINDS:
-        raise ScenarioError(f"scenario '{name}': kind '{kind}' is not one of {', '.join(KINDS)}")
-    duration = float(spec.get("duration", 15.0))
+    spec = scenario_spec(name, spec)
+    kind, duration = spec["kind"], float(spec["duration"])
     steps = int(round(duration / plant.dt))
     if steps < 2:
         raise ScenarioError(f"scenario '{name}': duration {duration} s is too short")
     if kind in FAMILIES:
-        try:
-            return family_references(plant, spec, steps)
-        except ValueError as exc:
-            raise ScenarioError(f"scenario '{name}': {exc}") from exc
+        return family_references(plant, spec, steps)
     t = np.arange(steps) * plant.dt
     scale = plant.amplitude_scale
-    amp = float(spec.get("amplitude", 1.0)) * scale
+    amp = float(spec["amplitude"]) * scale if "amplitude" in spec else 0.0
     x0 = None
     if kind == "step":
         r = np.full((1, steps), amp)
     elif kind == "random_steps":
-        rng = np.random.default_rng(int(spec.get("seed", 0)) + 1000 * plant.tag)
-        limit = float(spec.get("limit", 20.0)) * scale
-        amps = rng.uniform(-limit, limit, size=int(spec.get("count", 8)))
+        rng = np.random.default_rng(int(spec["seed"]) + 1000 * plant.tag)
+        limit = float(spec["limit"]) * scale
+        amps = rng.uniform(-limit, limit, size=int(spec["count"]))
         r = np.repeat(amps[:, None], steps, axis=1)
     elif kind == "sine":
-        omega = float(spec.get("omega", 0.5))
-        r = amp * np.sin(omega * t)[None, :]
-        x0 = _x0_for_output(plant, float(spec.get("y0", 0.5)) * scale, 1)
+        r = amp * np.sin(float(spec["omega"]) * t)[None, :]
+        x0 = _x0_for_output(plant, float(spec["y0"]) * scale, 1)
     elif kind == "ramp":
-        r = (float(spec.get("slope", 0.2)) * scale * t)[None, :]
+        r = (float(spec["slope"]) * scale * t)[None, :]
     else:  # composite
         third = t[-1] / 3
         ramp = amp + 2 * amp * np.clip((t - third) / third, 0, 1)
-        sine = np.where(
-            t > 2 * third, amp * np.sin(float(spec.get("omega", 1.0)) * (t - 2 * third)), 0
-        )
+        sine = np.where(t > 2 * third, amp * np.sin(float(spec["omega"]) * (t - 2 * third)), 0)
         r = np.where(t < third, amp, ramp + sine)[None, :]
     return r, x0
 
 
-def envelope_amplitudes(spec: Mapping[str, Any]) -> list[float]:
+def scenario_spec(name: str, spec: Mapping[str, Any]) -> dict[str, Any]:
+    """``spec`` with its kind's defaults filled in (:data:`PARAMETERS`, :data:`SCENARIO`).
+
+    Raises
+    ------
+    ScenarioError
+        An unknown kind, or a key its kind does not take (naming the scenario).
+    """
+    kind = spec.get("kind")
+    if kind not in KINDS:
+        raise ScenarioError(f"scenario '{name}': kind '{kind}' is not one of {', '.join(KINDS)}")
+    if kind in FAMILIES:
+        try:
+            return {**SCENARIO, **family_spec(spec, extra=tuple(SCENARIO))}
+        except ValueError as exc:
+            raise ScenarioError(f"scenario '{name}': {exc}") from exc
+    unknown = sorted(set(spec) - set(PARAMETERS[kind]) - set(SCENARIO) - {"kind"})
+    if unknown:
+        raise ScenarioError(
+            f"scenario '{name}': {unknown} are not parameters of a '{kind}' scenario: "
+            f"{sorted({*PARAMETERS[kind], *SCENARIO})}"
+        )
+    return {**SCENARIO, **PARAMETERS[kind], **spec}
+
+
+def envelope_amplitudes(name: str, spec: Mapping[str, Any]) -> list[float]:
     """The step amplitudes of the state envelopes the scenario's runs ask for.
 
     A family's random initial states (``x0_amplitude``) and ``noise_rel`` (unit steps);
     :func:`~generalist_control.simulation.references.state_envelopes` computes them for
     many plants at once beforehand.
     """
-    out = [float(spec.get("x0_amplitude", 3.0))] if spec.get("kind") in FAMILIES else []
-    if (spec.get("perturbation") or {}).get("noise_rel") is not None:
+    spec = scenario_spec(name, spec)
+    out = [float(spec["x0_amplitude"])] if spec["kind"] in FAMILIES else []
+    if (spec["perturbation"] or {}).get("noise_rel") is not None:
         out.append(1.0)
     return out
 

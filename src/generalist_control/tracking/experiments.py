@@ -14,9 +14,12 @@ kind           written by
 ``variants``   the DVC stage ``variants``
 ``adapt``      ``python -m generalist_control.adapt`` (a plant added to a trained policy)
 ``unseen``     the DVC stage ``unseen``'s trainings without the held-out plants
+``evaluate``   an evaluation of a policy whose training run this store does not hold
 =============  ===========================================================================
 
 An explicit ``logger.experiment_name`` overrides the scheme (every run then lands there).
+Every experiment is tagged as model development (:data:`KIND_TAG`), so that ``mlflow ui``
+opens it on its runs, not on MLflow's GenAI overview.
 """
 
 from __future__ import annotations
@@ -24,14 +27,19 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["DEFAULT_PREFIX", "KINDS", "experiment_name"]
+__all__ = ["DEFAULT_PREFIX", "KINDS", "KIND_TAG", "experiment_name"]
 
 DEFAULT_PREFIX = "generalist-control"
 
 #: The kinds of work, each with its own experiment.
 KINDS = (
     "train", "sweep", "tune", "report", "ablation", "tag-free", "variants", "adapt", "unseen",
+    "evaluate",
 )  # fmt: skip
+
+#: MLflow 3's experiment type tag and its value for model training (not GenAI), as its UI
+#: sets it when a user picks the experiment's type.
+KIND_TAG = ("mlflow.experimentKind", "custom_model_development")
 
 
 def experiment_name(logger: Mapping[str, Any], kind: str) -> str:

@@ -1,23 +1,9 @@
-"""MLflow: the store, its experiments, the params of a training, and safety.
+"""MLflow: the store, its experiments, runs of work other than training, and safety.
 
-By default runs go to an embedded store in the working directory, an SQLite database
-(``sqlite:///mlflow.db``) plus an artifact folder (``mlruns/``), which ``mlflow ui`` run in
-the repository shows. ``logger.tracking_uri`` (or ``MLFLOW_TRACKING_URI``) points it at a
-server instead; the server then decides where artifacts go.
-
-A training's run is opened by Lightning's ``MLFlowLogger``
-(:mod:`~generalist_control.tracking.training_run`); it records the config keys that shaped
-the training as params (:func:`training_params`), the data's content hash, per-epoch
-metrics, and artifacts logged by :mod:`generalist_control.training.outputs`. Runs of other
-work (an evaluation logging into its model's run, a report) are opened by
-:func:`mlflow_run`. Experiments are named per kind of work
-(:func:`~generalist_control.tracking.experiments.experiment_name`).
-
-Safety: a fresh SQLite store is initialised under a file lock beside the database
-(:func:`store_lock`), so trainings started together do not race on its schema; every param
-is passed through :func:`generalist_control.common.secrets.redact`; and each training run is
-tagged with its process (``gc.host``, ``gc.pid``, a heartbeat), so that the next training on
-the same host ends a run whose process died without ending it (:func:`end_stale_runs`).
+The default store is SQLite in the working directory (``mlflow.db``, artifacts in
+``mlruns/``); ``logger.tracking_uri`` points at a server instead. A fresh SQLite store is
+initialised under a file lock (:func:`store_lock`), params are redacted, and a run tagged
+with its process is ended by the next run when that process is gone (:func:`end_stale_runs`).
 """
 
 from __future__ import annotations
@@ -36,14 +22,17 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from generalist_control.common.secrets import redact
-from generalist_control.tracking.experiments import experiment_name
+from generalist_control.tracking.experiments import KIND_TAG, experiment_name
 
 if TYPE_CHECKING:
     import mlflow
 
 __all__ = [
     "PARENT_RUN_ENV",
+    "POLICY_HASH_TAG",
     "SWEEP_ENV",
+    "check_store",
+    "find_training_run",
     "dvc_data_version",
     "end_stale_runs",
     "experiment_id",
@@ -55,6 +44,7 @@ __all__ = [
     "process_tags",
     "set_tracking",
     "store_lock",
+    "tag_kind",
     "tracking_uri",
 ]
 
@@ -182,56 +172,34 @@ def dvc_data_version(data_dir: str | Path, lock: str | Path = "dvc.lock") -> str
 
 
 @contextmanager
-def mlflow_run(
-    logger: Mapping[str, Any], resume_run_id: str | None = None, kind: str = "train"
-) -> Iterator[mlflow.ActiveRun]:
-    """Open a run with the fluent API: ``resume_run_id``'s, if it exists, else a new one.
+def mlflow_run(logger: Mapping[str, Any], kind: str = "train") -> Iterator[mlflow.ActiveRun]:
+    """A new run with the fluent API, for work other than training: a report, an adaptation.
 
-    For work other than training (a training's run is Lightning's, see
-    :mod:`~generalist_control.tracking.training_run`): an evaluation logging into the
-    model's run, a report.
+    (A training's run is Lightning's, :mod:`~generalist_control.tracking.training_run`.)
 
     Parameters
     ----------
     logger : mapping
         The ``logger`` config: ``tracking_uri``, ``experiment_name``, ``artifact_location``
         (used when creating the experiment in a local store), ``run_name``.
-    resume_run_id : str, optional
-        Run to continue (e.g. the evaluated model's).
     kind : str
-        The kind of work, which names the experiment of a new run
+        The kind of work, which names the experiment
         (:func:`~generalist_control.tracking.experiments.experiment_name`).
 
     Notes
     -----
-    Inside a sweep or an Optuna study, a new run is nested under the parent run given by
-    the environment (:func:`parent_run_tags`). Before a new run opens, runs of this host
-    whose process is gone are ended (:func:`end_stale_runs`); a run continued
-    (``resume_run_id``, e.g. an evaluation logging into its model's run, two of which may
-    run side by side in the ablation) leaves that to the next new run. The run is tagged
-    with this process (:func:`process_tags`).
+    Inside a sweep or an Optuna study, the run is nested under the parent run given by the
+    environment (:func:`parent_run_tags`). Before it opens, runs of this host whose process
+    is gone are ended (:func:`end_stale_runs`). The run is tagged with this process
+    (:func:`process_tags`).
     """
     import mlflow
-    from mlflow.exceptions import MlflowException
 
     exp_id = experiment_id(logger, kind=kind)
-    if not resume_run_id:  # a process that continues a run leaves the others alone
-        end_stale_runs(exp_id)
-    run_id = None
-    if resume_run_id:
-        try:
-            run_id = mlflow.get_run(resume_run_id).info.run_id
-        except MlflowException:
-            run_id = None  # the checkpoint comes from another store: start a new run
-    with store_lock(mlflow.get_tracking_uri()):  # reopened, it has old tags until set_tags
-        run = mlflow.start_run(
-            run_id=run_id,
-            experiment_id=None if run_id else exp_id,
-            run_name=None if run_id else redact(logger.get("run_name")),
-            tags=None if run_id else parent_run_tags() or None,
-        )
-        mlflow.set_tags(process_tags())
-    with run:
+    end_stale_runs(exp_id)
+    tags = {**parent_run_tags(), **process_tags()}
+    run_name = redact(logger.get("run_name"))
+    with mlflow.start_run(experiment_id=exp_id, run_name=run_name, tags=tags) as run:
         yield run
 
 
@@ -257,12 +225,53 @@ def _lookup(uri: str, name: str) -> Any:
         ) from None
 
 
+#: MLflow's settings of a request to a tracking server, set for :func:`check_store`'s one try.
+_ONE_TRY = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT": "20"}
+
+
+def check_store(logger: Mapping[str, Any]) -> str:
+    """Point MLflow at ``logger``'s store and refuse one that does not answer; its URI.
+
+    One request, without MLflow's retries (minutes of back-off for a server that refuses
+    connections): call it before any work, so that nothing is written for a run that could
+    not be logged.
+
+    Raises
+    ------
+    ConnectionError
+        If the store does not answer or refuses; the message names ``logger.tracking_uri``
+        and carries no credential.
+    """
+    import mlflow
+
+    uri = tracking_uri(logger)
+    saved = {k: os.environ.get(k) for k in _ONE_TRY}
+    os.environ.update(_ONE_TRY)
+    try:
+        set_tracking(logger)
+        mlflow.MlflowClient(uri).search_experiments(max_results=1)
+    except Exception as e:  # noqa: BLE001 - whatever the store raised, named and masked
+        raise ConnectionError(
+            f"the MLflow tracking store {redact(uri)} (logger.tracking_uri) does not answer: "
+            f"{redact(str(e))[:500]}. Start it, or point logger.tracking_uri (or "
+            "MLFLOW_TRACKING_URI) at one that answers, e.g. sqlite:///mlflow.db"
+        ) from None
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+    return uri
+
+
 def experiment_id(logger: Mapping[str, Any], kind: str = "train") -> str:
     """Point MLflow at ``logger``'s store; the id of the experiment of ``kind``, made if missing.
 
     The name comes from :func:`~generalist_control.tracking.experiments.experiment_name`
     (``<logger.experiment_prefix>/<kind>``, or ``logger.experiment_name`` when set). Lookup
-    and creation hold :func:`store_lock`.
+    and creation hold :func:`store_lock`. The experiment is tagged as model development
+    (:data:`~generalist_control.tracking.experiments.KIND_TAG`), also one made without it.
     """
     import mlflow
     from mlflow.exceptions import MlflowException
@@ -271,18 +280,28 @@ def experiment_id(logger: Mapping[str, Any], kind: str = "train") -> str:
     name = experiment_name(logger, kind)
     with store_lock(uri):
         experiment = _lookup(uri, name)
-        if experiment is not None:
-            return experiment.experiment_id
-        location = logger.get("artifact_location")
-        if location and _is_local(uri) and "://" not in str(location):
-            location = Path(location).resolve().as_uri()
-        try:
-            return mlflow.create_experiment(name, artifact_location=location or None)
-        except MlflowException:
-            experiment = mlflow.get_experiment_by_name(name)  # another worker created it first
-            if experiment is None:
-                raise
-            return experiment.experiment_id
+        if experiment is None:
+            location = logger.get("artifact_location")
+            if location and _is_local(uri) and "://" not in str(location):
+                location = Path(location).resolve().as_uri()
+            try:
+                return mlflow.create_experiment(
+                    name, artifact_location=location or None, tags=dict([KIND_TAG])
+                )
+            except MlflowException:
+                experiment = mlflow.get_experiment_by_name(name)  # another worker made it first
+                if experiment is None:
+                    raise
+        tag_kind(experiment)
+        return experiment.experiment_id
+
+
+def tag_kind(experiment: Any) -> None:
+    """Tag an MLflow experiment made without it as model development (``KIND_TAG``)."""
+    import mlflow
+
+    if experiment.tags.get(KIND_TAG[0]) is None:
+        mlflow.MlflowClient().set_experiment_tag(experiment.experiment_id, *KIND_TAG)
 
 
 def _proc_stat(pid: int) -> list[str] | None:
@@ -370,3 +389,24 @@ def parent_run_tags() -> dict[str, str]:
     if os.environ.get(SWEEP_ENV):
         tags["sweep"] = os.environ[SWEEP_ENV]
     return tags
+
+
+#: The tag that names the policy file a run wrote, by its hash (``policy_sha256``).
+POLICY_HASH_TAG = "policy.sha256"
+
+
+def find_training_run(sha256: str) -> str | None:
+    """The newest finished run that wrote the policy ``sha256`` (tag :data:`POLICY_HASH_TAG`).
+
+    The policy file holds no run id: its bytes must reproduce.
+    """
+    import mlflow
+
+    runs = mlflow.search_runs(
+        search_all_experiments=True,
+        filter_string=f"tags.`{POLICY_HASH_TAG}` = '{sha256}' and attributes.status = 'FINISHED'",
+        order_by=["attributes.start_time DESC"],
+        max_results=1,
+        output_format="list",
+    )
+    return runs[0].info.run_id if runs else None

@@ -18,7 +18,7 @@ from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.plants.plant import Plant
 from generalist_control.simulation.lqi import LQIController
-from generalist_control.simulation.references import family_references
+from generalist_control.simulation.references import family_references, family_spec
 from generalist_control.simulation.simulate import Run, Trajectory, row_slices, simulate_many
 from generalist_control.simulation.variants import sample_variants
 from generalist_control.training.actuator import Actuator
@@ -241,7 +241,7 @@ class RolloutSampler:
             amps = amps * p.amplitude_scale
             rs, x0s = [np.repeat(amps[:, None], steps, axis=1)], [np.zeros((len(amps), p.order))]
             for i, spec in enumerate(self.families.values()):
-                seed = int(spec.get("seed", 0)) + 7919 * (round_index + 1) + 31 * i + self.seed
+                seed = family_spec(spec)["seed"] + 7919 * (round_index + 1) + 31 * i + self.seed
                 r, x0 = family_references(p, {**spec, "count": n, "seed": seed}, steps)
                 rs.append(r)
                 x0s.append(x0)

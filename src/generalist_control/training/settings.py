@@ -225,7 +225,7 @@ def _optimizer(spec: Any, scheduler: Any, max_epochs: int) -> tuple[dict, dict |
     """The optimiser and scheduler partials, tried on one parameter (lr < 0 fails here)."""
     if not isinstance(spec, dict) or "_target_" not in spec:
         raise ValueError("optimizer must name an optimiser (_target_, _partial_: true)")
-    if isinstance(scheduler, dict) and scheduler.get("T_max", 0) is None:
+    if isinstance(scheduler, dict) and "T_max" in scheduler and scheduler["T_max"] is None:
         scheduler = {**scheduler, "T_max": max_epochs}  # cosine over the whole run
     try:
         optimizer = instantiate(spec)(params=[torch.nn.Parameter(torch.zeros(1))])

@@ -19,7 +19,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.live import FinishingAdapter
+from generalist_control.evaluation.finishing_adapter import FinishingAdapter
 from generalist_control.simulation.lqi import AntiWindupLQIController, LQIController
 from generalist_control.simulation.simulate import PerPlantController, Perturbation, Run
 from generalist_control.simulation.stacked import Segment
