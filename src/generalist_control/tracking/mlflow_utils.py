@@ -29,10 +29,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "PARENT_RUN_ENV",
-    "POLICY_HASH_TAG",
     "SWEEP_ENV",
     "check_store",
-    "find_training_run",
     "dvc_data_version",
     "end_stale_runs",
     "experiment_id",
@@ -389,24 +387,3 @@ def parent_run_tags() -> dict[str, str]:
     if os.environ.get(SWEEP_ENV):
         tags["sweep"] = os.environ[SWEEP_ENV]
     return tags
-
-
-#: The tag that names the policy file a run wrote, by its hash (``policy_sha256``).
-POLICY_HASH_TAG = "policy.sha256"
-
-
-def find_training_run(sha256: str) -> str | None:
-    """The newest finished run that wrote the policy ``sha256`` (tag :data:`POLICY_HASH_TAG`).
-
-    The policy file holds no run id: its bytes must reproduce.
-    """
-    import mlflow
-
-    runs = mlflow.search_runs(
-        search_all_experiments=True,
-        filter_string=f"tags.`{POLICY_HASH_TAG}` = '{sha256}' and attributes.status = 'FINISHED'",
-        order_by=["attributes.start_time DESC"],
-        max_results=1,
-        output_format="list",
-    )
-    return runs[0].info.run_id if runs else None

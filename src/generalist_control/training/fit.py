@@ -34,7 +34,7 @@ from generalist_control.model.policy import (
     save_policy,
 )
 from generalist_control.tracking import training_run
-from generalist_control.tracking.mlflow_utils import POLICY_HASH_TAG
+from generalist_control.tracking.policy_runs import POLICY_HASH_TAG
 from generalist_control.training import outputs
 from generalist_control.training.dagger import DAggerCallback
 from generalist_control.training.datamodule import DemoDataModule, WindowTensors
