@@ -110,6 +110,11 @@ def test_the_family_spans_gains_time_constants_orders_classes_and_forms(drawn):
     decades = np.log10(np.abs(gains))
     assert decades.min() < -1.5 and decades.max() > 1.5  # 0.01 .. 100: four decades
     assert 0.35 < np.mean(gains > 0) < 0.65  # both signs
+    high = []  # the high-frequency gain, s^r G(s) for s -> inf (relative degree r)
+    for d in draw.kept:
+        r, s = d.plant.order - len(d.candidate.model.zeros), 1e4j
+        high.append(abs(complex(control.ss(d.plant.A, d.plant.B, d.plant.C, 0)(s)) * s**r))
+    assert np.log10(max(high)) - np.log10(min(high)) > 6  # over several decades
     taus = [-1 / q.real for m in models for q in m.poles if q.imag == 0 and q.real < 0]
     assert min(taus) < 0.2 and max(taus) > 50  # 0.1 s .. 100 s
     assert {d.plant.order for d in draw.kept} == {1, 2, 3, 4}
