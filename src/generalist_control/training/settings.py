@@ -23,7 +23,6 @@ from generalist_control.common.settings import (
     read_section,
     unit_interval,
 )
-from generalist_control.plants.catalog import tag_count
 
 __all__ = [
     "INITS",
@@ -230,19 +229,14 @@ def _optimizer(spec: Any, scheduler: Any, max_epochs: int) -> tuple[dict, dict |
 
 
 def model_config(cfg: DictConfig) -> dict[str, Any]:
-    """The network's config: ``model`` with ``experts``, the data's window sizes and the tags.
+    """The network's config: ``model`` with ``experts`` and the data's window sizes.
 
     ``experts`` is a top-level key (``experts=5`` works as typed); ``history`` and
-    ``horizon`` come from the data config, so the network always matches its windows; a
-    plant part's ``n_tags: null`` becomes one row per catalogue plant
-    (:func:`~generalist_control.plants.catalog.tag_count`), so the policy's file holds it.
+    ``horizon`` come from the data config, so the network always matches its windows.
     """
     model = _plain(cfg, "model")
     if not isinstance(model, dict):
         raise ValueError("model must be a network config (conf/model)")
-    plant = model.get("plant")
-    if isinstance(plant, dict) and "n_tags" in plant and plant["n_tags"] is None:
-        model["plant"] = {**plant, "n_tags": tag_count()}
     keys = {"experts": "experts", "history": "data.history", "horizon": "data.horizon"}
     return {**model, **{k: _plain(cfg, key) for k, key in keys.items()}}
 
