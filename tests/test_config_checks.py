@@ -5,7 +5,7 @@
   the optimiser refuses, sections that do not fit together are refused before anything is
   logged or trained;
 * ``generate`` refuses a plant tag outside ``0..model.plant.n_tags-1`` before writing, and
-  catalogue tags that collide or leave a gap (``n_tags`` null: one row per catalogue plant);
+  catalogue tags that collide or leave a gap (``${gc.tag_count:}``: one row per plant file);
 * the plant set (``systems``, ``systems.include``) selects the training plants even with
   DAgger and the closed-loop check off, and data without one of them is refused.
 """
@@ -239,10 +239,12 @@ def test_the_tag_count_is_the_catalogues_and_an_explicit_one_is_kept(tmp_path, m
     assert tag_count(30) == 30
     with pytest.raises(ValueError, match=r"model\.plant\.n_tags must be an integer, got 25\.5"):
         tag_count(25.5)
+    assert compose_cfg().model.plant.n_tags == 25  # ${gc.tag_count:}
     monkeypatch.setenv("GC_CONF_DIR", str(_conf_with_plant(tmp_path, 25)))
     assert tag_count() == 26 and catalogue_tags()["my_plant"] == 25
-    settings = read_training(compose_cfg("systems.include=[cstr,my_plant]"))
-    assert settings.model["plant"]["n_tags"] == 26  # injected where the model config is built
+    cfg = compose_cfg("systems=paper")  # a set without it: the rows are the catalogue's
+    assert cfg.model.plant.n_tags == 26
+    assert read_training(cfg).model["plant"]["n_tags"] == 26  # the policy's file holds 26
     assert read_training(compose_cfg("model.plant.n_tags=40")).model["plant"]["n_tags"] == 40
 
 

@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.data.demos import check_data_dir, write_demos
 from generalist_control.data.generation import build_manifest, generate_demos
-from generalist_control.plants.catalog import check_tags, plants_from_config, tag_count
+from generalist_control.plants.catalog import check_tags, plants_from_config
 
 __all__ = ["main", "run"]
 
@@ -27,12 +27,11 @@ log = logging.getLogger(__name__)
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Validate the config, generate the demonstrations and write them; return the manifest.
 
-    Every plant's tag must be one the policy takes, ``0..model.plant.n_tags-1`` (null: one
-    row per catalogue plant, :func:`~.plants.catalog.tag_count`): a dataset with another
-    would only fail at training time.
+    Every plant's tag must be one the policy takes, ``0..model.plant.n_tags-1``: a dataset
+    with another would only fail at training time.
     """
     plants = plants_from_config(cfg.systems)
-    check_tags(plants, tag_count(cfg.model.plant.n_tags))
+    check_tags(plants, cfg.model.plant.n_tags)
     if "OPENBLAS_CORETYPE" not in os.environ:
         log.warning(
             "numerics not pinned: the data's last bits depend on this CPU's BLAS kernels, so "

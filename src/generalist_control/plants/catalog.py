@@ -27,6 +27,9 @@ __all__ = [
     "tag_count",
 ]
 
+#: The resolver ``${gc.tag_count:}`` (conf/model/plant/*.yaml) registered below.
+TAG_COUNT_RESOLVER = "gc.tag_count"
+
 
 class UnknownPlantError(KeyError):
     """A plant name that is not in the catalogue."""
@@ -149,8 +152,9 @@ def catalogue_tags() -> dict[str, int]:
 def tag_count(n_tags: Any = None) -> int:
     """The policy's tag rows: ``n_tags`` as given, or (None) one per catalogue plant.
 
-    ``model.plant.n_tags`` is null by default: the rows are the catalogue's tags, which must
-    be ``0 .. N - 1`` for N plant files, so a plant added is a file and its line in a set.
+    ``model.plant.n_tags`` is ``${gc.tag_count:}`` by default, this function: the rows are the
+    catalogue's tags, which must be ``0 .. N - 1`` for N plant files, so a plant added is a
+    file and its line in a set. A config that names a number keeps it.
 
     Raises
     ------
@@ -182,3 +186,6 @@ def tag_count(n_tags: Any = None) -> int:
             f"{unused} (field 'tag')"
         )
     return len(tags)
+
+
+OmegaConf.register_new_resolver(TAG_COUNT_RESOLVER, tag_count, replace=True)
