@@ -450,7 +450,7 @@ def write_report(plants: list[Plant], results: dict[str, dict[str, float]]) -> s
         *mismatch_lines(results),
         "",
         NOTES.format(horizon=HORIZON),
-        "## All 25 plants",
+        f"## All {len(plants)} plants",
         "",
         "OL stable: open-loop poles of the (linearised) plant all in the open left half-plane "
         "(marginal: poles on the imaginary axis, none in the right half-plane). Minimum phase: "

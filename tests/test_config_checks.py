@@ -4,7 +4,8 @@
   network's parts check their own arguments: non-integers, negative epochs, a learning rate
   the optimiser refuses, sections that do not fit together are refused before anything is
   logged or trained;
-* ``generate`` refuses a plant tag outside ``0..model.plant.n_tags-1`` before writing;
+* ``generate`` refuses a plant tag outside ``0..model.plant.n_tags-1`` before writing, and
+  catalogue tags that collide or leave a gap (``${gc.tag_count:}``: one row per plant file);
 * the plant set (``systems``, ``systems.include``) selects the training plants even with
   DAgger and the closed-loop check off, and data without one of them is refused.
 """
@@ -26,7 +27,12 @@ from generalist_control.common.paths import conf_dir
 from generalist_control.common.schema import require_int
 from generalist_control.generate import run as generate_run
 from generalist_control.model.policy import Policy, load_policy
-from generalist_control.plants.catalog import UnknownPlantError
+from generalist_control.plants.catalog import (
+    UnknownPlantError,
+    available_plants,
+    catalogue_tags,
+    tag_count,
+)
 from generalist_control.plants.plant import PlantConfigError
 from generalist_control.training.datamodule import (
     DemoDataModule,
@@ -188,12 +194,35 @@ def test_generate_refuses_a_tag_the_policy_cannot_take(tmp_path, overrides, matc
     assert list(tmp_path.iterdir()) == []
 
 
-def test_generate_command_with_a_new_plant_past_n_tags_writes_nothing(tmp_path):
-    """``python -m generalist_control.generate`` with an added plant file whose tag is 25."""
+def _conf_with_plant(tmp_path: Path, tag: int) -> Path:
+    """A copy of conf/ with conf/plants/my_plant.yaml (cstr's model) of tag ``tag``."""
     conf = tmp_path / "conf"
     subprocess.run(["cp", "-r", str(conf_dir()), str(conf)], check=True)
     plant = yaml.safe_load((conf / "plants" / "cstr.yaml").read_text())
-    (conf / "plants" / "my_plant.yaml").write_text(yaml.safe_dump({**plant, "tag": 25}))
+    (conf / "plants" / "my_plant.yaml").write_text(yaml.safe_dump({**plant, "tag": tag}))
+    return conf
+
+
+@pytest.mark.parametrize(
+    ("tag", "message"),
+    [
+        (
+            27,  # 25 free: a row no plant would train
+            "the catalogue's tags leave tag 25 unused (a policy row no plant trains): the 26 "
+            "files of conf/plants must have tags 0..25; give 'my_plant' (tag 27) tag 25",
+        ),
+        (
+            24,  # f16_pitch's, a plant outside the set: the catalogue's tags are checked
+            "conf/plants/f16_pitch.yaml and conf/plants/my_plant.yaml share tag 24; tags must "
+            "be unique: give one of them the free tag 25",
+        ),
+    ],
+)
+def test_generate_command_with_a_new_plant_whose_tag_wastes_or_takes_a_row_writes_nothing(
+    tmp_path, tag, message
+):
+    """``python -m generalist_control.generate`` with an added plant file: the tag is checked."""
+    conf = _conf_with_plant(tmp_path, tag)
     out = tmp_path / "demos"
     cmd = [sys.executable, "-m", "generalist_control.generate", "systems=paper"]
     cmd += ["+plants@systems.plants.my_plant=my_plant", "data.duration=1.0"]
@@ -201,9 +230,22 @@ def test_generate_command_with_a_new_plant_past_n_tags_writes_nothing(tmp_path):
     env = {**_env(), "GC_CONF_DIR": str(conf)}
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode != 0
-    assert "plant 'my_plant' (tag 25) is outside the policy's tags 0..24" in proc.stderr
-    assert "raise model.plant.n_tags to at least 26" in proc.stderr
+    assert message in proc.stderr
     assert not out.exists()
+
+
+def test_the_tag_count_is_the_catalogues_and_an_explicit_one_is_kept(tmp_path, monkeypatch):
+    assert tag_count() == len(available_plants()) == 25
+    assert tag_count(30) == 30
+    with pytest.raises(ValueError, match=r"model\.plant\.n_tags must be an integer, got 25\.5"):
+        tag_count(25.5)
+    assert compose_cfg().model.plant.n_tags == 25  # ${gc.tag_count:}
+    monkeypatch.setenv("GC_CONF_DIR", str(_conf_with_plant(tmp_path, 25)))
+    assert tag_count() == 26 and catalogue_tags()["my_plant"] == 25
+    cfg = compose_cfg("systems=paper")  # a set without it: the rows are the catalogue's
+    assert cfg.model.plant.n_tags == 26
+    assert read_training(cfg).model["plant"]["n_tags"] == 26  # the policy's file holds 26
+    assert read_training(compose_cfg("model.plant.n_tags=40")).model["plant"]["n_tags"] == 40
 
 
 def test_data_module_keeps_the_included_plants_with_the_same_split(tiny_data_dir):

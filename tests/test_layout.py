@@ -31,7 +31,17 @@ LAYERS = [
     {"training", "evaluation", "adaptation"},
     {"reports", "sweeps"},
     # entry points
-    {"generate", "train", "evaluate", "report", "tune", "sweep", "adapt", "unseen"},
+    {
+        "generate",
+        "generate_families",
+        "train",
+        "evaluate",
+        "report",
+        "tune",
+        "sweep",
+        "adapt",
+        "unseen",
+    },
 ]
 #: Sibling packages of one layer that must not import each other.
 SEPARATE = [{"training", "evaluation"}, {"adaptation", "evaluation"}, {"reports", "sweeps"}]

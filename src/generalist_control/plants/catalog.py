@@ -20,10 +20,15 @@ from generalist_control.plants.plant import Plant, PlantConfigError
 __all__ = [
     "UnknownPlantError",
     "available_plants",
+    "catalogue_tags",
     "check_tags",
     "load_plant",
     "plants_from_config",
+    "tag_count",
 ]
+
+#: The resolver ``${gc.tag_count:}`` (conf/model/plant/*.yaml) registered below.
+TAG_COUNT_RESOLVER = "gc.tag_count"
 
 
 class UnknownPlantError(KeyError):
@@ -133,3 +138,54 @@ def check_tags(plants: Iterable[Plant], n_tags: Any) -> None:
         f"policy's tags 0..{n - 1} (model.plant.n_tags={n}); {' or '.join(fixes)} "
         "(conf/plants/<name>.yaml, field 'tag')"
     )
+
+
+def catalogue_tags() -> dict[str, int]:
+    """Every catalogue plant's tag, by name (the ``tag`` field of ``conf/plants/*.yaml``)."""
+    tags = {}
+    for name in available_plants():
+        tag = OmegaConf.select(OmegaConf.load(conf_dir() / "plants" / f"{name}.yaml"), "tag")
+        tags[name] = require_int(f"conf/plants/{name}.yaml: field 'tag'", tag, minimum=0)
+    return tags
+
+
+def tag_count(n_tags: Any = None) -> int:
+    """The policy's tag rows: ``n_tags`` as given, or (None) one per catalogue plant.
+
+    ``model.plant.n_tags`` is ``${gc.tag_count:}`` by default, this function: the rows are the
+    catalogue's tags, which must be ``0 .. N - 1`` for N plant files, so a plant added is a
+    file and its line in a set. A config that names a number keeps it.
+
+    Raises
+    ------
+    PlantConfigError
+        Two plant files share a tag, or the tags leave a row no plant has (a gap), naming
+        the files and the tag to give.
+    ValueError
+        An ``n_tags`` that is not a positive integer.
+    """
+    if n_tags is not None:
+        return require_int("model.plant.n_tags", n_tags)
+    tags = catalogue_tags()
+    free = sorted(set(range(len(tags))) - set(tags.values()))
+    owner: dict[int, str] = {}
+    for name, tag in sorted(tags.items()):
+        if tag in owner:
+            raise PlantConfigError(
+                f"conf/plants/{owner[tag]}.yaml and conf/plants/{name}.yaml share tag {tag}; "
+                f"tags must be unique: give one of them the free tag {free[0]} (field 'tag')"
+            )
+        owner[tag] = name
+    if free:
+        above = sorted((t, n) for t, n in owner.items() if t >= len(tags))
+        which = ", ".join(f"'{n}' (tag {t})" for t, n in above)
+        unused = f"tag{'s' if len(free) > 1 else ''} {', '.join(map(str, free))}"
+        raise PlantConfigError(
+            f"the catalogue's tags leave {unused} unused (a policy row no plant trains): the "
+            f"{len(tags)} files of conf/plants must have tags 0..{len(tags) - 1}; give {which} "
+            f"{unused} (field 'tag')"
+        )
+    return len(tags)
+
+
+OmegaConf.register_new_resolver(TAG_COUNT_RESOLVER, tag_count, replace=True)
