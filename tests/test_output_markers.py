@@ -182,3 +182,50 @@ def test_a_staging_folder_of_a_killed_stage_is_still_cleaned_up(tmp_path):
     assert left.name.startswith(".eval.tmp-") and (left / "half.csv").is_file()
     atomic.recover(out)
     assert list(tmp_path.iterdir()) == []
+
+
+# --- a folder without a marker: only the stage's exact names, as files and folders ----------
+
+#: What a stage wrote before markers: two files and a folder of PNGs.
+LEGACY = {"metrics.csv": None, "summary.json": None, "plots": "*.png"}
+
+
+def _legacy(out: Path) -> Path:
+    (out / "plots").mkdir(parents=True)
+    (out / "metrics.csv").write_text("a,b\n")
+    (out / "plots" / "step.png").write_bytes(b"\x89PNG")
+    return out
+
+
+def test_a_folder_holding_only_the_stages_names_is_replaced(tmp_path):
+    atomic.check_replaceable(_legacy(tmp_path / "out"), LEGACY)  # a fresh clone's reports
+
+
+def test_a_user_directory_named_like_an_output_file_is_not_the_stages(tmp_path):
+    out = _legacy(tmp_path / "out")
+    (out / "summary.json").mkdir()  # the user's folder, named like the stage's file
+    (out / "summary.json" / "notes.txt").write_text("mine")
+    with pytest.raises(ForeignDirectoryError, match=r"summary\.json"):
+        atomic.check_replaceable(out, LEGACY)
+
+
+@pytest.mark.parametrize("where", ["summary.json", "plots/sweep.png", "plots"])
+def test_a_link_named_like_an_output_is_never_the_stages(tmp_path, where):
+    """A symlink may point at the user's files: neither a legacy folder's nor a marked one's."""
+    out = _legacy(tmp_path / "out")
+    target = tmp_path / "elsewhere"
+    target.mkdir()
+    (target / "keep.png").write_bytes(b"\x89PNG mine")
+    if where == "plots":
+        for p in (out / "plots").iterdir():
+            p.unlink()
+        (out / "plots").rmdir()
+    (out / where).symlink_to(target if where == "plots" else target / "keep.png")
+    with pytest.raises(ForeignDirectoryError, match=where.split("/")[0]):
+        atomic.check_replaceable(out, LEGACY)
+    marked = _legacy(tmp_path / "marked")
+    atomic._write_marker(marked, "the output folder")
+    (marked / "extra.png").symlink_to(target / "keep.png")
+    with pytest.raises(ForeignDirectoryError, match=r"extra\.png"):
+        atomic.check_replaceable(marked, LEGACY)
+    assert (target / "keep.png").read_bytes() == b"\x89PNG mine"
