@@ -23,7 +23,7 @@ import pandas as pd
 
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.metrics import step_metrics
 from generalist_control.simulation.scenarios import references

@@ -25,7 +25,7 @@ from analysis.handover import Handover
 from analysis.separation import step_windows
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.simulation.scenarios import references
 from generalist_control.simulation.simulate import Run, simulate_many
 

@@ -25,7 +25,7 @@ import torch
 
 from analysis.handover import Handover
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.plants.plant import MAX_ORDER, Plant
+from generalist_control.plants.definition import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import design_lqi
 from generalist_control.simulation.scenarios import references
 from generalist_control.simulation.simulate import Run, simulate_many

@@ -32,7 +32,7 @@ import torch
 
 from generalist_control.data.windows import Windows, build_windows, integral_of_error
 from generalist_control.model.policy import Policy
-from generalist_control.plants.plant import Plant, pad_states
+from generalist_control.plants.definition import Plant, pad_states
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import PerPlantController, Run, simulate_many
 

@@ -53,7 +53,7 @@ from generalist_control.common.atomic import (  # noqa: E402
 from generalist_control.common.jsonsafe import write_json  # noqa: E402
 from generalist_control.model.plant import InferredPlant  # noqa: E402
 from generalist_control.model.policy import Policy  # noqa: E402
-from generalist_control.plants.plant import Plant  # noqa: E402
+from generalist_control.plants.definition import Plant  # noqa: E402
 from generalist_control.simulation.simulate import Trajectory  # noqa: E402
 
 __all__ = [

@@ -35,7 +35,7 @@ from generalist_control.deploy.policy_source import resolve  # noqa: E402
 from generalist_control.deploy.runtime import PolicyRuntime, RejectedStep  # noqa: E402
 from generalist_control.model.policy import Policy, load_policy  # noqa: E402
 from generalist_control.plants.catalog import load_plant  # noqa: E402
-from generalist_control.plants.plant import MAX_ORDER, pad_states  # noqa: E402
+from generalist_control.plants.definition import MAX_ORDER, pad_states  # noqa: E402
 from generalist_control.simulation.lqi import LQIController  # noqa: E402
 from generalist_control.simulation.simulate import discretise, simulate  # noqa: E402
 

@@ -58,9 +58,9 @@ from generalist_control.deploy.runtime import PolicyRuntime  # noqa: E402
 from generalist_control.evaluation.runner import evaluate  # noqa: E402
 from generalist_control.model.policy import Policy  # noqa: E402
 from generalist_control.plants.catalog import check_tags, plants_from_config  # noqa: E402
-from generalist_control.plants.plant import Plant  # noqa: E402
+from generalist_control.plants.definition import Plant  # noqa: E402
 from generalist_control.simulation.lqi import design_lqi  # noqa: E402
-from generalist_control.simulation.variants import sample_variants  # noqa: E402
+from generalist_control.simulation.variant_sampling import sample_variants  # noqa: E402
 from generalist_control.training.datamodule import (  # noqa: E402
     BatchIndexSampler,
     WindowTensors,

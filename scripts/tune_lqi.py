@@ -43,7 +43,7 @@ from scipy.optimize import minimize
 from generalist_control.common.paths import conf_dir
 from generalist_control.evaluation.paper import TABLE2, TABLE2_COLUMNS, TABLE2_METRICS
 from generalist_control.plants.catalog import available_plants, load_plant
-from generalist_control.plants.plant import Plant, PlantConfigError
+from generalist_control.plants.definition import Plant, PlantConfigError
 from generalist_control.simulation.lqi import (
     LQIController,
     LQIGains,

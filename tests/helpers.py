@@ -20,7 +20,7 @@ def config_section(cls, key: str, **changes):
 
     from omegaconf import OmegaConf
 
-    from generalist_control.common.settings import read_section
+    from generalist_control.common.sections import read_section
 
     node = OmegaConf.to_container(OmegaConf.select(compose_cfg(), key), resolve=True)
     return dataclasses.replace(read_section(cls, node, key), **changes)
@@ -116,7 +116,7 @@ def lqi_law_policy(names, gains_of, samples: int = 1, fit=None):
 
     from generalist_control.model.policy import Policy
     from generalist_control.plants.catalog import load_plant
-    from generalist_control.plants.plant import MAX_ORDER
+    from generalist_control.plants.definition import MAX_ORDER
 
     torch.manual_seed(0)
     config = net_config(

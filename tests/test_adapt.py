@@ -27,7 +27,7 @@ from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.grow import ROWS, SCALES, RecipeError, grow_policy, plant_scales
 from generalist_control.model.policy import load_policy, policy_sha256
 from generalist_control.plants.catalog import load_plant
-from generalist_control.plants.plant import PlantConfigError
+from generalist_control.plants.definition import PlantConfigError
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import PerPlantController, Run, simulate_many
 from generalist_control.tracking.policy_runs import find_training_run

@@ -35,7 +35,7 @@ from generalist_control.data.generation import generate_demos
 from generalist_control.model.grow import ROWS, start_rows
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import load_plant
-from generalist_control.plants.plant import PlantConfigError
+from generalist_control.plants.definition import PlantConfigError
 from helpers import TINY_ADAPT, TINY_DATA, adapt_request, untrained_policy
 
 REPO = Path(__file__).resolve().parents[1]

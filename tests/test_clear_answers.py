@@ -16,13 +16,13 @@ from hydra import compose, initialize_config_dir
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
-from generalist_control.data.variants import variants_config
+from generalist_control.data.variant_data import variants_config
 from generalist_control.evaluate import run as evaluate_run
 from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.generate import run as generate_run
 from generalist_control.model.policy import save_policy
 from generalist_control.plants.catalog import plants_from_config
-from generalist_control.plants.plant import PlantConfigError
+from generalist_control.plants.definition import PlantConfigError
 from generalist_control.plants.variants import DEFAULT_RANGE, variant_range
 from generalist_control.simulation.lqi import LQIGains, design_lqi
 from generalist_control.tune import run as study_run

@@ -33,7 +33,7 @@ from generalist_control.plants.catalog import (
     catalogue_tags,
     tag_count,
 )
-from generalist_control.plants.plant import PlantConfigError
+from generalist_control.plants.definition import PlantConfigError
 from generalist_control.training.datamodule import (
     DemoDataModule,
     MissingPlantError,

@@ -12,7 +12,7 @@ from generalist_control.data.windows import build_windows
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
-from generalist_control.plants.plant import pad_states
+from generalist_control.plants.definition import pad_states
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.simulate import simulate
 from generalist_control.training.datamodule import WindowTensors
@@ -283,7 +283,7 @@ def _sampler(plants, **settings):
 
 def test_the_sampler_takes_each_plant_s_data_variants_in_turn():
     """variants.data=k: the nominal version and k variants per round, wrapping around."""
-    from generalist_control.common.settings import read_section
+    from generalist_control.common.sections import read_section
     from generalist_control.plants.variants import make_variant
 
     servo, unstable = load_plant("dc_servo"), load_plant("unstable")

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
+from generalist_control.plants.definition import Plant, Signal
 from generalist_control.plants.families import CLASSES, FORMS, LinearFamily, realise
 from generalist_control.plants.lqi_weights import BrysonRule, NoBandwidthError, Weights
-from generalist_control.plants.plant import Plant, Signal
 from generalist_control.simulation.family_draw import (
     REASONS,
     FamilyChecks,

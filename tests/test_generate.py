@@ -14,7 +14,7 @@ from generalist_control.data.demos import MissingDataError, load_demos
 from generalist_control.data.generation import DataConfigError, amplitude_grid
 from generalist_control.generate import run
 from generalist_control.plants.catalog import UnknownPlantError, plants_from_config
-from generalist_control.plants.plant import PlantConfigError
+from generalist_control.plants.definition import PlantConfigError
 from helpers import compose_cfg
 
 PAPER_WINDOWS = 314_630

@@ -11,7 +11,7 @@ import numpy as np
 
 from generalist_control.data.demos import load_demos
 from generalist_control.plants.catalog import load_plant
-from generalist_control.plants.plant import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER
 
 ARRAYS = ("x", "r", "u", "y", "tag", "order", "plant", "amplitude")
 

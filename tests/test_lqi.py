@@ -7,7 +7,7 @@ from scipy.linalg import solve_continuous_are
 
 from generalist_control.plants.catalog import available_plants, load_plant
 from generalist_control.plants.config import plant_from_config
-from generalist_control.plants.plant import PlantConfigError
+from generalist_control.plants.definition import PlantConfigError
 from generalist_control.simulation.lqi import (
     LQIController,
     augment,

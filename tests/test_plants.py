@@ -9,7 +9,7 @@ from hydra import compose, initialize_config_dir
 
 import generalist_control.common.paths
 from generalist_control.plants.catalog import plants_from_config
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.metrics import step_metrics
 from generalist_control.simulation.simulate import simulate
@@ -262,7 +262,7 @@ def test_equilibrium_check_is_relative(u_op, ok):
     from omegaconf import OmegaConf
 
     from generalist_control.plants.config import plant_from_config
-    from generalist_control.plants.plant import PlantConfigError
+    from generalist_control.plants.definition import PlantConfigError
 
     cfg = OmegaConf.to_container(
         OmegaConf.load(generalist_control.common.paths.CONF_DIR / "plants/two_tank.yaml")
@@ -296,7 +296,7 @@ def test_every_number_of_a_plant_file_is_checked_and_the_file_named(changes, mat
     from omegaconf import OmegaConf
 
     from generalist_control.plants.config import plant_from_config
-    from generalist_control.plants.plant import PlantConfigError
+    from generalist_control.plants.definition import PlantConfigError
 
     path = generalist_control.common.paths.CONF_DIR / "plants/mass_spring_damper.yaml"
     cfg = {**OmegaConf.to_container(OmegaConf.load(path)), **changes}
@@ -307,7 +307,7 @@ def test_every_number_of_a_plant_file_is_checked_and_the_file_named(changes, mat
 
 def test_a_plant_name_with_a_dot_or_a_file_that_is_a_list_is_refused():
     from generalist_control.plants.config import plant_from_config
-    from generalist_control.plants.plant import PlantConfigError
+    from generalist_control.plants.definition import PlantConfigError
 
     with pytest.raises(PlantConfigError, match=r"splits keys at dots.*e\.g\. my_plant\.yaml"):
         plant_from_config("my.plant", {"tag": 30})

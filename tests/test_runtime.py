@@ -14,7 +14,7 @@ from generalist_control.deploy.policy_source import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy, PolicyFileError, load_policy, save_policy
 from generalist_control.plants.catalog import load_plant
-from generalist_control.plants.plant import MAX_ORDER, pad_states
+from generalist_control.plants.definition import MAX_ORDER, pad_states
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.simulate import Run, simulate, simulate_many
 from helpers import lqi_law_policy, net_config

@@ -22,7 +22,7 @@ from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import INPUT_LIMIT, PolicyRuntime, RejectedStep
 from generalist_control.model.policy import Policy, save_policy
 from generalist_control.plants.catalog import load_plant
-from generalist_control.plants.plant import MAX_ORDER, pad_states
+from generalist_control.plants.definition import MAX_ORDER, pad_states
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.simulate import Run, simulate, simulate_many
 from helpers import lqi_law_policy

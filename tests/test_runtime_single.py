@@ -20,7 +20,7 @@ from generalist_control.deploy.export import backend, onnx_bytes, plant_model
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
-from generalist_control.plants.plant import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import simulate
 from helpers import net_config, policy_meta

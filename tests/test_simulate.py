@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from generalist_control.plants.catalog import load_plant
-from generalist_control.plants.plant import Plant, Signal
+from generalist_control.plants.definition import Plant, Signal
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import simulate
 

@@ -24,7 +24,7 @@ from generalist_control.evaluation.variant_eval import (
 )
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.config import plant_from_config
-from generalist_control.plants.plant import PlantConfigError
+from generalist_control.plants.definition import PlantConfigError
 from generalist_control.plants.variants import (
     VariantError,
     make_variant,
@@ -32,7 +32,7 @@ from generalist_control.plants.variants import (
 )
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import simulate
-from generalist_control.simulation.variants import (
+from generalist_control.simulation.variant_sampling import (
     Variant,
     VariantDraw,
     check_class,
@@ -196,7 +196,10 @@ def test_manifest_records_variants_and_the_rows_are_the_variants_runs(tmp_path):
     assert demos_off.variant is None
     assert m_off["content_hash"] == m_base["content_hash"] == content_hash(base, m_base["config"])
     assert "variants" not in m_off
-    on = {**TINY, "variants": {"enabled": True, "count": 3, "seed": 7, "range": 0.25}}
+    on = {
+        **TINY,
+        "variants": {"enabled": True, "count": 3, "seed": 7, "range": 0.25, "max_tries": 10},
+    }
     demos = generate_demos(plants, on, progress=False)
     m_on = build_manifest(plants, demos, on, _config(on))
     assert m_on["content_hash"] != m_base["content_hash"]
@@ -363,12 +366,15 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
 
 
 def test_dagger_rolls_out_on_the_training_variants_the_data_stage_drew():
-    from generalist_control.data.variants import training_variants, variants_config
+    from generalist_control.data.variant_data import training_variants, variants_config
     from generalist_control.training.setup import dagger_plants
 
     nominal = [_fast_plant(), load_plant("two_tank")]
     assert dagger_plants(nominal, {}) == nominal  # without variants: the plants as they are
-    on = {**TINY, "variants": {"enabled": True, "count": 3, "seed": 7, "range": 0.25}}
+    on = {
+        **TINY,
+        "variants": {"enabled": True, "count": 3, "seed": 7, "range": 0.25, "max_tries": 10},
+    }
     demos = generate_demos(nominal, on, progress=False)
     manifest = build_manifest(nominal, demos, on, _config(on))
     plants = dagger_plants(nominal, manifest)

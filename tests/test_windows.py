@@ -9,7 +9,7 @@ from generalist_control.data.windows import (
     history_windows,
     previous_controls,
 )
-from generalist_control.plants.plant import pad_states
+from generalist_control.plants.definition import pad_states
 
 H, K = 8, 3
 

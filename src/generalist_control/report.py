@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
-from generalist_control.common.settings import read_section
+from generalist_control.common.sections import read_section
 from generalist_control.reports.ablation import build_report
 from generalist_control.reports.report_settings import ReportJob, ReportSettings
 

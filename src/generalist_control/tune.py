@@ -24,7 +24,7 @@ from optuna.trial import TrialState
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
-from generalist_control.common.settings import read_section
+from generalist_control.common.sections import read_section
 from generalist_control.sweeps.fixed_config import fixed_config
 from generalist_control.sweeps.search_settings import SearchSettings
 from generalist_control.sweeps.search_space import parse_space

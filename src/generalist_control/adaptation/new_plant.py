@@ -23,7 +23,7 @@ from generalist_control.data.generation import generate_demos
 from generalist_control.data.windows import Windows
 from generalist_control.plants.catalog import available_plants
 from generalist_control.plants.config import plant_from_config
-from generalist_control.plants.plant import Plant, PlantConfigError
+from generalist_control.plants.definition import Plant, PlantConfigError
 from generalist_control.simulation.lqi import design_lqi
 
 __all__ = ["NewPlant", "generated_windows", "load_new_plant", "plant_meta"]

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from generalist_control.data.windows import Windows, build_windows, integral_of_error
-from generalist_control.plants.plant import Plant, pad_states
+from generalist_control.plants.definition import Plant, pad_states
 
 __all__ = ["COLUMNS", "RecordedDemos", "RecordingError", "read_recorded", "write_recorded"]
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from generalist_control.common.schema import require_int
-from generalist_control.common.settings import SettingError, positive, read_section, unit_interval
+from generalist_control.common.sections import SettingError, positive, read_section, unit_interval
 from generalist_control.model.policy import POLICY_FILE
 from generalist_control.training.settings import ClosedLoopValSettings, DaggerSettings
 

@@ -21,7 +21,7 @@ from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.grow import ROWS, set_row
 from generalist_control.model.policy import Policy
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.simulation.simulate import simulate_many
 from generalist_control.training.datamodule import WindowTensors

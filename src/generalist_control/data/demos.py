@@ -27,7 +27,7 @@ from generalist_control.common.atomic import (
 )
 from generalist_control.common.paths import GENERATE_COMMAND
 from generalist_control.data.windows import Windows, build_windows, integral_of_error
-from generalist_control.plants.plant import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER
 
 __all__ = [
     "OWNED",

@@ -21,18 +21,18 @@ from tqdm.auto import tqdm
 
 from generalist_control import __version__
 from generalist_control.data.demos import FORMAT_VERSION, DemoSet, content_hash
-from generalist_control.data.variants import (
+from generalist_control.data.variant_data import (
     hashed_config,
     simulate_assigned,
     training_variants,
     variants_config,
 )
 from generalist_control.data.windows import windows_per_trajectory
-from generalist_control.plants.plant import MAX_ORDER, Plant, pad_states
+from generalist_control.plants.definition import MAX_ORDER, Plant, pad_states
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.references import FAMILIES, family_references
 from generalist_control.simulation.simulate import Trajectory, simulate
-from generalist_control.simulation.variants import VariantDraw
+from generalist_control.simulation.variant_sampling import VariantDraw
 
 __all__ = [
     "STEPS",
@@ -195,7 +195,7 @@ def generate_demos(
         Show a progress bar; by default only on a terminal.
 
     With ``data.variants`` enabled, trajectories are dealt to the plant and its variants
-    (:mod:`generalist_control.data.variants`) and the set has a ``variant`` column.
+    (:mod:`generalist_control.data.variant_data`) and the set has a ``variant`` column.
     """
     grid = amplitude_grid(data["amplitudes"])
     families = enabled_families(data)

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from generalist_control.deploy.runtime import PolicyRuntime, RejectedStep
-from generalist_control.plants.plant import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER
 from generalist_control.simulation.simulate import Perturbation, row_slices
 
 __all__ = ["RuntimeAdapter", "SinglePlantAdapter", "stacked_output", "step_live"]

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from generalist_control.plants.catalog import available_plants, load_plant
-from generalist_control.plants.plant import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER
 from generalist_control.simulation.lqi import design_lqi
 
 __all__ = ["IntegralFacts", "integral_facts"]

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from generalist_control.plants.plant import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER
 
 __all__ = ["RejectedStep", "actuator_limit", "real_array", "rejection", "shaped_inputs"]
 

@@ -30,7 +30,7 @@ from generalist_control.deploy.refusals import (
     shaped_inputs,
 )
 from generalist_control.model.policy import Policy, load_policy
-from generalist_control.plants.plant import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER
 from generalist_control.simulation.antiwindup import conditional_increment
 from generalist_control.simulation.simulate import Perturbation
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from generalist_control.common.settings import SettingError, positive, read_section
+from generalist_control.common.sections import SettingError, positive, read_section
 
 __all__ = [
     "BACKENDS",

@@ -33,7 +33,7 @@ from generalist_control.evaluation.finishing_adapter import FinishingAdapter
 from generalist_control.evaluation.forked_shares import balanced, fork_map
 from generalist_control.evaluation.loop_layout import GC_ANTI_WINDUP, Key, Progress, plan
 from generalist_control.evaluation.setpoint import hold_runs, rest_radii, tail_table
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.simulation.crazyflie import fly_many
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.metrics import step_metrics, tracking_metrics

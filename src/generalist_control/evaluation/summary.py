@@ -23,7 +23,7 @@ import pandas as pd
 import yaml
 
 from generalist_control.common.paths import conf_dir
-from generalist_control.common.settings import read_section
+from generalist_control.common.sections import read_section
 from generalist_control.evaluation.eval_config import QualityBar
 from generalist_control.evaluation.runner import CONTROLLERS, GC_ANTI_WINDUP, STEP_KINDS
 

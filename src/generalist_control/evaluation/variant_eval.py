@@ -33,7 +33,7 @@ from generalist_control.evaluation.writer import (
     publish_snapshot,
     write_json,
 )
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.scenarios import perturbation, references
 from generalist_control.simulation.simulate import (
@@ -42,7 +42,7 @@ from generalist_control.simulation.simulate import (
     Run,
     simulate_many,
 )
-from generalist_control.simulation.variants import (
+from generalist_control.simulation.variant_sampling import (
     Variant,
     VariantDraw,
     candidate_factors,

@@ -19,7 +19,7 @@ from generalist_control.model.blocks import ExpertMLP, SummaryAttention, mlp
 from generalist_control.model.linear import LinearSkip
 from generalist_control.model.output import NetOutput
 from generalist_control.model.plant import PlantPart
-from generalist_control.plants.plant import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER
 
 __all__ = ["CHANNELS", "WINDOW_SCALE_FLOOR", "GeneralistNetwork", "count_parameters"]
 

@@ -22,7 +22,7 @@ from torch import Tensor, nn
 from generalist_control.common.schema import require_int, require_nonnegative
 from generalist_control.model.identifier import TransitionSet
 from generalist_control.model.output import PlantReading
-from generalist_control.plants.plant import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER
 
 __all__ = ["EVIDENCE_WEIGHT", "InferredPlant", "PlantPart", "TagEmbedding"]
 

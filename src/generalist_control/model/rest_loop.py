@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from generalist_control.data.windows import HistoryBuffer
-from generalist_control.plants.plant import MAX_ORDER, Plant
+from generalist_control.plants.definition import MAX_ORDER, Plant
 from generalist_control.simulation.simulate import discretise
 
 __all__ = ["closed_loop_matrix", "equilibrium", "rest_window"]

@@ -1,4 +1,4 @@
-"""Building a :class:`~generalist_control.plants.plant.Plant` from its configuration.
+"""Building a :class:`~generalist_control.plants.definition.Plant` from its configuration.
 
 Every field of ``conf/plants/<name>.yaml`` is checked here, once (``conf/plants/README.md``
 has the schema): the name, the tag, every number finite and within +-:data:`MAX_ENTRY`;
@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from generalist_control.plants.plant import (
+from generalist_control.plants.definition import (
     MAX_ORDER,
     Dynamics,
     Plant,

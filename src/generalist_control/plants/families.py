@@ -18,8 +18,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from generalist_control.plants.definition import MAX_ORDER, Plant, Signal
 from generalist_control.plants.lqi_weights import BrysonRule, NoBandwidthError, Weights
-from generalist_control.plants.plant import MAX_ORDER, Plant, Signal
 from generalist_control.plants.realisation import FORMS, TransferModel, realise, scaled
 
 __all__ = [

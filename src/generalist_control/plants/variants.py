@@ -17,7 +17,7 @@ them: a physical off-diagonal 1).
 A nonlinear variant keeps the nominal operating state ``x_op``: its ``u_op`` is re-solved
 (:func:`make_variant`), and a variant with no equilibrium at ``x_op`` is refused
 (:class:`VariantError`). Fitness for LQI is checked one layer up
-(:mod:`generalist_control.simulation.variants`).
+(:mod:`generalist_control.simulation.variant_sampling`).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from generalist_control.plants.plant import Plant, PlantConfigError, linearise
+from generalist_control.plants.definition import Plant, PlantConfigError, linearise
 
 __all__ = [
     "DEFAULT_RANGE",

@@ -26,7 +26,7 @@ from matplotlib.figure import Figure
 
 from generalist_control.data.demos import DemoSet
 from generalist_control.plants.catalog import available_plants, load_plant
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.scenarios import references
 from generalist_control.simulation.simulate import simulate

@@ -19,7 +19,7 @@ from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
 from generalist_control.plants.catalog import available_plants, load_plant
-from generalist_control.plants.plant import Plant, pad_states
+from generalist_control.plants.definition import Plant, pad_states
 from generalist_control.reports.runs import mlflow_client
 from generalist_control.simulation.scenarios import references
 from generalist_control.simulation.simulate import Run, Trajectory, simulate_many

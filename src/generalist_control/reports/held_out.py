@@ -37,7 +37,7 @@ from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.summary import summarise
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
 from generalist_control.plants.catalog import load_plant
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.tracking import mlflow_utils
 
 __all__ = ["DEFAULT_BAR", "OWNED", "POLICIES", "judge", "plant_class", "run_unseen"]

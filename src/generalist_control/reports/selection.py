@@ -39,7 +39,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: The report's axes: the params its runs may differ in.
-SWEPT_KEYS = ("model.hidden", "experts")
+SWEPT_KEYS = ("model.hidden", "experts", "model.experts")  # model.experts is ${experts}
 _ABSENT = "(not logged)"
 
 

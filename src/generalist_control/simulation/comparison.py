@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.scenarios import references
 from generalist_control.simulation.simulate import (

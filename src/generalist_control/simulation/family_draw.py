@@ -28,9 +28,9 @@ import numpy as np
 from hydra.utils import instantiate
 from threadpoolctl import threadpool_limits
 
-from generalist_control.common.settings import read_section
+from generalist_control.common.sections import read_section
+from generalist_control.plants.definition import Plant, PlantConfigError
 from generalist_control.plants.families import Candidate, PlantFamily
-from generalist_control.plants.plant import Plant, PlantConfigError
 from generalist_control.simulation.lqi import LQIGains, design_lqi, sampled_closed_loop
 
 __all__ = [

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import solve_continuous_are
 
-from generalist_control.plants.plant import Plant, PlantConfigError
+from generalist_control.plants.definition import Plant, PlantConfigError
 from generalist_control.simulation.antiwindup import conditional_increment
 from generalist_control.simulation.simulate import Perturbation, discretise
 

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import PerPlantController, Run
 from generalist_control.simulation.stacked import Segment, simulate_stacked

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.simulation.references import (
     FAMILIES,
     family_references,

@@ -15,7 +15,7 @@ from typing import Protocol
 import numpy as np
 from scipy.linalg import expm
 
-from generalist_control.plants.plant import Plant, pad_states
+from generalist_control.plants.definition import Plant, pad_states
 
 __all__ = [
     "BatchController",

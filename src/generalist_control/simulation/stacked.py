@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from generalist_control.plants.plant import MAX_ORDER, Plant
+from generalist_control.plants.definition import MAX_ORDER, Plant
 from generalist_control.simulation.simulate import (
     DIVERGENCE_BOUND,
     BatchController,

@@ -79,7 +79,9 @@ class Objective:
             self._end_run(trial, "PRUNED", "KILLED")
             raise
         except BaseException as exc:
-            self._end_run(trial, "FAIL", None)  # the failed run already ended FAILED
+            self._end_run(
+                trial, "FAIL", None
+            )  # its run already ended (FAILED; KILLED by a signal)
             signum = stop_signals.received()
             if signum is not None and not isinstance(exc, stop_signals.Stopped):
                 # Lightning turns the interrupt into SystemExit, which Optuna would not

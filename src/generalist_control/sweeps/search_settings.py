@@ -9,7 +9,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from generalist_control.common.settings import SettingError, positive
+from generalist_control.common.sections import SettingError, positive
 
 __all__ = ["HeartbeatSettings", "PLAIN_NAME", "SearchSettings"]
 

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from generalist_control.data.windows import Windows, build_windows
-from generalist_control.plants.plant import Plant, pad_states
+from generalist_control.plants.definition import Plant, pad_states
 from generalist_control.simulation.lqi import design_lqi
 from generalist_control.simulation.simulate import Trajectory, plant_stepper
 from generalist_control.training.sampler import Rollouts

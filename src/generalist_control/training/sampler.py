@@ -16,11 +16,11 @@ import numpy as np
 
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.references import family_references, family_spec
 from generalist_control.simulation.simulate import Run, Trajectory, row_slices, simulate_many
-from generalist_control.simulation.variants import sample_variants
+from generalist_control.simulation.variant_sampling import sample_variants
 from generalist_control.training.actuator import Actuator
 from generalist_control.training.settings import SamplerSettings
 

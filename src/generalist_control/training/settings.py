@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.schema import require_int
 from generalist_control.common.secrets import redact
-from generalist_control.common.settings import (
+from generalist_control.common.sections import (
     SettingError,
     positive,
     read_section,
@@ -27,7 +27,7 @@ from generalist_control.common.settings import (
 )
 from generalist_control.data.generation import enabled_families
 from generalist_control.plants.catalog import plants_from_config
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.plants.variants import variant_range
 
 __all__ = [

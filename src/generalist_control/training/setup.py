@@ -10,7 +10,7 @@ import hydra
 import lightning as L
 import torch
 
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.plants.variants import make_variant
 from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.training.callbacks import ClosedLoopValidation

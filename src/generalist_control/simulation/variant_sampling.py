@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from generalist_control.plants.plant import Plant, PlantConfigError
+from generalist_control.plants.definition import Plant, PlantConfigError
 from generalist_control.plants.variants import (
     VariantError,
     draw_factors,

@@ -1,7 +1,7 @@
 """Plant variants in the data stage (``data.variants``, a switch, off by default).
 
 With ``data.variants.enabled``, every plant gets ``count`` variants fit for LQI
-(:func:`generalist_control.simulation.variants.sample_variants`, seeded by ``seed`` and the
+(:func:`generalist_control.simulation.variant_sampling.sample_variants`, seeded by ``seed`` and the
 plant's tag; ranges from ``range`` and the plant file's ``variants`` block), each tracked by
 its own LQI expert designed with the plant's ``Q`` and ``R``. The data size stays that of the
 nominal set: the plant's trajectories, in the order they are generated (the step grid, then
@@ -24,11 +24,11 @@ from typing import Any
 import numpy as np
 
 from generalist_control.common.schema import require_int
-from generalist_control.plants.plant import Plant
+from generalist_control.plants.definition import Plant
 from generalist_control.plants.variants import variant_range
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import Trajectory, simulate
-from generalist_control.simulation.variants import VariantDraw, sample_variants
+from generalist_control.simulation.variant_sampling import VariantDraw, sample_variants
 
 __all__ = [
     "assign_slots",
