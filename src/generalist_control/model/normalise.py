@@ -12,12 +12,18 @@ The scales are buffers of a :class:`Normaliser` module, so they travel in the mo
 :meth:`Normaliser.normalise_inputs` and :meth:`Normaliser.denormalise_controls` of the
 same object (see :class:`generalist_control.policy.Policy`). Tags never seen in training
 fall back to the scales over all training windows and are flagged in :attr:`seen`.
+
+With ``mapped`` (the model card route, :mod:`~generalist_control.model.card`) each tag also
+has a matrix that takes its plant state into its card's frame (:attr:`Normaliser.state_map`),
+applied in place of the state entries' scales; the scales stay for the runtime's input range.
 """
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
+
+from generalist_control.plants.plant import MAX_ORDER
 
 __all__ = ["Normaliser"]
 
@@ -46,19 +52,26 @@ class Normaliser(nn.Module):
     ref_scale, control_scale : Tensor, shape (n_tags,)
     seen : Tensor of bool, shape (n_tags,)
         Tags present in the data the scales were fitted on.
+    state_map : Tensor, shape (n_tags, MAX_ORDER, MAX_ORDER), only with ``mapped``
+        Per tag, the padded plant state -> the network's (zero beyond the plant's order).
     """
 
     state_scale: Tensor
     ref_scale: Tensor
     control_scale: Tensor
     seen: Tensor
+    state_map: Tensor
 
-    def __init__(self, n_tags: int, state_dim: int) -> None:
+    def __init__(self, n_tags: int, state_dim: int, mapped: bool = False) -> None:
         super().__init__()
         self.register_buffer("state_scale", torch.ones(n_tags, state_dim))
         self.register_buffer("ref_scale", torch.ones(n_tags))
         self.register_buffer("control_scale", torch.ones(n_tags))
         self.register_buffer("seen", torch.zeros(n_tags, dtype=torch.bool))
+        self.mapped = bool(mapped)
+        if self.mapped:
+            eye = torch.eye(MAX_ORDER).expand(n_tags, MAX_ORDER, MAX_ORDER)
+            self.register_buffer("state_map", eye.clone())
 
     @torch.no_grad()
     def fit(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor, target: Tensor) -> None:
@@ -107,7 +120,13 @@ class Normaliser(nn.Module):
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Scaled ``(state * mask, mask, ref, tag)``; padded entries come out exactly zero."""
-        state = state / self.state_scale[tag].unsqueeze(1) * mask
+        if self.mapped:  # the plant state into its frame, the channels scaled
+            x = torch.einsum("bij,btj->bti", self.state_map[tag], state[..., :MAX_ORDER])
+            rest = state[..., MAX_ORDER:] / self.state_scale[tag, MAX_ORDER:].unsqueeze(1)
+            state = torch.cat([x, rest], dim=-1)
+        else:
+            state = state / self.state_scale[tag].unsqueeze(1)
+        state = state * mask
         ref = ref / self.ref_scale[tag].unsqueeze(1)
         return state, mask, ref, tag
 

@@ -1,0 +1,153 @@
+"""A policy's per-plant rows that are not learned: the card bank and the normaliser's rows.
+
+The model card route (:class:`~generalist_control.model.card.CardPlant`) keeps one card per
+plant, indexed like tags, and its normaliser holds each plant's frame; both are computed
+from the plant's model, never fitted. :func:`fit_cards` fills them for the training plants;
+:func:`add_card` grows a trained policy by a plant it never saw (a new tag, nothing
+learned), :func:`add_scales` does the same for a policy whose rows are only its normaliser's
+(the in-context route). A tag embedding's rows are learned: such a policy cannot grow here.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping, Sequence
+
+import torch
+from torch import Tensor
+
+from generalist_control.model.card import CardFrame, CardPlant
+from generalist_control.model.policy import Policy
+from generalist_control.plants.plant import MAX_ORDER, Plant
+
+#: Smallest spread of a descriptor entry (an entry every training card shares).
+STD_FLOOR = 1e-3
+
+__all__ = [
+    "add_card",
+    "add_rows",
+    "add_scales",
+    "card_part",
+    "fit_cards",
+    "fit_model_rows",
+    "frame_rows",
+]
+
+
+def card_part(policy: Policy) -> CardPlant:
+    """The policy's card part, or a ``ValueError`` saying the policy has none."""
+    part = policy.net.plant
+    if not isinstance(part, CardPlant):
+        raise ValueError(
+            f"the policy reaches the plant through {type(part).__name__}, not a model card "
+            "(model.plant: card)"
+        )
+    return part
+
+
+def frame_rows(frame: CardFrame, width: int) -> dict[str, Tensor]:
+    """The normaliser's buffers (one row each) for a card's frame, ``width`` window entries.
+
+    Entry ``MAX_ORDER`` is the error integral, a last entry beyond it the previous control;
+    padded state entries get the scale 1 and a zero row of the map.
+    """
+    n = len(frame.state)
+    state = torch.ones(1, width, dtype=torch.float64)
+    state[0, :n] = torch.as_tensor(frame.state)
+    if width > MAX_ORDER:
+        state[0, MAX_ORDER] = frame.integral
+    if width > MAX_ORDER + 1:
+        state[0, -1] = frame.control
+    state_map = torch.zeros(1, MAX_ORDER, MAX_ORDER, dtype=torch.float64)
+    state_map[0, :n, :n] = torch.as_tensor(frame.map)
+    return {
+        "normaliser.state_scale": state,
+        "normaliser.ref_scale": torch.tensor([frame.reference], dtype=torch.float64),
+        "normaliser.control_scale": torch.tensor([frame.control], dtype=torch.float64),
+        "normaliser.seen": torch.ones(1, dtype=torch.bool),
+        "normaliser.state_map": state_map,
+    }
+
+
+def _rows(policy: Policy, plants: Sequence[Plant]) -> dict[str, Tensor]:
+    """Cards and normaliser rows of ``plants``, stacked in their order."""
+    part = card_part(policy)
+    rows: dict[str, list[Tensor]] = {}
+    for p in plants:
+        features, frame = part.card(p)
+        rows.setdefault("net.plant.cards", []).append(torch.as_tensor(features)[None])
+        for k, v in frame_rows(frame, policy.width).items():
+            rows.setdefault(k, []).append(v)
+    return {k: torch.cat(v) for k, v in rows.items()}
+
+
+@torch.no_grad()
+def fit_cards(policy: Policy, plants: Sequence[Plant]) -> None:
+    """Fill ``policy``'s bank and normaliser rows at each plant's tag, in place.
+
+    The cards' mean and spread over these rows become the part's standardisation. Rows of
+    tags no plant holds keep what they held.
+
+    Raises
+    ------
+    ValueError
+        If the policy has no card part, or a plant's tag lies outside the bank.
+    """
+    part = card_part(policy)
+    bad = [p.name for p in plants if not 0 <= p.tag < part.n_tags]
+    if bad or not plants:
+        raise ValueError(f"plants {bad} have tags outside the bank's rows 0..{part.n_tags - 1}")
+    tags = torch.as_tensor([p.tag for p in plants], dtype=torch.long)
+    buffers = dict(policy.named_buffers())
+    for key, rows in _rows(policy, plants).items():
+        buffers[key][tags] = rows.to(buffers[key].dtype)
+    cards = part.cards[tags].double()
+    part.card_mean.copy_(cards.mean(0))
+    part.card_std.copy_(cards.std(0, unbiased=False).clamp(min=STD_FLOOR))
+
+
+def fit_model_rows(policy: Policy, plants: Sequence[Plant]) -> None:
+    """Fill the rows a policy computes from its plants' models (the card bank); else nothing.
+
+    Called by training after the normaliser's fit on the data, whose rows the cards replace.
+    """
+    if isinstance(policy.net.plant, CardPlant):
+        fit_cards(policy, plants)
+
+
+def add_rows(policy: Policy, rows: Mapping[str, Tensor]) -> Policy:
+    """``policy`` with one more tag whose per-tag buffers hold ``rows`` (one row each).
+
+    Every other parameter and buffer is copied bit for bit; ``policy`` is not changed.
+
+    Raises
+    ------
+    ValueError
+        If an entry sized by the number of tags is missing from ``rows`` (a learned per-tag
+        parameter: a tag embedding has no row for a plant it never saw).
+    """
+    old = policy.state_dict()
+    config = copy.deepcopy(policy.config)
+    config["plant"] = {**config["plant"], "n_tags": policy.net.n_tags + 1}
+    with torch.random.fork_rng():  # the fresh network's random start is thrown away
+        grown = Policy(config)
+    state: dict[str, Tensor] = {}
+    for key, fresh in grown.state_dict().items():
+        if key in rows:
+            state[key] = torch.cat([old[key], rows[key].to(old[key].dtype)])
+        elif old[key].shape != fresh.shape:
+            raise ValueError(f"{key} is learned per tag: a plant never trained on has no row")
+        else:
+            state[key] = old[key].clone()
+    grown.load_state_dict(state)
+    return grown.eval()
+
+
+def add_card(policy: Policy, plant: Plant) -> Policy:
+    """``policy`` grown by one row: ``plant``'s card and frame, tag the old ``n_tags``."""
+    return add_rows(policy, _rows(policy, [plant]))
+
+
+def add_scales(policy: Policy, scales: Mapping[str, Tensor]) -> Policy:
+    """``policy`` grown by one normaliser row, ``scales`` (keys as in its ``state_dict``)."""
+    return add_rows(policy, scales)
