@@ -17,6 +17,7 @@ as ``python train.py``) and for every sweep job and Optuna trial. Outputs:
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import logging
 import warnings
@@ -31,15 +32,25 @@ import torch
 from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.secrets import redact
 from generalist_control.deploy.facts import integral_facts
+from generalist_control.model.bank import fit_model_rows
 from generalist_control.model.network import count_parameters
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy, save_policy
+from generalist_control.plants.catalog import tag_count
+from generalist_control.plants.plant import Plant
 from generalist_control.tracking import training_run
 from generalist_control.training import outputs
 from generalist_control.training.dagger import DAggerCallback
 from generalist_control.training.datamodule import DemoDataModule, WindowTensors
+from generalist_control.training.family_set import (
+    FamilySet,
+    FamilyTraining,
+    read_family_training,
+    with_rows,
+)
 from generalist_control.training.lit_module import ImitationModule
 from generalist_control.training.settings import TrainingSettings, read_training
 from generalist_control.training.setup import (
@@ -60,20 +71,33 @@ METRICS_FILE = "metrics.json"
 
 
 def _data(
-    cfg: DictConfig, settings: TrainingSettings, channels: tuple[str, ...]
+    cfg: DictConfig,
+    settings: TrainingSettings,
+    channels: tuple[str, ...],
+    families: FamilySet | None,
 ) -> tuple[DemoDataModule, dict[str, Any]]:
-    """The loaded, split data (the set's plants only) and the policy's meta."""
+    """The loaded, split data (the set's plants and the families') and the policy's meta."""
     dm = DemoDataModule(
         cfg.paths.data_dir,
         settings.history,
         settings.horizon,
         settings.loader,
         seed=settings.seed,
-        plants=included_plants(cfg),
+        plants=included_plants(cfg) + (families.names if families else []),
         channels=channels,
+        families=families,
     )
     dm.setup("fit")
-    return dm, {**dm.meta(), **integral_facts(list(dm.tags))}
+    facts = integral_facts(list(dm.tags))
+    for key, more in (families.facts() if families else {}).items():
+        facts[key] = {**facts[key], **more}
+    return dm, {**dm.meta(), **facts}
+
+
+def _families_spec(cfg: DictConfig) -> FamilyTraining | None:
+    """``train_families`` read (None: the catalogue alone)."""
+    node = cfg.train_families
+    return read_family_training(None if node is None else as_dict(node))
 
 
 def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
@@ -84,9 +108,16 @@ def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
 
 
 def _module(
-    settings: TrainingSettings, dm: DemoDataModule, meta: dict[str, Any], resume: bool
+    settings: TrainingSettings,
+    dm: DemoDataModule,
+    meta: dict[str, Any],
+    resume: bool,
+    plants: list[Plant],
 ) -> ImitationModule:
-    """The Lightning module, its normaliser fitted, a per-tag table started by least squares."""
+    """The Lightning module, its normaliser fitted, a per-tag table started by least squares.
+
+    Rows a recipe computes from its plants' models (the card bank) come from ``plants``.
+    """
     lit = ImitationModule(
         model=settings.model,
         optimizer=settings.optimizer,
@@ -94,6 +125,7 @@ def _module(
         meta=meta,
     )
     lit.policy.normaliser.fit(**_tensors(dm.train_set))
+    fit_model_rows(lit.policy, plants)
     if lit.policy.net.table is not None and not resume:
         t = _tensors(dm.train_set)
         residuals = lit.policy.fit_table(t["state"], t["mask"], t["ref"], t["tag"], t["target"])
@@ -119,9 +151,12 @@ def _callbacks(
     ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
     plants = training_plants(cfg, dm.meta())
     channels = lit.policy.channels
+    family = dm.families.plants if dm.families else []
+    spec = _families_spec(cfg)
+    turn, checked = (spec.dagger_plants, spec.closed_loop_plants) if spec else (0, 0)
     own = [
-        dagger_callback(cfg, settings, dagger_plants(plants, dm.manifest), channels),
-        closed_loop_validation(settings, plants),
+        dagger_callback(cfg, settings, dagger_plants(plants, dm.manifest), channels, family, turn),
+        closed_loop_validation(settings, plants + family[:checked]),
     ]
     return [*callbacks, *(c for c in own if c is not None)], ckpt_cb
 
@@ -235,15 +270,19 @@ def _prepare(
     """Config checked, threads and seed set, data loaded, module built; nothing logged yet."""
     outputs.scrub_hydra_files()
     settings = read_training(cfg)
+    spec = _families_spec(cfg)
+    families = FamilySet.load(spec.dirs, tag_count()) if spec else None
+    settings = dataclasses.replace(settings, model=with_rows(settings.model, families))
     torch.set_num_threads(settings.threads)
     L.seed_everything(settings.seed, workers=True)
     ckpt_path = cfg.get("ckpt_path")
     with torch.random.fork_rng():  # the model config checked before the data is read
         channels = Policy(settings.model).channels
-    dm, meta = _data(cfg, settings, channels)
+    dm, meta = _data(cfg, settings, channels, families)
     if ckpt_path:
         check_resume(ckpt_path, meta)
-    lit = _module(settings, dm, meta, resume=bool(ckpt_path))
+    plants = training_plants(cfg, meta) + (families.plants if families else [])
+    lit = _module(settings, dm, meta, resume=bool(ckpt_path), plants=plants)
     if ckpt_path:
         _check_fits(settings, ckpt_path, lit)
         check_resume(ckpt_path, meta, settings.max_epochs)

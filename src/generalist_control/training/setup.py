@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -84,12 +85,18 @@ def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
 
 
 def dagger_callback(
-    cfg: DictConfig, settings: TrainingSettings, plants: list[Plant], channels: tuple[str, ...]
+    cfg: DictConfig,
+    settings: TrainingSettings,
+    plants: list[Plant],
+    channels: tuple[str, ...],
+    rotating: Sequence[Plant] = (),
+    per_round: int = 0,
 ) -> L.Callback | None:
     """The DAgger callback of ``settings.dagger`` on ``plants`` (None when it is off).
 
     ``plants`` are the training plant versions (:func:`dagger_plants`); the sampler takes
-    the data's amplitude limit, families and variant range from ``cfg.data``.
+    the data's amplitude limit, families and variant range from ``cfg.data``. ``rotating``
+    plants (a family's) join each round ``per_round`` at a time, in turn.
     """
     spec = settings.dagger
     if spec is None:
@@ -104,6 +111,8 @@ def dagger_callback(
         seed=settings.seed,
         variant_range=float(block.get("range", DEFAULT_RANGE)),
         variant_tries=int(block.get("max_tries", 10)),
+        rotating=rotating,
+        per_round=per_round,
     )
     labeller = ExpertLabeller(spec.labeller, settings.history, settings.horizon, channels)
     return DAggerCallback(sampler, labeller, spec)
