@@ -9,8 +9,7 @@ For each count N of plants (each figure the median of ``--repeats`` runs):
   config (``conf/data/demos.yaml``), wall time; and the windows its data yields;
 * ``epoch``: one training epoch of the default network with ``model.plant.n_tags = N``:
   bare steps (forward, backward, clipping, AdamW; the batch's gather from the in-memory
-  training windows included) on one CPU thread (run as a command, freed memory kept as the
-  training commands keep it: :mod:`generalist_control.common.memory`), and on the GPU
+  training windows included) on one CPU thread, and on the GPU
   beside it where CUDA is available. ``--batches K`` times K batches only and reports the
   epoch time their throughput implies (``epoch_s_kind`` says which);
 * ``evaluation``: :func:`~generalist_control.evaluation.runner.evaluate` on the default
@@ -397,7 +396,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    from generalist_control.common.memory import keep_freed_memory
-
-    keep_freed_memory()  # as the training commands do (common.memory)
     main()

@@ -16,9 +16,6 @@ d = 32, M = 3 and batch size:
   25-plant dataset of ~317k windows, scaled from the measured samples/s;
 * peak RSS of the process.
 
-Run as a command it keeps freed memory, as the training commands do
-(:mod:`generalist_control.common.memory`).
-
 Figures are printed and written to ``benchmarks/results/train.json``.
 """
 
@@ -270,7 +267,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    from generalist_control.common.memory import keep_freed_memory
-
-    keep_freed_memory()  # as the training commands do (common.memory)
     main()

@@ -13,6 +13,19 @@ def compose_cfg(*overrides: str, config: str = "config"):
         return compose(config, overrides=list(overrides))
 
 
+def config_section(cls, key: str, **changes):
+    """The settings dataclass ``cls`` read from the default config's section ``key``, with
+    ``changes`` (the defaults live in conf/ only)."""
+    import dataclasses
+
+    from omegaconf import OmegaConf
+
+    from generalist_control.common.settings import read_section
+
+    node = OmegaConf.to_container(OmegaConf.select(compose_cfg(), key), resolve=True)
+    return dataclasses.replace(read_section(cls, node, key), **changes)
+
+
 #: The tiny data config: eight step amplitudes, 2 s (40 samples) per trajectory.
 TINY_DATA = {
     "history": 8,
@@ -79,13 +92,15 @@ def policy_meta(names, history: int = 8, horizon: int = 3) -> dict:
     }
 
 
-def lqi_law_policy(names, gains_of, samples: int = 1):
-    """A real integrating policy whose per-tag table is the law ``-Kx x - Ki z``, and its meta.
+def lqi_law_policy(names, gains_of, samples: int = 1, fit=None):
+    """A real integrating policy whose skip path is the law ``-Kx x - Ki z``, and its meta.
 
     ``gains_of(plant)`` gives each plant's gains (e.g. ``design_lqi``). The experts' last
-    layers are zero, so the output is the table alone; the table's weights on the newest sample
-    are the gains in the normaliser's units (non-trivial scales, seeded), the same on every
-    step of the horizon. ``samples``: how many of the newest samples the table reads.
+    layers are zero, so the output is the skip path alone; each plant's embedding row is a unit
+    vector, so the skip's weights on it are that plant's gains on the newest sample in the
+    normaliser's units (non-trivial scales, seeded), the same on every step of the horizon.
+    ``samples``: how many of the newest samples the skip reads; ``fit``: windows (``state``,
+    ``mask``, ``ref``, ``tag``, ``target`` tensors) to fit the normaliser on instead.
     """
     import numpy as np
     import torch
@@ -96,8 +111,9 @@ def lqi_law_policy(names, gains_of, samples: int = 1):
 
     torch.manual_seed(0)
     config = net_config(
-        hidden=16, experts=2, window_scale=True, channels=["integral"], table=samples
-    )
+        hidden=32, experts=2, window_scale=True, channels=["integral"], skip="linear",
+        skip_samples=samples,
+    )  # fmt: skip
     pol = Policy(config)
     g = torch.Generator().manual_seed(3)
     width, T, K = MAX_ORDER + 1, pol.history, pol.horizon
@@ -106,10 +122,16 @@ def lqi_law_policy(names, gains_of, samples: int = 1):
         for expert in pol.net.experts:
             expert[-1].weight.zero_()
             expert[-1].bias.zero_()
-        pol.normaliser.state_scale.uniform_(0.5, 3.0, generator=g)
-        pol.normaliser.control_scale.uniform_(0.5, 3.0, generator=g)
-        table = pol.net.table.weight
-        table.weight.zero_()
+        if fit is None:
+            pol.normaliser.state_scale.uniform_(0.5, 3.0, generator=g)
+            pol.normaliser.control_scale.uniform_(0.5, 3.0, generator=g)
+        else:
+            pol.normaliser.fit(**fit)
+        rows = pol.net.plant.rows.weight
+        rows.copy_(torch.eye(rows.shape[0], rows.shape[1]))
+        gains_layer = pol.net.skip.gains
+        gains_layer.weight.zero_()
+        gains_layer.bias.zero_()
         for name in names:
             plant = load_plant(name)
             gains = gains_of(plant)
@@ -119,7 +141,7 @@ def lqi_law_policy(names, gains_of, samples: int = 1):
             newest = (n - 1) * width
             row[newest : newest + plant.order] = -gains.Kx * sx[: plant.order] / su
             row[newest + MAX_ORDER] = -gains.Ki * sx[MAX_ORDER] / su
-            table.weight[plant.tag] = torch.tensor(np.tile(row, K))
+            gains_layer.weight[:, plant.tag] = torch.tensor(np.tile(row, K))
     return pol.eval(), policy_meta(list(names), T, K)
 
 
@@ -133,7 +155,7 @@ def net_config(
     channels=(),
     window_scale: bool = False,
     skip=None,
-    table=None,
+    skip_samples: int = 1,
     plant: str = "tag",
     law_history=None,
     n_tags: int = 25,
@@ -141,9 +163,9 @@ def net_config(
 ) -> dict:
     """A network config (the shape of ``conf/model``) in plain types; the paper's by default.
 
-    ``skip``: None, ``"linear"`` or ``"context"`` (one sample each); ``table``: None or the
-    samples of a per-tag table; ``plant``: ``"tag"`` or ``"inferred"`` (``plant_options``:
-    ``noise``, ``loss_weight``, ``models`` -- a dict of TransitionModels settings, or None).
+    ``skip``: None, ``"linear"`` or ``"context"`` (``skip_samples`` each); ``plant``:
+    ``"tag"`` or ``"inferred"`` (``plant_options``: ``noise``, ``loss_weight``, ``models`` --
+    a dict of TransitionModels settings, or None).
     """
     base = "generalist_control.model."
     if plant == "tag":
@@ -167,10 +189,8 @@ def net_config(
     }  # fmt: skip
     if skip is not None:
         kind = {"linear": "LinearSkip", "context": "ContextSkip"}[skip]
-        config["skip"] = {"_target_": base + f"linear.{kind}", "_partial_": True, "samples": 1}
-    if table is not None:
-        config["table"] = {"_target_": base + "linear.TagTable", "_partial_": True,
-                           "samples": table}  # fmt: skip
+        config["skip"] = {"_target_": base + f"linear.{kind}", "_partial_": True,
+                          "samples": skip_samples}  # fmt: skip
     return config
 
 
@@ -179,3 +199,11 @@ def build_net(**kwargs):
     from generalist_control.model.build import build_network
 
     return build_network(net_config(**kwargs))
+
+
+def train(cfg):
+    """Train as ``python train.py`` does: the config read once, then the work."""
+    from generalist_control.training.fit import train as fit
+    from generalist_control.training.settings import read_training
+
+    return fit(read_training(cfg))

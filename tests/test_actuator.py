@@ -12,13 +12,16 @@ from generalist_control.training.actuator import Actuator, lag_mix
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import run_rollouts
 from generalist_control.training.settings import LabellerSettings
+from helpers import config_section
 
 
 def aggregate(plant, amps, steps, seed=0, actuator=None):
     """A pure-expert round on ``plant`` whose windows carry the previous control."""
     refs = (np.repeat(amps[:, None], steps, axis=1), None)
     rollouts = run_rollouts([plant], [refs], None, 1.0, None, seed, actuator)
-    labeller = ExpertLabeller(LabellerSettings(), 8, 3, ["previous_control"])
+    labeller = ExpertLabeller(
+        config_section(LabellerSettings, "dagger.labeller"), 8, 3, ["previous_control"]
+    )
     return labeller.label(rollouts, {plant.name: np.full(plant.order, np.inf)})
 
 

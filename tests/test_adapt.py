@@ -258,10 +258,7 @@ def test_refuses_bad_recorded_demonstrations(base, tmp_path, edit, match):
     _refused(base, tmp_path, "mass_spring_damper", match, f"demos={path}", error=RecordingError)
 
 
-def test_refuses_the_hybrid_and_a_tag_free_row(tiny_demos, tmp_path):
-    hybrid = _policy(tmp_path, tiny_demos, "hybrid.ckpt", table=1)
-    _refused(hybrid, tmp_path, "mass_spring_damper", "hybrid.*per-tag table.*Retrain with the "
-             "plant", error=RecipeError)  # fmt: skip
+def test_refuses_a_tag_free_row(tiny_demos, tmp_path):
     free = _policy(tmp_path, tiny_demos, "free.ckpt", plant="inferred", models=None)
     _refused(free, tmp_path, "mass_spring_damper", "tag-free.*no row to learn.*Evaluate it "
              "directly: adapt.learn=false", error=RecipeError)  # fmt: skip
@@ -329,7 +326,7 @@ def _unit_step_errors(policy_path, plant_name: str) -> tuple[float, bool]:
 @pytest.mark.slow
 def test_adapted_tiny_policy_closes_the_loop(tiny_data_dir, tmp_path, mlflow_uri):
     """Tiny: a policy trained 15 epochs on cstr and hydraulic_actuator, adapted to a third."""
-    from generalist_control.training.fit import train
+    from helpers import train
 
     out = tmp_path / "train"
     over = tiny_train_overrides(tiny_data_dir, out, mlflow_uri, "trainer.max_epochs=15",
@@ -351,7 +348,7 @@ def test_adapted_tiny_policy_closes_the_loop(tiny_data_dir, tmp_path, mlflow_uri
 @pytest.mark.slow
 def test_command_line_adapts_a_registered_version(tiny_data_dir, tmp_path, mlflow_uri):
     """`python adapt.py plant=... policy=models:/<name>/1`: version 2, tagged with its base."""
-    from generalist_control.training.fit import train
+    from helpers import train
 
     name = f"tiny-{tmp_path.name}"
     over = tiny_train_overrides(tiny_data_dir, tmp_path / "train", mlflow_uri,

@@ -188,7 +188,7 @@ def test_the_tag_free_stage_trains_evaluates_and_writes_its_analyses(
     from analysis.run_tag_free import run as analyse
 
     from generalist_control.evaluate import run as evaluate_run
-    from generalist_control.training.fit import train
+    from helpers import train
 
     switch = ("experiment=tag_free", "dagger.start_epoch=1", "dagger.rounds=1")
     overrides = tiny_train_overrides(tiny_data_dir, tmp_path / "tf", mlflow_uri, *switch)

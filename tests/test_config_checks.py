@@ -40,9 +40,8 @@ from generalist_control.training.datamodule import (
     WindowTensors,
     split_by_trajectory,
 )
-from generalist_control.training.fit import train
 from generalist_control.training.settings import LoaderSettings, read_training
-from helpers import compose_cfg, tiny_train_overrides
+from helpers import compose_cfg, config_section, tiny_train_overrides, train
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -93,7 +92,7 @@ def _refused(*overrides: str) -> str:
         ("dagger.rounds=2.0", "dagger.rounds must be an integer, got 2.0"),
         ("+dagger.focus=2", "dagger has unknown keys ['focus']"),
         ("dagger.sampler.noise=-1", "dagger.sampler.noise must be a finite number >= 0"),
-        ("+dagger.sampler.actuator.lag=nan", "dagger.sampler.actuator.lag must be a finite"),
+        ("+dagger.sampler.actuator={lag:nan,offset:0}", "actuator.lag must be a finite"),
         ("closed_loop_val=null", "monitor=val/closed_loop needs the closed-loop validation"),
         ("monitor=val/acc", "monitor must be val/loss or val/closed_loop"),
     ],
@@ -247,7 +246,7 @@ def test_the_tag_count_is_the_catalogues_and_an_explicit_one_is_kept(tmp_path, m
 
 
 def test_data_module_keeps_the_included_plants_with_the_same_split(tiny_data_dir):
-    loader = LoaderSettings(batch_size=64)
+    loader = config_section(LoaderSettings, "loader", batch_size=64)
     full = DemoDataModule(tiny_data_dir, 8, 3, loader)
     one = DemoDataModule(tiny_data_dir, 8, 3, loader, plants=["cstr"])
     full.setup()
@@ -264,7 +263,7 @@ def test_data_module_keeps_the_included_plants_with_the_same_split(tiny_data_dir
 
 
 def test_data_module_without_plants_is_the_previous_split(tiny_data_dir, tiny_demos):
-    dm = DemoDataModule(tiny_data_dir, 8, 3, seed=3)
+    dm = DemoDataModule(tiny_data_dir, 8, 3, config_section(LoaderSettings, "loader"), seed=3)
     dm.setup()
     windows = tiny_demos.windows(8, 3)
     is_val = split_by_trajectory(tiny_demos.plant, 0.1, 3)[windows.traj]
@@ -275,7 +274,8 @@ def test_data_module_without_plants_is_the_previous_split(tiny_data_dir, tiny_de
 
 
 def test_data_module_names_an_included_plant_the_data_lacks(tiny_data_dir):
-    dm = DemoDataModule(tiny_data_dir, 8, 3, plants=["cstr", "unstable"])
+    loader = config_section(LoaderSettings, "loader")
+    dm = DemoDataModule(tiny_data_dir, 8, 3, loader, plants=["cstr", "unstable"])
     with pytest.raises(MissingPlantError, match=r"\(systems\) names \['unstable'\]") as e:
         dm.setup()
     assert f"paths.data_dir={tiny_data_dir}" in str(e.value)

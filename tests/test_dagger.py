@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -26,7 +28,7 @@ from generalist_control.training.settings import (
     SamplerSettings,
     VariantSettings,
 )
-from helpers import net_config
+from helpers import config_section, net_config
 
 
 def _steps(amplitudes, steps):
@@ -39,7 +41,9 @@ def aggregate(plants, runtime, beta, specs, bounds, steps, history, horizon, cha
     """One DAgger round: the sampler's loop, then the labeller (specs: amplitudes per plant)."""
     specs = [s if isinstance(s, tuple) else _steps(s, steps) for s in specs]
     rollouts = run_rollouts(plants, specs, runtime, beta, noise, seed, actuator)
-    labeller = ExpertLabeller(LabellerSettings(), history, horizon, channels)
+    labeller = ExpertLabeller(
+        config_section(LabellerSettings, "dagger.labeller"), history, horizon, channels
+    )
     return labeller.label(rollouts, bounds)
 
 
@@ -124,7 +128,9 @@ def test_rounds_for_a_previous_control_policy_carry_the_executed_controls():
 
 def test_the_expert_s_share_decays_by_round_and_the_schedule_runs_when_due():
     """beta_i = beta * beta_decay ** i; rounds after start_epoch, then every `every` epochs."""
-    settings = DaggerSettings(start_epoch=6, every=4, rounds=5, beta=0.5, beta_decay=0.5)
+    settings = config_section(
+        DaggerSettings, "dagger", start_epoch=6, every=4, rounds=5, beta=0.5, beta_decay=0.5
+    )
     assert [settings.beta_at(i) for i in range(4)] == [0.5, 0.25, 0.125, 0.0625]
     from generalist_control.training.dagger import DAggerCallback
 
@@ -162,7 +168,9 @@ def test_a_round_executes_the_expert_s_share_of_its_round():
     dm = SimpleNamespace(meta=lambda: _meta(plant), train_set=WindowTensors(first))
     trainer = SimpleNamespace(datamodule=dm, callbacks=[], should_stop=True, current_epoch=0)
     module = SimpleNamespace(policy=policy, log=lambda *a, **k: None)
-    settings = DaggerSettings(start_epoch=1, every=1, rounds=3, beta=0.8, beta_decay=0.25)
+    settings = config_section(
+        DaggerSettings, "dagger", start_epoch=1, every=1, rounds=3, beta=0.8, beta_decay=0.25
+    )
     cb = DAggerCallback(Sampler(), labeller, settings)  # type: ignore[arg-type]
     for epoch in range(4):
         trainer.current_epoch = epoch
@@ -217,8 +225,7 @@ def test_training_with_dagger_grows_the_training_set(tiny_data_dir, tmp_path, ml
     from hydra import compose, initialize_config_dir
 
     from generalist_control.common.paths import conf_dir
-    from generalist_control.training.fit import train
-    from helpers import tiny_train_overrides
+    from helpers import tiny_train_overrides, train
 
     overrides = tiny_train_overrides(
         tiny_data_dir, tmp_path, mlflow_uri, "logger.log_model=false", "trainer.max_epochs=3",
@@ -268,7 +275,9 @@ def test_bumpless_integrator_is_the_tracked_one_on_expert_runs_and_velocity_form
 
 
 def _sampler(plants, **settings):
-    sampler_settings = SamplerSettings(**{"families": 0, **settings})
+    sampler_settings = config_section(
+        SamplerSettings, "dagger.sampler", **{"families": 0, **settings}
+    )
     return RolloutSampler(plants, sampler_settings, 20.0, {}, 0, 0.25, 10)
 
 
@@ -283,7 +292,7 @@ def test_the_sampler_takes_each_plant_s_data_variants_in_turn():
     assert _sampler(plants).round_plants(0) == plants
 
     def taking(k):
-        return _sampler(plants, variants=VariantSettings(data=k))
+        return _sampler(plants, variants=VariantSettings(data=k, fresh=0, seed=3001))
 
     assert taking(2).round_plants(0) == [servo, v[0], v[1], unstable]
     assert taking(2).round_plants(1) == [servo, v[2], v[0], unstable]
@@ -291,7 +300,9 @@ def test_the_sampler_takes_each_plant_s_data_variants_in_turn():
     assert taking(0).round_plants(0) == [servo, unstable]
     assert taking(9).round_plants(0) == plants
     with pytest.raises(ValueError, match="dagger.sampler.variants.data must be a non-negative"):
-        read_section(SamplerSettings, {"variants": {"data": -1}}, "dagger.sampler")
+        node = dataclasses.asdict(config_section(SamplerSettings, "dagger.sampler"))
+        node["variants"] = {"data": -1, "fresh": 0, "seed": 1}
+        read_section(SamplerSettings, node, "dagger.sampler")
 
 
 def test_each_plant_version_gets_its_own_rollout_references():
@@ -328,7 +339,12 @@ def test_fresh_variants_are_new_each_round_fit_and_labelled_by_their_own_expert(
     servo, unstable = load_plant("dc_servo"), load_plant("unstable")
 
     def fresh(plants):
-        settings = SamplerSettings(duration=5.0, variants=VariantSettings(data=0, fresh=2))
+        settings = config_section(
+            SamplerSettings,
+            "dagger.sampler",
+            duration=5.0,
+            variants=VariantSettings(data=0, fresh=2, seed=3001),
+        )
         return RolloutSampler(plants, settings, 20.0, {}, 0, 0.2, 10)
 
     cb = fresh([servo, unstable])
@@ -430,8 +446,10 @@ def test_sampler_noise_and_actuator_scale_with_each_plant_s_control_scale(monkey
         captured.update(noise=noise, seed=seed, actuator=actuator, beta=beta)
 
     monkeypatch.setattr(sampler_module, "run_rollouts", spy)
-    settings = SamplerSettings(rollouts=1, duration=1.0, families=0, noise=0.1,
-                               actuator=ActuatorSettings(lag=0.5, offset=0.2))  # fmt: skip
+    settings = config_section(
+        SamplerSettings, "dagger.sampler", rollouts=1, duration=1.0, families=0, noise=0.1,
+        actuator=ActuatorSettings(lag=0.5, offset=0.2),
+    )  # fmt: skip
     RolloutSampler(plants, settings, 20.0, {}, 5, 0.25, 10).run(2, runtime, 0.3)
     assert captured["noise"] == pytest.approx({p.name: 0.1 * (1.0 + p.tag) for p in plants})
     for p in plants:

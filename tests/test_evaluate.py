@@ -31,8 +31,7 @@ from generalist_control.simulation.comparison import (
     output_mse,
 )
 from generalist_control.simulation.lqi import LQIController
-from generalist_control.training.fit import train
-from helpers import tiny_train_overrides
+from helpers import tiny_train_overrides, train
 
 REPO = Path(__file__).resolve().parents[1]
 PLANTS = ("cstr", "hydraulic_actuator")

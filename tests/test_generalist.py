@@ -1,5 +1,5 @@
 """The default recipe is a learned generalist: the plant reaches the network only through the
-learned tag embedding (issue 11). The per-tag LQI head is a named hybrid beside it."""
+learned tag embedding (issue 11)."""
 
 from __future__ import annotations
 
@@ -45,17 +45,19 @@ def _tag_only_through_embedding(net: GeneralistNetwork) -> bool:
 
 def test_the_default_recipe_indexes_nothing_by_plant_but_the_tag_embedding():
     cfg = compose_cfg()
-    assert "table" not in cfg.model
     policy = Policy(read_training(cfg).model)
-    assert isinstance(policy.net.plant, TagEmbedding) and policy.net.table is None
+    assert isinstance(policy.net.plant, TagEmbedding)
     assert _indexed_by_plant(policy) == {TAG_EMBEDDING}
     assert _tag_only_through_embedding(policy.net)
 
 
-def test_the_hybrid_carries_a_per_plant_gain_table_and_the_check_sees_it():
-    cfg = compose_cfg("experiment=lqi_head")
-    policy = Policy(read_training(cfg).model)
-    assert _indexed_by_plant(policy) == {TAG_EMBEDDING, "net.table.weight.weight"}
+def test_the_checks_see_a_parameter_indexed_by_plant_and_a_tag_read_elsewhere():
+    policy = Policy(read_training(compose_cfg()).model)
+    policy.net.extra = torch.nn.Embedding(policy.net.n_tags, 4)  # a per-plant table
+    assert _indexed_by_plant(policy) == {TAG_EMBEDDING, "net.extra.weight"}
+    plant = policy.net.plant
+    code = plant.forward
+    plant.forward = lambda s, m, r, t: (code(s, m, r, t)[0] + t[:, None].float(), None)
     assert not _tag_only_through_embedding(policy.net)
 
 

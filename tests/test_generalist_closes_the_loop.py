@@ -16,8 +16,7 @@ from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.summary import summarise
 from generalist_control.generate import run as generate
 from generalist_control.plants.catalog import load_plant
-from generalist_control.training.fit import train
-from helpers import compose_cfg, tiny_train_overrides
+from helpers import compose_cfg, tiny_train_overrides, train
 
 PLANTS = ("cstr", "hydraulic_actuator")
 DATA = (
@@ -73,7 +72,6 @@ def test_a_short_training_of_the_default_recipe_closes_the_loop(tmp_path):
     generate(compose_cfg(*DATA, f"paths.data_dir={data}"))
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     cfg = compose_cfg(*tiny_train_overrides(data, tmp_path / "run", uri), *TRAIN)
-    assert "table" not in cfg.model  # the learned generalist, not the hybrid
     _, objects = train(cfg)
     runtime = PolicyRuntime(objects["policy"], objects["datamodule"].meta())
     df, _ = evaluate(runtime, [load_plant(p) for p in PLANTS], SCENARIOS)

@@ -19,9 +19,8 @@ from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import Run, simulate, simulate_many
-from generalist_control.training.fit import train
 from generalist_control.training.settings import model_config
-from helpers import compose_cfg, tiny_train_overrides
+from helpers import compose_cfg, tiny_train_overrides, train
 
 EPOCHS = 5
 #: The default recipe (integral, no per-plant head, closed-loop validation as the monitor),

@@ -116,7 +116,7 @@ def test_synthetic_reports_render_their_values_and_missing_recipes(tmp_path):
     assert "1 of 2 plants settle" in text and "1 with a loop of spectral radius >= 1" in text
     assert "largest 1.25 (plant_b, LQI's 0.5)" in text
     assert "`models/metrics.json` is not here" in text  # a DVC output absent from a checkout
-    missing = ("paper", "hybrid", "tag-free", "variants", "unseen", "ablation", "ablation-paper")
+    missing = ("paper", "tag-free", "variants", "unseen", "ablation", "ablation-paper")
     for key in missing:
         assert f"| {key} | not run yet |" in text
         assert f"not run yet: `{RECIPE[key].command}`" in text

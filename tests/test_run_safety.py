@@ -26,8 +26,7 @@ import torch
 import yaml
 
 from generalist_control.tracking import mlflow_utils
-from generalist_control.training.fit import train
-from helpers import compose_cfg, tiny_train_overrides
+from helpers import compose_cfg, tiny_train_overrides, train
 
 REPO = Path(__file__).resolve().parents[1]
 SECRET = "hunter2"

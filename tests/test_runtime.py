@@ -40,8 +40,8 @@ def _meta(history: int = 8) -> dict:
 def policy(request) -> Policy:
     """A random policy with non-trivial normaliser scales (no training needed here).
 
-    ``ours-no-integral``: window scaling and a whole-window per-tag table on, the table's
-    weights made non-zero; ``ours``: the same and the tracking-error integral as a state
+    ``ours-no-integral``: window scaling and a whole-window linear skip on, its weights made
+    non-zero; ``ours``: the same and the tracking-error integral as a state
     channel; ``tag-free-controls``: that, without the tag and with the previous control as
     a channel, the plant inferred from the window (an inferred plant and a context skip);
     ``tag-free-transitions``: that with a 12-sample window read by the transition
@@ -53,7 +53,7 @@ def policy(request) -> Policy:
     cfg = {"hidden": 16, "experts": 3, "window_scale": request.param > 0}
     cfg["channels"] = ["integral"] if integral else []
     if request.param in (1, 2):
-        cfg["table"] = 8
+        cfg |= {"skip": "linear", "skip_samples": 8}
     if request.param >= 3:
         cfg |= {"channels": ["integral", "previous_control"], "skip": "context"}
         cfg |= {"plant": "inferred", "models": None}
@@ -66,8 +66,6 @@ def policy(request) -> Policy:
         models = getattr(identifier, "models", None)
         if models is not None:  # each plant's one-step model: non-zero, so evidence differs
             models.params.weight.normal_(0.0, 0.1, generator=g)
-        if pol.net.table is not None:
-            pol.net.table.weight.weight.normal_(0.0, 0.1, generator=g)
         if pol.net.skip is not None:  # the skip's own control fed back: small, or it runs away
             pol.net.skip.gains.weight.normal_(0.0, 0.02, generator=g)
     pol.normaliser.state_scale.uniform_(0.5, 3.0, generator=g)
@@ -189,7 +187,7 @@ def test_loading_is_weights_only(policy, tmp_path):
 
 
 def _lqi_law_policy(names) -> tuple[Policy, dict]:
-    """A real integrating policy whose per-tag table *is* the LQI law.
+    """A real integrating policy whose skip path *is* the LQI law.
 
     Through window scaling (the head is linear) and the runtime's own integrator, it must
     reproduce LQI exactly (:func:`helpers.lqi_law_policy`).

@@ -23,9 +23,9 @@ from generalist_control.deploy.runtime import INPUT_LIMIT, PolicyRuntime, Reject
 from generalist_control.model.policy import Policy, save_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.plant import MAX_ORDER, pad_states
-from generalist_control.simulation.lqi import LQIController
+from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.simulate import Run, simulate, simulate_many
-from helpers import net_config, policy_meta
+from helpers import lqi_law_policy
 
 PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
 T, K = 8, 3
@@ -54,16 +54,9 @@ def demo():
 
 @pytest.fixture(scope="module")
 def trained(demo) -> tuple[Policy, dict]:
-    """An integrating policy: normaliser fitted on the demonstrations, table = LQI by lstsq."""
-    torch.manual_seed(0)
-    config = net_config(hidden=8, experts=2, window_scale=True, table=1, channels=["integral"],
-                        history=T, horizon=K)  # fmt: skip
-    policy = Policy(config)
+    """An integrating policy: normaliser fitted on the demonstrations, its law LQI's."""
     tensors = {k: torch.from_numpy(v) for k, v in demo.items()}
-    policy.normaliser.fit(**tensors)
-    policy.fit_table(**tensors)
-    meta = policy_meta(PLANTS, T, K)
-    return policy.eval(), meta
+    return lqi_law_policy(PLANTS, design_lqi, fit=tensors)
 
 
 def _rms(demo, name: str) -> dict[str, np.ndarray]:

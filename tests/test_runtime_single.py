@@ -36,7 +36,8 @@ PLANTS = ("cstr", "hydraulic_actuator", "two_mass_spring")  # orders 2, 3 and 4
 VARIANTS = {
     "paper": {},
     "default": {"window_scale": True, "channels": ["integral"], "skip": "linear"},
-    "table": {"window_scale": True, "channels": ["integral"], "table": 8},
+    "skip8": {"window_scale": True, "channels": ["integral"], "skip": "linear",
+              "skip_samples": 8},
     "tag-free": {"window_scale": True, "channels": ["integral", "previous_control"],
                  "skip": "context", "plant": "inferred", "models": None},
 }  # fmt: skip
@@ -49,11 +50,8 @@ def policy(request) -> tuple[Policy, dict]:
     pol = Policy(net_config(hidden=16, experts=3, **VARIANTS[request.param])).eval()
     g = torch.Generator().manual_seed(1)
     with torch.no_grad():
-        linear = [pol.net.table.weight if pol.net.table is not None else None,
-                  pol.net.skip.gains if pol.net.skip is not None else None]  # fmt: skip
-        for path in linear:
-            if path is not None:
-                path.weight.normal_(0.0, 0.05, generator=g)
+        if pol.net.skip is not None:
+            pol.net.skip.gains.weight.normal_(0.0, 0.05, generator=g)
         for expert in pol.net.experts:  # LayerNorm weights of their own
             for layer in expert:
                 if isinstance(layer, torch.nn.LayerNorm):

@@ -40,7 +40,9 @@ def test_training_params_are_what_shaped_the_training():
     assert params["model"] == "GeneralistNetwork" and params["model.plant"] == "TagEmbedding"
     assert params["model.skip"] == "LinearSkip" and params["optimizer"] == "AdamW"
     assert params["dagger.sampler.rollouts"] == "8"
-    assert not [k for k in params if k.startswith(("model.table", "dagger.sampler.actuator"))]
+    assert not [
+        k for k in params if k.startswith(("model.law_history", "dagger.sampler.actuator"))
+    ]
     assert [k for k, v in params.items() if v == "None"] == ["systems.include"]  # a chosen key
     assert params["trainer.max_epochs"] == "30" and params["dagger.rounds"] == "5"
     assert params["monitor"] == "val/closed_loop"

@@ -101,7 +101,7 @@ TINY_UNSEEN = (
 @pytest.mark.slow
 def test_the_stage_runs_on_tiny_data(tiny_data_dir, tmp_path, mlflow_uri):
     """Tiny: the stage's own commands, in a folder of the tiny data and a tiny models/."""
-    from generalist_control.training.fit import train
+    from helpers import train
 
     (tmp_path / "data").mkdir()
     shutil.copytree(tiny_data_dir, tmp_path / "data" / "demos")

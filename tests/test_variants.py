@@ -34,8 +34,7 @@ from generalist_control.simulation.variants import (
     check_variant,
     sample_variants,
 )
-from generalist_control.training.fit import train
-from helpers import TINY_DATA, compose_cfg, tiny_train_overrides
+from helpers import TINY_DATA, compose_cfg, tiny_train_overrides, train
 from test_evaluate import LQIRuntime
 
 TINY = TINY_DATA

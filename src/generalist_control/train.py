@@ -1,7 +1,8 @@
 """The ``train`` stage: ``python train.py`` at the repo root, ``gc-train``, ``dvc repro train``.
 
 Hydra overrides as usual, e.g. ``python train.py model.hidden=64 experts=5`` or
-``experiment=paper``; the work is :func:`generalist_control.training.fit.train`.
+``experiment=paper``; the config is read once (:func:`~.training.settings.read_training`),
+the work is :func:`generalist_control.training.fit.train`.
 """
 
 from __future__ import annotations
@@ -12,25 +13,24 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from generalist_control.common.memory import keep_freed_memory
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.training.fit import train
+from generalist_control.training.settings import read_training
 
-__all__ = ["main", "run", "train"]
+__all__ = ["main", "run"]
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    """Train the configured policy; return its metrics."""
-    metrics, _ = train(cfg)
+    """Train the policy ``cfg`` describes; return its metrics."""
+    metrics, _ = train(read_training(cfg))
     return metrics
 
 
 @hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="config")
 def main(cfg: DictConfig) -> float:
     """Hydra entry point: train and return the optimised metric (``optimized_metric``)."""
-    keep_freed_memory()  # a step reuses freed pages instead of faulting (common.memory)
     metrics = run(cfg)
-    return float(metrics.get(cfg.get("optimized_metric", "val/loss"), np.nan))
+    return float(metrics.get(str(cfg.optimized_metric), np.nan))
 
 
 if __name__ == "__main__":

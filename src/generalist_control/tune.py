@@ -13,7 +13,6 @@ import optuna
 from omegaconf import DictConfig
 from optuna.trial import TrialState
 
-from generalist_control.common.memory import keep_freed_memory
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.sweeps import study as _study
 
@@ -28,7 +27,6 @@ def run(cfg: DictConfig) -> optuna.Study:
 @hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="tune")
 def main(cfg: DictConfig) -> float:
     """Hydra entry point: run the study; return its best value (NaN if none completed)."""
-    keep_freed_memory()  # its trials train in this process (common.memory)
     study = run(cfg)
     complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     return float(study.best_value) if complete else math.nan

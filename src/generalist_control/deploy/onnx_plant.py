@@ -53,7 +53,6 @@ def supported(net: GeneralistNetwork) -> bool:
     skip = net.skip
     return (
         type(net.plant) is TagEmbedding
-        and net.table is None
         and (skip is None or (type(skip) is LinearSkip and skip.samples == 1))
         and "previous_control" not in net.channels
         and net.law_history == net.history

@@ -1,11 +1,9 @@
 """Build the network from its config (``conf/model``, or the copy a policy file stores).
 
-The config is Hydra's: the network and each part name their class with ``_target_``. A part
-is built by what holds it, which gives it its sizes, so every nested ``_target_`` is made
-``_partial_`` here (:func:`as_parts`); the config files need not say so. A policy file
-stores the resolved config as plain types, so loading one rebuilds the same network. Only
-classes of :mod:`generalist_control.model` may be named: a policy file cannot make the
-loader call anything else.
+The config is Hydra's: ``hydra.utils.instantiate`` builds it. Each nested part is a partial
+(``_partial_: true``) that the network calls with its sizes. A policy file stores the
+resolved config as plain types, and only classes of :mod:`generalist_control.model` may be
+named, so loading one cannot make the loader call anything else.
 """
 
 from __future__ import annotations
@@ -18,7 +16,7 @@ from hydra.utils import instantiate
 
 from generalist_control.model.network import GeneralistNetwork
 
-__all__ = ["TARGET_PREFIX", "as_parts", "build_network", "targets"]
+__all__ = ["TARGET_PREFIX", "build_network", "targets"]
 
 #: Where every ``_target_`` of a network config must live.
 TARGET_PREFIX = "generalist_control.model."
@@ -38,16 +36,18 @@ def targets(config: Any, path: str = "model") -> dict[str, str]:
     return found
 
 
-def as_parts(config: Any, root: bool = True) -> Any:
-    """``config`` with every nested node that names a ``_target_`` marked ``_partial_``."""
+def _not_partial(config: Any, path: str = "model") -> list[str]:
+    """Paths of nested ``_target_`` nodes that are not ``_partial_: true``."""
+    found = []
     if isinstance(config, Mapping):
-        out = {k: as_parts(v, root=False) for k, v in config.items()}
-        if "_target_" in out and not root:
-            out["_partial_"] = True
-        return out
-    if isinstance(config, list | tuple):
-        return [as_parts(v, root=False) for v in config]
-    return config
+        if path != "model" and "_target_" in config and config.get("_partial_") is not True:
+            found.append(path)
+        for key, value in config.items():
+            found += _not_partial(value, f"{path}.{key}")
+    elif isinstance(config, list | tuple):
+        for i, value in enumerate(config):
+            found += _not_partial(value, f"{path}[{i}]")
+    return found
 
 
 def build_network(config: Mapping[str, Any]) -> GeneralistNetwork:
@@ -71,8 +71,14 @@ def build_network(config: Mapping[str, Any]) -> GeneralistNetwork:
             f"the model config names classes outside {TARGET_PREFIX[:-1]}: {outside}; a network "
             "is built from the project's own parts only"
         )
+    partial = _not_partial(config)
+    if partial:
+        raise ValueError(
+            f"{', '.join(partial)} must be a part the network builds: add `_partial_: true` "
+            "beside its _target_ (conf/model/plant/tag.yaml shows how)"
+        )
     try:
-        net = instantiate(as_parts(dict(config)), _convert_="all")
+        net = instantiate(dict(config), _convert_="all")
     except InstantiationException as exc:
         cause = exc.__cause__
         if isinstance(cause, ValueError | TypeError):

@@ -31,6 +31,7 @@ import torch
 from torch import Tensor, nn
 
 from generalist_control.common.schema import require_int, require_nonnegative
+from generalist_control.model.plant import PlantPart
 from generalist_control.plants.plant import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import design_lqi, sampled_closed_loop
 from generalist_control.simulation.simulate import discretise
@@ -208,7 +209,7 @@ def card_features(plant: Plant, frame: CardFrame) -> np.ndarray:
     ])  # fmt: skip
 
 
-class CardPlant(nn.Module):
+class CardPlant(PlantPart):
     """The plant's code from its model card: a bank of descriptors, encoded by an MLP.
 
     Parameters
@@ -231,10 +232,6 @@ class CardPlant(nn.Module):
         ``(card - mean) / std``.
     """
 
-    #: Window channels the part reads (see ``GeneralistNetwork.channels``).
-    needs: tuple[str, ...] = ()
-    #: Size of what it adds to a context skip's summary.
-    summary_size = 0
     #: The normaliser maps each plant's state into its card's frame (``Normaliser.state_map``).
     maps_states = True
 

@@ -9,9 +9,7 @@ new row set to the RMS scales of the new plant's windows (as training sets every
 
 A tag-free policy (:class:`~generalist_control.model.plant.InferredPlant`) has no row to
 learn for a new plant; it only needs the plant's normaliser scales, on a row no trained
-plant uses (:func:`with_scales`). The hybrid's per-tag table
-(:class:`~generalist_control.model.linear.TagTable`) has a row of gains per tag that this
-adaptation does not learn, so it is refused (:func:`check_growable`).
+plant uses (:func:`with_scales`).
 """
 
 from __future__ import annotations
@@ -57,8 +55,7 @@ def check_growable(policy: Policy, source: str = "the policy") -> None:
     ------
     RecipeError
         For a tag-free policy (it needs no row: name the plant and evaluate it directly),
-        for the hybrid's per-tag table (a table row would be left untrained), or for a
-        plant part this module does not know.
+        or for a plant part this module does not know.
     """
     plant = policy.net.plant
     if isinstance(plant, InferredPlant):
@@ -71,13 +68,6 @@ def check_growable(policy: Policy, source: str = "the policy") -> None:
         raise RecipeError(
             f"{source} reaches the plant through {type(plant).__name__}, not a tag embedding "
             "(model.plant: TagEmbedding): there is no row to add"
-        )
-    if policy.net.table is not None:
-        raise RecipeError(
-            f"{source} is the hybrid (model.table: TagTable): its per-tag table of gains would "
-            "need a row of its own, which adapting the embedding row does not learn. Retrain "
-            "with the plant in the set (conf/systems, python train.py experiment=lqi_head), "
-            "or adapt a policy of the default recipe"
         )
 
 

@@ -1,6 +1,6 @@
-"""Linear paths added to the experts' output (ours): ``model.skip`` and ``model.table``.
+"""Linear paths added to the experts' output (ours): ``model.skip``.
 
-Both read the newest ``samples`` samples of the law's window (:func:`linear_features`: the
+They read the newest ``samples`` samples of the law's window (:func:`linear_features`: the
 state ``[x; z]`` and the reference). With the error-integral channel the LQI law is linear
 in the newest augmented state alone, so one sample lets such a path carry the feedback
 exactly and leaves the experts the rest.
@@ -10,8 +10,6 @@ exactly and leaves the experts the rest.
 * :class:`ContextSkip` (without the tag): the gains' input also sees a projection of the
   window's summary, and the gains are scaled by ``exp(s)``, ``s`` learned from that input,
   so a plant inferred from its history gets gains over the ~200x range LQI's span.
-* :class:`TagTable` (the hybrid baseline ``experiment=lqi_head``, never the default): a
-  per-tag linear map, a table of gains started at each plant's least-squares LQI law.
 """
 
 from __future__ import annotations
@@ -21,7 +19,7 @@ from torch import Tensor, nn
 
 from generalist_control.common.schema import require_int, require_nonnegative
 
-__all__ = ["ContextSkip", "LinearSkip", "TagTable", "linear_features"]
+__all__ = ["ContextSkip", "LinearSkip", "linear_features"]
 
 
 def linear_features(state: Tensor, ref: Tensor, samples: int) -> Tensor:
@@ -127,68 +125,3 @@ class ContextSkip(LinearSkip):
         """The gains times ``exp(s)`` (:attr:`gain_range`)."""
         exponent = self.gain_range * torch.tanh(self.scale(source) / self.gain_range)
         return gains * torch.exp(exponent).unsqueeze(-1)
-
-
-class TagTable(nn.Module):
-    """A per-tag linear map of the window (the hybrid's table of gains; not the default).
-
-    Parameters
-    ----------
-    n_tags, horizon, width, history : int
-        Given by the network.
-    samples : int
-        How many of the newest samples it reads (1 with the error integral: the LQI law's
-        own form).
-
-    Notes
-    -----
-    Zero at initialisation; training starts it at the per-tag least-squares fit of the
-    training windows (:meth:`fit`) when the run does not resume.
-    """
-
-    def __init__(self, n_tags: int, horizon: int, width: int, history: int, samples: int = 1):
-        super().__init__()
-        self.samples = _samples("model.table.samples", samples, history)
-        self.horizon = horizon
-        self.weight = nn.Embedding(n_tags, horizon * self.samples * (width + 1))
-        nn.init.zeros_(self.weight.weight)
-
-    def forward(self, tag: Tensor, state: Tensor, ref: Tensor) -> Tensor:
-        """The table's controls (B, horizon) for the law's window ``state``, ``ref``."""
-        window = linear_features(state, ref, self.samples)
-        gains = self.weight(tag).view(-1, self.horizon, window.shape[1])
-        return torch.einsum("bkf,bf->bk", gains, window)
-
-    @torch.no_grad()
-    def fit(
-        self, features: Tensor, target: Tensor, tag: Tensor, ridge: float = 1e-8
-    ) -> dict[int, float]:
-        """Set each tag's row to the ridge least-squares fit of ``target`` on ``features``.
-
-        ``features`` (W, F) are :func:`linear_features` of the windows, ``target`` (W,
-        horizon) in the units the network outputs. For a linear plant with the error
-        integral and one sample the fit recovers the LQI law ``-Kx x - Ki z``.
-
-        Returns
-        -------
-        dict
-            Per tag, the fit's relative RMS residual.
-        """
-        feats, y = features.double(), target.double()
-        weight = self.weight.weight
-        residuals = {}
-        for tg in torch.unique(tag).tolist():
-            X, Y = feats[tag == tg], y[tag == tg]
-            G = X.T @ X
-            G += (
-                ridge
-                * (torch.trace(G) / G.shape[0] + 1e-30)
-                * torch.eye(G.shape[0], dtype=G.dtype)
-            )
-            W = torch.linalg.solve(G, X.T @ Y)  # (F, K)
-            weight[tg] = W.T.reshape(-1).to(weight.dtype)
-            res = Y - X @ W
-            residuals[int(tg)] = float(
-                res.pow(2).mean().sqrt() / Y.pow(2).mean().sqrt().clamp(min=1e-30)
-            )
-        return residuals

@@ -13,9 +13,9 @@ One forward pass maps a window of normalised inputs to ``horizon`` normalised co
 3. *Mixture of experts*: ``experts`` three-layer MLPs (ReLU, LayerNorm after each hidden
    layer) each give ``horizon`` controls; a softmax gate on ``z_att`` weighs them.
 
-Parts chosen in config (``conf/model``; each built by the network, which gives it its
-sizes): the plant part (:mod:`~generalist_control.model.plant`), an optional skip path and
-an optional per-tag table (:mod:`~generalist_control.model.linear`) added to the output.
+Parts chosen in config (``conf/model``; each a partial that the network calls with its
+sizes): the plant part (:mod:`~generalist_control.model.plant`) and an optional skip path
+(:mod:`~generalist_control.model.linear`) added to the output.
 Inputs of ours: ``channels`` (the error integral, the previous control) and per-window
 scaling. Normalisation is not here: :class:`~generalist_control.model.policy.Policy` wraps
 the network with the fitted normaliser. Where the paper is silent (``docs/training.md``):
@@ -25,15 +25,16 @@ the network with the fitted normaliser. Where the paper is silent (``docs/traini
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, cast
+from typing import cast
 
 import torch
 from torch import Tensor, nn
 
 from generalist_control.common.schema import require_int, require_switch
 from generalist_control.model.blocks import ExpertMLP, SummaryAttention, mlp
-from generalist_control.model.linear import LinearSkip, TagTable
+from generalist_control.model.linear import LinearSkip
 from generalist_control.model.output import NetOutput
+from generalist_control.model.plant import PlantPart
 from generalist_control.plants.plant import MAX_ORDER
 
 __all__ = ["CHANNELS", "WINDOW_SCALE_FLOOR", "GeneralistNetwork", "count_parameters"]
@@ -72,8 +73,8 @@ class GeneralistNetwork(nn.Module):
         ``d`` (even), ``N_h``, ``tau``, ``M``.
     history, horizon : int
         ``T_h`` (samples per window) and ``K`` (controls per window).
-    skip, table : callable, optional
-        Build the skip path and the per-tag table (``model.skip``, ``model.table``).
+    skip : callable, optional
+        Builds the skip path (``model.skip``).
     channels : sequence of str
         Extra state channels of the window (:data:`CHANNELS`).
     law_history : int, optional
@@ -109,7 +110,6 @@ class GeneralistNetwork(nn.Module):
         history: int = 8,
         horizon: int = 3,
         skip: Part | None = None,
-        table: Part | None = None,
         channels: Sequence[str] = ("integral",),
         law_history: int | None = None,
         window_scale: bool = True,
@@ -132,8 +132,8 @@ class GeneralistNetwork(nn.Module):
         self.state_encoder_1 = mlp(law_width, d, e)
         self.state_encoder_2 = mlp(law_width, d, e)
         self.ref_encoder = mlp(1, d, e)
-        self.plant = plant(dim=d)
-        missing = [c for c in getattr(self.plant, "needs", ()) if c not in self.channels]
+        self.plant = cast(PlantPart, plant(dim=d))
+        missing = [c for c in self.plant.needs if c not in self.channels]
         if missing:
             raise ValueError(
                 f"model.plant ({type(self.plant).__name__}) reads the window's {missing} "
@@ -148,9 +148,7 @@ class GeneralistNetwork(nn.Module):
         )
         self.gate = nn.Linear(2 * d, self.n_experts)
         sizes = {"horizon": self.horizon, "width": law_width, "history": self.law_history}
-        part = cast(Any, self.plant)  # a plant part (model/plant.py): n_tags, summary_size
-        self.table = None if table is None else cast(TagTable, table(n_tags=part.n_tags, **sizes))
-        summary = 2 * d + int(getattr(part, "summary_size", 0))
+        summary = 2 * d + self.plant.summary_size
         self.skip = (
             None if skip is None else cast(LinearSkip, skip(dim=d, summary=summary, **sizes))
         )
@@ -171,7 +169,7 @@ class GeneralistNetwork(nn.Module):
     @property
     def n_tags(self) -> int:
         """The system tags the network knows (``0 .. n_tags - 1``)."""
-        return int(cast(Any, self.plant).n_tags)
+        return int(self.plant.n_tags)
 
     def scaled_inputs(self, state: Tensor, ref: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Each window divided by its peak (at least :data:`WINDOW_SCALE_FLOOR`), and the peaks.
@@ -218,14 +216,9 @@ class GeneralistNetwork(nn.Module):
         gates = torch.softmax(self.gate(z_att), dim=-1)
         u_experts = torch.stack([expert(z_att) for expert in self.experts], dim=1)
         u = torch.einsum("bm,bmk->bk", gates, u_experts)
-        if self.table is not None or self.skip is not None:
-            u_linear = x.new_zeros(x.shape[0], self.horizon)
-            if self.table is not None:
-                u_linear = u_linear + self.table(tag, x, ref)
-            if self.skip is not None:
-                summary = z_att if reading is None else torch.cat([z_att, reading.summary], -1)
-                u_linear = u_linear + self.skip(code, x, ref, summary)
-            u = u + u_linear
+        if self.skip is not None:
+            summary = z_att if reading is None else torch.cat([z_att, reading.summary], -1)
+            u = u + self.skip(code, x, ref, summary)
         return NetOutput(control=u, gates=gates, scale=scale, plant=reading)
 
 

@@ -24,13 +24,38 @@ from generalist_control.model.identifier import TransitionSet
 from generalist_control.model.output import PlantReading
 from generalist_control.plants.plant import MAX_ORDER
 
-__all__ = ["EVIDENCE_WEIGHT", "InferredPlant", "TagEmbedding"]
+__all__ = ["EVIDENCE_WEIGHT", "InferredPlant", "PlantPart", "TagEmbedding"]
 
 #: The initial weight of each plant's one-step-model evidence in its identity logit.
 EVIDENCE_WEIGHT = 4.0
 
 
-class TagEmbedding(nn.Module):
+class PlantPart(nn.Module):
+    """What every plant part offers: its code (``forward``), the tags it knows, its own loss.
+
+    Attributes
+    ----------
+    needs : tuple of str
+        Window channels the part reads (see ``GeneralistNetwork.channels``).
+    summary_size : int
+        Size of what it adds to a context skip's summary.
+    n_tags : int
+        System tags ``0 .. n_tags - 1``: the training plants.
+    """
+
+    needs: tuple[str, ...] = ()
+    summary_size = 0
+    n_tags: int
+
+    def loss(self, reading: PlantReading | None, tag: Tensor) -> tuple[Tensor, Tensor] | None:
+        """The part's own training term: ``(logged, weighted)``, or None where it has none.
+
+        ``logged`` is reported as ``train/identity``; ``weighted`` is added to the loss.
+        """
+        return None
+
+
+class TagEmbedding(PlantPart):
     """The tag's row of a learned embedding (the paper's system-tag input).
 
     Parameters
@@ -48,11 +73,6 @@ class TagEmbedding(nn.Module):
     ((2, 4), None)
     """
 
-    #: Window channels the part reads (see ``GeneralistNetwork.channels``).
-    needs: tuple[str, ...] = ()
-    #: Size of what it adds to a context skip's summary.
-    summary_size = 0
-
     def __init__(self, dim: int, n_tags: int = 25) -> None:
         super().__init__()
         self.n_tags = require_int("model.plant.n_tags", n_tags)
@@ -65,7 +85,7 @@ class TagEmbedding(nn.Module):
         return self.rows(tag), None
 
 
-class InferredPlant(nn.Module):
+class InferredPlant(PlantPart):
     """The plant inferred from the window: the embedding's rows weighed by an identity head.
 
     Parameters
@@ -135,15 +155,18 @@ class InferredPlant(nn.Module):
         evidence = summary[:, -self.n_tags :] if rows is not None else None
         return code, PlantReading(logits=logits, summary=summary, evidence=evidence)
 
-    def loss(self, reading: PlantReading, tag: Tensor) -> tuple[Tensor, Tensor]:
-        """The identity head's cross-entropy against ``tag``, and the whole identity term.
+    def loss(self, reading: PlantReading | None, tag: Tensor) -> tuple[Tensor, Tensor] | None:
+        """The identity head's cross-entropy against ``tag``, and the weighed identity term.
 
         The term adds how badly the true plants' one-step models fit their windows
-        (:meth:`~generalist_control.model.identifier.TransitionModels.fit_loss`); it is
-        weighed by :attr:`loss_weight` in the training loss.
+        (:meth:`~generalist_control.model.identifier.TransitionModels.fit_loss`), times
+        :attr:`loss_weight`.
         """
+        if reading is None:
+            return None
         cross_entropy = F.cross_entropy(reading.logits, tag)
         models = self.identifier.models
-        if models is None or reading.evidence is None:
-            return cross_entropy, cross_entropy
-        return cross_entropy, cross_entropy + models.fit_loss(reading.evidence, tag)
+        term = cross_entropy
+        if models is not None and reading.evidence is not None:
+            term = term + models.fit_loss(reading.evidence, tag)
+        return cross_entropy, self.loss_weight * term

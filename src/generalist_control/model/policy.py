@@ -8,7 +8,7 @@ loss on :meth:`Policy.output`, and evaluation and deployment call :meth:`Policy.
 A policy file (``models/policy.ckpt``) holds plain types and tensors only, so it loads with
 ``torch.load(path, weights_only=True)``::
 
-    {"format_version": 2, "model": {...the network's config, _target_ and parts...},
+    {"format_version": 3, "model": {...the network's config, _target_ and parts...},
      "state_dict": {...}, "meta": {"tags": {plant: tag}, "orders": {plant: n}, "dt": ...,
      "history": ..., "horizon": ..., "content_hash": "sha256:...", "metrics": {...}, ...}}
 
@@ -18,6 +18,7 @@ refuses anything else with :class:`PolicyFileError`, naming the file and how to 
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -28,7 +29,6 @@ from torch import Tensor, nn
 
 from generalist_control.data.windows import Windows
 from generalist_control.model.build import build_network
-from generalist_control.model.linear import linear_features
 from generalist_control.model.meta import check_meta
 from generalist_control.model.normalise import Normaliser
 from generalist_control.model.output import NetOutput
@@ -40,10 +40,12 @@ __all__ = [
     "Policy",
     "PolicyFileError",
     "load_policy",
+    "policy_sha256",
     "save_policy",
 ]
 
-POLICY_FORMAT_VERSION = 2
+#: 3: parts marked ``_partial_`` in the network config (2: marked by the loader).
+POLICY_FORMAT_VERSION = 3
 
 #: File name of a policy: ``models/policy.ckpt`` and the MLflow artifact ``policy/policy.ckpt``.
 POLICY_FILE = "policy.ckpt"
@@ -125,36 +127,6 @@ class Policy(nn.Module):
         return self.normaliser.denormalise_controls(u, tag), gates
 
     @torch.no_grad()
-    def fit_table(
-        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor, target: Tensor
-    ) -> dict[int, float]:
-        """Start the per-tag table at the least-squares fit of ``target``; zero the experts.
-
-        The hybrid's start (``model.table``): per tag, the table's gains solve the
-        ridge-regularised least-squares problem from its features of the windows the
-        network sees to the targets in the units of the loss, and each expert's last layer
-        is zeroed, so the policy starts as exactly that linear law; the experts then learn
-        the remainder.
-
-        Returns
-        -------
-        dict
-            Per tag, the fit's relative RMS residual.
-        """
-        table = self.net.table
-        if table is None:
-            raise ValueError("the policy has no per-tag table (model.table is null)")
-        x, m, r, t, s = self.network_inputs(state, mask, ref, tag)
-        n = self.net.law_history
-        feats = linear_features(self.net.law_state(x[:, -n:], m[:, -n:]), r[:, -n:], table.samples)
-        residuals = table.fit(feats, self.normaliser.normalise_controls(target, tag) / s, t)
-        for expert in self.net.experts:
-            last = expert[-1]  # type: ignore[index]  # an ExpertMLP (nn.Sequential)
-            last.weight.zero_()
-            last.bias.zero_()
-        return residuals
-
-    @torch.no_grad()
     def predict_windows(
         self, windows: Windows, batch_size: int = 8192
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -192,6 +164,11 @@ def save_policy(path: str | Path, policy: Policy, meta: dict[str, Any]) -> Path:
     torch.save(blob, tmp)
     tmp.replace(path)
     return path
+
+
+def policy_sha256(path: str | Path) -> str:
+    """``sha256:<hex>`` of a policy file's bytes: its identity (same weights, same bytes)."""
+    return "sha256:" + hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def _read(path: Path, map_location: str | torch.device) -> dict[str, Any]:

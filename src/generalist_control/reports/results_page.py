@@ -52,7 +52,6 @@ __all__ = [
 
 #: The paper's recipe is the ablation's point d = 32, M = 3 of the paper's recipe.
 _PAPER = "dvc repro ablation/dvc.yaml:paper@d32 (python train.py experiment=paper, evaluated)"
-_HYBRID = "dvc repro beyond/dvc.yaml:hybrid"
 #: The full-scale ablation (ablation/dvc.yaml), one recipe: its points two at a time, the report.
 _ABLATION = "scripts/ablation.sh {recipe}"
 
@@ -65,9 +64,6 @@ RECIPES: tuple[Recipe, ...] = (
         "summary": "ablation/reports/paper/d32/summary.json",
         "scores": "ablation/reports/paper/d32/scores.json",
         "training": "ablation/models/paper/d32/metrics.json"}),
-    Recipe("hybrid", "Hybrid: the default plus a per-plant LQI head", "evaluation", _HYBRID, {
-        "summary": "reports/hybrid/summary.json", "scores": "reports/hybrid/scores.json",
-        "setpoint": "reports/hybrid/setpoint.csv", "training": "models/hybrid/metrics.json"}),
     Recipe("tag-free", "Tag-free: no plant tag", "evaluation",
            "dvc repro beyond/dvc.yaml:tag_free", {
         "summary": "reports/tag_free/summary.json", "scores": "reports/tag_free/scores.json",

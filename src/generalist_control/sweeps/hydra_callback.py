@@ -104,7 +104,7 @@ class MLflowSweepCallback(Callback):
 
     Each job of a multirun writes its model to ``<its output dir>/models`` unless
     ``paths.models_dir`` is on the command line
-    (:func:`generalist_control.training.outputs.job_models_dir`),
+    (:attr:`generalist_control.training.settings.TrainingSettings.models_dir`),
     so the jobs overwrite neither each other's model nor the DVC output ``models/``.
     """
 

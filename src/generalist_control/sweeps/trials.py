@@ -20,6 +20,7 @@ from generalist_control.sweeps.pruning import active_trial, trial_pruning, trial
 from generalist_control.sweeps.space import Param
 from generalist_control.tracking.parents import parent_run
 from generalist_control.training.fit import train
+from generalist_control.training.settings import read_training
 
 __all__ = ["Objective", "trial_config"]
 
@@ -92,7 +93,7 @@ class Objective:
         name = f"study:{trial.study.study_name}"
         try:
             with active_trial(trial), parent_run(self.parent_id, name):
-                metrics, _ = train(tcfg)
+                metrics, _ = train(read_training(tcfg))
         except optuna.TrialPruned:
             steps = trial.storage.get_trial(trial._trial_id).intermediate_values
             trial.set_user_attr("pruned_at_epoch", max(steps) if steps else None)

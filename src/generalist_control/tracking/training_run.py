@@ -41,7 +41,9 @@ from generalist_control.common.secrets import redact
 from generalist_control.tracking import mlflow_utils
 
 __all__ = [
+    "POLICY_HASH_TAG",
     "RunRecorder",
+    "find_training_run",
     "log_input_shared",
     "log_params_once",
     "run_id_from_checkpoint",
@@ -51,6 +53,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: The tag that names the policy file a training wrote, by its hash (``policy_sha256``).
+POLICY_HASH_TAG = "policy.sha256"
 
 #: Metric prefixes the recorder sends to MLflow after every epoch.
 EPOCH_METRICS = ("train/", "val/", "dagger/")
@@ -267,3 +272,19 @@ def log_input_shared(
             log.info(
                 "dataset %s was logged by another run at the same time; linking it", dataset.name
             )
+
+
+def find_training_run(sha256: str) -> str | None:
+    """The newest finished training run of the current store that wrote the policy ``sha256``.
+
+    The policy file holds no run id (its bytes must reproduce), so an evaluation or an
+    adaptation finds the run that trained it by the tag :data:`POLICY_HASH_TAG`.
+    """
+    runs = mlflow.search_runs(
+        search_all_experiments=True,
+        filter_string=f"tags.`{POLICY_HASH_TAG}` = '{sha256}' and attributes.status = 'FINISHED'",
+        order_by=["attributes.start_time DESC"],
+        max_results=1,
+        output_format="list",
+    )
+    return runs[0].info.run_id if runs else None

@@ -23,6 +23,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.configs import as_dict
+from generalist_control.common.paths import conf_dir
 from generalist_control.common.schema import require_int
 from generalist_control.common.secrets import redact
 from generalist_control.common.settings import read_section
@@ -129,7 +130,9 @@ def _dagger(
 ) -> tuple[RolloutSampler, ExpertLabeller]:
     """The training's sampler (on the new plant alone) and labeller (``dagger``'s settings)."""
     node = _plain(cfg, "dagger")
-    spec = DaggerSettings() if node is None else read_section(DaggerSettings, node, "dagger")
+    if node is None:  # the recipe's rounds off: adapt's own rounds take conf/'s settings
+        node = OmegaConf.to_container(OmegaConf.load(conf_dir() / "config.yaml").dagger)
+    spec = read_section(DaggerSettings, node, "dagger")
     data = as_dict(cfg.data)
     block = data.get("variants") or {}
     sampler = RolloutSampler(

@@ -163,7 +163,7 @@ class DemoDataModule(L.LightningDataModule):
         data_dir: str | Path,
         history: int,
         horizon: int,
-        loader: LoaderSettings | None = None,
+        loader: LoaderSettings,
         seed: int = 0,
         plants: Sequence[str] | None = None,
         channels: Sequence[str] = (),
@@ -176,7 +176,6 @@ class DemoDataModule(L.LightningDataModule):
         self.controls = "previous_control" in channels
         self.history = require_int("data.history", history)
         self.horizon = require_int("data.horizon", horizon)
-        loader = loader or LoaderSettings()
         self.val_fraction = loader.val_fraction
         self.batch_size, self.val_batch_size = loader.batch_size, loader.val_batch_size
         self.seed = int(seed)

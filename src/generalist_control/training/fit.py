@@ -9,7 +9,7 @@ as ``python train.py``) and for every sweep job and Optuna trial. Outputs:
   :func:`generalist_control.model.policy.load_policy`) and ``metrics.json`` (headline
   numbers, :func:`.outputs.dvc_metrics`), in ``<run_dir>/models``, or in
   ``paths.published_dir`` (``models/``) when the run publishes (``publish=true``: the DVC
-  stage); see :func:`.outputs.job_models_dir`;
+  stage); see :attr:`.settings.TrainingSettings.models_dir`;
 * one MLflow run, opened by Lightning's ``MLFlowLogger``
   (:mod:`generalist_control.tracking.training_run`), and a new version of the registered
   model ``logger.registered_model_name``.
@@ -18,8 +18,8 @@ as ``python train.py``) and for every sweep job and Optuna trial. Outputs:
 from __future__ import annotations
 
 import dataclasses
-import gc
 import logging
+import signal
 import warnings
 from pathlib import Path
 from typing import Any
@@ -30,37 +30,36 @@ import mlflow
 import numpy as np
 import torch
 from lightning.pytorch.loggers import MLFlowLogger
-from omegaconf import DictConfig
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-from generalist_control.common.configs import as_dict
 from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.secrets import redact
 from generalist_control.deploy.facts import integral_facts
 from generalist_control.model.bank import fit_model_rows
 from generalist_control.model.network import count_parameters
-from generalist_control.model.policy import POLICY_FILE, Policy, load_policy, save_policy
+from generalist_control.model.policy import (
+    POLICY_FILE,
+    Policy,
+    load_policy,
+    policy_sha256,
+    save_policy,
+)
 from generalist_control.plants.catalog import tag_count
 from generalist_control.plants.plant import Plant
 from generalist_control.tracking import training_run
+from generalist_control.tracking.training_run import POLICY_HASH_TAG
 from generalist_control.training import outputs
 from generalist_control.training.dagger import DAggerCallback
 from generalist_control.training.datamodule import DemoDataModule, WindowTensors
-from generalist_control.training.family_set import (
-    FamilySet,
-    FamilyTraining,
-    read_family_training,
-    with_rows,
-)
+from generalist_control.training.family_set import FamilySet, with_rows
 from generalist_control.training.lit_module import ImitationModule
-from generalist_control.training.settings import TrainingSettings, read_training
+from generalist_control.training.settings import TrainingSettings
 from generalist_control.training.setup import (
     check_resume,
     closed_loop_validation,
     config_callbacks,
     dagger_callback,
     dagger_plants,
-    included_plants,
-    training_plants,
 )
 
 __all__ = ["METRICS_FILE", "train"]
@@ -71,19 +70,16 @@ METRICS_FILE = "metrics.json"
 
 
 def _data(
-    cfg: DictConfig,
-    settings: TrainingSettings,
-    channels: tuple[str, ...],
-    families: FamilySet | None,
+    settings: TrainingSettings, channels: tuple[str, ...], families: FamilySet | None
 ) -> tuple[DemoDataModule, dict[str, Any]]:
     """The loaded, split data (the set's plants and the families') and the policy's meta."""
     dm = DemoDataModule(
-        cfg.paths.data_dir,
+        settings.data_dir,
         settings.history,
         settings.horizon,
         settings.loader,
         seed=settings.seed,
-        plants=included_plants(cfg) + (families.names if families else []),
+        plants=settings.trained_names + (families.names if families else []),
         channels=channels,
         families=families,
     )
@@ -94,12 +90,6 @@ def _data(
     return dm, {**dm.meta(), **facts}
 
 
-def _families_spec(cfg: DictConfig) -> FamilyTraining | None:
-    """``train_families`` read (None: the catalogue alone)."""
-    node = cfg.train_families
-    return read_family_training(None if node is None else as_dict(node))
-
-
 def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
     """The tensors of a split of the set-up data module."""
     if split is None:
@@ -108,15 +98,11 @@ def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
 
 
 def _module(
-    settings: TrainingSettings,
-    dm: DemoDataModule,
-    meta: dict[str, Any],
-    resume: bool,
-    plants: list[Plant],
+    settings: TrainingSettings, dm: DemoDataModule, meta: dict[str, Any]
 ) -> ImitationModule:
-    """The Lightning module, its normaliser fitted, a per-tag table started by least squares.
+    """The Lightning module, its normaliser fitted on the training windows.
 
-    Rows a recipe computes from its plants' models (the card bank) come from ``plants``.
+    Rows a recipe computes from its plants' models (the card bank) replace the fitted ones.
     """
     lit = ImitationModule(
         model=settings.model,
@@ -125,54 +111,45 @@ def _module(
         meta=meta,
     )
     lit.policy.normaliser.fit(**_tensors(dm.train_set))
-    fit_model_rows(lit.policy, plants)
-    if lit.policy.net.table is not None and not resume:
-        t = _tensors(dm.train_set)
-        residuals = lit.policy.fit_table(t["state"], t["mask"], t["ref"], t["tag"], t["target"])
-        names = {t: n for n, t in dm.tags.items()}
-        worst = max(residuals, key=residuals.__getitem__)
-        log.info(
-            "per-tag table: least-squares start, worst relative residual %.3g (%s)",
-            residuals[worst],
-            names.get(worst, worst),
-        )
+    fit_model_rows(lit.policy, _trained(settings, dm))
     return lit
 
 
+def _trained(settings: TrainingSettings, dm: DemoDataModule) -> list[Plant]:
+    """The plants the data holds: the set's, then the families'."""
+    family = dm.families.plants if dm.families else []
+    return [p for p in settings.plants if p.name in dm.tags] + family
+
+
 def _callbacks(
-    cfg: DictConfig,
-    settings: TrainingSettings,
-    run_dir: Path,
-    lit: ImitationModule,
-    dm: DemoDataModule,
+    settings: TrainingSettings, lit: ImitationModule, dm: DemoDataModule
 ) -> tuple[list[L.Callback], L.pytorch.callbacks.ModelCheckpoint]:
     """The config's callbacks, DAgger and the closed-loop validation."""
-    callbacks = config_callbacks(cfg, run_dir)
+    callbacks = config_callbacks(settings.callbacks, settings.run_dir)
     ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
-    plants = training_plants(cfg, dm.meta())
+    plants = [p for p in settings.plants if p.name in dm.tags]
     channels = lit.policy.channels
     family = dm.families.plants if dm.families else []
-    spec = _families_spec(cfg)
-    turn, checked = (spec.dagger_plants, spec.closed_loop_plants) if spec else (0, 0)
+    checked = settings.families.closed_loop_plants if settings.families else 0
     own = [
-        dagger_callback(cfg, settings, dagger_plants(plants, dm.manifest), channels, family, turn),
+        dagger_callback(settings, dagger_plants(plants, dm.manifest), channels, family),
         closed_loop_validation(settings, plants + family[:checked]),
     ]
     return [*callbacks, *(c for c in own if c is not None)], ckpt_cb
 
 
 def _trainer(
-    cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback], mlf: MLFlowLogger
+    settings: TrainingSettings, callbacks: list[L.Callback], mlf: MLFlowLogger
 ) -> L.Trainer:
     """The Lightning trainer with ``callbacks``, logging to ``mlf``'s run."""
     recorder = training_run.RunRecorder(str(mlf.run_id))
     dagger = any(isinstance(c, DAggerCallback) for c in callbacks)
     extra = {"reload_dataloaders_every_n_epochs": 1} if dagger else {}
     trainer: L.Trainer = hydra.utils.instantiate(
-        cfg.trainer,
+        settings.trainer,
         callbacks=[*callbacks, recorder],
         logger=mlf,
-        default_root_dir=str(run_dir),
+        default_root_dir=str(settings.run_dir),
         **extra,
     )
     return trainer
@@ -189,13 +166,7 @@ def _fit(
     with warnings.catch_warnings():
         # batches are gathered from in-memory tensors: worker processes would only slow it
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-        # what exists now (modules, data, trainer) lives through the fit: the collector's
-        # full passes, a third of a second each, need not walk it; collectable again after
-        gc.freeze()
-        try:
-            trainer.fit(lit, datamodule=dm, ckpt_path=ckpt_path)
-        finally:
-            gc.unfreeze()
+        trainer.fit(lit, datamodule=dm, ckpt_path=ckpt_path)
         best = ckpt_cb.best_model_path or ckpt_cb.last_model_path
         train_loss = float(trainer.callback_metrics.get("train/loss", float("nan")))
         trainer.validate(lit, datamodule=dm, ckpt_path=best, verbose=False)
@@ -213,6 +184,19 @@ def _fit(
         {f"best/{k}": v for k, v in best_metrics.items()}, step=trainer.current_epoch
     )
     return best, metrics
+
+
+def _stopped(exc: SystemExit, trainer: L.Trainer) -> int | None:
+    """The exit status of a training stopped by a signal (Lightning leaves by SystemExit).
+
+    Lightning turns SIGTERM into :class:`SIGTERMException`, a ``SystemExit`` with no code
+    (status 0), and Ctrl-C into ``SystemExit(1)``: neither may read as success.
+    """
+    if isinstance(exc, SIGTERMException):
+        return 128 + signal.SIGTERM
+    if trainer.interrupted:
+        return 128 + signal.SIGINT
+    return None
 
 
 def _check_fits(settings: TrainingSettings, ckpt_path: str, lit: ImitationModule) -> None:
@@ -240,22 +224,23 @@ def _check_fits(settings: TrainingSettings, ckpt_path: str, lit: ImitationModule
 
 
 def _publish(
-    cfg: DictConfig,
-    best: str,
-    metrics: dict[str, Any],
-    meta: dict[str, Any],
-    run_id: str,
-    run_dir: Path,
+    settings: TrainingSettings, best: str, metrics: dict[str, Any], meta: dict[str, Any]
 ) -> tuple[Policy, Path]:
-    """Save the best policy and its metrics, log them to the run, add closed-loop scores."""
+    """Save the best policy and its metrics, log them to the run, add closed-loop scores.
+
+    The policy file holds what reproduces (weights, config, data facts, metrics), so the same
+    training writes the same bytes; the run finds it by its hash (``policy.sha256``).
+    """
     policy, _ = load_policy(best)
-    models_dir = outputs.job_models_dir(cfg, run_dir)
-    mlflow.set_tag("policy_dir", str(models_dir.resolve()))
-    policy_meta = {**meta, "metrics": metrics, "mlflow_run_id": run_id}
+    models_dir = settings.models_dir
+    policy_meta = {**meta, "metrics": metrics}
     policy_path = save_policy(models_dir / POLICY_FILE, policy, policy_meta)
+    mlflow.set_tags(
+        {"policy_dir": str(models_dir.resolve()), POLICY_HASH_TAG: policy_sha256(policy_path)}
+    )
     mlflow.log_artifact(best, "checkpoints")
     mlflow.log_artifact(str(policy_path), "policy")
-    scores = outputs.closed_loop_scores(cfg, policy, policy_meta)
+    scores = outputs.closed_loop_scores(settings, policy, policy_meta)
     if scores:
         mlflow.log_metrics({k: v for k, v in scores.items() if np.isfinite(v)})
         metrics.update(scores)
@@ -265,37 +250,35 @@ def _publish(
 
 
 def _prepare(
-    cfg: DictConfig,
+    settings: TrainingSettings,
 ) -> tuple[TrainingSettings, DemoDataModule, dict[str, Any], ImitationModule]:
-    """Config checked, threads and seed set, data loaded, module built; nothing logged yet."""
+    """Threads and seed set, data loaded, module built, resume checked; nothing logged yet."""
     outputs.scrub_hydra_files()
-    settings = read_training(cfg)
-    spec = _families_spec(cfg)
-    families = FamilySet.load(spec.dirs, tag_count()) if spec else None
-    settings = dataclasses.replace(settings, model=with_rows(settings.model, families))
     torch.set_num_threads(settings.threads)
     L.seed_everything(settings.seed, workers=True)
-    ckpt_path = cfg.get("ckpt_path")
+    ckpt_path = settings.ckpt_path
+    spec = settings.families
+    families = FamilySet.load(spec.dirs, tag_count()) if spec else None
+    settings = dataclasses.replace(settings, model=with_rows(settings.model, families))
     with torch.random.fork_rng():  # the model config checked before the data is read
         channels = Policy(settings.model).channels
-    dm, meta = _data(cfg, settings, channels, families)
+    dm, meta = _data(settings, channels, families)
     if ckpt_path:
         check_resume(ckpt_path, meta)
-    plants = training_plants(cfg, meta) + (families.plants if families else [])
-    lit = _module(settings, dm, meta, resume=bool(ckpt_path), plants=plants)
+    lit = _module(settings, dm, meta)
     if ckpt_path:
         _check_fits(settings, ckpt_path, lit)
         check_resume(ckpt_path, meta, settings.max_epochs)
     return settings, dm, meta, lit
 
 
-def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Train the policy described by ``cfg``; return its metrics and the objects made.
+def train(settings: TrainingSettings) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Train the policy ``settings`` describe; return its metrics and the objects made.
 
     Parameters
     ----------
-    cfg : DictConfig
-        The composed primary config (``conf/config.yaml``).
+    settings : TrainingSettings
+        The training's config, read once (:func:`~.settings.read_training`).
 
     Returns
     -------
@@ -313,26 +296,37 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         Before anything is logged, if there is no dataset at ``paths.data_dir``.
     ValueError
         Before any run is opened, if ``ckpt_path`` holds other data or another model.
+    SystemExit
+        With status 143 (SIGTERM) or 130 (Ctrl-C) when a signal stops the fit; the run ends
+        KILLED and no policy is written.
     """
-    settings, dm, meta, lit = _prepare(cfg)
-    ckpt_path = cfg.get("ckpt_path")
+    settings, dm, meta, lit = _prepare(settings)
+    ckpt_path = settings.ckpt_path
     n_params = count_parameters(lit.policy)
-    run_dir = outputs.run_dir(cfg)
-    outputs.check_models_dir(outputs.job_models_dir(cfg, run_dir))
+    outputs.check_models_dir(settings.models_dir)
     resume_id = training_run.run_id_from_checkpoint(ckpt_path) if ckpt_path else None
-    callbacks, ckpt_cb = _callbacks(cfg, settings, run_dir, lit, dm)
-    mlf = training_run.training_logger(cfg.logger, resume_run_id=resume_id)
-    trainer = _trainer(cfg, run_dir, callbacks, mlf)
+    callbacks, ckpt_cb = _callbacks(settings, lit, dm)
+    mlf = training_run.training_logger(settings.logger, resume_run_id=resume_id)
+    trainer = _trainer(settings, callbacks, mlf)
+    logger = settings.logger
     with mlflow.start_run(run_id=mlf.run_id) as run:  # the fluent API on the logger's run
         run_id = run.info.run_id
-        outputs.log_inputs(cfg, dm, n_params, run_dir)
+        outputs.log_inputs(settings, dm, n_params)
         uri = mlflow.get_tracking_uri()
         log.info("MLflow run %s (%s); %d parameters", run_id, redact(uri), n_params)
-        best, metrics = _fit(trainer, lit, dm, ckpt_path, ckpt_cb)
-        policy, policy_path = _publish(cfg, best, metrics, meta, run_id, run_dir)
-        name = cfg.logger.get("registered_model_name")
+        try:
+            best, metrics = _fit(trainer, lit, dm, ckpt_path, ckpt_cb)
+        except SystemExit as exc:
+            status = _stopped(exc, trainer)
+            if status is None:
+                raise
+            mlflow.end_run("KILLED")
+            log.error("training stopped by a signal: run %s KILLED, no policy written", run_id)
+            raise SystemExit(status) from None
+        policy, policy_path = _publish(settings, best, metrics, meta)
+        name = logger["registered_model_name"]
         version = None
-        if cfg.logger.get("log_model", True):
+        if logger["log_model"]:
             version = outputs.log_model(policy, _tensors(dm.val_set), name)
     experiment = mlflow.MlflowClient().get_experiment(run.info.experiment_id).name
     log.info(outputs.end_message(policy_path, run_id, experiment, uri, version, str(name)))

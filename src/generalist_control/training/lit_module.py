@@ -18,7 +18,6 @@ from lightning.pytorch.callbacks import RichProgressBar
 from torch import Tensor
 
 from generalist_control.model.output import NetOutput
-from generalist_control.model.plant import InferredPlant
 from generalist_control.model.policy import Policy
 
 __all__ = ["METRICS_FORMAT", "ImitationModule"]
@@ -45,11 +44,10 @@ class ImitationModule(L.LightningModule):
 
     Notes
     -----
-    A plant part that infers the plant (``model.plant``: an
-    :class:`~generalist_control.model.plant.InferredPlant`) adds its identity loss, weighed
-    by its ``loss_weight``, logged as ``train/identity`` (its cross-entropy) and, its
-    accuracy, ``val/identity_acc``. All arguments are plain dicts, so checkpoints load with
-    ``weights_only=True``; the normaliser's scales are buffers of ``policy`` and are saved
+    A plant part with a loss of its own (``PlantPart.loss``: an inferred plant's identity
+    term) adds it, logged as ``train/identity``; a part that reads the plant from the window
+    also logs its accuracy, ``val/identity_acc``. All arguments are plain dicts, so checkpoints
+    load with ``weights_only=True``; the normaliser's scales are buffers of ``policy``, saved
     in its ``state_dict``.
     """
 
@@ -65,6 +63,7 @@ class ImitationModule(L.LightningModule):
         self.save_hyperparameters(logger=False)
         self.policy = Policy(model)
         self._val_hits = torch.zeros((), dtype=torch.float64)
+        self._val_hits_seen = False
         tags = (meta or {}).get("tags", {})
         self.tag_names = {int(t): str(name) for name, t in tags.items()}
         n_tags = self.policy.net.n_tags
@@ -101,11 +100,11 @@ class ImitationModule(L.LightningModule):
         """
         errors, out = self._errors(batch)
         loss = errors.mean()
-        plant = self.policy.net.plant
-        if out.plant is not None and isinstance(plant, InferredPlant):
-            cross_entropy, identity = plant.loss(out.plant, batch["tag"])
-            self.log("train/identity", cross_entropy, on_step=False, on_epoch=True, logger=False)
-            loss = loss + plant.loss_weight * identity
+        own = self.policy.net.plant.loss(out.plant, batch["tag"])
+        if own is not None:
+            logged, term = own
+            self.log("train/identity", logged, on_step=False, on_epoch=True, logger=False)
+            loss = loss + term
         n = batch["tag"].shape[0]
         self._train_sum += loss.detach() * n
         self._train_count += n
@@ -121,12 +120,14 @@ class ImitationModule(L.LightningModule):
         self._val_sse = torch.zeros_like(self._val_sse, device=self.device)
         self._val_count = torch.zeros_like(self._val_count, device=self.device)
         self._val_hits = torch.zeros_like(self._val_hits, device=self.device)
+        self._val_hits_seen = False
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         """Accumulate squared errors per system tag."""
         err, out = self._errors(batch)
         err = err.to(torch.float64)
         if out.plant is not None:
+            self._val_hits_seen = True
             self._val_hits += (out.plant.logits.argmax(1) == batch["tag"]).sum()
         self._val_sse.index_add_(0, batch["tag"], err.sum(1))
         self._val_count.index_add_(0, batch["tag"], torch.full_like(err[:, 0], err.shape[1]))
@@ -137,7 +138,7 @@ class ImitationModule(L.LightningModule):
         if total == 0:
             return
         self.log("val/loss", (self._val_sse.sum() / total).float(), prog_bar=True, logger=False)
-        if isinstance(self.policy.net.plant, InferredPlant):  # windows = count / horizon
+        if self._val_hits_seen:  # a plant part that reads the plant; windows = count / horizon
             share = self._val_hits * self.policy.horizon / total
             self.log("val/identity_acc", share.float(), logger=False)
         for tag in torch.nonzero(self._val_count).flatten().tolist():

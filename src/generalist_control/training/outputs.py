@@ -12,17 +12,15 @@ import json
 import math
 import warnings
 from collections.abc import Mapping
-from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 import mlflow
 import numpy as np
 import torch
-from hydra.core.hydra_config import HydraConfig
 from mlflow.data.numpy_dataset import from_numpy
 from mlflow.models import infer_signature
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 
 from generalist_control.common.hydra_redact import scrub_hydra_files
 from generalist_control.common.secrets import redact
@@ -30,10 +28,10 @@ from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.flat import FlatPolicy, flat_columns
 from generalist_control.model.policy import POLICY_FILE, Policy, PolicyFileError, load_policy
-from generalist_control.plants.catalog import plants_from_config
 from generalist_control.simulation.comparison import output_mse
 from generalist_control.tracking import mlflow_utils, training_run
 from generalist_control.training.datamodule import DemoDataModule
+from generalist_control.training.settings import TrainingSettings
 
 __all__ = [
     "DVC_METRICS",
@@ -41,11 +39,9 @@ __all__ = [
     "dvc_metrics",
     "end_message",
     "check_models_dir",
-    "job_models_dir",
     "log_dataset",
     "log_inputs",
     "log_model",
-    "run_dir",
     "scrub_hydra_files",
 ]
 
@@ -59,33 +55,6 @@ DVC_METRICS: dict[str, tuple[str, bool]] = {
     "epochs": ("epochs", False),
     "n_parameters": ("n_parameters", False),
 }
-
-
-def run_dir(cfg: DictConfig) -> Path:
-    """Where this run's checkpoints go: ``run_dir``, Hydra's output dir, or a new one."""
-    if cfg.get("run_dir"):
-        return Path(cfg.run_dir)
-    if HydraConfig.initialized():
-        return Path(HydraConfig.get().runtime.output_dir)
-    return Path("outputs/train") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-
-
-def job_models_dir(cfg: DictConfig, run_dir: Path) -> Path:
-    """Where this run writes ``policy.ckpt`` and ``metrics.json``.
-
-    ``paths.published_dir`` (``models/``, the DVC stage's output and evaluate's default) is
-    written only by a run that publishes (``publish=true``: ``dvc repro train``). Any other
-    run writes to ``paths.models_dir`` when that is another directory (e.g. an Optuna
-    trial's own), else to ``<run_dir>/models``: ``python train.py``, ``debug=fast`` and
-    every job of a sweep keep their model to themselves.
-    """
-    published = cfg.paths.get("published_dir")
-    if cfg.get("publish"):
-        return Path(published or cfg.paths.models_dir)
-    models_dir = Path(cfg.paths.models_dir)
-    if published is None or models_dir.resolve() != Path(published).resolve():
-        return models_dir
-    return run_dir / "models"
 
 
 def check_models_dir(models_dir: Path) -> None:
@@ -122,22 +91,20 @@ def check_models_dir(models_dir: Path) -> None:
         )
 
 
-def closed_loop_scores(cfg: DictConfig, policy: Policy, meta: dict[str, Any]) -> dict[str, float]:
+def closed_loop_scores(
+    settings: TrainingSettings, policy: Policy, meta: dict[str, Any]
+) -> dict[str, float]:
     """``closed_loop/mse/<plant>``: GC-vs-LQI unit-step output MSE on ``closed_loop.systems``.
 
     The ablation study's score (Section 7), computed right after training so that every
     sweep point carries it; plants the policy was not trained on are skipped.
     """
-    spec = cfg.get("closed_loop") or {}
-    wanted = set(spec.get("systems") or ())
-    if not wanted:
-        return {}
-    plants = [p for p in plants_from_config(cfg.systems) if p.name in wanted]
-    plants = [p for p in plants if p.name in meta["tags"]]
+    wanted = set(settings.closed_loop.systems)
+    plants = [p for p in settings.plants if p.name in wanted and p.name in meta["tags"]]
     if not plants:
         return {}
     adapter = RuntimeAdapter(PolicyRuntime(policy, meta))
-    mse = output_mse(adapter, plants, duration=float(spec.get("duration", 15.0)))
+    mse = output_mse(adapter, plants, duration=settings.closed_loop.duration)
     scores = {f"closed_loop/mse/{k}": v for k, v in mse.items()}
     finite = [v for v in mse.values() if np.isfinite(v)]
     scores["closed_loop/mse_mean"] = float(np.mean(finite)) if finite else float("inf")
@@ -216,13 +183,12 @@ def _tag_version(name: str, version: str) -> None:
         client.set_model_version_tag(name, version, key, value)
 
 
-def log_inputs(cfg: DictConfig, dm: DemoDataModule, n_params: int, run_dir: Path) -> None:
+def log_inputs(settings: TrainingSettings, dm: DemoDataModule, n_params: int) -> None:
     """Params, tags and input artifacts of the active MLflow run; no password in any of them."""
-    resolved = redact(OmegaConf.to_container(cfg, resolve=True))
+    resolved = settings.resolved
     meta = dm.meta()
-    keys = list(cfg.logger.get("params") or [])
     params = {
-        **training_run.training_params(resolved, keys),
+        **training_run.training_params(resolved, list(settings.logger["params"] or [])),
         "data.content_hash": meta["content_hash"],
         "n_parameters": str(n_params),
     }
@@ -232,16 +198,16 @@ def log_inputs(cfg: DictConfig, dm: DemoDataModule, n_params: int, run_dir: Path
         "data.dir": meta["data_dir"],
         "data.n_train_windows": str(meta["n_train"]),
         "data.n_val_windows": str(meta["n_val"]),
-        "run_dir": str(run_dir),
+        "run_dir": str(settings.run_dir),
     }
-    dvc_md5 = mlflow_utils.dvc_data_version(cfg.paths.data_dir)
+    dvc_md5 = mlflow_utils.dvc_data_version(settings.data_dir)
     if dvc_md5:
         tags["data.dvc_md5"] = dvc_md5
-    if cfg.get("ckpt_path"):
-        tags["resumed_from"] = str(cfg.ckpt_path)
+    if settings.ckpt_path:
+        tags["resumed_from"] = str(settings.ckpt_path)
     mlflow.set_tags(tags)
     mlflow.log_text(OmegaConf.to_yaml(OmegaConf.create(resolved)), "config/resolved.yaml")
-    for path in sorted((run_dir / ".hydra").glob("*.yaml")):
+    for path in sorted((settings.run_dir / ".hydra").glob("*.yaml")):
         mlflow.log_text(redact(path.read_text()), f"config/hydra/{path.name}")
     mlflow.log_dict(dm.manifest, "data/manifest.json")
     log_dataset(dm)

@@ -1,38 +1,46 @@
-"""A training run's config, read once into typed sections before anything is logged.
+"""A training run's config, read once into typed settings before anything is logged.
 
-:func:`read_training` checks every key a training reads (types, ranges, how sections fit
-together) and returns a :class:`TrainingSettings`; each part of the run then receives its
-own section (the data module its :class:`LoaderSettings`, DAgger its :class:`DaggerSettings`,
-...). The network's config (``model``) is checked by building it
-(:class:`~generalist_control.model.policy.Policy`), also before anything is logged.
+:func:`read_training` is the one reader: an entry point (``python train.py``, a sweep's job,
+an Optuna trial) calls it and hands :class:`TrainingSettings` on; each part receives its own
+section. Every default lives in ``conf/``, none here.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
 from typing import Any
 
 import torch
+from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.schema import require_int
+from generalist_control.common.secrets import redact
 from generalist_control.common.settings import (
     SettingError,
     positive,
     read_section,
     unit_interval,
 )
-from generalist_control.plants.catalog import tag_count
+from generalist_control.data.generation import enabled_families
+from generalist_control.plants.catalog import plants_from_config
+from generalist_control.plants.plant import Plant
+from generalist_control.plants.variants import variant_range
+from generalist_control.training.family_set import FamilyTraining, read_family_training
 
 __all__ = [
     "INITS",
     "ActuatorSettings",
     "AdaptSettings",
+    "ClosedLoopSettings",
     "ClosedLoopValSettings",
     "DaggerSettings",
     "LabellerSettings",
     "LoaderSettings",
+    "RolloutData",
     "SamplerSettings",
     "TrainingSettings",
     "VariantSettings",
@@ -45,9 +53,9 @@ __all__ = [
 class LoaderSettings:
     """``loader``: the training data's split and batches."""
 
-    val_fraction: float = 0.1  #: of each plant's trajectories, held out whole
-    batch_size: int = 512
-    val_batch_size: int = 8192
+    val_fraction: float  #: of each plant's trajectories, held out whole
+    batch_size: int
+    val_batch_size: int
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.val_fraction < 1.0:
@@ -61,8 +69,8 @@ class LoaderSettings:
 class ActuatorSettings:
     """``dagger.sampler.actuator``: a random actuator per rollout row (``training/actuator``)."""
 
-    lag: float = 0.0  #: largest first-order time constant, in sample periods
-    offset: float = 0.0  #: largest constant offset, times the plant's control scale
+    lag: float  #: largest first-order time constant, in sample periods
+    offset: float  #: largest constant offset, times the plant's control scale
 
     def __post_init__(self) -> None:
         positive("lag", self.lag, strict=False)
@@ -73,9 +81,9 @@ class ActuatorSettings:
 class VariantSettings:
     """``dagger.sampler.variants``: plant variants in the rollouts."""
 
-    data: int | None = None  #: the data's variants per plant and round, in turn; null: all
-    fresh: int = 0  #: variants per plant drawn fresh each round (fit for LQI)
-    seed: int = 3001  #: seed of round 0's fresh draw (round i: seed + i)
+    data: int | None  #: the data's variants per plant and round, in turn; null: all
+    fresh: int  #: variants per plant drawn fresh each round (fit for LQI)
+    seed: int  #: seed of round 0's fresh draw (round i: seed + i)
 
     def __post_init__(self) -> None:
         for name in ("data", "fresh", "seed"):
@@ -88,12 +96,12 @@ class VariantSettings:
 class SamplerSettings:
     """``dagger.sampler``: which rollouts a DAgger round runs (:mod:`.sampler`)."""
 
-    rollouts: int = 8  #: step rollouts from rest per plant version and round
-    duration: float = 10.0  #: seconds per rollout
-    families: int = 1  #: rollouts of each of the data's families per plant and round
-    noise: float = 0.0  #: std of white noise on the executed control, x the control scale
-    actuator: ActuatorSettings | None = None
-    variants: VariantSettings | None = None
+    rollouts: int  #: step rollouts from rest per plant version and round
+    duration: float  #: seconds per rollout
+    families: int  #: rollouts of each of the data's families per plant and round
+    noise: float  #: std of white noise on the executed control, x the control scale
+    actuator: ActuatorSettings | None
+    variants: VariantSettings | None
 
     def __post_init__(self) -> None:
         for name in ("rollouts", "families"):
@@ -109,7 +117,7 @@ class SamplerSettings:
 class LabellerSettings:
     """``dagger.labeller``: which visited windows the experts label (:mod:`.labeller`)."""
 
-    bound_factor: float = 3.0  #: cut rollouts beyond this times the data's largest state
+    bound_factor: float  #: cut rollouts beyond this times the data's largest state
 
     def __post_init__(self) -> None:
         positive("bound_factor", self.bound_factor)
@@ -119,13 +127,13 @@ class LabellerSettings:
 class DaggerSettings:
     """``dagger``: when the rounds run and how much the expert steers (:mod:`.dagger`)."""
 
-    start_epoch: int = 6  #: first round after this many epochs
-    every: int = 4  #: then every this many epochs
-    rounds: int = 5
-    beta: float = 0.5  #: the expert's share of the executed control in round 0 ...
-    beta_decay: float = 0.5  #: ... times this per round
-    sampler: SamplerSettings = field(default_factory=SamplerSettings)
-    labeller: LabellerSettings = field(default_factory=LabellerSettings)
+    start_epoch: int  #: first round after this many epochs
+    every: int  #: then every this many epochs
+    rounds: int
+    beta: float  #: the expert's share of the executed control in round 0 ...
+    beta_decay: float  #: ... times this per round
+    sampler: SamplerSettings
+    labeller: LabellerSettings
 
     def __post_init__(self) -> None:
         for name in ("start_epoch", "every", "rounds"):
@@ -143,13 +151,34 @@ class DaggerSettings:
 class ClosedLoopValSettings:
     """``closed_loop_val``: the closed-loop score after every validation epoch."""
 
-    amplitudes: tuple[float, ...] = (1.0, -3.0)  #: steps from rest, x amplitude_scale
-    duration: float = 10.0
+    amplitudes: tuple[float, ...]  #: steps from rest, x amplitude_scale
+    duration: float
 
     def __post_init__(self) -> None:
         if not self.amplitudes:
             raise SettingError("amplitudes", "must name at least one step")
         positive("duration", self.duration)
+
+
+@dataclass(frozen=True)
+class ClosedLoopSettings:
+    """``closed_loop``: the ablation's closed-loop score after training (Section 7)."""
+
+    systems: tuple[str, ...]  #: the plants scored; () turns it off
+    duration: float
+
+    def __post_init__(self) -> None:
+        positive("duration", self.duration)
+
+
+@dataclass(frozen=True)
+class RolloutData:
+    """What DAgger's rollouts take from the data recipe (``data``)."""
+
+    amplitude_limit: float  #: ``data.amplitudes.limit``
+    families: dict[str, dict[str, Any]]  #: the enabled ``data.families``
+    variant_range: float  #: ``data.variants.range``: fresh variants' half-width
+    variant_tries: int  #: ``data.variants.max_tries``
 
 
 #: Where a new plant's row starts (``adapt.init``).
@@ -203,6 +232,24 @@ class TrainingSettings:
     loader: LoaderSettings
     dagger: DaggerSettings | None
     closed_loop_val: ClosedLoopValSettings | None
+    closed_loop: ClosedLoopSettings
+    rollout_data: RolloutData
+    plants: tuple[Plant, ...]  #: the set's plants (``systems``), by tag
+    held_out: tuple[str, ...]  #: plants of the set training never sees
+    data_dir: Path
+    run_dir: Path  #: checkpoints (``run_dir``, else Hydra's output folder)
+    models_dir: Path  #: where ``policy.ckpt`` and ``metrics.json`` go
+    ckpt_path: str | None  #: the Lightning checkpoint to resume from
+    trainer: dict[str, Any]  #: ``trainer`` (Lightning's Trainer, instantiated by training)
+    callbacks: tuple[dict[str, Any], ...]  #: ``callbacks``: each a node with a _target_
+    logger: dict[str, Any]  #: ``logger``: where and how the run is logged
+    resolved: dict[str, Any]  #: the whole config, resolved and redacted (the run's record)
+    families: FamilyTraining | None  #: ``train_families``: plant families trained on too
+
+    @property
+    def trained_names(self) -> list[str]:
+        """The set's plants less :attr:`held_out`: those the data module keeps."""
+        return [p.name for p in self.plants if p.name not in self.held_out]
 
 
 def _plain(cfg: DictConfig, key: str) -> Any:
@@ -230,21 +277,70 @@ def _optimizer(spec: Any, scheduler: Any, max_epochs: int) -> tuple[dict, dict |
 
 
 def model_config(cfg: DictConfig) -> dict[str, Any]:
-    """The network's config: ``model`` with ``experts``, the data's window sizes and the tags.
-
-    ``experts`` is a top-level key (``experts=5`` works as typed); ``history`` and
-    ``horizon`` come from the data config, so the network always matches its windows; a
-    plant part's ``n_tags: null`` becomes one row per catalogue plant
-    (:func:`~generalist_control.plants.catalog.tag_count`), so the policy's file holds it.
-    """
+    """The network's config, ``model`` resolved to plain types (``conf/model``)."""
     model = _plain(cfg, "model")
     if not isinstance(model, dict):
         raise ValueError("model must be a network config (conf/model)")
-    plant = model.get("plant")
-    if isinstance(plant, dict) and "n_tags" in plant and plant["n_tags"] is None:
-        model["plant"] = {**plant, "n_tags": tag_count()}
-    keys = {"experts": "experts", "history": "data.history", "horizon": "data.horizon"}
-    return {**model, **{k: _plain(cfg, key) for k, key in keys.items()}}
+    return model
+
+
+def _held_out(cfg: DictConfig, plants: list[Plant]) -> tuple[str, ...]:
+    """``held_out``: plants of the set training never sees (the held-out protocol)."""
+    names = [p.name for p in plants]
+    held = tuple(str(h) for h in (_plain(cfg, "held_out") or ()))
+    unknown = [h for h in held if h not in names]
+    if unknown:
+        raise ValueError(
+            f"held_out names {unknown}, which the plant set (systems) does not hold; it holds "
+            f"{names}"
+        )
+    if not set(names) - set(held):
+        raise ValueError(f"held_out={list(held)} leaves no plant of the set to train on")
+    return held
+
+
+def _run_dir(cfg: DictConfig) -> Path:
+    """Where the run's checkpoints go: ``run_dir``, Hydra's output dir, or a new one."""
+    if _plain(cfg, "run_dir"):
+        return Path(str(_plain(cfg, "run_dir")))
+    if HydraConfig.initialized():
+        return Path(HydraConfig.get().runtime.output_dir)
+    return Path("outputs/train") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+
+
+def _models_dir(cfg: DictConfig, run_dir: Path) -> Path:
+    """Where the run writes ``policy.ckpt`` and ``metrics.json``.
+
+    ``paths.published_dir`` (``models/``, the DVC stage's output and evaluate's default) is
+    written only by a run that publishes (``publish=true``: ``dvc repro train``). Any other
+    run writes to ``paths.models_dir`` when that is another folder (e.g. an Optuna trial's
+    own), else to ``<run_dir>/models``.
+    """
+    published = _plain(cfg, "paths.published_dir")
+    models_dir = Path(str(_plain(cfg, "paths.models_dir")))
+    if _plain(cfg, "publish"):
+        return Path(published) if published else models_dir
+    if published is None or models_dir.resolve() != Path(published).resolve():
+        return models_dir
+    return run_dir / "models"
+
+
+def _rollout_data(cfg: DictConfig) -> RolloutData:
+    """What DAgger takes from the data recipe."""
+    data = _plain(cfg, "data")
+    variants = data["variants"]
+    return RolloutData(
+        amplitude_limit=float(data["amplitudes"]["limit"]),
+        families=enabled_families(data),
+        variant_range=variant_range(variants["range"], "data.variants.range"),
+        variant_tries=require_int("data.variants.max_tries", variants["max_tries"]),
+    )
+
+
+def _callbacks(cfg: DictConfig) -> tuple[dict[str, Any], ...]:
+    """The ``callbacks`` nodes that name a class (a null one is switched off)."""
+    nodes = (_plain(cfg, "callbacks") or {}).values()
+    return tuple(n for n in nodes if isinstance(n, dict) and "_target_" in n)
 
 
 def read_training(cfg: DictConfig) -> TrainingSettings:
@@ -255,8 +351,11 @@ def read_training(cfg: DictConfig) -> TrainingSettings:
     ValueError
         Naming the key: a value of the wrong type or out of range (``trainer.max_epochs``
         must be >= 1, ``threads`` >= 1, ...), an unknown key in a section, an optimiser
-        that refuses its settings, or sections that do not fit together (``monitor:
-        val/closed_loop`` without ``closed_loop_val``).
+        that refuses its settings, sections that do not fit together (``monitor:
+        val/closed_loop`` without ``closed_loop_val``), or ``held_out`` naming a plant the
+        set does not hold.
+    generalist_control.plants.catalog.UnknownPlantError
+        If ``systems.include`` names a plant that is not in the set.
     """
     max_epochs = require_int("trainer.max_epochs", _plain(cfg, "trainer.max_epochs"))
     monitor = _plain(cfg, "monitor")
@@ -272,15 +371,15 @@ def read_training(cfg: DictConfig) -> TrainingSettings:
     optimizer, scheduler = _optimizer(
         _plain(cfg, "optimizer"), _plain(cfg, "scheduler"), max_epochs
     )
-    history = require_int("data.history", _plain(cfg, "data.history"))
-    horizon = require_int("data.horizon", _plain(cfg, "data.horizon"))
+    plants = plants_from_config(_plain(cfg, "systems"))
+    run_dir = _run_dir(cfg)
     return TrainingSettings(
         seed=require_int("seed", _plain(cfg, "seed"), minimum=0),
         threads=require_int("threads", _plain(cfg, "threads")),
         max_epochs=max_epochs,
         monitor=str(monitor),
-        history=history,
-        horizon=horizon,
+        history=require_int("data.history", _plain(cfg, "data.history")),
+        horizon=require_int("data.horizon", _plain(cfg, "data.horizon")),
         model=model_config(cfg),
         optimizer=optimizer,
         scheduler=scheduler,
@@ -291,4 +390,17 @@ def read_training(cfg: DictConfig) -> TrainingSettings:
             if closed is None
             else read_section(ClosedLoopValSettings, closed, "closed_loop_val")
         ),
+        closed_loop=read_section(ClosedLoopSettings, _plain(cfg, "closed_loop"), "closed_loop"),
+        rollout_data=_rollout_data(cfg),
+        plants=tuple(plants),
+        held_out=_held_out(cfg, plants),
+        data_dir=Path(str(_plain(cfg, "paths.data_dir"))),
+        run_dir=run_dir,
+        models_dir=_models_dir(cfg, run_dir),
+        ckpt_path=_plain(cfg, "ckpt_path") or None,
+        trainer=_plain(cfg, "trainer"),
+        callbacks=_callbacks(cfg),
+        logger=_plain(cfg, "logger") or {},
+        resolved=redact(OmegaConf.to_container(cfg, resolve=True)),
+        families=read_family_training(_plain(cfg, "train_families")),
     )

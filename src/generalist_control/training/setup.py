@@ -2,20 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import hydra
 import lightning as L
 import torch
-from omegaconf import DictConfig
 
-from generalist_control.common.configs import as_dict
-from generalist_control.data.generation import enabled_families
-from generalist_control.plants.catalog import plants_from_config
 from generalist_control.plants.plant import Plant
-from generalist_control.plants.variants import DEFAULT_RANGE, make_variant
+from generalist_control.plants.variants import make_variant
 from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.training.callbacks import ClosedLoopValidation
 from generalist_control.training.dagger import DAggerCallback
@@ -29,43 +25,7 @@ __all__ = [
     "config_callbacks",
     "dagger_callback",
     "dagger_plants",
-    "included_plants",
-    "training_plants",
 ]
-
-
-def included_plants(cfg: DictConfig) -> list[str]:
-    """The plants of ``cfg.systems`` (with ``systems.include``: those it keeps), less ``held_out``.
-
-    The data module trains and validates on these plants only, and refuses data that lacks
-    one of them, so a run logged as ``systems.name=paper`` trained on the paper's plants.
-    ``held_out`` (the held-out protocol, ``beyond/dvc.yaml:unseen``) names plants of the set
-    that training never sees.
-
-    Raises
-    ------
-    generalist_control.plants.catalog.UnknownPlantError
-        If ``include`` names a plant that is not in the set.
-    ValueError
-        If ``held_out`` names a plant that is not in the set, or every plant of it.
-    """
-    names = [p.name for p in plants_from_config(cfg.systems)]
-    held = [str(h) for h in (cfg.get("held_out") or [])]
-    unknown = [h for h in held if h not in names]
-    if unknown:
-        raise ValueError(
-            f"held_out names {unknown}, which the plant set (systems) does not hold; it holds "
-            f"{names}"
-        )
-    kept = [n for n in names if n not in held]
-    if not kept:
-        raise ValueError(f"held_out={held} leaves no plant of the set to train on")
-    return kept
-
-
-def training_plants(cfg: DictConfig, meta: dict[str, Any]) -> list[Plant]:
-    """The plants of ``cfg.systems`` that the data holds (``meta["tags"]``)."""
-    return [p for p in plants_from_config(cfg.systems) if p.name in meta["tags"]]
 
 
 def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
@@ -85,34 +45,32 @@ def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
 
 
 def dagger_callback(
-    cfg: DictConfig,
     settings: TrainingSettings,
     plants: list[Plant],
     channels: tuple[str, ...],
     rotating: Sequence[Plant] = (),
-    per_round: int = 0,
 ) -> L.Callback | None:
     """The DAgger callback of ``settings.dagger`` on ``plants`` (None when it is off).
 
     ``plants`` are the training plant versions (:func:`dagger_plants`); the sampler takes
-    the data's amplitude limit, families and variant range from ``cfg.data``. ``rotating``
-    plants (a family's) join each round ``per_round`` at a time, in turn.
+    the data's amplitude limit, families and variant range (``settings.rollout_data``).
+    ``rotating`` plants (a family's) join each round, ``train_families.dagger_plants`` at a
+    time, in turn.
     """
     spec = settings.dagger
     if spec is None:
         return None
-    data = as_dict(cfg.data)
-    block = data.get("variants") or {}  # fresh variants: the data's range and tries
+    data = settings.rollout_data
     sampler = RolloutSampler(
         plants,
         spec.sampler,
-        limit=float(data["amplitudes"]["limit"]),
-        families=enabled_families(data),
+        limit=data.amplitude_limit,
+        families=data.families,
         seed=settings.seed,
-        variant_range=float(block.get("range", DEFAULT_RANGE)),
-        variant_tries=int(block.get("max_tries", 10)),
+        variant_range=data.variant_range,
+        variant_tries=data.variant_tries,
         rotating=rotating,
-        per_round=per_round,
+        per_round=settings.families.dagger_plants if settings.families else 0,
     )
     labeller = ExpertLabeller(spec.labeller, settings.history, settings.horizon, channels)
     return DAggerCallback(sampler, labeller, spec)
@@ -126,18 +84,16 @@ def closed_loop_validation(settings: TrainingSettings, plants: list[Plant]) -> L
     return ClosedLoopValidation(ClosedLoopScore(plants, list(spec.amplitudes), spec.duration))
 
 
-def config_callbacks(cfg: DictConfig, run_dir: Path) -> list[L.Callback]:
-    """The callbacks named in ``cfg.callbacks`` (checkpoints go to ``<run_dir>/checkpoints``).
+def config_callbacks(nodes: Sequence[Mapping[str, Any]], run_dir: Path) -> list[L.Callback]:
+    """The callbacks named in ``callbacks`` (checkpoints go to ``<run_dir>/checkpoints``).
 
     A callback with ``dirpath: null`` (both checkpoint callbacks) gets that directory:
     Lightning would otherwise put it under the logger's run (``<exp_id>/<run_id>``).
     """
     callbacks = []
-    for node in (cfg.get("callbacks") or {}).values():
-        if node is None or "_target_" not in node:
-            continue
+    for node in nodes:
         kwargs = {}
-        if "dirpath" in node and node.get("dirpath") is None:
+        if "dirpath" in node and node["dirpath"] is None:
             kwargs["dirpath"] = str(run_dir / "checkpoints")
         callbacks.append(hydra.utils.instantiate(node, **kwargs))
     return callbacks
