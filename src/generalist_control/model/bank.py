@@ -16,7 +16,8 @@ from collections.abc import Mapping, Sequence
 import torch
 from torch import Tensor
 
-from generalist_control.model.card import CardFrame, CardPlant
+from generalist_control.model.card import CardFrame, CardPlant, card_features, card_frame
+from generalist_control.model.context import ContextPlant
 from generalist_control.model.policy import Policy
 from generalist_control.plants.plant import MAX_ORDER, Plant
 
@@ -30,6 +31,7 @@ __all__ = [
     "card_part",
     "fit_cards",
     "fit_model_rows",
+    "fit_targets",
     "frame_rows",
 ]
 
@@ -107,12 +109,28 @@ def fit_cards(policy: Policy, plants: Sequence[Plant]) -> None:
 
 
 def fit_model_rows(policy: Policy, plants: Sequence[Plant]) -> None:
-    """Fill the rows a policy computes from its plants' models (the card bank); else nothing.
+    """Fill the rows a policy computes from its plants' models; else nothing.
 
-    Called by training after the normaliser's fit on the data, whose rows the cards replace.
+    Called by training after the normaliser's fit on the data: the card bank replaces the
+    fitted rows; an in-context part's card targets (training only) are filled beside them.
     """
-    if isinstance(policy.net.plant, CardPlant):
+    part = policy.net.plant
+    if isinstance(part, CardPlant):
         fit_cards(policy, plants)
+    elif isinstance(part, ContextPlant) and part.card_weight > 0:
+        fit_targets(part, plants)
+
+
+@torch.no_grad()
+def fit_targets(part: ContextPlant, plants: Sequence[Plant]) -> None:
+    """The in-context part's card targets: each plant's card, standardised over ``plants``."""
+    tags = torch.as_tensor([p.tag for p in plants], dtype=torch.long)
+    cards = torch.stack(
+        [torch.as_tensor(card_features(p, card_frame(p, part.duration))) for p in plants]
+    )
+    spread = cards.std(0, unbiased=False).clamp(min=STD_FLOOR) if len(plants) > 1 else 1.0
+    part.targets[tags] = ((cards - cards.mean(0)) / spread).to(part.targets.dtype)
+    part.has_target[tags] = True
 
 
 def add_rows(policy: Policy, rows: Mapping[str, Tensor]) -> Policy:

@@ -15,8 +15,8 @@ class PlantReading:
 
     Attributes
     ----------
-    logits : Tensor, shape (B, n_tags)
-        The identity head's logits over the training plants.
+    logits : Tensor or None, shape (B, n_tags)
+        The identity head's logits over the training plants (None: a part without one).
     summary : Tensor, shape (B, features)
         The identifier's state (its one-step models' evidence last, where it has them):
         what a context skip reads beside the law's summary.
@@ -24,7 +24,7 @@ class PlantReading:
         Each plant's one-step model's evidence on the window (None without models).
     """
 
-    logits: Tensor
+    logits: Tensor | None
     summary: Tensor
     evidence: Tensor | None
 
