@@ -22,8 +22,8 @@ exp-show:
 data: setup
 	$(VENV)/dvc repro generate
 
-## The results page, docs/results.md, regenerated from the committed reports (written
-## atomically; tests/test_results_page.py checks that it matches them).
+## The results page, docs/results.md, and the ablation's figures (docs/figures/), regenerated
+## from the committed reports (written atomically; tests/test_results_page.py checks them).
 results: setup
 	$(VENV)/python -m generalist_control.reports.results_page
 

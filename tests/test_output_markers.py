@@ -20,10 +20,14 @@ from generalist_control.common import atomic
 from generalist_control.common.atomic import MARKER, ForeignDirectoryError
 from generalist_control.data.demos import MissingDataError, load_demos, write_demos
 from generalist_control.evaluation import writer
-from generalist_control.reports.ablation import write_report
+from generalist_control.reports.ablation import Inputs, write_report
+from generalist_control.reports.report_settings import Tolerance
 
 REPO = Path(__file__).resolve().parents[1]
 EMPTY_SWEEPS = {"hidden": {}, "experts": {}}
+
+#: The report's inputs with nothing but the rules (conf/report, conf/evaluation).
+NO_INPUTS = Inputs(Tolerance(2.0, 0.01, 0.10), {"ISE_ratio": 1.05, "RMSE_ratio": 1.1})
 
 
 def _tree(path: Path) -> dict[str, bytes]:
@@ -52,22 +56,22 @@ def test_a_folder_of_the_users_pictures_and_tables_is_not_replaced_by_the_report
     out = tmp_path / "ablation"
     before = _user_pictures(out)
     with pytest.raises(ForeignDirectoryError, match=r"report\.out_dir.*budget\.csv, holiday"):
-        write_report(out, EMPTY_SWEEPS, [], client=object())
+        write_report(out, EMPTY_SWEEPS, [], NO_INPUTS)
     assert _tree(out) == before
     assert [p.name for p in tmp_path.iterdir()] == ["ablation"]  # no staging folder left
 
 
 def test_the_marker_lists_what_was_written_and_only_that_is_replaced(tmp_path):
     out = tmp_path / "ablation"
-    write_report(out, EMPTY_SWEEPS, [], client=object())
+    write_report(out, EMPTY_SWEEPS, [], NO_INPUTS)
     marker = json.loads((out / MARKER).read_text())
     on_disk = sorted(p.name for p in out.iterdir() if p.name != MARKER)
     assert marker["entries"] == on_disk and "summary.json" in on_disk
     assert marker["setting"] == "report.out_dir"
-    write_report(out, EMPTY_SWEEPS, [], client=object())  # its own folder: replaced
+    write_report(out, EMPTY_SWEEPS, [], NO_INPUTS)  # its own folder: replaced
     (out / "holiday.png").write_bytes(b"\x89PNG mine")  # a user's picture among the outputs
     with pytest.raises(ForeignDirectoryError, match=r"\(holiday\.png;"):
-        write_report(out, EMPTY_SWEEPS, [], client=object())
+        write_report(out, EMPTY_SWEEPS, [], NO_INPUTS)
     assert (out / "holiday.png").read_bytes() == b"\x89PNG mine"
 
 

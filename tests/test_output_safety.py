@@ -30,11 +30,15 @@ from generalist_control.data.demos import (
 from generalist_control.evaluate import run as evaluate_run
 from generalist_control.evaluation.writer import write_reports
 from generalist_control.generate import run as generate_run
-from generalist_control.reports.ablation import write_report
+from generalist_control.reports.ablation import Inputs, write_report
+from generalist_control.reports.report_settings import Tolerance
 from helpers import compose_cfg
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = ("systems=paper", "systems.include=[cstr]", "data.duration=1.0")
+
+#: The report's inputs with nothing but the rules (conf/report, conf/evaluation).
+NO_INPUTS = Inputs(Tolerance(2.0, 0.01, 0.10), {"ISE_ratio": 1.05, "RMSE_ratio": 1.1})
 
 
 def _tree(path: Path) -> dict[str, bytes]:
@@ -95,7 +99,7 @@ def test_evaluate_refuses_a_reports_folder_of_user_files(tmp_path):
 def test_report_refuses_a_folder_of_user_files(tmp_path):
     before = _user_folder(tmp_path / "ablation")
     with pytest.raises(ForeignDirectoryError, match=r"report\.out_dir"):
-        write_report(tmp_path / "ablation", {"hidden": {}, "experts": {}}, [], client=object())
+        write_report(tmp_path / "ablation", {"hidden": {}, "experts": {}}, [], NO_INPUTS)
     assert _tree(tmp_path / "ablation") == before
 
 

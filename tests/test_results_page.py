@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
-import shutil
+import re
 import subprocess
+import tarfile
 from pathlib import Path
 from typing import Any
 
+import matplotlib
 import pytest
 
+from generalist_control.reports.figures import draw_figures, figure_key
 from generalist_control.reports.results_page import (
     MAX_LINES,
     MAX_ROWS,
@@ -24,23 +28,30 @@ from generalist_control.reports.results_sections import fmt
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = {r.key: r for r in RECIPES}
+#: What the page is made of: every recipe's reports and the folders of the ablation's tables.
+INPUTS = sorted({p for r in RECIPES for p in r.files.values()} | {
+    str(Path(r.files["summary"]).parent) for r in RECIPES if r.kind == "ablation"})  # fmt: skip
+FIGURES = "docs/figures"
 
 
-def _committed_inputs(dest: Path) -> Path:
-    """A copy of the recipes' files that git tracks (a DVC output not in git is left out).
+def _git(*args: str) -> bytes:
+    return subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, check=True).stdout
 
-    Outside a git checkout, the working tree itself.
+
+def _committed(dest: Path, *paths: str) -> Path:
+    """``paths`` (files or folders) as committed at HEAD, under ``dest`` (what git lacks: not).
+
+    A stage that has just rewritten a report in the working tree (``make pipeline``) changes
+    nothing here. Skips outside a git checkout.
     """
     try:
-        out = subprocess.run(
-            ["git", "-C", str(REPO), "ls-files", "-z"], capture_output=True, check=True
-        ).stdout
+        _git("rev-parse", "--verify", "HEAD")
     except (OSError, subprocess.CalledProcessError):
-        return REPO
-    tracked = set(out.decode().split("\0"))
-    for path in {p for r in RECIPES for p in r.files.values()} & tracked:
-        (dest / path).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(REPO / path, dest / path)
+        pytest.skip("no git checkout here: the committed files cannot be read")
+    files = _git("ls-tree", "-r", "-z", "--name-only", "HEAD", "--", *paths).split(b"\0")
+    files = [f.decode() for f in files if f]
+    with tarfile.open(fileobj=io.BytesIO(_git("archive", "HEAD", "--", *files))) as tar:
+        tar.extractall(dest, filter="data")
     return dest
 
 
@@ -79,20 +90,57 @@ def _eval_summary(**extra: Any) -> dict[str, Any]:
 
 
 def test_the_committed_page_is_what_the_committed_reports_give(tmp_path):
-    root = _committed_inputs(tmp_path)
-    assert build_page(root) == (REPO / PAGE).read_text(), "run `make results` and commit"
+    root = _committed(tmp_path, *INPUTS, PAGE)
+    assert build_page(root) == (root / PAGE).read_text(), "run `make results` and commit"
 
 
-def test_the_page_is_deterministic_and_written_atomically(tmp_path, capsys):
+def test_the_committed_figures_are_what_the_committed_tables_give(tmp_path):
+    """Each linked image is committed, drawn from the committed tables by this code."""
+    root = _committed(tmp_path / "head", *INPUTS, PAGE, FIGURES)
+    page = (root / PAGE).read_text()
+    links = re.findall(r"!\[[^]]*\]\(([^)]+)\)", page)
+    assert len(links) >= 6 and all((root / "docs" / link).is_file() for link in links), links
+    assert all((REPO / "docs" / link).is_file() for link in links)  # and in the working tree
+    for recipe in ("ablation", "ablation-paper"):
+        assert f"figures/{recipe}/gate_weights.png" in links
+        tables = root / Path(RECIPE[recipe].files["summary"]).parent
+        drawn = tmp_path / "drawn" / recipe
+        names = draw_figures(tables, drawn)
+        committed = sorted((root / FIGURES / recipe).glob("*.png"))
+        assert [p.stem for p in committed] == sorted(names), "run `make results` and commit"
+        for png in committed:
+            assert figure_key(png) == figure_key(drawn / png.name), f"{png.name}: make results"
+            software = _png_text(png).get("Software", "")
+            if matplotlib.__version__ not in software:  # bytes depend on the version
+                continue
+            assert png.read_bytes() == (drawn / png.name).read_bytes(), png.name
+
+
+def _png_text(path: Path) -> dict[str, str]:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return dict(getattr(im, "text", {}))
+
+
+def test_the_page_and_its_figures_are_deterministic_and_written_atomically(tmp_path, capsys):
     out = tmp_path / "results.md"
     assert main(["--out", str(out)]) == 0
     assert out.read_bytes() == build_page(REPO).encode()
+    figures = {p: p.read_bytes() for p in sorted((tmp_path / "figures").rglob("*.png"))}
+    assert len(figures) >= 6
     assert main(["--out", str(out), "--check"]) == 0
     out.write_text("edited by hand\n")
     assert main(["--out", str(out), "--check"]) == 1
     assert out.read_text() == "edited by hand\n"  # --check writes nothing
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.md"]  # no temporary left
-    assert "differs" in capsys.readouterr().out
+    gate = tmp_path / "figures" / "ablation" / "gate_weights.png"
+    gate.write_bytes(b"\x89PNG not drawn from these tables")
+    assert main(["--out", str(out), "--check"]) == 1
+    assert f"stale: {gate}" in capsys.readouterr().out
+    assert main(["--out", str(out)]) == 0  # drawn again, byte for byte
+    assert {p: p.read_bytes() for p in sorted((tmp_path / "figures").rglob("*.png"))} == figures
+    left = sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*") if p.is_file())
+    assert left == sorted(["results.md", *(str(p.relative_to(tmp_path)) for p in figures)])
 
 
 def test_synthetic_reports_render_their_values_and_missing_recipes(tmp_path):
@@ -206,15 +254,17 @@ def test_unseen_renders_each_held_out_plant_and_the_bar(tmp_path):
     assert "`no_divergence` GC_diverged_runs 1: **fail**; all: **fail**." in text
 
 
-def test_provenance_is_shown_when_the_summary_has_it(tmp_path):
+def test_provenance_is_shown_where_the_summary_has_it_and_not_needed(tmp_path):
+    """Date, machine and run ids may leave the summaries (they go to MLflow): no gap left."""
     prov = {"date": "2026-12-10", "machine": "one H100, 16 cores", "command": "dvc repro -f"}
     _write(tmp_path, "reports/eval/summary.json", _eval_summary(provenance=prov))
     _write(tmp_path, "reports/tag_free/summary.json", _eval_summary())
     text = build_page(tmp_path)
-    default, tag_free = text.split("## Default")[1], text.split("## Tag-free")[1]
+    default, tag_free = text.split("## Default")[1], text.split("## Tag-free")[1].split("## ")[0]
     assert "- date: 2026-12-10\n- machine: one H100, 16 cores\n" in default
     assert "- recorded command: `dvc repro -f`" in default
-    assert "- date: not recorded\n- machine: not recorded\n" in tag_free.split("## ")[0]
+    head = "- command: `dvc repro beyond/dvc.yaml:tag_free`\n- reports: `reports/tag_free/"
+    assert head in tag_free and "date" not in tag_free and "not recorded" not in text
 
 
 def test_the_page_stays_short_whatever_the_reports_hold():
@@ -250,13 +300,61 @@ def test_every_recipe_names_its_summary_and_a_command(recipe):
     assert recipe.files["summary"].endswith("summary.json") and recipe.command
 
 
-def test_the_readme_quotes_the_committed_evaluation():
-    readme = (REPO / "README.md").read_text()
-    scores = json.loads((REPO / "reports/eval/scores.json").read_text())
-    summary = json.loads((REPO / "reports/eval/summary.json").read_text())
+def test_the_readme_quotes_the_committed_evaluation(tmp_path):
+    root = _committed(
+        tmp_path, "README.md", "reports/eval/scores.json", "reports/eval/summary.json"
+    )
+    readme = (root / "README.md").read_text()
+    scores = json.loads((root / "reports/eval/scores.json").read_text())
+    summary = json.loads((root / "reports/eval/summary.json").read_text())
     aw = summary["anti_windup"]["saturation_0.25"]["worst_ISE_ratio"]
     for value in (scores["ISE_ratio"], scores["ITAE_ratio"], scores["RMSE_ratio"], aw):
         assert f"| {fmt(value)} (" in readme, "README's table: copy it from reports/eval"
     assert f"| GC runs diverged, every scenario | {scores['diverged']} |" in readme
     assert f"| {scores['bar_passed']} of {scores['bar_checked']} |" in readme
     assert f"| {scores['ess_ppm'] / 1e4:.3f} % (" in readme
+
+
+def test_the_tag_free_bar_and_thousands_are_written_as_they_read(tmp_path):
+    _write(tmp_path, "reports/tag_free/summary.json", _eval_summary())
+    bar = {"met": True, "passed": 23, "plants": 25, "ise_ratio_bar": 1.1, "min_plants": 22,
+           "no_divergence": True, "diverged": [], "missing": ["cstr", "unstable"]}  # fmt: skip
+    _write(tmp_path, "reports/tag_free_bar/bar.json", bar)
+    metrics = {"epochs": 30, "n_parameters": 56484, "val/loss": 1234.5678}
+    _write(tmp_path, "models/tag_free/metrics.json", metrics)
+    text = build_page(tmp_path)
+    assert (
+        "Tag-free bar (`reports/tag_free_bar/bar.json`): met; 23 of 25 plants within the "
+        "unit-step ISE ratio 1.1 (at least 22 required); no divergence: pass; diverged: none; "
+        "missed: cstr, unstable." in text
+    )
+    assert "30 epochs, 56,484 parameters, val/loss 1,235," in text
+    assert [fmt(v) for v in (56484, 56484.0, 1234567.25, 999.5, -2500.0)] == [
+        "56,484", "56,484", "1,234,567", "999.5", "-2,500"]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("path", "content", "says"),
+    [
+        ("reports/eval/summary.json", '{"ratios": {', "is not valid JSON"),
+        ("reports/eval/summary.json", "[1, 2]", "holds a JSON list, not an object"),
+        ("reports/eval/scores.json", '{"ISE_ratio": 1.0', "is not valid JSON"),
+        ("reports/eval/summary.json", '{"ratios": [1, 2]}', "not the layout the page reads"),
+        ("reports/unseen/summary.json", '{"held_out": {"p": {"policies": 3}}}', "not the layout"),
+        ("ablation/report/paper/runs.csv", "sweep\nhidden\n", "not the layout the page reads"),
+    ],
+)
+def test_a_malformed_report_is_named_with_the_fix_and_nothing_is_written(
+    tmp_path, capsys, path, content, says
+):
+    root = tmp_path / "repo"
+    _committed(root, *INPUTS)
+    (root / path).write_text(content)
+    out = tmp_path / "results.md"
+    out.write_text("the page before\n")
+    assert main(["--root", str(root), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("make results: ") and path in err and says in err, err
+    assert "git checkout -- " in err and "or write it again with `" in err
+    assert "Traceback" not in err
+    assert out.read_text() == "the page before\n" and not (tmp_path / "figures").exists()

@@ -214,6 +214,31 @@ def test_a_killed_training_is_set_killed_by_the_next_one(tiny_data_dir, tmp_path
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signalled_training_exits_non_zero_and_its_run_is_killed(
+    tiny_data_dir, tmp_path, mlflow_uri, sig, status
+):
+    """SIGTERM and Ctrl-C: Lightning stops the fit by SystemExit(None or 1); the command
+    must exit 128 + signal, its run KILLED, and write no policy (issue 51, defect 13)."""
+    long = ("trainer.max_epochs=1000", "callbacks.early_stopping.patience=1000")
+    overrides = _overrides(tiny_data_dir, tmp_path, mlflow_uri, *long)
+    cmd = [sys.executable, "train.py", *overrides, f"hydra.run.dir={tmp_path / 'hydra'}"]
+    mlflow.MlflowClient(mlflow_uri).search_experiments()  # create the store before polling
+    err = tmp_path / "stderr.txt"
+    with open(err, "w") as stderr:
+        proc = subprocess.Popen(cmd, cwd=REPO, env=_env(), stdout=stderr, stderr=stderr)
+    try:
+        run = _wait_for_epoch(mlflow_uri, tmp_path.name, proc, err)
+        proc.send_signal(sig)
+        assert proc.wait(timeout=120) == status, err.read_text()[-3000:]
+    finally:
+        proc.kill()
+    assert mlflow.get_run(run.info.run_id).info.status == "KILLED"
+    assert not list(tmp_path.rglob("policy.ckpt"))
+    assert "KILLED, no policy written" in err.read_text()
+
+
+@pytest.mark.slow
 def test_last_checkpoint_is_the_last_epoch_so_a_resume_repeats_none(
     tiny_data_dir, tmp_path, mlflow_uri
 ):

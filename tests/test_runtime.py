@@ -10,7 +10,7 @@ import torch
 
 from generalist_control.data.windows import build_windows, integral_of_error
 from generalist_control.deploy.adapter import RuntimeAdapter
-from generalist_control.deploy.resolve import resolve
+from generalist_control.deploy.policy_source import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy, PolicyFileError, load_policy, save_policy
 from generalist_control.plants.catalog import load_plant

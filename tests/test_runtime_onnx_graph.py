@@ -12,7 +12,7 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from generalist_control.deploy.onnx_affine import fold_affine
-from generalist_control.deploy.onnx_graph import Graph, drop_trivial, einsum_to_matmul
+from generalist_control.deploy.onnx_graph import Graph, einsum_to_matmul
 from generalist_control.deploy.onnx_layout import tidy_reshapes
 
 
@@ -87,43 +87,3 @@ def test_folded_chains_compute_the_same_floats_with_fewer_nodes():
     folded = tidy_reshapes(fold_affine(g))
     assert len(folded.nodes) < n
     np.testing.assert_array_equal(_run_graph(folded, feeds), want)
-
-
-def test_a_softmax_over_one_element_and_its_product_are_dropped():
-    consts = {"w": np.ones((1, 1), np.float32)}
-    nodes = [
-        helper.make_node("Softmax", ["a"], ["p"], axis=-1),
-        helper.make_node("MatMul", ["p", "v"], ["y"]),
-    ]
-    g = _graph(nodes, {"a": (2, 1, 1), "v": (2, 1, 3)}, "y", consts)
-    rng = np.random.default_rng(2)
-    feeds = {"a": rng.normal(size=(2, 1, 1)).astype(np.float32),
-             "v": rng.normal(size=(2, 1, 3)).astype(np.float32)}  # fmt: skip
-    drop_trivial(g)
-    assert [n.op_type for n in g.nodes] == ["Identity"]
-    np.testing.assert_array_equal(_run_graph(g, feeds), feeds["v"])
-
-
-def test_zero_initial_states_of_an_lstm_are_left_out():
-    rng = np.random.default_rng(3)
-    hidden, width = 4, 3
-    consts = {
-        "W": rng.normal(size=(1, 4 * hidden, width)).astype(np.float32),
-        "R": rng.normal(size=(1, 4 * hidden, hidden)).astype(np.float32),
-        "B": rng.normal(size=(1, 8 * hidden)).astype(np.float32),
-        "h0": np.zeros((1, 1, hidden), np.float32),
-        "c0": np.zeros((1, 1, hidden), np.float32),
-    }
-    lstm = helper.make_node(
-        "LSTM", ["x", "W", "R", "B", "", "h0", "c0"], ["", "y"], hidden_size=hidden
-    )
-    feeds = {"x": rng.normal(size=(5, 1, width)).astype(np.float32)}
-    want = _run_graph(_graph([lstm], {"x": (5, 1, width)}, "y", consts), feeds)
-    g = _graph([lstm], {"x": (5, 1, width)}, "y", consts)
-    drop_trivial(g)
-    assert list(g.nodes[0].input) == ["x", "W", "R", "B"]
-    np.testing.assert_array_equal(_run_graph(g, feeds), want)
-    consts["c0"] = np.full((1, 1, hidden), 0.5, np.float32)  # a state that is not zero stays
-    g = _graph([lstm], {"x": (5, 1, width)}, "y", consts)
-    drop_trivial(g)
-    assert list(g.nodes[0].input) == ["x", "W", "R", "B", "", "", "c0"]

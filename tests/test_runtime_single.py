@@ -1,32 +1,26 @@
-"""One plant stepped alone (issue 38): the per-sample path and the plant's own ONNX graph.
+"""One plant stepped alone: the per-sample path and the plant's own batch-1 ONNX graph.
 
-``PolicyRuntime.step`` for a runtime reset to one plant takes a path on Python numbers and,
-with ONNX, a graph made for that plant at batch 1: written from the weights (the paper's
-network and the default, deploy/onnx_plant.py) or the exported graph shrunk (the others).
-Both must give exactly what the general path gives (``specialise=False``): the same
-controls, plans, error integrals and windows, bit for bit, on every network variant. The
-graph rewrites behind the shrunk graph are checked one by one in
+``PolicyRuntime.step`` for a runtime reset to one plant by name takes a path on Python
+numbers and, with ONNX, the policy's batch-1 export with the plant's tag and mask made
+constants and shrunk. Both must give exactly what the general path gives (the same plant as
+a batch of one): the same controls, plans, error integrals and windows, bit for bit, on every
+network variant. The graph rewrites are checked one by one in
 tests/test_runtime_onnx_graph.py.
 """
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import onnx
 import pytest
 import torch
-from onnx import helper
 
 from generalist_control.data.windows import HistoryBuffer
-from generalist_control.deploy import export, onnx_backend
-from generalist_control.deploy.export import backend, onnx_bytes
-from generalist_control.deploy.onnx_graph import Graph
-from generalist_control.deploy.onnx_plant import plant_graph
+from generalist_control.deploy.export import backend, onnx_bytes, plant_model
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
+from generalist_control.plants.plant import MAX_ORDER
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import simulate
 from helpers import net_config, policy_meta
@@ -38,6 +32,8 @@ VARIANTS = {
     "default": {"window_scale": True, "channels": ["integral"], "skip": "linear"},
     "skip8": {"window_scale": True, "channels": ["integral"], "skip": "linear",
               "skip_samples": 8},
+    "short law": {"window_scale": True, "channels": ["integral"], "skip": "linear",
+                  "law_history": 4, "stride": 3},
     "tag-free": {"window_scale": True, "channels": ["integral", "previous_control"],
                  "skip": "context", "plant": "inferred", "models": None},
 }  # fmt: skip
@@ -65,15 +61,24 @@ def policy(request) -> tuple[Policy, dict]:
     return pol, policy_meta(PLANTS)
 
 
-def _run(rt: PolicyRuntime, name: str, amplitude: float, measured: bool) -> list:
-    """Step ``rt`` along an LQI step response of ``name``; everything the runtime shows."""
+def _run(rt: PolicyRuntime, name: str, amplitude: float, measured: bool, batch: bool) -> list:
+    """Step ``rt`` along an LQI step response of ``name``; everything the runtime shows.
+
+    ``batch``: as a batch of one (padded states, arrays), the general path.
+    """
     plant = load_plant(name)
     tr = simulate(plant, LQIController(plant), np.full((1, 40), amplitude))
-    rt.reset(name)
+    rt.reset([name] if batch else name)
     seen = []
     for k in range(40):
-        y = tr.y[0, k] if measured else None
-        u = rt.step(tr.x[0, k], tr.r[0, k], y)
+        x, r, y = tr.x[0, k], tr.r[0, k], (tr.y[0, k] if measured else None)
+        if batch:
+            padded = np.zeros((1, MAX_ORDER))
+            padded[0, : plant.order] = x
+            u = rt.step(padded, np.array([r]), None if y is None else np.array([y]))[0]
+        else:
+            u = rt.step(x, r, y)
+            assert isinstance(u, float)
         state, _, ref, _ = rt.window()
         seen.append([u, rt.plan.copy(), rt.z.copy(), rt._u_prev.copy(), state.copy(), ref.copy()])
     return seen
@@ -82,23 +87,18 @@ def _run(rt: PolicyRuntime, name: str, amplitude: float, measured: bool) -> list
 @pytest.mark.parametrize("backend_name", ["torch", "onnx"])
 @pytest.mark.parametrize("measured", [False, True])
 def test_one_plant_steps_exactly_as_the_general_path(policy, backend_name, measured):
-    fast = PolicyRuntime(*policy, backend=backend_name)
-    general = PolicyRuntime(*policy, backend=backend_name, specialise=False)
+    fast, general = (PolicyRuntime(*policy, backend=backend_name) for _ in range(2))
     for name, amplitude in (("cstr", 1.5), ("hydraulic_actuator", -3.0), ("two_mass_spring", 2)):
-        a = _run(fast, name, amplitude, measured)
-        b = _run(general, name, amplitude, measured)
+        a = _run(fast, name, amplitude, measured, batch=False)
+        b = _run(general, name, amplitude, measured, batch=True)
         for got, want in zip(a, b, strict=True):
-            assert isinstance(got[0], float) and got[0] == want[0]
+            assert got[0] == want[0]
             for x, y in zip(got[1:], want[1:], strict=True):
                 np.testing.assert_array_equal(x, y)
 
 
-WRITTEN = ("paper", "default")  # the variants whose plant graph is written from the weights
-
-
-def test_the_plant_graph_is_smaller_and_computes_what_the_general_session_does(policy, request):
+def test_the_plant_graph_is_smaller_and_computes_what_the_batch_session_does(policy):
     pol, _ = policy
-    variant = request.node.callspec.params["policy"]
     run = backend(pol, "onnx")
     rng = np.random.default_rng(0)
     one = onnx.load_from_string(onnx_bytes(pol, batch=1))
@@ -106,59 +106,14 @@ def test_the_plant_graph_is_smaller_and_computes_what_the_general_session_does(p
         plant = load_plant(name)
         buffer = HistoryBuffer(np.array([plant.order]), 8, "integral" in pol.channels,
                                "previous_control" in pol.channels)  # fmt: skip
-        single = run.single(plant.tag, buffer.mask)
+        single = run.plant(plant.tag, buffer.mask)
         tag = np.array([plant.tag])
         for scale in (1e-2, 1.0, 30.0):
             state = (rng.normal(size=buffer.mask.shape) * scale).astype(np.float32) * buffer.mask
             ref = (rng.normal(size=(1, 8)) * scale).astype(np.float32)
             np.testing.assert_array_equal(single(state, ref), run(state, buffer.mask, ref, tag))
-        fixed = {"tag": tag, "mask": buffer.mask}
-        shrunk = onnx.load_from_string(onnx_backend.shrink(one, fixed, ["controls"]))
-        assert len(shrunk.graph.node) < 0.8 * len(one.graph.node)
-        written = plant_graph(pol, plant.tag, buffer.mask)
-        assert (written is not None) == (variant in WRITTEN)
-        if written is not None:  # fewer nodes still, and the one the runtime steps through
-            assert len(onnx.load_from_string(written).graph.node) < len(shrunk.graph.node)
-            width = buffer.mask.shape[2]
-            assert [i.shape for i in single._sess.get_inputs()] == [[8, width], [8, 1]]
-
-
-def _off(graph: bytes | None) -> bytes | None:
-    """``graph`` with every control 1 % off."""
-    if graph is None:
-        return None
-    g = Graph.from_model(onnx.load_from_string(graph))
-    g.consts["off"] = np.array(1.01, np.float32)
-    g.nodes[-1].output[0] = "controls/right"
-    g.nodes.append(helper.make_node("Mul", ["controls/right", "off"], ["controls"]))
-    return g.to_model().SerializeToString()
-
-
-@pytest.mark.parametrize("wrong", ["written", "both"])
-def test_a_plant_graph_that_disagrees_is_not_used(policy, monkeypatch, wrong):
-    """The check at reset: a wrong graph gives way to the next, at last the general session.
-
-    A wrong written graph to the shrunk one, silently; a wrong shrunk one too (or the only
-    one) to the general session, with a warning.
-    """
-    pol, meta = policy
-    monkeypatch.setattr(export, "plant_graph", lambda *args: _off(plant_graph(*args)))
-    real, shrunk = onnx_backend.shrink, []
-    monkeypatch.setattr(onnx_backend, "shrink", lambda *a: shrunk.append(1) or (
-        _off(real(*a)) if wrong == "both" else real(*a)))  # fmt: skip
-    rt = PolicyRuntime(pol, meta, backend="onnx")
-    if wrong == "both":
-        with pytest.warns(RuntimeWarning, match="differs from the general session by 0.01"):
-            rt.reset("cstr")
-    else:
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", RuntimeWarning)
-            rt.reset("cstr")
-    assert shrunk == [1]
-    general = PolicyRuntime(pol, meta, backend="onnx", specialise=False)
-    general.reset("cstr")
-    for k in range(5):
-        assert rt.step([0.1 * k, 0.0], 1.0) == general.step([0.1 * k, 0.0], 1.0)
+        shrunk = plant_model(one, {"tag": tag, "mask": buffer.mask})
+        assert len(onnx.load_from_string(shrunk).graph.node) < 0.8 * len(one.graph.node)
 
 
 def test_a_replaced_network_is_what_one_plant_steps_through(policy):

@@ -17,7 +17,7 @@ import yaml
 
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import available_plants, load_plant
-from generalist_control.reports.unseen import POLICIES, judge, plant_class
+from generalist_control.reports.held_out import POLICIES, judge, plant_class
 from generalist_control.training.setup import included_plants
 from helpers import compose_cfg, tiny_train_overrides
 

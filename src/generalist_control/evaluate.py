@@ -44,7 +44,7 @@ from threadpoolctl import threadpool_limits
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
-from generalist_control.deploy.resolve import resolve
+from generalist_control.deploy.policy_source import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation import background
 from generalist_control.evaluation.provenance import policy_record, provenance

@@ -1,7 +1,7 @@
-"""The ``report`` stage: ``python -m generalist_control.report`` or ``dvc repro report``.
+"""The ablation report: ``python -m generalist_control.report`` (``ablation/dvc.yaml``).
 
-The ablation figures of the paper's Section 7, redrawn from the finished training runs in
-MLflow (:mod:`generalist_control.reports.ablation`); settings in ``conf/report``.
+The paper's Section 7 redrawn from the finished training runs in MLflow
+(:mod:`generalist_control.reports.ablation`); settings in ``conf/report``, read here once.
 """
 
 from __future__ import annotations
@@ -11,20 +11,49 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
+from generalist_control.common.settings import read_section
 from generalist_control.reports.ablation import build_report
+from generalist_control.reports.report_settings import ReportJob, ReportSettings
 
-__all__ = ["main", "run"]
+__all__ = ["main", "read_job", "run"]
+
+
+def read_job(cfg: DictConfig) -> ReportJob:
+    """The report's settings (``report``) and what it reads of other groups, checked.
+
+    ``report.parent_run`` may name one parent run or a list of them.
+
+    Raises
+    ------
+    ValueError
+        Naming the key: a value of the wrong type, an unknown or a missing key.
+    """
+    node = as_dict(cfg.report)
+    if isinstance(node.get("parent_run"), str | int):
+        node["parent_run"] = [str(node["parent_run"])]
+    settings = read_section(ReportSettings, node, "report")
+    plants = settings.plants
+    if plants is None and cfg.closed_loop is not None:
+        plants = cfg.closed_loop.systems
+    return ReportJob(
+        report=settings,
+        logger=as_dict(cfg.logger),
+        plants=tuple(str(p) for p in plants or ()),
+        bar=as_dict(cfg.evaluation.quality_bar),
+        threads=int(cfg.threads),
+    )
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Find the sweep runs, write ``report.out_dir`` and log the report to MLflow."""
-    return build_report(cfg)
+    return build_report(read_job(cfg))
 
 
 @hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="config")
 def main(cfg: DictConfig) -> None:
-    """Hydra entry point of the ``report`` stage."""
+    """Hydra entry point of the report."""
     run(cfg)
 
 

@@ -4,7 +4,7 @@ Run by the DVC stage ``unseen`` (``beyond/dvc.yaml``) after its two trainings wi
 plants of ``held_out`` (``conf/unseen.yaml``): per held-out plant, a row learned on the
 default (``adapt``), the tag-free policy zero-shot and the pipeline's policy trained with it,
 each on every scenario against the plant's LQI; ``reports/unseen/``. The work is
-:func:`generalist_control.reports.unseen.run_unseen` (``docs/pipeline.md``).
+:func:`generalist_control.reports.held_out.run_unseen` (``docs/pipeline.md``).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import hydra
 from omegaconf import DictConfig
 
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
-from generalist_control.reports.unseen import run_unseen
+from generalist_control.reports.held_out import run_unseen
 
 __all__ = ["main", "run"]
 

@@ -1,44 +1,60 @@
-"""Export backends of a trained policy: eager PyTorch, TorchScript and ONNX Runtime.
+"""Backends of a trained policy: eager PyTorch, TorchScript and ONNX Runtime.
 
-Each backend is a function ``run(state, mask, ref, tag) -> controls`` on raw float32 windows
-(the window builder's arrays) returning the ``horizon`` controls in plant units; the
-:class:`~generalist_control.deploy.runtime.PolicyRuntime` calls it once per sample. Exports are
-traced from the :class:`~generalist_control.model.policy.Policy` (normaliser included) with a
-dynamic batch axis; their outputs equal PyTorch's within 1e-5 (tests/test_runtime.py). The
-ONNX backend also runs one plant at batch 1 through a graph made for it
-(:meth:`~generalist_control.deploy.onnx_backend.OnnxBackend.single`).
-
-Backends are built in memory: nothing is written to disk (:func:`export_onnx` and
-:func:`export_torchscript` write a file only where asked to).
+A backend maps raw float32 windows (the window builder's arrays) to the ``horizon`` controls
+in plant units, for any batch, ``backend(state, mask, ref, tag)``, and for one plant stepped
+alone, ``backend.plant(tag, mask)(state, ref)``. With ONNX Runtime the latter runs the
+policy's own batch-1 export with the plant's tag and mask made constants and the graph
+shrunk (:func:`plant_model`): the batch session's controls, bit for bit, in a third of its
+time. Exports are traced from the :class:`~generalist_control.model.policy.Policy`
+(normaliser included) in memory; :func:`export_onnx` and :func:`export_torchscript` write files.
 """
 
 from __future__ import annotations
 
 import io
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import onnx
 import torch
 
-from generalist_control.deploy.onnx_backend import OnnxBackend
-from generalist_control.deploy.onnx_plant import plant_graph
+from generalist_control.deploy.onnx_affine import fold_affine
+from generalist_control.deploy.onnx_graph import (
+    Graph,
+    einsum_to_matmul,
+    fold_constants,
+    freeze,
+    prune,
+)
+from generalist_control.deploy.onnx_layout import tidy_reshapes
 from generalist_control.model.policy import Policy
 
-__all__ = ["Backend", "backend", "export_onnx", "export_torchscript", "onnx_bytes"]
+__all__ = ["Backend", "backend", "export_onnx", "export_torchscript", "onnx_bytes", "session"]
 
 _INPUTS = ("state", "mask", "ref", "tag")
 
-Backend = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+Run = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+PlantRun = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
-def _torch_backend(policy: Policy) -> Backend:
-    @torch.inference_mode()
-    def run(state, mask, ref, tag):
-        u, _ = policy(*(torch.from_numpy(a) for a in (state, mask, ref, tag)))
-        return u.numpy()
+class Backend:
+    """``backend(state, mask, ref, tag) -> controls (B, horizon)``, and one plant's run."""
 
-    return run
+    def __init__(self, run: Run) -> None:
+        self.run = run
+
+    def __call__(
+        self, state: np.ndarray, mask: np.ndarray, ref: np.ndarray, tag: np.ndarray
+    ) -> np.ndarray:
+        """Controls (B, horizon) in plant units for raw windows."""
+        return self.run(state, mask, ref, tag)
+
+    def plant(self, tag: int, mask: np.ndarray) -> PlantRun:
+        """``run(state, ref) -> controls (1, horizon)`` of plant ``tag`` (mask (1, T, width))."""
+        tags = np.array([tag], np.int64)
+        return lambda state, ref: self.run(state, mask, ref, tags)
 
 
 def _example(policy: Policy, batch: int = 2) -> tuple[torch.Tensor, ...]:
@@ -91,10 +107,121 @@ def export_onnx(policy: Policy, path: str | Path) -> Path:
     return path
 
 
+#: ONNX Runtime's rewrites left out of a plant's session, which would not compute the batch
+#: session's floats: MatMulAddFusion sums a product and a computed tensor in another order,
+#: MatMulScaleFusion folds the plant's control scale (a constant there) into a product.
+_UNFUSED = ("MatMulAddFusion", "MatMulScaleFusion")
+
+
+def session(model: bytes, arena: bool = True, disabled: Sequence[str] = ()) -> Any:
+    """An ONNX Runtime session for one real-time thread, every graph optimisation on.
+
+    ``arena``: ONNX Runtime's memory arena, of use where shapes change from call to call
+    (a static graph's buffers are planned once, and a call is faster without it);
+    ``disabled``: rewrites left out.
+    """
+    import onnxruntime as ort  # optional and heavy: only for the ONNX backend
+
+    opts = ort.SessionOptions()
+    opts.enable_cpu_mem_arena = arena
+    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.log_severity_level = 3  # warnings of the optimiser are not the user's business
+    return ort.InferenceSession(
+        model, opts, providers=["CPUExecutionProvider"], disabled_optimizers=list(disabled)
+    )
+
+
+def plant_model(batch_one: onnx.ModelProto, fixed: dict[str, np.ndarray]) -> bytes:
+    """The batch-1 model with inputs ``fixed`` made constants, shrunk; ``controls`` out.
+
+    What depends on constants alone is computed once, the way the batch session computes
+    it, and the rest rewritten into fewer nodes computing the same floats
+    (:mod:`~generalist_control.deploy.onnx_graph`, :mod:`~generalist_control.deploy.onnx_affine`,
+    :mod:`~generalist_control.deploy.onnx_layout`): ONNX Runtime's cost is mostly per node.
+    """
+    graph = freeze(Graph.from_model(batch_one), fixed)
+    graph.outputs = [o for o in graph.outputs if o.name == "controls"]
+    graph = prune(fold_constants(graph))
+    graph = tidy_reshapes(fold_affine(prune(einsum_to_matmul(graph))))
+    return prune(fold_constants(graph)).to_model().SerializeToString()
+
+
+class _BoundRun:
+    """A plant's batch-1 session run on the window arrays it was last given, in place.
+
+    Inputs and output are bound to the arrays once (no conversion or dictionary per call);
+    the window builder alternates between two sets of arrays, so two bindings are kept. The
+    controls are written to one array, returned by every call.
+    """
+
+    def __init__(self, sess: Any, horizon: int) -> None:
+        import onnxruntime as ort  # optional and heavy: only for the ONNX backend
+
+        self._value, self._sess = ort.OrtValue.ortvalue_from_numpy, sess
+        # the session's own run of a binding, without the Python wrapper's per-call checks
+        self._raw = getattr(getattr(sess, "_sess", None), "run_with_iobinding", None)
+        self.out = np.zeros((1, horizon), np.float32)
+        self._bound: dict[tuple[int, int], tuple[Any, tuple, tuple]] = {}
+
+    def _bind(self, state: np.ndarray, ref: np.ndarray) -> tuple:
+        if len(self._bound) >= 2:  # arrays of an earlier buffer: let them go
+            self._bound.clear()
+        binding = self._sess.io_binding()
+        binding.bind_ortvalue_input("state", self._value(state))
+        binding.bind_ortvalue_input("ref", self._value(ref))
+        binding.bind_ortvalue_output("controls", self._value(self.out))
+        raw = getattr(binding, "_iobinding", None)
+        if self._raw is not None and raw is not None:
+            call: tuple[Any, tuple] = (self._raw, (raw, None))
+        else:
+            call = (self._sess.run_with_iobinding, (binding,))
+        entry = self._bound[id(state), id(ref)] = (*call, (binding, state, ref))  # kept alive
+        return entry
+
+    def __call__(self, state: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        """Controls (1, horizon) for a C-contiguous float32 window (1, T, width), (1, T)."""
+        run, args, _ = self._bound.get((id(state), id(ref))) or self._bind(state, ref)
+        run(*args)
+        return self.out
+
+
+class OnnxBackend(Backend):
+    """The policy through ONNX Runtime: one session for any batch, one per plant at batch 1."""
+
+    def __init__(self, policy: Policy) -> None:
+        super().__init__(self._general)
+        self._sess = session(onnx_bytes(policy))
+        self._policy = policy
+        self._batch_one: onnx.ModelProto | None = None
+        self._plants: dict[tuple[int, bytes], _BoundRun] = {}
+
+    def _general(self, *arrays: np.ndarray) -> np.ndarray:
+        return self._sess.run(["controls"], dict(zip(_INPUTS, arrays, strict=True)))[0]
+
+    def plant(self, tag: int, mask: np.ndarray) -> PlantRun:
+        """Plant ``tag``'s batch-1 session (module docstring), made at its first use."""
+        mask = np.ascontiguousarray(mask, np.float32)
+        key = (int(tag), mask.tobytes())
+        if key not in self._plants:
+            if self._batch_one is None:
+                self._batch_one = onnx.load_from_string(onnx_bytes(self._policy, batch=1))
+            fixed = {"tag": np.array([tag], np.int64), "mask": mask}
+            sess = session(plant_model(self._batch_one, fixed), arena=False, disabled=_UNFUSED)
+            self._plants[key] = _BoundRun(sess, self._policy.horizon)
+        return self._plants[key]
+
+
 def backend(policy: Policy, name: str) -> Backend:
-    """The ``run(state, mask, ref, tag)`` function of backend ``name`` for ``policy``."""
+    """Backend ``name`` (torch, torchscript or onnx) of ``policy``."""
     if name == "torch":
-        return _torch_backend(policy)
+
+        @torch.inference_mode()
+        def run(*arrays: np.ndarray) -> np.ndarray:
+            return policy(*(torch.from_numpy(a) for a in arrays))[0].numpy()
+
+        return Backend(run)
     if name == "torchscript":
         buffer = io.BytesIO()
         torch.jit.save(_traced(policy), buffer)
@@ -102,15 +229,10 @@ def backend(policy: Policy, name: str) -> Backend:
         module = torch.jit.load(buffer)
 
         @torch.inference_mode()
-        def run(state, mask, ref, tag):
-            return module(*(torch.from_numpy(a) for a in (state, mask, ref, tag)))[0].numpy()
+        def run_script(*arrays: np.ndarray) -> np.ndarray:
+            return module(*(torch.from_numpy(a) for a in arrays))[0].numpy()
 
-        return run
+        return Backend(run_script)
     if name == "onnx":
-        return OnnxBackend(
-            onnx_bytes(policy),
-            lambda: onnx_bytes(policy, batch=1),
-            policy.horizon,
-            lambda tag, mask: plant_graph(policy, tag, mask),
-        )
+        return OnnxBackend(policy)
     raise ValueError(f"unknown backend '{name}'; choose torch, torchscript or onnx")

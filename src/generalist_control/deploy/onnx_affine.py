@@ -1,20 +1,10 @@
 """Fold chains of linear nodes of a static-shape ONNX graph into single ``Gemm`` nodes.
 
-A tensor is *affine* when it is computed from other tensors (its *sources*) by data movement
-(reshape, transpose, slice, gather, concat, ...) and by products with constants, sums and
-constant offsets. Wherever such a chain ends (its tensor feeds a nonlinear node or is a graph
-output) it can be computed as ``y = M x + c`` from its sources ``x``; :func:`fold_affine`
-measures ``M`` and ``c`` by evaluating the chain (in float64) on the zero vector and on
-each unit vector, and replaces the chain by one ``Gemm`` (plus reshapes), if that means
-fewer nodes. A chain applied to every row alike (e.g. a per-time-step layer) keeps that form:
-its ``M`` is one row's.
-
-**Exactly the same numbers.** A folded chain computes what the chain did, to the bit, on the
-reference kernels: each output element may be at most one rounded product sum (a matrix
-product, with its bias, or one scaling) of source elements that were only moved, or one
-rounded sum of such elements and constants. A chain that would round twice (a product of a
-product, a sum after a product) is cut before the second rounding: the tensor there is
-computed and becomes the source of the rest. So is a product that several nodes read.
+A chain of data movement, products with constants, sums and offsets ends where a nonlinear
+node reads it; :func:`fold_affine` measures its ``y = M x + c`` (float64 probes) and
+replaces it by one ``Gemm`` where that means fewer nodes. The same floats: each output
+element stays at most one rounded product sum of moved source elements (a chain that would
+round twice is cut there), so the folded graph computes the chain's numbers to the bit.
 """
 
 from __future__ import annotations

@@ -1,19 +1,9 @@
-"""Rewrites of an exported ONNX graph with static shapes, for one plant at batch 1.
+"""Rewrites of a static-shape ONNX graph for one plant at batch 1, and the graph they use.
 
-A policy exported for one batch row with its tag and mask fixed (the runtime knows both at
-``reset``) is mostly per-node overhead in ONNX Runtime: a few hundred kFLOP spread over a
-hundred small nodes. The passes here shrink the graph without changing what it computes:
-
-* :func:`freeze`: graph inputs that are known constants become initializers;
-* :func:`fold_constants`: every node whose inputs are all constant is evaluated once (with
-  ONNX Runtime's own kernels), and ``Shape`` of a tensor of static shape becomes a constant;
-* :func:`drop_trivial`: a softmax over an axis of size one is one, a product with a constant
-  that is all ones over a contraction of size one is its other operand (the attention over a
-  single token), and an unused output of an ``LSTM`` is not computed;
-* :func:`einsum_to_matmul`: a two-operand ``Einsum`` becomes ``MatMul`` (with reshapes);
-* :func:`prune`: nodes no graph output depends on are removed.
-
-:mod:`~generalist_control.deploy.onnx_affine` then folds chains of linear nodes.
+A plant's batch-1 graph is mostly ONNX Runtime's per-node overhead: a few hundred kFLOP
+over a hundred small nodes. :func:`freeze` makes known inputs (tag, mask) constants,
+:func:`fold_constants` computes what depends on them alone with ONNX Runtime's unoptimised
+kernels (as the batch session does), :func:`einsum_to_matmul` and :func:`prune` follow.
 """
 
 from __future__ import annotations
@@ -27,7 +17,6 @@ from onnx import helper, numpy_helper, shape_inference
 
 __all__ = [
     "Graph",
-    "drop_trivial",
     "einsum_to_matmul",
     "fold_constants",
     "freeze",
@@ -207,68 +196,6 @@ def _attr(node: onnx.NodeProto, name: str, default: Any) -> Any:
         if a.name == name:
             return helper.get_attribute_value(a)
     return default
-
-
-def _ones_over_one(graph: Graph, node: onnx.NodeProto) -> str | None:
-    """``b`` if ``MatMul(a, b)`` is ``b`` itself, exactly, else None.
-
-    So it is when ``a`` is a constant of ones of shape (..., 1, 1) and the product has
-    ``b``'s shape.
-    """
-    a, b = node.input
-    ones, other = graph.consts.get(a), graph.shape(b)
-    if ones is None or other is None or ones.shape[-2:] != (1, 1) or not np.all(ones == 1):
-        return None
-    if np.broadcast_shapes(ones.shape[:-2], other[:-2]) != other[:-2]:
-        return None
-    return b
-
-
-#: Inputs of a recurrent node that are its initial states (ONNX: zero when left out).
-_STATES = {"LSTM": (5, 6), "GRU": (5,), "RNN": (5,)}
-
-
-def _drop_zero_states(graph: Graph, node: onnx.NodeProto) -> None:
-    """Leave out the all-zero constant initial states of a recurrent ``node``."""
-    for i in _STATES[node.op_type]:
-        if i < len(node.input) and node.input[i] in graph.consts:
-            if not np.any(graph.consts[node.input[i]]):
-                node.input[i] = ""
-    while node.input and not node.input[-1]:
-        node.input.pop()
-
-
-def drop_trivial(graph: Graph) -> Graph:
-    """Softmax over one element, products with ones over one element, unused LSTM outputs.
-
-    Also zero initial states of a recurrent node (``initial_h``, ``initial_c``): left out,
-    they are zero by definition, and the node does not read them.
-    """
-    graph.infer()
-    alias: dict[str, str] = {}
-    used = {i for n in graph.nodes for i in n.input} | {o.name for o in graph.outputs}
-    kept = []
-    for n in graph.nodes:
-        n.input[:] = [alias.get(i, i) for i in n.input]
-        shape = graph.shape(n.input[0]) if n.input else None
-        if n.op_type in ("Softmax", "LogSoftmax") and shape is not None:
-            if shape[_attr(n, "axis", -1)] == 1:
-                value = 1.0 if n.op_type == "Softmax" else 0.0
-                dtype = helper.tensor_dtype_to_np_dtype(graph.info(n.input[0])[1])
-                graph.consts[n.output[0]] = np.full(shape, value, dtype)
-                continue
-        if n.op_type == "MatMul" and (other := _ones_over_one(graph, n)) is not None:
-            alias[n.output[0]] = other
-            continue
-        if n.op_type in ("LSTM", "GRU", "RNN"):
-            n.output[:] = [o if o in used else "" for o in n.output]
-            _drop_zero_states(graph, n)
-        kept.append(n)
-    graph.nodes = kept
-    for o in graph.outputs:
-        if o.name in alias:  # an output must keep its name
-            graph.nodes.append(helper.make_node("Identity", [alias[o.name]], [o.name]))
-    return graph
 
 
 def _split_equation(eq: str) -> tuple[str, str, str] | None:

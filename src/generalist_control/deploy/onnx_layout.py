@@ -1,23 +1,14 @@
 """Fewer reshapes in a static-shape ONNX graph: each one is a node ONNX Runtime runs.
 
-:func:`tidy_reshapes` rewrites, until nothing changes:
-
-* a ``Squeeze``, ``Unsqueeze``, ``Flatten``, or a ``Transpose`` that moves only axes of
-  size one, as the ``Reshape`` it is (to its static shape);
-* a reshape of a reshape as one reshape, and a reshape to its input's own shape as nothing;
-* an elementwise function of a reshape as the reshape of the function (so that reshapes
-  meet, and cancel, further down);
-* a ``Concat`` along the last axis of tensors reshaped alike as the reshape of the
-  ``Concat`` of the tensors.
-
-None of these changes a value: they move elements, never compute them.
+:func:`tidy_reshapes` writes reshape-like nodes as static ``Reshape``, merges chains of them,
+drops those to their input's own shape, and moves them past elementwise nodes so that they
+meet and cancel. None of this computes a value: it moves elements.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import onnx
-from onnx import helper
 
 from generalist_control.deploy.onnx_graph import Graph, prune
 
@@ -104,55 +95,11 @@ def _sink(graph: Graph) -> bool:
     return changed
 
 
-def _joinable(graph: Graph, node: onnx.NodeProto, producer, readers) -> list[str] | None:
-    """The tensors a last-axis ``Concat`` of reshapes could join before reshaping, or None."""
-    out = graph.shape(node.output[0])
-    if out is None:
-        return None
-    axis = next(a.i for a in node.attribute if a.name == "axis") % len(out)
-    rs = [producer.get(i) for i in node.input]
-    if axis != len(out) - 1 or any(r is None or r.op_type != "Reshape" for r in rs):
-        return None
-    ins = [r.input[0] for r in rs if r is not None]
-    shapes = [graph.shape(i) for i in ins]
-    if any(s is None for s in shapes) or len({s[:-1] for s in shapes if s}) != 1:
-        return None
-    for r, s in zip(rs, shapes, strict=True):
-        assert r is not None and s is not None
-        if (
-            len(readers.get(r.output[0], ())) != 1
-            or s[-1:] != (graph.shape(r.output[0]) or ())[-1:]
-        ):
-            return None
-    return ins
-
-
-def _concat(graph: Graph) -> bool:
-    """``Concat`` on the last axis of reshapes that regroup only leading axes, alike."""
-    readers = graph.consumers()
-    producer = {o: n for n in graph.nodes for o in n.output}
-    changed = False
-    for n in list(graph.nodes):
-        ins = _joinable(graph, n, producer, readers) if n.op_type == "Concat" else None
-        if ins is None:
-            continue
-        target, joined = n.output[0], n.output[0] + "/joined"
-        graph.consts[joined + "/shape"] = np.array(graph.shape(target), np.int64)
-        n.input[:], n.output[0] = ins, joined
-        del n.attribute[:]
-        n.attribute.append(helper.make_attribute("axis", len(graph.shape(ins[0]) or ()) - 1))
-        graph.nodes.append(helper.make_node("Reshape", [joined, joined + "/shape"], [target]))
-        changed = True
-    if changed:
-        graph.sort()
-    return changed
-
-
 def tidy_reshapes(graph: Graph) -> Graph:
     """Apply the rewrites of the module docstring until none applies; drop what is unused."""
     for _ in range(50):
         graph.infer()
-        if not (_collapse(graph) | _sink(graph) | _concat(graph)):
+        if not (_collapse(graph) | _sink(graph)):
             break
         prune(graph)
     return prune(graph)

@@ -1,59 +1,34 @@
-"""The real-time policy runtime: history buffer, receding horizon, export backends.
+"""The real-time policy runtime: a trained policy in a sampled control loop.
 
-:class:`PolicyRuntime` wraps a trained :class:`~generalist_control.model.policy.Policy`. It keeps
-its own ``history``-sample buffer of states and references, builds the network's input with
-the project's one window builder (:class:`~generalist_control.data.windows.HistoryBuffer`),
-and applies the first of the ``horizon`` predicted controls each sample::
-
-    rt = PolicyRuntime.load("models/policy.ckpt")        # or an MLflow URI
-    rt.reset("cstr")
-    u = rt.step(x, r)                                     # once per dt
-
-On the first step after ``reset`` the buffer is filled with that first sample, exactly as
-the window builder pads the start of a training trajectory. A policy with the ``integral``
-channel (``model.channels``) also sees the integral of the tracking error, which the runtime
-keeps exactly as the LQI expert does (``z += dt (r - y)`` after each sample's control, from zero
-at ``reset``); ``y`` is the plant's output ``C x`` (rows stored with the policy), or the
-measured output passed as ``step(x, r, y)``. Like LQI, such a policy winds up against an
-actuator limit; given the limits (:meth:`PolicyRuntime.set_actuator_limits`) the runtime
-integrates conditionally, as :class:`~generalist_control.simulation.lqi.AntiWindupLQIController`
-does. A policy with the ``previous_control`` channel also sees the control applied one
-sample earlier: the runtime keeps the control it issued (the actuated one, once actuator
-limits are known), zero at ``reset``, or the one it is told the plant received instead
-(:meth:`PolicyRuntime.record_applied`). Many plants can be stepped at once
-(``reset([...names])`` and ``step`` on ``(B, MAX_ORDER)`` zero-padded states), which is how
-evaluation batches all plants through one network call per sample.
-
-**Input range.** A step whose inputs (or controls, or error integral) are not finite or exceed
-``input_limit`` times their training RMS is refused with :class:`RejectedStep`, naming plant,
-input, value and allowed range, and changes nothing (see :class:`PolicyRuntime`).
-
-Backends: ``"torch"`` (eager), ``"torchscript"`` and ``"onnx"`` (ONNX Runtime); see
-:mod:`generalist_control.deploy.export`. In a simulated loop the runtime is driven through
-:class:`~generalist_control.deploy.adapter.RuntimeAdapter`.
-
-**One plant** (``reset(name)``) is stepped on Python numbers
-(:class:`~generalist_control.deploy.single.OnePlant`) and, with ONNX, through a graph made for
-that plant at batch 1 (:meth:`~generalist_control.deploy.onnx_backend.OnnxBackend.single`):
-the general path's controls, bit for bit, in about a third of its time (issue 38). Inputs
-out of range, actuator limits and other unusual steps take the general path.
+:class:`PolicyRuntime` keeps each run's history window (the project's one window builder,
+:class:`~generalist_control.data.windows.HistoryBuffer`), its error integral and its last
+control, checks every input and output against the policy's range, and applies the first of
+the ``horizon`` predicted controls. One plant reset by name steps through a lean path
+(:mod:`~generalist_control.deploy.one_plant`) and the backend's batch-1 run of that plant.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import functools
+import threading
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import numpy as np
 
 from generalist_control.data.windows import HistoryBuffer
 from generalist_control.deploy.export import backend as _backend
-from generalist_control.deploy.facts import integral_facts
-from generalist_control.deploy.inputs import actuator_limit, real_array, shaped_inputs
-from generalist_control.deploy.rejection import RejectedStep, rejection
-from generalist_control.deploy.resolve import resolve
-from generalist_control.deploy.single import OnePlant, output_of
+from generalist_control.deploy.integral_facts import IntegralFacts
+from generalist_control.deploy.one_plant import OnePlantStep, output_of
+from generalist_control.deploy.policy_source import resolve
+from generalist_control.deploy.refusals import (
+    RejectedStep,
+    actuator_limit,
+    real_array,
+    rejection,
+    shaped_inputs,
+)
 from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.plant import MAX_ORDER
 from generalist_control.simulation.antiwindup import conditional_increment
@@ -63,6 +38,32 @@ __all__ = ["INPUT_LIMIT", "PolicyRuntime", "RejectedStep"]
 
 #: Default input range of a runtime: each signal at most this many times its training RMS.
 INPUT_LIMIT = 1e3
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _busy_error(method: str) -> RuntimeError:
+    return RuntimeError(
+        f"PolicyRuntime.{method}: another thread is inside this runtime. A runtime holds one "
+        "control loop's state (history, error integral, last control) and serves one thread "
+        "at a time: give each thread its own runtime (PolicyRuntime.load again), or "
+        "serialise the calls yourself."
+    )
+
+
+def _one_thread(method: _F) -> _F:
+    """``method`` refused with a clear error while another thread is inside the runtime."""
+
+    @functools.wraps(method)
+    def guarded(self: PolicyRuntime, *args: Any, **kwargs: Any) -> Any:
+        if not self._busy.acquire(blocking=False):
+            raise _busy_error(method.__name__)
+        try:
+            return method(self, *args, **kwargs)
+        finally:
+            self._busy.release()
+
+    return cast(_F, guarded)
 
 
 class PolicyRuntime:
@@ -77,6 +78,13 @@ class PolicyRuntime:
     * error integral after the sample (the ``integral`` channel): ``|z| <= L s_x[z]``;
     * every predicted control (the network's output): ``|u| <= L s_u``; NaN and inf never.
 
+    Inputs are real numbers (a complex value, a bool or a string is refused with a
+    ``TypeError``). One thread at a time: a runtime is the state of one control loop, so two
+    threads stepping it at once would mix two loops' samples in one history and one error
+    integral, and a lock would only hide that. A call that enters while another thread is
+    inside (:meth:`reset`, :meth:`step`, :meth:`select`, :meth:`record_applied`,
+    :meth:`set_actuator_limits`) raises ``RuntimeError`` and changes nothing.
+
     Parameters
     ----------
     policy : Policy
@@ -86,9 +94,6 @@ class PolicyRuntime:
     backend : {"torch", "torchscript", "onnx"}
     input_limit : float
         ``L`` above, a positive number: how many training RMS a signal may reach.
-    specialise : bool
-        Step one plant alone through its own path (module docstring); False: the general
-        path, as for a batch of one (e.g. to compare the two).
     """
 
     def __init__(
@@ -97,7 +102,6 @@ class PolicyRuntime:
         meta: dict[str, Any],
         backend: str = "torch",
         input_limit: float = INPUT_LIMIT,
-        specialise: bool = True,
     ) -> None:
         if not 0.0 < float(input_limit) < np.inf:
             raise ValueError(f"input_limit must be a positive number; got {input_limit!r}")
@@ -109,20 +113,14 @@ class PolicyRuntime:
         self.dt = float(meta["dt"])
         self.integral = "integral" in policy.channels
         self.controls = "previous_control" in policy.channels
-        self.outputs: dict[str, np.ndarray] = {
-            str(k): np.asarray(v, dtype=np.float64) for k, v in meta.get("outputs", {}).items()
-        }
-        #: per plant, the sign of d u / d z of the expert the policy imitates (``-Ki``)
-        self.directions: dict[str, float] = {
-            str(k): float(v) for k, v in meta.get("integral_directions", {}).items()
-        }
-        self._unknown: set[str] = set()  # plants neither the meta nor the catalogue knows
+        self._facts = IntegralFacts(meta)
         self.limits: Perturbation | None = None
-        self.backend, self.specialise = backend, bool(specialise)
+        self.backend = backend
         self._backend = _backend(policy, backend)
-        self._run = self._backend  # (tests replace it to corrupt the network's output)
-        self._net1: Any = None  # the backend's own batch-1 run of the plant, if it has one
-        self._one: OnePlant | None = None
+        self._run: Any = self._backend  # (tests replace it to corrupt the network's output)
+        self._plant_run: Any = None  # the backend's batch-1 run of one plant reset by name
+        self._one: OnePlantStep | None = None
+        self._busy = threading.Lock()
         self._systems: list[str] = []
         self._single = True
         self.plan = np.zeros((0, self.horizon), np.float32)
@@ -140,28 +138,52 @@ class PolicyRuntime:
         """Plants known to the policy."""
         return sorted(self.tags)
 
-    def reset(self, system: str | Sequence[str]) -> None:
-        """Start a new run on ``system`` (a name) or a batch of runs (a list of names)."""
+    def _plants(self, system: Any) -> tuple[list[str], bool]:
+        """The plants ``reset(system)`` starts, ``(names, single)``: the one place that reads it.
+
+        ``system``: a plant's name (one plant stepped alone, unpadded states) or a list of
+        names (a batch, zero-padded states); anything else is refused naming the known plants.
+        """
         single = isinstance(system, str)
-        names = [str(system)] if single else [str(s) for s in system]
-        if not names:
-            raise ValueError("reset needs at least one plant name")
+        items = [system] if single else system
+        if not isinstance(items, list | tuple | np.ndarray) or not all(
+            isinstance(s, str) for s in items
+        ):
+            raise TypeError(
+                f"reset takes a plant's name or a list of names, e.g. reset('cstr') or "
+                f"reset(['cstr', 'cstr']); got {system!r:.80} ({type(system).__name__}). "
+                f"This policy knows: {', '.join(self.systems)}"
+            )
+        if not len(items):
+            raise ValueError(
+                f"reset needs at least one plant name; known: {', '.join(self.systems)}"
+            )
+        names = [str(s) for s in items]
         for name in names:
             if name not in self.tags:
                 raise KeyError(
                     f"unknown plant '{name}' for this policy; it was trained on: "
                     f"{', '.join(self.systems)}"
                 )
-        direction = None
-        if self.limits is not None and self.integral:
-            self._from_catalogue(names)
-            unknown = sorted(set(names) - set(self.directions))
-            if unknown:
-                raise ValueError(
-                    f"anti-windup needs the direction of each plant's integral action; none "
-                    f"for {', '.join(unknown)} (not in the policy's meta nor the catalogue)"
-                )
-            direction = np.array([self.directions[n] for n in names])
+        return names, single
+
+    @_one_thread
+    def reset(self, system: str | Sequence[str]) -> None:
+        """Start a new run on ``system`` (a name) or a batch of runs (a list of names).
+
+        Raises
+        ------
+        TypeError
+            If ``system`` is not a name or a list of names (e.g. None, a number).
+        KeyError
+            If a name is not one of the policy's plants (:attr:`systems`).
+        ValueError
+            If the list is empty, or actuator limits are known and a plant's integral
+            direction is not.
+        """
+        names, single = self._plants(system)
+        limited = self.limits is not None and self.integral
+        direction = self._facts.directions_of(names) if limited else None
         self._single, self._systems, self._direction = single, names, direction
         self._tag = np.array([self.tags[s] for s in names], dtype=np.int64)
         self._order = np.array([self.orders[s] for s in names], dtype=np.int64)
@@ -171,12 +193,11 @@ class PolicyRuntime:
         self._u_prev = np.zeros(len(names))
         self._C: np.ndarray | None = None
         self._set_limits()
-        # one plant by name only: a batch (of one too, as evaluation's) keeps the batch session
-        single_run = getattr(self._backend, "single", None) if self.specialise else None
-        self._net1 = None if single_run is None or not single else single_run(
-            int(self._tag[0]), self._buffer.mask
-        )  # fmt: skip
-        self._one = OnePlant(self) if single and self.specialise else None
+        # one plant by name only: a batch (of one too, as evaluation's) keeps the batch run
+        self._plant_run = (
+            self._backend.plant(int(self._tag[0]), self._buffer.mask) if single else None
+        )
+        self._one = OnePlantStep(self) if single else None
 
     def _set_limits(self) -> None:
         """Per row, the largest magnitude of each input and control (the class docstring)."""
@@ -189,6 +210,7 @@ class PolicyRuntime:
         self._lim["reference"] = self._lim["output"] = L * sr  # y is measured in r's units
         self._lim["network output"] = L * su[:, None]
 
+    @_one_thread
     def select(self, rows: Sequence[int] | np.ndarray) -> None:
         """Go on with only ``rows`` of the batch (in that order), their histories kept.
 
@@ -209,7 +231,7 @@ class PolicyRuntime:
         self.plan = self.plan[idx] if len(self.plan) else self.plan
         self._single = self._single and idx.size == 1
         self._set_limits()
-        self._one = OnePlant(self) if self._single and self.specialise else None
+        self._one = OnePlantStep(self) if self._single else None
 
     def _screen(self, kind: str, values: np.ndarray, limit: np.ndarray) -> None:
         """Refuse the step unless every ``|value| <= limit`` (NaN and inf never are)."""
@@ -234,12 +256,7 @@ class PolicyRuntime:
         b = self._buffer
         return b.state, b.mask, b.ref, self._tag
 
-    def run_window(
-        self, state: np.ndarray, mask: np.ndarray, ref: np.ndarray, tag: np.ndarray
-    ) -> np.ndarray:
-        """The backend's controls (B, horizon) for raw windows (no history bookkeeping)."""
-        return self._run(state, mask, ref, tag)
-
+    @_one_thread
     def set_actuator_limits(
         self, u_limit: float | None = None, rate_limit: float | None = None
     ) -> None:
@@ -262,39 +279,18 @@ class PolicyRuntime:
         else:
             self.limits = Perturbation(u_limit=u_limit, rate_limit=rate_limit)
 
-    def _from_catalogue(self, names: Sequence[str]) -> None:
-        """Output rows and integral directions the policy's meta lacks, from the catalogue."""
-        known = set(self.outputs) & set(self.directions)
-        missing = sorted(set(names) - known - self._unknown)
-        if missing:
-            facts = integral_facts(missing)
-            for k, v in facts["outputs"].items():
-                self.outputs.setdefault(k, np.asarray(v, dtype=np.float64))
-            for k, v in facts["integral_directions"].items():
-                self.directions.setdefault(k, v)
-            self._unknown.update(set(missing) - set(facts["outputs"]))
-
     def _output_rows(self) -> np.ndarray:
         """``C`` (B, MAX_ORDER) of the current rows, built when ``y`` is first left out."""
-        self._from_catalogue(self._systems)
-        missing = sorted({s for s in self._systems if s not in self.outputs})
-        if missing:
-            raise ValueError(
-                f"this policy integrates the tracking error but has no output map for "
-                f"{', '.join(missing)}: pass the measured output, step(x, r, y)"
-            )
-        C = np.zeros((len(self._systems), MAX_ORDER))
-        for i, name in enumerate(self._systems):
-            C[i, : len(self.outputs[name])] = self.outputs[name]
-        return C
+        if self._C is None:
+            self._C = self._facts.output_rows(self._systems)
+        return self._C
 
     def _output(self, y: Any, x: np.ndarray) -> np.ndarray:
         if y is None:
-            if self._C is None:
-                self._C = self._output_rows()
-            if self._single:  # as OnePlant sums it
-                return np.array([output_of(self._C[0].tolist(), x[0].tolist())])
-            return np.einsum("bi,bi->b", self._C, x)  # float64: C is
+            C = self._output_rows()
+            if self._single:  # as OnePlantStep sums it
+                return np.array([output_of(C[0].tolist(), x[0].tolist())])
+            return np.einsum("bi,bi->b", C, x)  # float64: C is
         y = real_array(y, "measured output y").reshape(-1)
         if y.shape != (len(self._systems),):
             raise ValueError(f"output has shape {y.shape}; expected ({len(self._systems)},)")
@@ -343,10 +339,16 @@ class PolicyRuntime:
         TypeError
             If an input is complex.
         """
-        if self._one is not None:  # one plant: the same step on Python numbers
-            fast = self._one.step(x, r, y)
-            if fast is not None:
-                return fast
+        if not self._busy.acquire(blocking=False):  # as _one_thread, inline: per sample
+            raise _busy_error("step")
+        try:  # one plant: the same step on Python numbers, if nothing is unusual
+            fast = None if self._one is None else self._one.step(x, r, y)
+            return self._step(x, r, y) if fast is None else fast
+        finally:
+            self._busy.release()
+
+    def _step(self, x: Any, r: Any, y: Any) -> float | np.ndarray:
+        """:meth:`step`'s general path."""
         x, r = self._check(x, r)
         if self.integral:
             y = self._output(y, x)  # checked before anything changes
@@ -368,10 +370,11 @@ class PolicyRuntime:
 
     def _network(self, state: np.ndarray, ref: np.ndarray) -> np.ndarray:
         """The backend's controls for the staged window (its batch-1 run for one plant)."""
-        if self._net1 is not None and self._run is self._backend:
-            return self._net1(state, ref)
+        if self._plant_run is not None and self._run is self._backend:
+            return self._plant_run(state, ref)
         return np.asarray(self._run(state, self._buffer.mask, ref, self._tag))
 
+    @_one_thread
     def record_applied(self, u: Any) -> None:
         """Tell the runtime the control the plant received at the last :meth:`step`.
 

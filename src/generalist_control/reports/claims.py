@@ -1,25 +1,14 @@
 """The paper's Section 7, claim by claim, beside our runs: ours, the paper's, and a verdict.
 
-Each :class:`Claim` is one figure or finding of the paper (the final training losses, the
-parameter counts, the Crazyflie and HVAC output MSEs, the gate shares of the M = 5 model,
-and the ratios and orders the text draws from them). :func:`judge_claims` measures it on our
-runs and gives a verdict, by a rule stated in :data:`RULES`:
-
-* ``reproduces``: every seed's figure lies within the tolerance of the paper's;
-* ``does not reproduce``: none does; ``seed-dependent``: some do;
-* ``not comparable``: the figures differ in definition for this recipe (the reason is given),
-  e.g. our default recipe's loss is in per-plant normalised units with per-window scaling;
-* ``no run`` / ``no score``: the configuration has no run, or its run has no such figure
-  (a diverged closed loop has no MSE; a plant the model was not trained on has no gate).
-
-Tolerances (``report.claims``): a factor (default 2) for losses, MSEs and their ratios; a
-relative difference (1 %) for parameter counts; percentage points (10) for gate shares.
-A ratio pairs the runs of one seed; an order holds for a run (seed) of its first
-configuration when that run is below every run of the others.
+Each :class:`Claim` is one figure or finding of the paper; :func:`judge_claims` measures it
+on every seed's run and gives a verdict by the rule in :data:`RULES` (``reproduces``, ``does
+not reproduce``, ``seed-dependent``, ``not comparable``, ``no run``, ``no score``;
+docs/pipeline.md explains them).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -27,11 +16,11 @@ from typing import Any
 
 import pandas as pd
 
+from generalist_control.reports.report_settings import Tolerance
 from generalist_control.reports.runs import RunPoint
 
 __all__ = [
     "CLAIMS",
-    "DEFAULT_TOLERANCE",
     "NOT_COMPARABLE",
     "RULES",
     "Claim",
@@ -44,9 +33,6 @@ Config = tuple[int, int]
 Runs = Mapping[Config, Sequence[RunPoint]]
 REPRODUCES, FAILS, SEEDS = "reproduces", "does not reproduce", "seed-dependent"
 NOT_COMPARABLE, NO_RUN, NO_SCORE = "not comparable", "no run", "no score"
-
-#: Default tolerances (``report.claims`` overrides them).
-DEFAULT_TOLERANCE = {"factor": 2.0, "count_relative": 0.01, "share_points": 0.10}
 
 #: The rule of each kind of claim, as the report states it.
 RULES = {
@@ -178,15 +164,15 @@ def _verdict(passed: Sequence[bool]) -> str:
     return FAILS if not any(passed) else SEEDS
 
 
-def _within(claim: Claim, value: float, tol: Mapping[str, float]) -> bool:
+def _within(claim: Claim, value: float, tol: Tolerance) -> bool:
     paper = float(claim.paper)
     if not math.isfinite(value) or value <= 0:
         return False
     if claim.kind == "count":
-        return abs(value - paper) <= tol["count_relative"] * paper
+        return abs(value - paper) <= tol.count_relative * paper
     if claim.kind == "share":
-        return abs(value - paper) <= tol["share_points"]
-    return paper / tol["factor"] <= value <= paper * tol["factor"]
+        return abs(value - paper) <= tol.share_points
+    return paper / tol.factor <= value <= paper * tol.factor
 
 
 def _figure(kind: str, plant: str | None, p: RunPoint) -> float | None:
@@ -224,7 +210,7 @@ def _absent(claim: Claim, by_config: Runs) -> str | None:
     return ", ".join(f"d={d}, M={m}" for d, m in absent) or None
 
 
-def _judge_values(claim: Claim, by_config: Runs, tol: Mapping[str, float]) -> tuple[str, str]:
+def _judge_values(claim: Claim, by_config: Runs, tol: Tolerance) -> tuple[str, str]:
     values = _values(claim, by_config)
     ours = ", ".join(f"{NO_SCORE if v is None else _fmt(v)} ({s})" for s, v in values)
     if any(v is None for _, v in values):
@@ -253,16 +239,14 @@ def _dominant(gates: pd.DataFrame, plant: str) -> tuple[str, float] | None:
     return str(row.idxmax()).replace("expert_", "expert "), float(row.max())
 
 
-def _judge_gates(
-    claim: Claim, gates: pd.DataFrame | None, tol: Mapping[str, float]
-) -> tuple[str, str]:
+def _judge_gates(claim: Claim, gates: pd.DataFrame | None, tol: Tolerance) -> tuple[str, str]:
     if gates is None:
         return NO_RUN, "no M=5 model"
     if claim.kind == "share":
         dom = _dominant(gates, str(claim.plant))
         if dom is None:
             return NO_SCORE, "not trained on it"
-        ok = abs(dom[1] - float(claim.paper)) <= tol["share_points"]
+        ok = abs(dom[1] - float(claim.paper)) <= tol.share_points
         return (REPRODUCES if ok else FAILS), f"{dom[0]}: {dom[1]:.0%}"
     pairs = (("cstr", "damped_oscillator"), ("boeing747", "crazyflie_altitude"))
     doms = [[_dominant(gates, p) for p in pair] for pair in pairs]
@@ -275,7 +259,7 @@ def _judge_gates(
 
 
 def _judge(
-    claim: Claim, by_config: Runs, gates: pd.DataFrame | None, tol: Mapping[str, float]
+    claim: Claim, by_config: Runs, gates: pd.DataFrame | None, tol: Tolerance
 ) -> tuple[str, str]:
     """A claim's verdict and our figures, before comparability is considered."""
     if claim.kind in ("share", "pattern"):
@@ -291,8 +275,8 @@ def _judge(
 def judge_claims(
     by_config: Runs,
     gates: pd.DataFrame | None,
-    recipe: str = "default",
-    tolerance: Mapping[str, float] | None = None,
+    tolerance: Tolerance,
+    recipe: str,
     claims: Sequence[Claim] = CLAIMS,
 ) -> pd.DataFrame:
     """Every claim beside our figures, with its verdict.
@@ -304,20 +288,19 @@ def judge_claims(
         (:func:`~generalist_control.reports.points.seed_runs`).
     gates : DataFrame or None
         The M = 5 model's mean gate weights (plants x ``expert_<i>``), or None without it.
+    tolerance : Tolerance
+        ``report.claims``.
     recipe : {"default", "paper"}
         The runs' recipe: some figures are comparable only for the paper's.
-    tolerance : mapping, optional
-        Overrides of :data:`DEFAULT_TOLERANCE`.
 
     Returns
     -------
     DataFrame
         Columns ``claim, key, paper, ours, rule, verdict, note``, one row per claim.
     """
-    tol = {**DEFAULT_TOLERANCE, **(tolerance or {})}
     rows = []
     for claim in claims:
-        verdict, ours = _judge(claim, by_config, gates, tol)
+        verdict, ours = _judge(claim, by_config, gates, tolerance)
         note = claim.note
         if recipe != "paper" and claim.default_reason and verdict not in (NO_RUN, NO_SCORE):
             verdict, note = NOT_COMPARABLE, claim.default_reason
@@ -325,7 +308,9 @@ def judge_claims(
             paper = f"{float(claim.paper):.0%}"
         else:
             paper = claim.paper if isinstance(claim.paper, str) else _fmt(claim.paper)
-        rule = RULES[claim.kind].format(**tol, share_pp=100 * tol["share_points"])
+        rule = RULES[claim.kind].format(
+            share_pp=100 * tolerance.share_points, **dataclasses.asdict(tolerance)
+        )
         rows.append((claim.text, claim.key, paper, ours, rule, verdict, note))
     cols = ["claim", "key", "paper", "ours", "rule", "verdict", "note"]
     return pd.DataFrame(rows, columns=cols)

@@ -1,25 +1,15 @@
 """The ablation points' evaluations: verdicts, per-scenario scores, what separates the points.
 
-Each point of the DVC ablation is evaluated on every scenario after its training
-(``python -m generalist_control.evaluate policy=<its policy> paths.reports_dir=<folder>``).
-:func:`load_evaluations` reads such folders (``summary.json``, and ``metrics.csv`` where
-present) and keys them by the MLflow run that trained the policy, which ``summary.json``
-records (``policy.mlflow_run_id``), so the report matches them to its runs whatever the
-folders are called. From them:
-
-* :func:`bar_of`: a point's quality-bar verdicts;
-* :func:`scenario_scores`: per run, scenario and plant, GC's mean ISE (step scenarios) or
-  tracking RMSE (the others) over LQI's, from ``metrics.csv``;
-* :func:`scenario_worst`: per run and scenario, the worst plant's ratio and GC's diverged
-  runs, from ``summary.json``;
-* :func:`separating`: the scenarios in which the points do not all fare alike.
+Each point of the DVC ablation is evaluated on every scenario after its training; the report
+reads those folders (``summary.json``, ``metrics.csv``) and matches each to the run that
+trained its policy (:func:`match`), whatever the folders are called.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,12 +17,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from generalist_control.evaluation.summary import DEFAULT_BAR
+from generalist_control.reports.runs import RunPoint
 
 __all__ = [
     "Evaluation",
     "bar_of",
     "load_evaluations",
+    "match",
     "scenario_scores",
     "scenario_worst",
     "separating",
@@ -50,25 +41,39 @@ class Evaluation:
     metrics: pd.DataFrame | None
 
 
-def load_evaluations(directory: str | Path | None) -> dict[str, Evaluation]:
-    """The evaluations under ``directory`` (``*/summary.json``), by their policy's run id.
+def load_evaluations(directory: str | Path | None) -> list[Evaluation]:
+    """The evaluations under ``directory`` (``*/summary.json``), oldest first.
 
-    A folder whose summary names no MLflow run is skipped with a warning; of two folders
-    of one run, the one written last counts. A missing or empty directory gives ``{}``.
+    A missing directory (or None) gives none.
     """
-    out: dict[str, Evaluation] = {}
     if directory is None or not Path(directory).is_dir():
-        return out
-    found = sorted(Path(directory).glob("*/summary.json"), key=lambda f: f.stat().st_mtime)
-    for file in found:
-        summary = json.loads(file.read_text())
-        run_id = (summary.get("policy") or {}).get("mlflow_run_id")
-        if not run_id:
-            log.warning("%s names no MLflow run (policy.mlflow_run_id): left out", file)
-            continue
+        return []
+    out = []
+    for file in sorted(Path(directory).glob("*/summary.json"), key=lambda f: f.stat().st_mtime):
         csv = file.with_name("metrics.csv")
         metrics = pd.read_csv(csv) if csv.is_file() else None
-        out[str(run_id)] = Evaluation(file.parent, summary, metrics)
+        out.append(Evaluation(file.parent, json.loads(file.read_text()), metrics))
+    return out
+
+
+def match(evaluations: Sequence[Evaluation], runs: Sequence[RunPoint]) -> dict[str, Evaluation]:
+    """Each run's evaluation, by run id (the newest of several).
+
+    An evaluation is a run's when it names the run (``policy.mlflow_run_id``) or, naming
+    none, evaluated the policy the run published (``policy.source`` in ``paths.models_dir``).
+    """
+    out: dict[str, Evaluation] = {}
+    for ev in evaluations:  # oldest first: the newest wins
+        policy = ev.summary.get("policy") or {}
+        folder = str(Path(str(policy.get("source") or "")).parent)
+        for p in runs:
+            if policy.get("mlflow_run_id") == p.run_id or (
+                not policy.get("mlflow_run_id") and folder == p.params.get("paths.models_dir")
+            ):
+                out[p.run_id] = ev
+    for p in runs:
+        if p.run_id not in out and evaluations:
+            log.warning("no evaluation of run %s (%s) found", p.run_name, p.run_id)
     return out
 
 
@@ -170,13 +175,13 @@ def scenario_worst(
     return pd.DataFrame(rows, columns=cols)
 
 
-def separating(worst: pd.DataFrame, bar: Mapping[str, Any] | None = None) -> dict[str, str]:
+def separating(worst: pd.DataFrame, bar: Mapping[str, Any]) -> dict[str, str]:
     """The scenarios that separate the runs, each with the reason.
 
     A scenario separates them when GC diverges in it for some runs and not for others, or
     when its worst ratio is within the quality bar's limit for some runs and beyond it for
-    others (``ISE_ratio``, 1.05, for step scenarios; ``RMSE_ratio``, 1.1, for tracking ones,
-    on every scenario, not only those the bar judges). Runs without the scenario are left
+    others (``bar``'s ``ISE_ratio`` for step scenarios, ``RMSE_ratio`` for tracking ones, on
+    every scenario, not only those the bar judges). Runs without the scenario are left
     out of its judgement.
 
     Returns
@@ -185,7 +190,6 @@ def separating(worst: pd.DataFrame, bar: Mapping[str, Any] | None = None) -> dic
         Scenario -> reason, e.g. ``"GC diverges for d16-M3-s42 only"``, in the order the
         scenarios first appear.
     """
-    limits = {**DEFAULT_BAR, **(bar or {})}
     out: dict[str, str] = {}
     for scen, part in worst.groupby("scenario", sort=False):
         if len(part) < 2:
@@ -195,7 +199,7 @@ def separating(worst: pd.DataFrame, bar: Mapping[str, Any] | None = None) -> dic
         if div.any() and not div.all():
             out[str(scen)] = "GC diverges for " + ", ".join(np.array(runs)[div.to_numpy()])
             continue
-        limit = float(limits["ISE_ratio" if part["kind"].iloc[0] == "step" else "RMSE_ratio"])
+        limit = float(bar["ISE_ratio" if part["kind"].iloc[0] == "step" else "RMSE_ratio"])
         within = part["worst_ratio"] <= limit
         if within.any() and not within.all():
             beyond = ", ".join(np.array(runs)[~within.to_numpy()])

@@ -1,31 +1,48 @@
-"""Axes-level drawing of the ablation figures, shared by the report and the notebooks."""
+"""The ablation's figures, drawn from its tables (``runs.csv``, ``points.csv``, gate weights).
+
+One drawing path: the report draws them into its folder from the tables it has just written,
+and ``make results`` draws the same from the committed tables into ``docs/figures/``. A PNG
+records the SHA-256 of its inputs and of this module, so an unchanged figure is not redrawn
+(another matplotlib version would give other bytes).
+"""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import hashlib
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from matplotlib.patches import Patch
-from matplotlib.ticker import MaxNLocator
+from matplotlib.ticker import NullFormatter
+from PIL import Image
 
 from generalist_control.evaluation.paper import ABLATION
-from generalist_control.reports.runs import NO_RUN, NOT_AVAILABLE, SWEEPS, point_label
+from generalist_control.reports.runs import NOT_AVAILABLE, SWEEPS
 
 __all__ = [
+    "INPUTS",
+    "AblationTables",
+    "draw_figures",
     "draw_gate_heatmap",
-    "draw_loss_curves",
+    "draw_losses",
     "draw_mse_bars",
     "draw_params_vs_mse",
+    "figure_key",
+    "figure_names",
     "fmt_value",
-    "new_figure",
-    "placeholder",
+    "read_tables",
 ]
 
-# --- drawing (Axes-level, reused by the notebooks) ---------------------------------------
+#: The tables a figure is drawn from, in a report's folder (gate_weights.csv is optional).
+INPUTS = ("runs.csv", "points.csv", "gate_weights.csv")
+DPI = 80
+_KEY = "Description"  # the PNG text field that holds the inputs' digest
 
 
 def fmt_value(v: float | None) -> str:
@@ -37,178 +54,211 @@ def fmt_value(v: float | None) -> str:
     return f"{v:.3g}" if abs(v) < 1e4 else f"{v:,.0f}"
 
 
-def draw_mse_bars(ax: Axes, mse: pd.DataFrame, sweep: str) -> Axes:
-    """Grouped bars of per-plant output MSE, one bar per sweep value, log y.
+@dataclass(frozen=True)
+class AblationTables:
+    """A report's tables: the run drawn per sweep point, every run's figures, the gates.
 
-    Colours follow the position of the value in the sweep (as in :func:`draw_loss_curves`).
-    A value without a run is listed in the legend as "no run"; a run without a score for a
-    plant shows "no score" at that bar's place.
+    ``runs``: ``runs.csv`` (sweep, value, label, status, run_id, hidden, experts, ...);
+    ``points``: ``points.csv`` (run_id, d, M, seed, n_parameters, final_train_loss,
+    mse_mean, mse/<plant>, ...); ``gates``: ``gate_weights.csv`` (plants x expert_<i>) or
+    None; ``key``: the digest of the files they were read from ("" in memory).
     """
-    df = mse[mse["sweep"] == sweep]
-    plants = list(dict.fromkeys(df["plant"]))
-    values = list(dict.fromkeys(df["value"]))
-    width = 0.8 / max(1, len(values))
+
+    runs: pd.DataFrame
+    points: pd.DataFrame
+    gates: pd.DataFrame | None = None
+    key: str = ""
+
+    @property
+    def plants(self) -> list[str]:
+        """The plants of the MSE figures, in the columns' order."""
+        return [c[4:] for c in self.points.columns if c.startswith("mse/")]
+
+    def drawn(self, sweep: str | None = None) -> pd.DataFrame:
+        """The rows of ``runs`` with a run (of one sweep, or of both)."""
+        ok = self.runs["status"] == "ok"
+        return self.runs[ok if sweep is None else ok & (self.runs["sweep"] == sweep)]
+
+    def run(self, run_id: str) -> pd.Series:
+        """The row of ``points`` of a run."""
+        return self.points[self.points["run_id"] == run_id].iloc[0]
+
+
+def read_tables(folder: str | Path) -> AblationTables:
+    """The tables of a report's folder, with the digest of their bytes and of this module."""
+    folder = Path(folder)
+    digest = hashlib.sha256(Path(__file__).read_bytes())
+    for name in INPUTS:
+        path = folder / name
+        digest.update(name.encode() + b"\0" + (path.read_bytes() if path.is_file() else b""))
+    gates_csv = folder / "gate_weights.csv"
+    gates = pd.read_csv(gates_csv, index_col=0) if gates_csv.is_file() else None
+    return AblationTables(
+        pd.read_csv(folder / "runs.csv"),
+        pd.read_csv(folder / "points.csv"),
+        gates if gates is not None and len(gates) else None,
+        f"sha256:{digest.hexdigest()}",
+    )
+
+
+def draw_mse_bars(ax: Axes, t: AblationTables, sweep: str) -> Axes:
+    """Grouped bars of per-plant output MSE, one bar per point of the sweep, log y.
+
+    A run without a score for a plant (its loop diverged) shows "no score" at that bar.
+    """
+    plants = t.plants
+    drawn = t.drawn(sweep)
+    width = 0.8 / max(1, len(drawn))
     x = np.arange(len(plants))
-    handles = []
-    for i, value in enumerate(values):
-        part = df[df["value"] == value].set_index("plant").reindex(plants)
+    for i, row in enumerate(drawn.itertuples()):
+        heights = t.run(row.run_id)[[f"mse/{p}" for p in plants]].to_numpy(dtype=float)
         pos = x - 0.4 + width * (i + 0.5)
-        label = point_label(sweep, value)
-        if (part["status"] == NO_RUN).all():
-            handles.append(
-                Patch(facecolor="none", edgecolor=f"C{i}", hatch="//", label=f"{label} ({NO_RUN})")
-            )
-            continue
-        handles.append(Patch(facecolor=f"C{i}", label=label))
-        heights = part["mse"].to_numpy(dtype=float)
         ok = np.isfinite(heights) & (heights > 0)
-        ax.bar(pos[ok], heights[ok], width, color=f"C{i}")
+        ax.bar(pos[ok], heights[ok], width, color=f"C{i}", label=str(row.label))
         for px in pos[~ok]:
-            ax.text(
-                px,
-                0.02,
-                NOT_AVAILABLE,
-                ha="center",
-                va="bottom",
-                fontsize=7,
-                rotation=90,
-                color=f"C{i}",
-                transform=ax.get_xaxis_transform(),
-            )
-    if (df["mse"] > 0).any():
-        ax.set_yscale("log")
-    ax.set_xticks(x, [p.replace("_", "\n") for p in plants], fontsize=8)
-    ax.set_ylabel("output MSE, GC vs LQI (unit step)")
-    ax.set_title(f"Closed-loop output MSE by {SWEEPS[sweep]}")
-    ax.legend(handles=handles, fontsize=8)
+            ax.text(px, 0.02, NOT_AVAILABLE, ha="center", va="bottom", fontsize=6,
+                    rotation=90, color=f"C{i}", transform=ax.get_xaxis_transform())  # fmt: skip
+    ax.set_yscale("log")
+    ax.set_xticks(x, [p.replace("_", "\n") for p in plants], fontsize=6)
+    ax.set_ylabel("output MSE, GC vs LQI", fontsize=8)
+    ax.set_title(f"Closed-loop output MSE by {SWEEPS[sweep]}", fontsize=9)
+    ax.legend(fontsize=7)
     ax.grid(axis="y", which="both", alpha=0.3)
     return ax
 
 
-def _paper_key(sweep: str, value: int, baseline: Mapping[str, int]) -> str:
-    if sweep == "hidden":
-        return f"d={value},M={baseline['experts']}"
-    return f"d={baseline['hidden']},M={value}"
+def draw_losses(ax: Axes, t: AblationTables, sweep: str) -> Axes:
+    """Final training loss of every run (each seed a line) at each point of the sweep.
 
-
-def draw_loss_curves(
-    ax: Axes,
-    loss: pd.DataFrame,
-    sweep: str,
-    values: Sequence[int] | None = None,
-    paper: bool = True,
-    baseline: Mapping[str, int] | None = None,
-) -> Axes:
-    """Training-loss curves (log y) of a sweep; the paper's final losses as dotted lines.
-
-    Parameters
-    ----------
-    ax : Axes
-    loss : DataFrame
-        From :func:`loss_frame`.
-    sweep : {"hidden", "experts"}
-    values : sequence of int, optional
-        The sweep's values, which fix the colours (default: the values in ``loss``); the
-        paper's final loss is drawn for each, whether or not it has a run.
-    paper : bool
-        Draw the paper's final training losses.
-    baseline : mapping, optional
-        ``hidden`` and ``experts`` of the baseline (default 32 and 3).
+    The paper's final losses are the black crosses.
     """
-    base = {"hidden": 32, "experts": 3, **(baseline or {})}
-    df = loss[loss["sweep"] == sweep]
-    values = list(values) if values is not None else sorted(set(df["value"]))
-    for i, value in enumerate(values):
-        part = df[df["value"] == value]
-        label = point_label(sweep, value) + ("" if len(part) else f" ({NO_RUN})")
-        ax.plot(part["epoch"], part["train_loss"], color=f"C{i}", label=label, marker=".")
-        ref = ABLATION["final_train_loss"].get(_paper_key(sweep, value, base))
-        if paper and ref is not None:
-            ax.axhline(ref, color=f"C{i}", ls=":", lw=1)
-    if paper:
-        ax.plot([], [], color="grey", ls=":", label="paper, final")
+    drawn = t.drawn(sweep)
+    configs = list(zip(drawn["hidden"].astype(int), drawn["experts"].astype(int), strict=True))
+    x = np.arange(len(configs))
+    seeds = t.points["seed"]
+    for i, seed in enumerate(sorted(seeds.dropna().unique())):
+        runs = t.points[seeds == seed].set_index(["d", "M"])["final_train_loss"]
+        ax.plot(x, [runs.get(c, np.nan) for c in configs], "o-", color=f"C{i}",
+                label=f"seed {seed:g}")  # fmt: skip
+    paper = [ABLATION["final_train_loss"].get(f"d={d},M={m}", np.nan) for d, m in configs]
+    ax.plot(x, paper, "kx:", label="paper")
     ax.set_yscale("log")
-    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("train/loss")
-    ax.set_title(f"Training loss by {SWEEPS[sweep]}")
-    ax.legend(fontsize=8)
+    ax.set_xticks(x, [str(v) for v in drawn["label"]], fontsize=8)
+    ax.set_ylabel("final train/loss", fontsize=8)
+    ax.set_title(f"Final training loss by {SWEEPS[sweep]}", fontsize=9)
+    ax.legend(fontsize=7)
     ax.grid(which="both", alpha=0.3)
     return ax
 
 
-def draw_params_vs_mse(ax: Axes, params: pd.DataFrame) -> Axes:
-    """Parameter count against mean output MSE, one labelled point per run.
+def draw_params_vs_mse(ax: Axes, t: AblationTables) -> Axes:
+    """Parameter count against mean output MSE, one labelled point per run drawn.
 
-    A mean over fewer plants than the others (a plant without a score) is labelled with
-    the count, e.g. ``d=32,M=1 (1/2 plants)``. The paper's parameter counts are dotted.
+    A mean over fewer plants than the others is labelled with the count, ``(1/2 plants)``.
+    The paper's parameter counts are dotted.
     """
-    df = params.dropna(subset=["n_parameters"])
-    ax.scatter(df["n_parameters"], df["mse_mean"], zorder=3)
-    most = int(df["n_plants"].max()) if len(df) else 0
-    for _, row in df.iterrows():
-        if np.isfinite(row["mse_mean"]):
-            text = row["label"]
-            if row["n_plants"] < most:
-                text += f" ({row['n_plants']}/{most} plants)"
-            ax.annotate(
-                text,
-                (row["n_parameters"], row["mse_mean"]),
-                fontsize=8,
-                xytext=(4, 4),
-                textcoords="offset points",
-            )
+    rows = [t.run(r) for r in dict.fromkeys(t.drawn()["run_id"])]
+    counts = [
+        int(np.isfinite(r[[f"mse/{p}" for p in t.plants]].to_numpy(float)).sum()) for r in rows
+    ]
+    most = max(counts, default=0)
+    for row, n in zip(rows, counts, strict=True):
+        text = f"d={row['d']},M={row['M']}" + (f" ({n}/{most} plants)" if n < most else "")
+        ax.scatter(row["n_parameters"], row["mse_mean"], color="C0", zorder=3)
+        ax.annotate(text, (row["n_parameters"], row["mse_mean"]), fontsize=7, xytext=(3, 3),
+                    textcoords="offset points")  # fmt: skip
     for key, n in ABLATION["parameters"].items():
         ax.axvline(n, color="grey", ls=":", lw=1)
-        ax.text(
-            n,
-            0.98,
-            f" paper {key}: {n:,}",
-            rotation=90,
-            va="top",
-            fontsize=7,
-            color="grey",
-            transform=ax.get_xaxis_transform(),
-        )
+        ax.text(n, 0.98, f" paper {key}", rotation=90, va="top", fontsize=6, color="grey",
+                transform=ax.get_xaxis_transform())  # fmt: skip
     ax.set_xscale("log")
-    if (df["mse_mean"] > 0).any():
-        ax.set_yscale("log")
-    ax.set_xlabel("parameters")
-    ax.set_ylabel("mean output MSE")
-    ax.set_title("Complexity against performance")
+    ax.set_yscale("log")
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set_xlabel("parameters", fontsize=8)
+    ax.set_ylabel("mean output MSE", fontsize=8)
+    ax.set_title("Complexity against performance", fontsize=9)
     ax.grid(which="both", alpha=0.3)
     return ax
 
 
 def draw_gate_heatmap(ax: Axes, gates: pd.DataFrame) -> Axes:
     """Mean gate weight per plant (rows) and expert (columns), annotated in percent."""
-    im = ax.imshow(gates.to_numpy(), vmin=0.0, vmax=1.0, cmap="viridis", aspect="auto")
-    for (i, j), v in np.ndenumerate(gates.to_numpy()):
-        ax.text(
-            j,
-            i,
-            f"{100 * v:.0f}%",
-            ha="center",
-            va="center",
-            fontsize=7,
-            color="white" if v < 0.6 else "black",
-        )
-    ax.set_xticks(range(gates.shape[1]), [c.replace("expert_", "E") for c in gates.columns])
-    ax.set_yticks(range(gates.shape[0]), list(gates.index), fontsize=7)
-    ax.set_xlabel("expert")
-    ax.set_title("Mean gate weight")
-    ax.figure.colorbar(im, ax=ax, fraction=0.046)
+    values = gates.to_numpy(dtype=float)
+    im = ax.imshow(values, vmin=0.0, vmax=1.0, cmap="viridis", aspect="auto")
+    for (i, j), v in np.ndenumerate(values):
+        ax.text(j, i, f"{100 * v:.0f}%", ha="center", va="center", fontsize=6,
+                color="white" if v < 0.6 else "black")  # fmt: skip
+    ax.set_xticks(range(values.shape[1]), [c.replace("expert_", "E") for c in gates.columns])
+    ax.set_yticks(range(values.shape[0]), list(gates.index), fontsize=6)
+    ax.set_title(f"Mean gate weight, M = {values.shape[1]}", fontsize=9)
+    ax.figure.colorbar(im, ax=ax, fraction=0.05)
     return ax
 
 
-def new_figure(width: float, height: float, ncols: int = 1) -> tuple[Figure, list[Axes]]:
-    """A figure (no pyplot state) with ``ncols`` axes in one row."""
+def _figure(width: float, height: float, draw: Callable[[Axes], object]) -> Figure:
     fig = Figure(figsize=(width, height), layout="constrained")
-    FigureCanvasAgg(fig)  # the Agg backend, without touching pyplot's global state
-    return fig, list(np.atleast_1d(fig.subplots(1, ncols)))
+    FigureCanvasAgg(fig)  # the Agg backend, without pyplot's global state
+    draw(fig.subplots())
+    return fig
 
 
-def placeholder(ax: Axes, text: str) -> None:
-    """Write ``text`` in place of a panel that has nothing to draw."""
-    ax.text(0.5, 0.5, text, ha="center", va="center", wrap=True, transform=ax.transAxes)
-    ax.set_axis_off()
+def _gates(t: AblationTables) -> Figure:
+    assert t.gates is not None
+    return _figure(4.2, 1.0 + 0.2 * len(t.gates), lambda ax: draw_gate_heatmap(ax, t.gates))
+
+
+#: Each figure's name and its drawing, in the order the results page shows them.
+FIGURES: dict[str, Callable[[AblationTables], Figure]] = {
+    "mse_hidden": lambda t: _figure(5.2, 3.0, lambda ax: draw_mse_bars(ax, t, "hidden")),
+    "loss_hidden": lambda t: _figure(4.0, 3.0, lambda ax: draw_losses(ax, t, "hidden")),
+    "mse_experts": lambda t: _figure(5.2, 3.0, lambda ax: draw_mse_bars(ax, t, "experts")),
+    "loss_experts": lambda t: _figure(4.0, 3.0, lambda ax: draw_losses(ax, t, "experts")),
+    "params_vs_mse": lambda t: _figure(4.6, 3.2, lambda ax: draw_params_vs_mse(ax, t)),
+    "gate_weights": _gates,
+}
+
+
+def figure_names(t: AblationTables) -> list[str]:
+    """The figures that have something to draw (a sweep with a run; a gate model)."""
+    have = {
+        f"{kind}_{sweep}" for sweep in SWEEPS if len(t.drawn(sweep)) for kind in ("mse", "loss")
+    }
+    if len(t.drawn()):
+        have.add("params_vs_mse")
+    if t.gates is not None:
+        have.add("gate_weights")
+    return [name for name in FIGURES if name in have]
+
+
+def figure_key(path: str | Path) -> str | None:
+    """The inputs' digest a PNG was drawn from (None: no such file, or no digest)."""
+    try:
+        with Image.open(path) as im:
+            return getattr(im, "text", {}).get(_KEY)
+    except (OSError, ValueError):
+        return None
+
+
+def draw_figures(
+    src: str | Path, dest: str | Path, names: Sequence[str] | None = None
+) -> list[str]:
+    """Draw the figures of the tables in ``src`` into ``dest/<name>.png``; their names.
+
+    A figure whose PNG already records these inputs is left as it is; each is written
+    through a temporary sibling and a rename.
+    """
+    t = read_tables(src)
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    names = list(names if names is not None else figure_names(t))
+    for name in names:
+        path = dest / f"{name}.png"
+        if figure_key(path) == t.key:
+            continue
+        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+        try:
+            FIGURES[name](t).savefig(tmp, format="png", dpi=DPI, metadata={_KEY: t.key})
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+    return names

@@ -1,10 +1,7 @@
 """Every run behind the ablation's points, each seed apart (``points.csv`` of the report).
 
-The figures draw one run per point (:func:`~generalist_control.reports.runs.select_sweeps`);
-the DVC ablation also trains a second seed of some points, and the claims and the tables
-use every seed. :func:`seed_runs` finds them, :func:`points_frame` tabulates each run's
-figures: parameters, final losses, the closed-loop scores that training logs, and its
-evaluation's quality-bar verdicts (:mod:`generalist_control.reports.evaluations`).
+The figures draw one run per point; the DVC ablation trains a second seed of some points,
+and the claims and the tables use every seed (:func:`seed_runs`, :func:`points_frame`).
 """
 
 from __future__ import annotations
@@ -110,4 +107,7 @@ def points_frame(
                 row["gc_diverged"] = int(sum(diverged.values()))
                 row.update({f"bar/{k}": v for k, v in bar.items()})
             rows.append(row)
-    return pd.DataFrame(rows)
+    cols = ["run", "d", "M", "seed", "run_id", "n_parameters", "final_train_loss",
+            "final_val_loss", "best_val_loss", "mse_mean", *(f"mse/{k}" for k in plants),
+            "closed_loop_diverged"]  # fmt: skip
+    return pd.DataFrame(rows, columns=list(dict.fromkeys([*cols, *(k for r in rows for k in r)])))

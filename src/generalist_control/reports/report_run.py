@@ -9,9 +9,7 @@ from typing import Any
 
 import mlflow
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
 
-from generalist_control.common.configs import as_dict
 from generalist_control.common.secrets import redact
 from generalist_control.reports.runs import RUN_TYPE_TAG
 from generalist_control.tracking import mlflow_utils
@@ -33,17 +31,23 @@ def _metrics(summary: Mapping[str, Any]) -> dict[str, float]:
     return metrics
 
 
-def log_report(cfg: DictConfig, experiment: str, out_dir: Path, summary: Mapping[str, Any]) -> str:
+def log_report(
+    logger: Mapping[str, Any],
+    params: Mapping[str, Any],
+    run_name: str,
+    experiment: str,
+    out_dir: Path,
+    summary: Mapping[str, Any],
+) -> str:
     """Log the report as a run of the experiment of kind ``report``; return its run id.
 
     The run is tagged ``gc.run_type = report`` (the run search leaves it out), with the
     experiment it read (``report.source_experiment``) and, when ``report.allow_mixed`` let
-    differing runs through, with the differences (``report.mixed_params``).
+    differing runs through, with the differences (``report.mixed_params``); ``params`` (the
+    report's settings) are logged flat.
     """
-    rcfg = cfg.report
-    exp_id = mlflow_utils.experiment_id(as_dict(cfg.logger), kind="report")
-    run_name = redact(rcfg.get("run_name") or "ablation-report")
-    with mlflow.start_run(experiment_id=exp_id, run_name=run_name) as active:
+    exp_id = mlflow_utils.experiment_id(logger, kind="report")
+    with mlflow.start_run(experiment_id=exp_id, run_name=redact(run_name)) as active:
         mlflow.set_tags(
             {
                 RUN_TYPE_TAG: "report",
@@ -54,8 +58,7 @@ def log_report(cfg: DictConfig, experiment: str, out_dir: Path, summary: Mapping
                 "report.mixed_params": json.dumps(summary.get("mixed") or {})[:5000],
             }
         )
-        flat = mlflow_utils.flatten_params({"report": OmegaConf.to_container(rcfg, resolve=True)})
-        mlflow.log_params(flat)
+        mlflow.log_params(mlflow_utils.flatten_params(params))
         mlflow.log_dict(dict(summary), "ablation/summary.json")
         mlflow.log_artifacts(str(out_dir), "ablation")
         mlflow.log_metrics(_metrics(summary))

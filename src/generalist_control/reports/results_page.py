@@ -1,20 +1,10 @@
-"""The results page, ``docs/results.md``, generated from the reports the stages write.
+"""The results page, ``docs/results.md``, and its figures, generated from the committed reports.
 
-``make results`` (``python -m generalist_control.reports.results_page``) reads the reports of
-every recipe (:data:`RECIPES`: which files, and the command that writes them) and writes one
-markdown page: a headline table across the recipes, then per recipe its headline table, the
-command, and the date and machine of the measurement, read from a ``provenance`` block of
-the recipe's ``summary.json`` (``date``, ``machine``, ``command``; "not recorded" without
-it). A recipe whose ``summary.json`` is missing gets one line, "not run yet: <command>"; any
-other missing file, one line that says so. The page depends on nothing but the files'
-contents (no clock, no host name), so the same reports give the same bytes, and every table
-is cut at :data:`MAX_ROWS` rows, which keeps the page under :data:`MAX_LINES` lines.
-``--check`` compares instead of writing (exit status 1 on a difference).
-
-Example
--------
->>> from generalist_control.reports.results_page import build_page
->>> text = build_page()  # the reports of this source tree  # doctest: +SKIP
+``make results`` (``python -m generalist_control.reports.results_page``) reads every recipe's
+reports (:data:`RECIPES`: which files, the command that writes them), draws the ablation's
+figures from its committed tables into ``docs/figures/`` and writes the page. Same reports,
+same bytes: nothing else (clock, host) goes in. A report it cannot read is named, with the
+fix; ``--check`` compares instead of writing.
 """
 
 from __future__ import annotations
@@ -23,11 +13,19 @@ import argparse
 import csv
 import json
 import os
-from collections.abc import Mapping, Sequence
+import sys
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from generalist_control.reports.figures import (
+    draw_figures,
+    figure_key,
+    figure_names,
+    read_tables,
+)
 from generalist_control.reports.results_sections import (
+    FIGURES,
     MAX_ROWS,
     SECTIONS,
     Recipe,
@@ -37,11 +35,13 @@ from generalist_control.reports.results_sections import (
 )
 
 __all__ = [
+    "FIGURES",
     "MAX_LINES",
     "MAX_ROWS",
     "PAGE",
     "RECIPES",
     "Recipe",
+    "ReportFileError",
     "build_page",
     "main",
     "read_reports",
@@ -104,23 +104,69 @@ HISTORY = (
 # --- reading ---------------------------------------------------------------------------
 
 
-def _read(path: Path) -> Any:
+class ReportFileError(ValueError):
+    """A report the page cannot read: the message names the file and the fix."""
+
+
+def _fix(recipe: Recipe, paths: Sequence[str]) -> str:
+    restore = " ".join(paths)
+    return (
+        f"restore the committed version (git checkout -- {restore}) or write it again with "
+        f"`{recipe.command}`"
+    )
+
+
+def _read(root: Path, path: str, recipe: Recipe) -> Any:
     """A JSON file's object, or a CSV file's rows as dicts."""
-    if path.suffix == ".csv":
-        with path.open(newline="") as f:
-            return list(csv.DictReader(f))
-    return json.loads(path.read_text())
+    file = root / path
+    kind = "CSV" if file.suffix == ".csv" else "JSON"
+    try:
+        if kind == "CSV":
+            with file.open(newline="") as f:
+                return list(csv.DictReader(f))
+        data = json.loads(file.read_text())
+    except (ValueError, csv.Error) as exc:  # json.JSONDecodeError, UnicodeDecodeError
+        raise ReportFileError(
+            f"{path} is not valid {kind} ({exc}); {_fix(recipe, [path])}"
+        ) from None
+    if not isinstance(data, dict):
+        got = type(data).__name__
+        raise ReportFileError(f"{path} holds a JSON {got}, not an object; {_fix(recipe, [path])}")
+    return data
+
+
+def _figures(root: Path, recipe: Recipe) -> dict[str, Any]:
+    """An ablation recipe's figures: their names and the digest of their tables."""
+    folder = Path(recipe.files["summary"]).parent
+    if recipe.kind != "ablation" or not (root / folder / "points.csv").is_file():
+        return {}
+    try:
+        t = read_tables(root / folder)
+        return {"figures": figure_names(t), "figures_key": t.key}
+    except (ValueError, KeyError, IndexError, TypeError) as exc:
+        files = [str(folder / n) for n in ("runs.csv", "points.csv", "gate_weights.csv")]
+        raise ReportFileError(
+            f"{', '.join(files)}: not the layout the page reads ({type(exc).__name__}: {exc}); "
+            f"{_fix(recipe, files)}"
+        ) from None
 
 
 def read_reports(
     root: str | Path, recipes: Sequence[Recipe] = RECIPES
 ) -> dict[str, dict[str, Any]]:
-    """Every recipe's files that exist under ``root``, parsed, by recipe key and role."""
+    """Every recipe's files that exist under ``root``, parsed, by recipe key and role.
+
+    Raises
+    ------
+    ReportFileError
+        A file that is not valid JSON or CSV, or not of the layout the page reads.
+    """
     root = Path(root)
-    return {
-        r.key: {role: _read(root / p) for role, p in r.files.items() if (root / p).is_file()}
-        for r in recipes
-    }
+    out = {}
+    for r in recipes:
+        data = {role: _read(root, p, r) for role, p in r.files.items() if (root / p).is_file()}
+        out[r.key] = {**data, **(_figures(root, r) if "summary" in data else {})}
+    return out
 
 
 # --- the page ------------------------------------------------------------------------------
@@ -189,11 +235,33 @@ _HEADLINE_NOTES = [
 ]
 
 
+def _checked(
+    render: Callable[[Recipe, Mapping[str, Any]], list[str]],
+    recipe: Recipe,
+    data: Mapping[str, Any],
+) -> list[str]:
+    """``render(recipe, data)``, with a report of an unexpected layout named (and the fix)."""
+    try:
+        return render(recipe, data)
+    except (AttributeError, TypeError, KeyError, ValueError, IndexError) as exc:
+        files = list(recipe.files.values())
+        raise ReportFileError(
+            f"{', '.join(files)}: not the layout the page reads ({type(exc).__name__}: {exc}); "
+            f"{_fix(recipe, files)}"
+        ) from None
+
+
 def render_page(
     reports: Mapping[str, Mapping[str, Any]], recipes: Sequence[Recipe] = RECIPES
 ) -> str:
-    """The page's markdown from :func:`read_reports`' result (pure: same input, same text)."""
-    rows = [_headline(r, reports.get(r.key, {})) for r in recipes]
+    """The page's markdown from :func:`read_reports`' result (pure: same input, same text).
+
+    Raises
+    ------
+    ReportFileError
+        A report of another layout than the page reads (a list where a mapping belongs, ...).
+    """
+    rows = [_checked(_headline, r, reports.get(r.key, {})) for r in recipes]
     lines = ["# Results", "", NOTE, "", HISTORY, "", "## All recipes", ""]
     lines += [*table(_HEADLINE_HEADER, rows, "the sections below"), ""]
     for note in _HEADLINE_NOTES:
@@ -203,7 +271,7 @@ def render_page(
         if "summary" not in data:
             lines += [f"## {recipe.title}", "", f"not run yet: `{recipe.command}`", ""]
         else:
-            lines += SECTIONS[recipe.kind](recipe, data)
+            lines += _checked(SECTIONS[recipe.kind], recipe, data)
     return "\n".join(lines).rstrip("\n") + "\n"
 
 
@@ -223,21 +291,64 @@ def write_page(text: str, path: str | Path) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def _publish_figures(
+    root: Path, reports: Mapping[str, Mapping[str, Any]], dest: Path, check: bool
+) -> list[str]:
+    """Draw each ablation recipe's figures into ``dest/<recipe>/``; the stale ones' paths.
+
+    With ``check``, draw nothing: only list the figures missing or drawn from other tables.
+    """
+    stale = []
+    for recipe in RECIPES:
+        names = reports.get(recipe.key, {}).get("figures")
+        if not names:
+            continue
+        folder = dest / recipe.key
+        key = reports[recipe.key]["figures_key"]
+        if check:
+            stale += [
+                str(folder / f"{n}.png") for n in names if figure_key(folder / f"{n}.png") != key
+            ]
+            continue
+        tables = Path(recipe.files["summary"]).parent
+        try:
+            draw_figures(root / tables, folder, names)
+        except (ValueError, KeyError, IndexError, TypeError) as exc:
+            raise ReportFileError(
+                f"{tables}: its tables do not draw ({type(exc).__name__}: {exc}); "
+                f"{_fix(recipe, [str(tables)])}"
+            ) from None
+        for old in folder.glob("*.png"):
+            if old.stem not in names:
+                old.unlink()
+    return stale
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Write (or with ``--check`` compare) the page; the exit status is 1 on a difference."""
+    """Write (or with ``--check`` compare) the page and its figures.
+
+    The exit status is 1 on a difference (``--check``), 2 on a report it cannot read.
+    """
     parser = argparse.ArgumentParser(
         prog="python -m generalist_control.reports.results_page",
-        description="Generate docs/results.md from the committed reports.",
+        description="Generate docs/results.md and its figures from the committed reports.",
     )
     parser.add_argument("--root", type=Path, default=REPO_ROOT, help="repository root")
     parser.add_argument("--out", type=Path, default=None, help=f"default: <root>/{PAGE}")
     parser.add_argument("--check", action="store_true", help="compare only, write nothing")
     args = parser.parse_args(argv)
     out = args.out or args.root / PAGE
-    text = build_page(args.root)
+    try:
+        reports = read_reports(args.root)
+        text = render_page(reports)
+        stale = _publish_figures(args.root, reports, out.parent / FIGURES, args.check)
+    except ReportFileError as exc:
+        print(f"make results: {exc}", file=sys.stderr)
+        return 2
     if args.check:
-        same = out.is_file() and out.read_text() == text
+        same = out.is_file() and out.read_text() == text and not stale
         print(f"{out}: {'up to date' if same else 'differs: run make results'}")
+        print("".join(f"  stale: {p}\n" for p in stale), end="")
         return 0 if same else 1
     write_page(text, out)
     print(f"{out}: {text.count(chr(10))} lines")

@@ -1,8 +1,7 @@
 """The parts of the results page: figures, tables and one section per kind of recipe.
 
-Used by :mod:`generalist_control.reports.results_page`, which holds the table of recipes and
-their files. Every function here is pure: parsed report files in, markdown lines out; a
-table never holds more than :data:`MAX_ROWS` rows.
+Pure functions, parsed report files in, markdown lines out; no table holds more than
+:data:`MAX_ROWS` rows.
 """
 
 from __future__ import annotations
@@ -12,9 +11,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["MAX_ROWS", "SECTIONS", "Recipe", "fmt", "number", "table"]
+__all__ = ["FIGURES", "FIGURE_TITLES", "MAX_ROWS", "SECTIONS", "Recipe", "fmt", "number", "table"]
 
 MAX_ROWS = 20
+#: The figures' folder, relative to the page.
+FIGURES = "figures"
 
 
 @dataclass(frozen=True)
@@ -93,12 +94,11 @@ def table(header: Sequence[str], rows: Sequence[Sequence[str]], source: str) -> 
 
 
 def _head(recipe: Recipe, summary: Mapping[str, Any]) -> list[str]:
-    """Heading, command, date and machine (``summary['provenance']``), reports."""
+    """Heading, command, reports; the date and machine where the summary records them."""
     prov = summary.get("provenance")
     prov = prov if isinstance(prov, Mapping) else {}
     lines = [f"## {recipe.title}", "", f"- command: `{recipe.command}`"]
-    lines.append(f"- date: {_text(prov['date']) if prov.get('date') else 'not recorded'}")
-    lines.append(f"- machine: {_text(prov['machine']) if prov.get('machine') else 'not recorded'}")
+    lines += [f"- {k}: {_text(prov[k])}" for k in ("date", "machine") if prov.get(k)]
     if prov.get("command"):
         lines.append(f"- recorded command: `{_text(prov['command'], 300)}`")
     lines.append("- reports: " + ", ".join(f"`{p}`" for p in recipe.files.values()))
@@ -196,14 +196,8 @@ def _tag_free_bar(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
 
 # --- sections ----------------------------------------------------------------------------
 
-_SCENARIO_HEADER = (
-    "scenario",
-    "worst ISE ratio",
-    "worst ITAE ratio",
-    "worst RMSE ratio",
-    "worst relative e_ss of GC",
-    "GC runs diverged",
-)
+_SCENARIO_HEADER = ("scenario", "worst ISE ratio", "worst ITAE ratio", "worst RMSE ratio",
+                    "worst relative e_ss of GC", "GC runs diverged")  # fmt: skip
 
 
 def _evaluation_section(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
@@ -275,16 +269,8 @@ def _ablation_rows(data: Mapping[str, Any]) -> list[list[str]]:
     return rows
 
 
-_ABLATION_HEADER = (
-    "point",
-    "d",
-    "M",
-    "parameters",
-    "final train loss",
-    "mean closed-loop MSE",
-    "plants diverged",
-    "run",
-)
+_ABLATION_HEADER = ("point", "d", "M", "parameters", "final train loss", "mean closed-loop MSE",
+                    "plants diverged", "run")  # fmt: skip
 
 
 def _claims(recipe: Recipe, summary: Mapping[str, Any]) -> list[str]:
@@ -305,8 +291,29 @@ def _claims(recipe: Recipe, summary: Mapping[str, Any]) -> list[str]:
     return [*lines, *table(("claim", "paper", "ours", "verdict"), rows, source), ""]
 
 
+#: What each ablation figure shows (its alt text on the page).
+FIGURE_TITLES = {
+    "mse_hidden": "closed-loop output MSE per plant by d",
+    "loss_hidden": "final training loss by d, each seed, the paper's",
+    "mse_experts": "closed-loop output MSE per plant by M",
+    "loss_experts": "final training loss by M, each seed, the paper's",
+    "params_vs_mse": "parameters against mean closed-loop MSE",
+    "gate_weights": "mean gate weight per plant and expert, M = 5",
+}
+
+
+def _ablation_figures(recipe: Recipe, names: Sequence[str]) -> list[str]:
+    """The figures drawn from the recipe's tables, two to a line."""
+    links = [f"![{recipe.key}: {FIGURE_TITLES[n]}]({FIGURES}/{recipe.key}/{n}.png)" for n in names]
+    folder = recipe.files["summary"].rsplit("/", 1)[0]
+    lines = [f"Figures (from `{folder}/runs.csv`, `points.csv` and `gate_weights.csv`):", ""]
+    for i in range(0, len(links), 2):
+        lines += [" ".join(links[i : i + 2]), ""]
+    return lines
+
+
 def _ablation_section(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
-    """Per point its parameters, losses, mean MSE, diverged plants; then the claims."""
+    """Per point its parameters, losses, mean MSE, diverged plants; the figures; the claims."""
     summary = data["summary"]
     lines = [*_head(recipe, summary)]
     if "runs" in data:
@@ -314,6 +321,7 @@ def _ablation_section(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
     else:
         lines += [f"Per-point figures: `{recipe.files.get('runs')}` is not here.", ""]
     lines += [f"No run for: {_names(summary.get('missing'), 10)}.", ""]
+    lines += _ablation_figures(recipe, data.get("figures") or [])
     return lines + _claims(recipe, summary)
 
 
@@ -341,15 +349,9 @@ def _unseen_row(name: str, entry: Mapping[str, Any]) -> list[str]:
     return cells
 
 
-_UNSEEN_HEADER = (
-    "held-out plant",
-    "class",
-    "adaptation s",
-    "windows + DAgger",
-    "adapted: ISE / RMSE / diverged",
-    "zero-shot (tag-free)",
-    "trained with it",
-)
+_UNSEEN_HEADER = ("held-out plant", "class", "adaptation s", "windows + DAgger",
+                  "adapted: ISE / RMSE / diverged", "zero-shot (tag-free)",
+                  "trained with it")  # fmt: skip
 
 
 def _unseen_section(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:

@@ -1,11 +1,7 @@
-"""The ablation study's data, read back from the MLflow training runs (paper, Section 7).
+"""The ablation's training runs, read back from MLflow: one :class:`RunPoint` per run.
 
-The sweeps' training runs of one experiment (:func:`runs_from_mlflow`), the newest run per
-configuration (:func:`select_sweeps`), and the frames the report draws: per-plant
-closed-loop output MSE (:func:`mse_frame`), training-loss curves (:func:`loss_frame`),
-parameters against mean MSE (:func:`params_frame`);
-:mod:`generalist_control.reports.gates` adds the closed-loop gate
-weights and :mod:`generalist_control.reports.ablation` writes the report from them.
+The runs of one experiment (:func:`runs_from_mlflow`), the run drawn for each sweep point
+(:func:`select_sweeps`) and the per-plant MSE of the points (:func:`mse_frame`).
 """
 
 from __future__ import annotations
@@ -15,9 +11,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 import pandas as pd
-from mlflow.tracking import MlflowClient
 
 from generalist_control.tracking.parents import ROLE_TAG
 
@@ -29,10 +23,8 @@ __all__ = [
     "SWEEP_COMMANDS",
     "NoAblationRunsError",
     "RunPoint",
-    "loss_frame",
     "mlflow_client",
     "mse_frame",
-    "params_frame",
     "point_label",
     "runs_from_mlflow",
     "select_sweeps",
@@ -168,6 +160,8 @@ class _ParentRoles:
 
 def mlflow_client(tracking_uri: str | None = None) -> Any:
     """An MLflow client for ``tracking_uri`` (default: the current tracking URI)."""
+    from mlflow.tracking import MlflowClient
+
     return MlflowClient(tracking_uri=tracking_uri)
 
 
@@ -230,9 +224,9 @@ def runs_from_mlflow(
 
 def select_sweeps(
     points: Sequence[RunPoint],
-    hidden: Sequence[int] = (16, 32, 64),
-    experts: Sequence[int] = (1, 3, 5),
-    baseline: Mapping[str, int] | None = None,
+    hidden: Sequence[int],
+    experts: Sequence[int],
+    baseline: tuple[int, int],
 ) -> dict[str, dict[int, RunPoint | None]]:
     """The run of each sweep point: the newest matching run of its smallest seed, or None.
 
@@ -246,23 +240,23 @@ def select_sweeps(
         Newest first (as :func:`runs_from_mlflow` returns them).
     hidden, experts : sequence of int
         The values of d (at the baseline M) and of M (at the baseline d).
-    baseline : mapping, optional
-        ``{"hidden": 32, "experts": 3}`` (the default).
+    baseline : (int, int)
+        The baseline's d and M.
 
     Returns
     -------
     dict
         ``{"hidden": {d: RunPoint | None}, "experts": {M: RunPoint | None}}``.
     """
-    base = {"hidden": 32, "experts": 3, **(baseline or {})}
+    base_d, base_m = baseline
     order = sorted(points, key=lambda p: (p.seed is None, p.seed or 0, -p.start_time))
 
     def first(d: int, m: int) -> RunPoint | None:
         return next((p for p in order if p.hidden == d and p.experts == m), None)
 
     return {
-        "hidden": {int(d): first(int(d), int(base["experts"])) for d in hidden},
-        "experts": {int(m): first(int(base["hidden"]), int(m)) for m in experts},
+        "hidden": {int(d): first(int(d), base_m) for d in hidden},
+        "experts": {int(m): first(base_d, int(m)) for m in experts},
     }
 
 
@@ -306,83 +300,3 @@ def mse_frame(
     df = pd.DataFrame(rows, columns=cols)
     df["mse"] = df["mse"].astype(float)
     return df
-
-
-def loss_frame(
-    sweeps: Mapping[str, Mapping[int, RunPoint | None]], client: Any | None = None
-) -> pd.DataFrame:
-    """Training-loss history (``train/loss`` per epoch) of every sweep point, long form.
-
-    Returns
-    -------
-    DataFrame
-        Columns ``sweep, value, label, run_id, epoch, train_loss``; a point without a run
-        has no rows. Of repeated steps (a resumed run) the latest value is kept.
-    """
-    client = client or mlflow_client()
-    frames = []
-    cache: dict[str, pd.DataFrame] = {}
-    for sweep, by_value in sweeps.items():
-        for value, p in by_value.items():
-            if p is None:
-                continue
-            if p.run_id not in cache:
-                hist = client.get_metric_history(p.run_id, "train/loss")
-                h = pd.DataFrame(
-                    [(m.step, m.timestamp, m.value) for m in hist],
-                    columns=["epoch", "timestamp", "train_loss"],
-                )
-                h = h.sort_values(["epoch", "timestamp"]).drop_duplicates("epoch", keep="last")
-                cache[p.run_id] = h.drop(columns="timestamp")
-            h = cache[p.run_id].copy()
-            h.insert(0, "run_id", p.run_id)
-            h.insert(0, "label", point_label(sweep, value))
-            h.insert(0, "value", value)
-            h.insert(0, "sweep", sweep)
-            frames.append(h)
-    cols = ["sweep", "value", "label", "run_id", "epoch", "train_loss"]
-    if not frames:
-        return pd.DataFrame(columns=cols)
-    return pd.concat(frames, ignore_index=True)[cols]
-
-
-def params_frame(
-    sweeps: Mapping[str, Mapping[int, RunPoint | None]], plants: Sequence[str]
-) -> pd.DataFrame:
-    """Parameter count and mean closed-loop MSE of every distinct run of the sweeps.
-
-    The mean is over the plants of ``plants`` that the run has a score for (``n_plants``).
-
-    Returns
-    -------
-    DataFrame
-        Columns ``label, hidden, experts, n_parameters, mse_mean, n_plants, final_train_loss,
-        run_id``.
-    """
-    rows = []
-    for p in unique_points(sweeps):
-        scores = [p.mse[k] for k in plants if k in p.mse]
-        mean = float(np.mean(scores)) if scores else np.nan
-        rows.append(
-            (
-                p.label,
-                p.hidden,
-                p.experts,
-                p.n_parameters,
-                mean,
-                len(scores),
-                p.train_loss,
-                p.run_id,
-            )
-        )
-    cols = [
-        "label",
-        "hidden",
-        "experts",
-        "n_parameters",
-        "mse_mean",
-        "n_plants",
-        "final_train_loss",
-        "run_id",
-    ]
-    return pd.DataFrame(rows, columns=cols)

@@ -1,17 +1,8 @@
 """Which runs the ablation report compares, and the check that they are comparable.
 
-The report reads the experiment of kind ``sweep`` (``<logger.experiment_prefix>/sweep``,
-:mod:`generalist_control.tracking.experiments`) unless ``report.experiment_name`` names
-another; ``report.parent_run`` narrows it to the children of one or more sweeps (or studies),
-given by run id or run name (e.g. ``sweep:model.hidden=16,32,64``).
-
-The runs it is about to compare must differ only in the swept keys (:data:`SWEPT_KEYS`) and
-in keys that name or place a run (``report.identity_keys``: run names, paths, tracking,
-seeds, ...): a 1-epoch ``M=1`` beside a 60-epoch ``M=5`` says nothing about ``M``.
-:func:`check_comparable` compares their logged params (a param logged by one run and not the
-other counts as a difference) and refuses with :class:`MixedRunsError`, naming the runs, the
-keys and their values and the fixes, or, with ``report.allow_mixed=true``, logs the same
-as a warning.
+Runs that differ in more than d and M (and in keys that only name or place a run,
+``report.identity_keys``) say nothing about d or M: a 1-epoch M=1 beside a 60-epoch M=5.
+:func:`check_comparable` refuses them by name, or warns with ``report.allow_mixed=true``.
 """
 
 from __future__ import annotations
@@ -21,11 +12,9 @@ import logging
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from omegaconf import DictConfig
-
-from generalist_control.common.configs import as_dict
 from generalist_control.common.secrets import redact
 from generalist_control.reports.points import seed_runs
+from generalist_control.reports.report_settings import ReportSettings
 from generalist_control.reports.runs import (
     SWEEP_COMMANDS,
     NoAblationRunsError,
@@ -58,9 +47,9 @@ class MixedRunsError(ValueError):
     """The runs the report would compare differ in more than the swept keys."""
 
 
-def report_experiment(cfg: DictConfig) -> str:
+def report_experiment(settings: ReportSettings, logger: Mapping[str, Any]) -> str:
     """The experiment the report reads: ``report.experiment_name`` or the kind ``sweep``."""
-    return str(cfg.report.get("experiment_name") or experiment_name(as_dict(cfg.logger), "sweep"))
+    return settings.experiment_name or experiment_name(logger, "sweep")
 
 
 def _parents_in(client: Any, exp_id: str, limit: int = 1000) -> list[Any]:
@@ -82,7 +71,9 @@ def parents_hint(client: Any, exp_id: str, limit: int = 5) -> str:
     return ", ".join(f"{r.info.run_id} {r.info.run_name!r}" for r in found)
 
 
-def resolve_parents(client: Any, exp_id: str, parent_run: Any) -> list[str] | None:
+def resolve_parents(
+    client: Any, exp_id: str, parent_run: Sequence[str] | None
+) -> list[str] | None:
     """The parent run ids ``report.parent_run`` names (ids or names); None when unset.
 
     A name matches the parent runs (tag ``gc.role``) of the experiment with that run name;
@@ -93,14 +84,11 @@ def resolve_parents(client: Any, exp_id: str, parent_run: Any) -> list[str] | No
     LookupError
         A name or id that is no parent run of the experiment (the message lists some).
     """
-    if parent_run is None or parent_run == "":
+    if not parent_run:
         return None
-    wanted = (
-        [str(parent_run)] if isinstance(parent_run, str | int) else [str(p) for p in parent_run]
-    )
     parents = _parents_in(client, exp_id)
     ids = []
-    for item in wanted:
+    for item in parent_run:
         match = next(
             (r for r in parents if item in (r.info.run_id, r.info.run_name)), None
         )  # newest first: the newest of a name
@@ -202,7 +190,7 @@ def check_comparable(
 
 
 def select_runs(
-    cfg: DictConfig, client: Any
+    settings: ReportSettings, logger: Mapping[str, Any], client: Any
 ) -> tuple[
     str,
     dict[str, dict[int, RunPoint | None]],
@@ -211,11 +199,9 @@ def select_runs(
 ]:
     """The report's experiment, its sweep points, the differences let through, every seed.
 
-    Reads ``report.experiment_name``, ``parent_run``, ``filter_string``, ``hidden``,
-    ``experts``, ``baseline``, ``identity_keys`` and ``allow_mixed``. The last item holds,
-    per configuration (d, M) of the sweeps, its newest run of each seed
-    (:func:`~generalist_control.reports.points.seed_runs`); all of them are checked to be
-    comparable.
+    The last item holds, per configuration (d, M) of the sweeps, its newest run of each
+    seed (:func:`~generalist_control.reports.points.seed_runs`); all of them are checked to
+    be comparable.
 
     Raises
     ------
@@ -226,26 +212,25 @@ def select_runs(
     MixedRunsError
         See :func:`check_comparable`.
     """
-    rcfg = cfg.report
-    experiment = report_experiment(cfg)
+    experiment = report_experiment(settings, logger)
     found = client.get_experiment_by_name(experiment)
     exp_id = found.experiment_id if found is not None else None
-    parents = resolve_parents(client, exp_id, rcfg.get("parent_run")) if exp_id else None
-    filter_string = str(rcfg.get("filter_string") or "")
-    points = runs_from_mlflow(experiment, filter_string, client, parents)
+    parents = resolve_parents(client, exp_id, settings.parent_run) if exp_id else None
+    points = runs_from_mlflow(experiment, settings.filter_string, client, parents)
     if not points:
         where = f" under the parent runs {parents}" if parents else ""
         raise NoAblationRunsError(
             f"no finished training run in MLflow experiment '{experiment}'{where} at "
-            f"{redact(str(client.tracking_uri))} (filter: {filter_string!r}). "
+            f"{redact(str(client.tracking_uri))} (filter: {settings.filter_string!r}). "
             "Create the ablation runs with:\n  " + "\n  ".join(SWEEP_COMMANDS)
         )
-    sweeps = select_sweeps(points, list(rcfg.hidden), list(rcfg.experts), as_dict(rcfg.baseline))
+    base = settings.baseline
+    sweeps = select_sweeps(points, settings.hidden, settings.experts, (base.hidden, base.experts))
     by_config = seed_runs(points, sweeps)
     mixed = check_comparable(
         [p for runs in by_config.values() for p in runs],
-        [str(k) for k in rcfg.get("identity_keys") or []],
-        bool(rcfg.get("allow_mixed")),
+        settings.identity_keys,
+        settings.allow_mixed,
         parents_hint(client, exp_id) if exp_id else "none",
     )
     return experiment, sweeps, mixed, by_config

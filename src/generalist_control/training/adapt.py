@@ -29,7 +29,7 @@ from generalist_control.common.secrets import redact
 from generalist_control.common.settings import read_section
 from generalist_control.data.generation import enabled_families
 from generalist_control.data.windows import Windows
-from generalist_control.deploy.resolve import resolve
+from generalist_control.deploy.policy_source import resolve
 from generalist_control.model.grow import (
     ROWS,
     RecipeError,

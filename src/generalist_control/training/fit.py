@@ -34,7 +34,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.secrets import redact
-from generalist_control.deploy.facts import integral_facts
+from generalist_control.deploy.integral_facts import integral_facts
 from generalist_control.model.bank import fit_model_rows
 from generalist_control.model.network import count_parameters
 from generalist_control.model.policy import (
@@ -292,13 +292,11 @@ def train(settings: TrainingSettings) -> tuple[dict[str, Any], dict[str, Any]]:
 
     Raises
     ------
-    generalist_control.data.demos.MissingDataError
-        Before anything is logged, if there is no dataset at ``paths.data_dir``.
-    ValueError
-        Before any run is opened, if ``ckpt_path`` holds other data or another model.
+    generalist_control.data.demos.MissingDataError, ValueError
+        Before any run is opened: no dataset at ``paths.data_dir``; a ``ckpt_path`` of other
+        data or another model.
     SystemExit
-        With status 143 (SIGTERM) or 130 (Ctrl-C) when a signal stops the fit; the run ends
-        KILLED and no policy is written.
+        143 (SIGTERM) or 130 (Ctrl-C) when a signal stops the fit: the run ends KILLED.
     """
     settings, dm, meta, lit = _prepare(settings)
     ckpt_path = settings.ckpt_path

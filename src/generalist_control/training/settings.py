@@ -349,13 +349,10 @@ def read_training(cfg: DictConfig) -> TrainingSettings:
     Raises
     ------
     ValueError
-        Naming the key: a value of the wrong type or out of range (``trainer.max_epochs``
-        must be >= 1, ``threads`` >= 1, ...), an unknown key in a section, an optimiser
-        that refuses its settings, sections that do not fit together (``monitor:
-        val/closed_loop`` without ``closed_loop_val``), or ``held_out`` naming a plant the
-        set does not hold.
-    generalist_control.plants.catalog.UnknownPlantError
-        If ``systems.include`` names a plant that is not in the set.
+        Naming the key: a value of the wrong type or out of range, an unknown key, an
+        optimiser that refuses its settings, sections that do not fit together (``monitor:
+        val/closed_loop`` without ``closed_loop_val``), ``held_out`` or ``systems.include``
+        naming a plant the set does not hold.
     """
     max_epochs = require_int("trainer.max_epochs", _plain(cfg, "trainer.max_epochs"))
     monitor = _plain(cfg, "monitor")

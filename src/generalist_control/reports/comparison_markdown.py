@@ -1,10 +1,7 @@
 """``comparison.md`` of the ablation report: the paper's Section 7 answered point by point.
 
-Sections, in order: the claims table (:mod:`generalist_control.reports.claims`: the paper's
-figure, ours, the rule, the verdict), every run behind the points (each seed apart), the
-quality-bar verdicts of each run's evaluation, the worst plant's GC/LQI ratio per scenario
-and run with the scenarios that separate the runs, the dominant expert of the M = 5 model
-on every plant, and the per-plant closed-loop MSE tables of the two sweeps.
+The claims, every run (each seed), each run's quality bar, the worst plant per scenario
+and the scenarios that separate the runs, the M = 5 model's dominant experts, the MSE tables.
 """
 
 from __future__ import annotations
@@ -144,11 +141,7 @@ def _mse_tables(mse: pd.DataFrame) -> list[str]:
 
 
 def comparison_markdown(
-    tables: Mapping[str, Any],
-    gates: pd.DataFrame | None,
-    gate_run: RunPoint | None,
-    eval_summary: Mapping[str, Any] | None = None,
-    recipe: str = "default",
+    tables: Mapping[str, Any], gates: pd.DataFrame | None, gate_run: RunPoint | None, recipe: str
 ) -> str:
     """The report's markdown.
 
@@ -162,8 +155,6 @@ def comparison_markdown(
         per-plant MSE, :func:`~generalist_control.reports.runs.mse_frame`).
     gates, gate_run :
         The M = 5 model's gate weights and its run (None without it).
-    eval_summary : mapping, optional
-        The pipeline model's evaluation summary, whose quality bar closes the page.
     recipe : str
         The runs' recipe, named in the claims' heading.
     """
@@ -182,12 +173,4 @@ def comparison_markdown(
         *_gates(gates, gate_run),
         *_mse_tables(tables["mse"]),
     ]
-    if eval_summary:
-        qb = eval_summary.get("quality_bar", {})
-        lines += [
-            "",
-            "## The pipeline's model (evaluate stage, reports/eval/summary.json)",
-            "",
-            *_table(["quality bar", "met"], [[k, v] for k, v in qb.items()]),
-        ]
     return "\n".join(lines) + "\n"

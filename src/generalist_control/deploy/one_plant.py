@@ -1,12 +1,10 @@
 """The runtime's per-sample path for one plant stepped alone, on plain Python numbers.
 
-:class:`~generalist_control.deploy.runtime.PolicyRuntime` steps one plant (``reset(name)``)
-through :class:`OnePlant`: the same checks, window and arithmetic as its general path, with
-the limits read once at ``reset`` and the few numbers of a sample handled as Python floats
-instead of small arrays. Anything out of the ordinary (an input of another shape or type, a
-value out of range, a control or error integral the runtime refuses, known actuator limits)
-is left to the general path, which then takes the step or refuses it with its full message:
-:meth:`OnePlant.step` returns None before it has changed anything.
+A sample of one plant is a handful of numbers, and each small NumPy operation on them costs
+about as much as a layer of the network. :class:`OnePlantStep` makes the general path's
+checks and arithmetic on Python floats, with the limits read once at ``reset``. Anything out
+of the ordinary (another type or shape, a value out of range, known actuator limits) returns
+None before anything changed, and the general path takes the step or refuses it in full.
 """
 
 from __future__ import annotations
@@ -16,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["OnePlant", "output_of"]
+__all__ = ["OnePlantStep", "output_of"]
 
 _FLOAT64 = np.dtype(np.float64)
 
@@ -34,45 +32,41 @@ def _number(value: Any) -> float | None:
     if type(value) is float:
         return value
     a = np.asarray(value)
-    if a.size != 1 or a.dtype.kind not in "fiub":
+    if a.size != 1 or a.dtype.kind not in "fiu":
         return None
     return float(a.reshape(-1)[0])
 
 
-class OnePlant:
-    """:meth:`PolicyRuntime.step` for a runtime reset to one plant (module docstring).
+class OnePlantStep:
+    """:meth:`PolicyRuntime.step` of a runtime reset to one plant (module docstring).
 
     Parameters
     ----------
     rt : PolicyRuntime
-        Reset to one plant by name; this object is rebuilt at each such reset. (Typed
-        ``Any`` here: the runtime's module imports this one.)
+        Reset to one plant by name; rebuilt at each such reset. (Typed ``Any`` here: the
+        runtime's module imports this one.)
     """
 
     def __init__(self, rt: Any) -> None:
-        self.rt = rt
-        self.n = int(rt._order[0])
-        lim = rt._lim
-        # at most float32's largest: the state is rounded to float32 (array("f") below)
-        self.lim_x: list[float] = np.minimum(lim["state"][0, : self.n], 3.4e38).tolist()
+        self.rt, self.buffer, self.dt, self.integral = rt, rt._buffer, rt.dt, rt.integral
+        n, lim = int(rt._order[0]), rt._lim
+        # at most float32's largest: the state is rounded to float32 in the window
+        self.lim_x: list[float] = np.minimum(lim["state"][0, :n], 3.4e38).tolist()
         self.lim_r = float(lim["reference"][0])
         self.lim_u = float(lim["network output"][0, 0])
         self.lim_z = float(lim["error integral"][0]) if rt.integral else 0.0
         self.c: list[float] | None = None  # the output row, read when y is first left out
-        self.integral, self.shape, self.plan_shape = rt.integral, (self.n,), (1, rt.horizon)
-        self.buffer, self.dt = rt._buffer, rt.dt
+        self.shape, self.plan_shape = (n,), (1, rt.horizon)
 
     def _output(self, y: Any, xs: list[float]) -> float | None:
         if y is not None:
             yv = _number(y)
             return yv if yv is not None and abs(yv) <= self.lim_r else None
         if self.c is None:
-            if self.rt._C is None:
-                try:
-                    self.rt._C = self.rt._output_rows()  # kept, as the general path does
-                except ValueError:
-                    return None  # which the general path explains
-            self.c = self.rt._C[0, : self.n].tolist()
+            try:
+                self.c = self.rt._output_rows()[0, : self.shape[0]].tolist()
+            except ValueError:
+                return None  # which the general path explains
         return output_of(self.c, xs)
 
     def step(self, x: Any, r: Any, y: Any = None) -> float | None:
@@ -80,7 +74,7 @@ class OnePlant:
         rt = self.rt
         if type(x) is not np.ndarray or x.dtype is not _FLOAT64:
             x = np.asarray(x)
-            if x.dtype.kind not in "fiub":
+            if x.dtype.kind not in "fiu":
                 return None
             x = x.astype(np.float64)
         if type(r) is not float:
@@ -97,12 +91,8 @@ class OnePlant:
             yv = self._output(y, array("f", xs).tolist())
             if yv is None:
                 return None
-        buffer = self.buffer
-        state, ref = buffer.stage_one(x, r, z, float(rt._u_prev[0]))
-        net = rt._net1
-        if net is None or rt._run is not rt._backend:
-            net = rt._network
-        plan = net(state, ref)
+        state, ref = self.buffer.stage_one(x, r, z, float(rt._u_prev[0]))
+        plan = (rt._plant_run if rt._run is rt._backend else rt._network)(state, ref)
         if plan.shape != self.plan_shape:
             return None
         ps = plan.tolist()[0]
@@ -115,6 +105,6 @@ class OnePlant:
                 return None
             rt.z[0] = z
         rt._u_prev[0] = u = ps[0]
-        buffer.commit()
+        self.buffer.commit()
         rt.plan = plan.copy()
         return u

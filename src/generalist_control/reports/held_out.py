@@ -1,24 +1,9 @@
 """The held-out protocol (``beyond/dvc.yaml:unseen``): plants the policy has never seen.
 
-The default recipe is trained without the plants of ``held_out`` (``conf/unseen.yaml``),
-and so is the tag-free recipe. Then, per held-out plant, three policies run every scenario
-of ``conf/evaluation`` against the plant's LQI (:func:`~generalist_control.evaluation.
-runner.evaluate`):
-
-* ``adapted``: the default trained without it, plus its row learned by
-  :func:`~generalist_control.training.adapt.adapt` (the policy in
-  ``<unseen.models>/adapted/<plant>/``, its run in ``<prefix>/adapt``);
-* ``zero_shot``: the tag-free policy trained without it, the plant named on a free
-  normaliser row whose scales are fitted on its demonstrations, nothing learned
-  (``adapt.learn=false``);
-* ``trained_with``: the default trained with it (the pipeline's ``models/policy.ckpt``),
-  the upper reference.
-
-``reports/unseen/`` (``paths.reports_dir``): ``metrics.csv`` in the evaluation's long form
-with a ``policy`` column first, and ``summary.json``: per plant its class (computed from its
-model), the demonstrations used, the adaptation's wall time and closed-loop scores, and per
-policy the GC/LQI ratios of the evaluation's summary; then the bar (:func:`judge`) on the
-adapted policies.
+Per held-out plant, three policies run every scenario against its LQI: the default trained
+without it plus its learned row (``adapted``), the tag-free one with only its scales fitted
+(``zero_shot``) and the default trained with it (``trained_with``); then a bar on the
+adapted ones (:func:`judge`). docs/pipeline.md describes the files.
 """
 
 from __future__ import annotations
@@ -44,7 +29,6 @@ from generalist_control.common.atomic import (
 from generalist_control.common.configs import as_dict
 from generalist_control.common.jsonsafe import strict
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.provenance import provenance
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.summary import summarise
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
@@ -166,7 +150,7 @@ def _evaluated(
     cfg: DictConfig, label: str, policy: Policy, meta: dict[str, Any], plant: Plant
 ) -> pd.DataFrame:
     """Every scenario on ``plant``: GC (this policy), LQI and LQI-AW; a ``policy`` column."""
-    runtime = PolicyRuntime(policy, meta, backend=cfg.evaluation.get("backend", "torch"))
+    runtime = PolicyRuntime(policy, meta, backend=cfg.evaluation.backend)
     scenarios = as_dict(cfg.evaluation.scenarios)
     crazyflie = as_dict(cfg.evaluation.get("crazyflie") or {})
     df, _ = evaluate(runtime, [plant], scenarios, crazyflie)
@@ -211,7 +195,6 @@ def _plant(cfg: DictConfig, name: str, paths: Mapping[str, Path]) -> tuple[pd.Da
         "adaptation_wall_s": record["wall_s"],
         "adaptation": {k: record[k] for k in ("init", "closed_loop", "learned")},
         "adapted_policy": str(objects["policy_path"]),
-        "registered_version": objects["registered_version"],
         "policies": {k: _figures(df[df.policy == k]) for k in POLICIES},
     }
     return df, entry
@@ -267,7 +250,6 @@ def run_unseen(cfg: DictConfig) -> dict[str, Any]:
         "held_out": entries,
         **judge(entries, as_dict(cfg.unseen.get("bar") or {})),
         "policies": {k: str(v) for k, v in paths.items()},
-        "provenance": provenance(),
     }
     _write(out_dir, pd.concat(frames, ignore_index=True), summary)
     _log(cfg, summary, out_dir)
