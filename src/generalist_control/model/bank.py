@@ -25,7 +25,9 @@ from generalist_control.plants.plant import MAX_ORDER, Plant
 STD_FLOOR = 1e-3
 
 __all__ = [
+    "NoModelRowError",
     "add_card",
+    "add_plant",
     "add_rows",
     "add_scales",
     "card_part",
@@ -84,10 +86,11 @@ def _rows(policy: Policy, plants: Sequence[Plant]) -> dict[str, Tensor]:
 
 
 @torch.no_grad()
-def fit_cards(policy: Policy, plants: Sequence[Plant]) -> None:
+def fit_cards(policy: Policy, plants: Sequence[Plant], standardise: bool = True) -> None:
     """Fill ``policy``'s bank and normaliser rows at each plant's tag, in place.
 
-    The cards' mean and spread over these rows become the part's standardisation. Rows of
+    With ``standardise`` (training), the cards' mean and spread over these rows become the
+    part's standardisation; without, it is kept (rows written into a trained bank). Rows of
     tags no plant holds keep what they held.
 
     Raises
@@ -103,6 +106,8 @@ def fit_cards(policy: Policy, plants: Sequence[Plant]) -> None:
     buffers = dict(policy.named_buffers())
     for key, rows in _rows(policy, plants).items():
         buffers[key][tags] = rows.to(buffers[key].dtype)
+    if not standardise:
+        return
     cards = part.cards[tags].double()
     part.card_mean.copy_(cards.mean(0))
     part.card_std.copy_(cards.std(0, unbiased=False).clamp(min=STD_FLOOR))
@@ -164,6 +169,25 @@ def add_rows(policy: Policy, rows: Mapping[str, Tensor]) -> Policy:
 def add_card(policy: Policy, plant: Plant) -> Policy:
     """``policy`` grown by one row: ``plant``'s card and frame, tag the old ``n_tags``."""
     return add_rows(policy, _rows(policy, [plant]))
+
+
+class NoModelRowError(ValueError):
+    """A policy whose plant part cannot take a plant from its model (no card bank)."""
+
+
+def add_plant(policy: Policy, plant: Plant) -> Policy:
+    """``policy`` grown by ``plant``'s row computed from its model (the card route only).
+
+    Raises
+    ------
+    NoModelRowError
+        If the policy's plant part learns its rows (a tag embedding) or reads the plant from
+        the window with scales of the plant's data (in context): naming the part.
+    """
+    part = policy.net.plant
+    if not isinstance(part, CardPlant):
+        raise NoModelRowError(type(part).__name__)
+    return add_card(policy, plant)
 
 
 def add_scales(policy: Policy, scales: Mapping[str, Tensor]) -> Policy:
