@@ -191,5 +191,14 @@ def add_plant(policy: Policy, plant: Plant) -> Policy:
 
 
 def add_scales(policy: Policy, scales: Mapping[str, Tensor]) -> Policy:
-    """``policy`` grown by one normaliser row, ``scales`` (keys as in its ``state_dict``)."""
-    return add_rows(policy, scales)
+    """``policy`` grown by one normaliser row, ``scales`` (keys as in its ``state_dict``).
+
+    The plant part's own per-tag buffers (an in-context part's card targets, training only)
+    get an empty row.
+    """
+    n = policy.net.n_tags
+    rows = dict(scales)
+    for key, value in policy.net.plant.named_buffers(prefix="net.plant"):
+        if key not in rows and value.shape[:1] == (n,):
+            rows[key] = torch.zeros_like(value[:1])
+    return add_rows(policy, rows)

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from generalist_control.common.settings import SettingError, read_section
-from generalist_control.data.demos import DemoSet, load_demos
+from generalist_control.data.demos import DemoSet, load_demos, read_manifest
 from generalist_control.plants.families import plant_from_record
 from generalist_control.plants.plant import Plant
 from generalist_control.simulation.lqi import design_lqi
@@ -144,6 +144,15 @@ class FamilySet:
             hashes.append(str(fam_manifest["content_hash"]))
         joint = "sha256:" + hashlib.sha256("\0".join(hashes).encode()).hexdigest()
         return demos, {**manifest, "content_hash": joint, "families": [str(d) for d in self.dirs]}
+
+    def record(self) -> list[dict[str, Any]]:
+        """Per family: its folder, name, seed and plant count (the policy's meta)."""
+        out = []
+        for d in self.dirs:
+            block = read_manifest(d)["plant_family"]
+            out.append({"dir": str(d), "name": block["name"], "seed": int(block["seed"]),
+                        "plants": len(block["plants"])})  # fmt: skip
+        return out
 
     def facts(self) -> dict[str, dict[str, Any]]:
         """The meta's ``outputs`` and ``integral_directions`` of the family plants."""

@@ -87,7 +87,8 @@ def _data(
     facts = integral_facts(list(dm.tags))
     for key, more in (families.facts() if families else {}).items():
         facts[key] = {**facts[key], **more}
-    return dm, {**dm.meta(), **facts}
+    trained = {"families": families.record()} if families else {}
+    return dm, {**dm.meta(), **facts, **trained}
 
 
 def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
