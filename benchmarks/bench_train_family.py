@@ -44,6 +44,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads of the training")
     p.add_argument("--families", default="data/families/default", help="the family's data")
     p.add_argument("--out", type=Path, default=RESULTS)
+    p.add_argument("--models", type=Path, default=None, help="keep the policy here (default: not)")
     p.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. trainer.max_epochs=2")
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="bench_family_") as tmp:
@@ -51,7 +52,8 @@ def main(argv: list[str] | None = None) -> dict:
             sys.executable, "-m", "generalist_control.train", f"experiment={args.experiment}",
             f"threads={args.threads}", f"train_families.dirs=[{args.families}]",
             f"held_out=[{','.join(_held_out())}]", f"run_dir={tmp}/run",
-            f"paths.models_dir={tmp}/models", f"logger.tracking_uri=sqlite:///{tmp}/mlflow.db",
+            f"paths.models_dir={args.models or Path(tmp) / 'models'}",
+            f"logger.tracking_uri=sqlite:///{tmp}/mlflow.db",
             f"logger.artifact_location={tmp}/mlruns", "logger.log_model=false",
             "trainer.enable_progress_bar=false", *args.overrides,
         ]  # fmt: skip
@@ -62,7 +64,9 @@ def main(argv: list[str] | None = None) -> dict:
         if proc.returncode != 0:
             sys.stderr.write(proc.stderr[-4000:])
             raise SystemExit(f"the training failed (exit {proc.returncode})")
-        metrics = json.loads((Path(tmp) / "models" / "metrics.json").read_text())
+        metrics = json.loads(
+            (args.models or Path(tmp) / "models").joinpath("metrics.json").read_text()
+        )
     peak_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     result = {
         "experiment": args.experiment, "threads": args.threads, "families": args.families,

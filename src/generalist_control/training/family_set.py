@@ -87,14 +87,19 @@ class FamilySet:
         Every family plant, tag ``offset + i``.
     offset : int
         The first family tag (the catalogue's tag count).
+    spec : FamilyTraining, optional
+        How much of the families DAgger and the closed-loop validation see.
     """
 
     dirs: tuple[Path, ...]
     plants: list[Plant]
     offset: int
+    spec: FamilyTraining | None = None
 
     @classmethod
-    def load(cls, dirs: Sequence[str | Path], offset: int) -> FamilySet:
+    def load(
+        cls, dirs: Sequence[str | Path], offset: int, spec: FamilyTraining | None = None
+    ) -> FamilySet:
         """The families at ``dirs`` (each checked against its manifest), tagged from ``offset``.
 
         Raises
@@ -118,7 +123,7 @@ class FamilySet:
             for name in sorted(block["plants"], key=lambda n: block["plants"][n]["tag"]):
                 p = plant_from_record(block, name, float(manifest["dt"]))
                 plants.append(dataclasses.replace(p, tag=start + p.tag))
-        return cls(tuple(Path(p) for p in dirs), plants, int(offset))
+        return cls(tuple(Path(p) for p in dirs), plants, int(offset), spec)
 
     @property
     def rows(self) -> int:

@@ -51,7 +51,7 @@ from generalist_control.tracking.training_run import POLICY_HASH_TAG
 from generalist_control.training import outputs
 from generalist_control.training.dagger import DAggerCallback
 from generalist_control.training.datamodule import DemoDataModule, WindowTensors
-from generalist_control.training.family_set import FamilySet, with_rows
+from generalist_control.training.family_set import FamilySet, read_family_training, with_rows
 from generalist_control.training.lit_module import ImitationModule
 from generalist_control.training.settings import TrainingSettings
 from generalist_control.training.setup import (
@@ -131,9 +131,10 @@ def _callbacks(
     plants = [p for p in settings.plants if p.name in dm.tags]
     channels = lit.policy.channels
     family = dm.families.plants if dm.families else []
-    checked = settings.families.closed_loop_plants if settings.families else 0
+    spec = dm.families.spec if dm.families else None
+    turn, checked = (spec.dagger_plants, spec.closed_loop_plants) if spec else (0, 0)
     own = [
-        dagger_callback(settings, dagger_plants(plants, dm.manifest), channels, family),
+        dagger_callback(settings, dagger_plants(plants, dm.manifest), channels, family, turn),
         closed_loop_validation(settings, plants + family[:checked]),
     ]
     return [*callbacks, *(c for c in own if c is not None)], ckpt_cb
@@ -258,8 +259,8 @@ def _prepare(
     torch.set_num_threads(settings.threads)
     L.seed_everything(settings.seed, workers=True)
     ckpt_path = settings.ckpt_path
-    spec = settings.families
-    families = FamilySet.load(spec.dirs, tag_count()) if spec else None
+    spec = read_family_training(settings.resolved["train_families"])  # null: none
+    families = FamilySet.load(spec.dirs, tag_count(), spec) if spec else None
     settings = dataclasses.replace(settings, model=with_rows(settings.model, families))
     with torch.random.fork_rng():  # the model config checked before the data is read
         channels = Policy(settings.model).channels

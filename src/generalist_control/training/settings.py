@@ -29,7 +29,6 @@ from generalist_control.data.generation import enabled_families
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.plants.plant import Plant
 from generalist_control.plants.variants import variant_range
-from generalist_control.training.family_set import FamilyTraining, read_family_training
 
 __all__ = [
     "INITS",
@@ -244,7 +243,6 @@ class TrainingSettings:
     callbacks: tuple[dict[str, Any], ...]  #: ``callbacks``: each a node with a _target_
     logger: dict[str, Any]  #: ``logger``: where and how the run is logged
     resolved: dict[str, Any]  #: the whole config, resolved and redacted (the run's record)
-    families: FamilyTraining | None  #: ``train_families``: plant families trained on too
 
     @property
     def trained_names(self) -> list[str]:
@@ -399,5 +397,4 @@ def read_training(cfg: DictConfig) -> TrainingSettings:
         callbacks=_callbacks(cfg),
         logger=_plain(cfg, "logger") or {},
         resolved=redact(OmegaConf.to_container(cfg, resolve=True)),
-        families=read_family_training(_plain(cfg, "train_families")),
     )

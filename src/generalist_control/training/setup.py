@@ -49,13 +49,13 @@ def dagger_callback(
     plants: list[Plant],
     channels: tuple[str, ...],
     rotating: Sequence[Plant] = (),
+    per_round: int = 0,
 ) -> L.Callback | None:
     """The DAgger callback of ``settings.dagger`` on ``plants`` (None when it is off).
 
     ``plants`` are the training plant versions (:func:`dagger_plants`); the sampler takes
     the data's amplitude limit, families and variant range (``settings.rollout_data``).
-    ``rotating`` plants (a family's) join each round, ``train_families.dagger_plants`` at a
-    time, in turn.
+    ``rotating`` plants (a family's) join each round, ``per_round`` at a time, in turn.
     """
     spec = settings.dagger
     if spec is None:
@@ -70,7 +70,7 @@ def dagger_callback(
         variant_range=data.variant_range,
         variant_tries=data.variant_tries,
         rotating=rotating,
-        per_round=settings.families.dagger_plants if settings.families else 0,
+        per_round=per_round,
     )
     labeller = ExpertLabeller(spec.labeller, settings.history, settings.horizon, channels)
     return DAggerCallback(sampler, labeller, spec)
