@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+
 import numpy as np
 import pytest
 
@@ -15,7 +18,12 @@ from generalist_control.model.card import card_features, card_frame
 from generalist_control.plants.catalog import load_plant, tag_count
 from generalist_control.reports.held_out_routes import judge_routes, zero_shot
 from generalist_control.reports.routes_section import routes_lines
-from generalist_control.training.family_set import FamilySet
+from generalist_control.training.family_set import (
+    FamilySet,
+    join_demos,
+    read_family_training,
+    with_rows,
+)
 from helpers import compose_cfg, tiny_train_overrides, train
 
 #: Four drawn plants, 2 s trajectories (the tiny catalogue data's), checked over 10 s.
@@ -118,3 +126,30 @@ def test_the_routes_bars_and_their_section():
     assert "median 1.01, 95th percentile 1.3, worst inf" in page and "`p7`" in page
     assert "`draw_p95` **fail**" in page
     assert routes_lines({"held_out": entries}, "x") == []
+
+
+def test_bad_family_settings_and_data_are_refused(tiny_data_dir, family_dir, tmp_path):
+    with pytest.raises(ValueError, match="train_families.dirs must name at least one"):
+        read_family_training({"dirs": [], "dagger_plants": 1, "closed_loop_plants": 1})
+    with pytest.raises(ValueError, match="train_families.dagger_plants must be >= 0"):
+        read_family_training({"dirs": ["x"], "dagger_plants": -1, "closed_loop_plants": 1})
+    assert read_family_training(None) is None
+    with pytest.raises(ValueError, match="not a plant family's"):
+        FamilySet.load([tiny_data_dir], 25)  # the catalogue's data: no plant_family block
+    catalogue, _ = load_demos(tiny_data_dir)
+    longer = dataclasses.replace(catalogue, r=np.hstack([catalogue.r, catalogue.r]))
+    with pytest.raises(ValueError, match="match the catalogue's sample time and duration"):
+        join_demos(catalogue, longer, 25)
+    model = {"_target_": "generalist_control.model.card.CardPlant", "n_tags": 25}
+    assert with_rows(model, None) is model
+    assert with_rows({"plant": model}, FamilySet.load([family_dir], 25))["plant"]["n_tags"] == 29
+
+
+def test_the_in_context_part_has_no_per_plant_parameter():
+    from generalist_control.model.context import ContextPlant
+    from generalist_control.model.identifier import TransitionModels, TransitionSet
+
+    part = ContextPlant(16, functools.partial(TransitionSet), n_tags=30, card_weight=0.1)
+    assert all(p.shape[0] != 30 for p in part.parameters())
+    with pytest.raises(ValueError, match="identifier.models must be null"):
+        ContextPlant(16, functools.partial(TransitionSet, models=TransitionModels), n_tags=3)
