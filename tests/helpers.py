@@ -26,6 +26,15 @@ def config_section(cls, key: str, **changes):
     return dataclasses.replace(read_section(cls, node, key), **changes)
 
 
+def sweep_callback(**changes):
+    """The Hydra callback ``hydra.callbacks.mlflow_sweep`` as configured, with ``changes``."""
+    from hydra.utils import instantiate
+
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        node = compose("config", return_hydra_config=True).hydra.callbacks.mlflow_sweep
+    return instantiate(node, **changes)
+
+
 #: The tiny data config: eight step amplitudes, 2 s (40 samples) per trajectory.
 TINY_DATA = {
     "history": 8,
@@ -207,3 +216,47 @@ def train(cfg):
     from generalist_control.training.settings import read_training
 
     return fit(read_training(cfg))
+
+
+#: What the fast adaptations add to ``conf/adapt.yaml``: a few steps on the tiny data recipe.
+TINY_ADAPT = (
+    "logger.log_model=false", "adapt.epochs=2", "adapt.rounds=1", "adapt.batch_size=64",
+    "data.duration=2.0", "data.families=null",
+    "data.amplitudes.segments=[{start:1.0,stop:4.0,step:1.0}]",
+)  # fmt: skip
+
+
+def untrained_policy(tmp, tiny_demos, name: str = "base.ckpt", **kind):
+    """An untrained policy on cstr and hydraulic_actuator, its scales fitted, saved in ``tmp``.
+
+    The default recipe's parts, or ``kind`` (``plant="inferred"``: the tag-free recipe's).
+    """
+    import torch
+
+    from generalist_control.model.policy import Policy, save_policy
+
+    torch.manual_seed(0)
+    options = {"skip": "linear", "channels": ["integral"], **kind}
+    if kind.get("plant") == "inferred":
+        options.update(skip="context", channels=["integral", "previous_control"])
+    config = net_config(hidden=16, experts=2, window_scale=True, **options)
+    pol = Policy(config)
+    w = tiny_demos.windows(8, 3, True, "previous_control" in config["channels"])
+    fields = ("state", "mask", "ref", "tag", "target")
+    pol.normaliser.fit(**{k: torch.from_numpy(getattr(w, k)) for k in fields})
+    meta = policy_meta(["cstr", "hydraulic_actuator"])
+    return save_policy(tmp / name, pol, meta)
+
+
+def adapt_request(policy, run_dir, uri: str, plant: str = "mass_spring_damper", *extra: str):
+    """The adapt command's settings as its entry point reads them: conf/adapt.yaml composed."""
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from generalist_control.adaptation.request import read_request
+
+    where = f"logger.artifact_location={Path(run_dir).parent / 'mlruns'}"  # a new experiment's
+    cfg = compose_cfg(f"plant={plant}", f"policy={policy}", f"logger.tracking_uri={uri}", where,
+                      *TINY_ADAPT, *extra, config="adapt")  # fmt: skip
+    return read_request(OmegaConf.to_container(cfg, resolve=True), run_dir)

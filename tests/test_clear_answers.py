@@ -25,7 +25,7 @@ from generalist_control.plants.catalog import load_plant, plants_from_config
 from generalist_control.plants.plant import PlantConfigError
 from generalist_control.plants.variants import DEFAULT_RANGE, variant_range
 from generalist_control.simulation.lqi import LQIGains, design_lqi
-from generalist_control.sweeps.study import run as study_run
+from generalist_control.tune import run as study_run
 from helpers import compose_cfg, lqi_law_policy
 
 # --- systems.include=[] ------------------------------------------------------------------

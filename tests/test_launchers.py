@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import signal
 import subprocess
 import sys
 import time
@@ -24,9 +25,8 @@ from hydra.core.utils import JobReturn, JobStatus
 from omegaconf import OmegaConf
 
 from generalist_control.common.paths import conf_dir
-from generalist_control.sweeps.hydra_callback import MLflowSweepCallback
 from generalist_control.tracking import mlflow_utils, parents
-from helpers import quick_overrides
+from helpers import quick_overrides, sweep_callback
 
 REPO = Path(__file__).resolve().parents[1]
 ENV_KEYS = (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV)
@@ -97,6 +97,56 @@ def test_submitit_local_launcher_nests_its_jobs(tiny_data_dir, tmp_path, mlflow_
     assert (tmp_path / "multirun" / ".submitit").is_dir()  # submitit's own job folders
 
 
+def _session(sid: int) -> list[int]:
+    """The processes of session ``sid`` (a command started in a session of its own)."""
+    out = subprocess.run(["ps", "-o", "pid=", "-s", str(sid)], capture_output=True, text=True)
+    return [int(pid) for pid in out.stdout.split()]
+
+
+@pytest.mark.slow
+def test_sigterm_stops_a_joblib_sweep(tiny_data_dir, tmp_path, mlflow_uri):
+    """SIGTERM to ``train.py -m ... hydra/launcher=parallel`` while its first points train:
+    a non-zero exit, no worker left, no further point started, the runs and parent KILLED."""
+    cmd = [
+        sys.executable, "train.py", "-m", "model.hidden=8,16,24",  # two at a time: 24 waits
+        *quick_overrides(tiny_data_dir, tmp_path, mlflow_uri),
+        "logger.experiment_name=null", f"++logger.experiment_prefix={tmp_path.name}",
+        f"hydra.sweep.dir={tmp_path / 'multirun'}", "hydra/launcher=parallel",
+        "trainer.max_epochs=1000", "~callbacks.early_stopping",  # would train for an hour
+    ]  # fmt: skip
+    log = tmp_path / "sweep.log"
+    with log.open("w") as out:
+        proc = subprocess.Popen(
+            cmd, cwd=REPO, env=_env(), stdout=out, stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 240
+        while "MLflow run" not in log.read_text() and time.monotonic() < deadline:
+            assert proc.poll() is None, log.read_text()[-3000:]
+            time.sleep(0.5)
+        assert len(_session(proc.pid)) > 2  # the workers run
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=120) != 0
+        for _ in range(20):  # the killed workers may take a moment to go
+            if not _session(proc.pid):
+                break
+            time.sleep(0.5)
+        assert _session(proc.pid) == [], "processes left behind"
+    finally:
+        for pid in _session(proc.pid):
+            os.kill(pid, signal.SIGKILL)
+    text = log.read_text()
+    assert "Stopped: stopped by SIGTERM" in text
+    mlflow.set_tracking_uri(mlflow_uri)
+    runs = mlflow.search_runs(experiment_names=[f"{tmp_path.name}/sweep"], output_format="list")
+    (parent,) = [r for r in runs if r.data.tags.get("gc.role") == "sweep"]
+    children = [r for r in runs if r is not parent]
+    assert parent.info.status == "KILLED"
+    assert children and {c.info.status for c in children} <= {"KILLED", "FAILED"}
+    assert "24" not in {c.data.params.get("model.hidden") for c in children}
+
+
 def _cfg(tmp_path: Path, uri: str):
     return OmegaConf.create(
         {
@@ -118,7 +168,7 @@ def test_the_parent_reaches_a_job_whose_process_did_not_inherit_it(
     for key in ENV_KEYS:
         monkeypatch.delenv(key, raising=False)
     cfg = _cfg(tmp_path, mlflow_uri)
-    callback = MLflowSweepCallback()
+    callback = sweep_callback()
     callback.on_multirun_start(cfg)
     parent_id = callback.run_id
     shipped = pickle.dumps(callback)  # as Hydra's launchers ship the callbacks to a job
@@ -142,7 +192,7 @@ def test_a_group_files_separate_single_runs_under_one_parent(tmp_path, mlflow_ur
     cfg = _cfg(tmp_path, mlflow_uri)
     ids = []
     for _ in range(2):  # two commands, e.g. two DVC stages
-        callback = MLflowSweepCallback(group="ablation:default")
+        callback = sweep_callback(group="ablation:default")
         callback.on_run_start(cfg)
         callback.on_job_start(cfg)
         ids.append(os.environ[mlflow_utils.PARENT_RUN_ENV])
@@ -156,7 +206,7 @@ def test_a_group_files_separate_single_runs_under_one_parent(tmp_path, mlflow_ur
     assert parent.data.tags["gc.role"] == "group"
     assert mlflow.get_experiment(parent.info.experiment_id).name == tmp_path.name
     # a multirun ignores the group: its own parent, named after the sweep
-    sweep = MLflowSweepCallback(group="ablation:default")
+    sweep = sweep_callback(group="ablation:default")
     sweep.on_multirun_start(cfg)
     assert sweep.run_id != ids[0]
     sweep.on_multirun_end(cfg)

@@ -273,3 +273,43 @@ def test_equilibrium_check_is_relative(u_op, ok):
     else:
         with pytest.raises(PlantConfigError, match="is not an equilibrium"):
             plant_from_config("two_tank", cfg)
+
+
+@pytest.mark.parametrize(
+    ("changes", "match"),
+    [
+        ({"tag": -3}, "field 'tag' must be a non-negative integer.*got -3"),
+        ({"tag": True}, "field 'tag' must be a non-negative integer.*got True"),
+        ({"tag": 2.5}, "field 'tag' must be a non-negative integer.*got 2.5"),
+        ({"dt": float("inf")}, "field 'dt' contains NaN or inf"),
+        ({"dt": "fast"}, "field 'dt' must be a number, got 'fast'"),
+        ({"substeps": 2.5}, "field 'substeps' must be an integer >= 1, got 2.5"),
+        ({"amplitude_scale": 1e13}, r"'amplitude_scale' has an entry of 1e\+13, beyond \+-1e\+12"),
+        ({"lqi": {"Q": [1.0, 1e300, 1.0], "R": 1.0}}, r"'lqi.Q' has an entry of 1e\+300.*rescale"),
+        ({"B": [[0.0], [-1e300]]}, r"'B' has an entry of 1e\+300.*rescale"),
+    ],
+    ids=["negative-tag", "bool-tag", "float-tag", "inf-dt", "text-dt", "float-substeps",
+         "huge-scale", "huge-Q", "huge-B"],
+)  # fmt: skip
+def test_every_number_of_a_plant_file_is_checked_and_the_file_named(changes, match):
+    """Each refused at the file check, before the LQI design (scipy's own words for 1e300)."""
+    from omegaconf import OmegaConf
+
+    from generalist_control.plants.config import plant_from_config
+    from generalist_control.plants.plant import PlantConfigError
+
+    path = generalist_control.common.paths.CONF_DIR / "plants/mass_spring_damper.yaml"
+    cfg = {**OmegaConf.to_container(OmegaConf.load(path)), **changes}
+    with pytest.raises(PlantConfigError, match=match) as info:
+        plant_from_config("mass_spring_damper", cfg, "my/plant.yaml")
+    assert str(info.value).startswith("my/plant.yaml: plant 'mass_spring_damper': field")
+
+
+def test_a_plant_name_with_a_dot_or_a_file_that_is_a_list_is_refused():
+    from generalist_control.plants.config import plant_from_config
+    from generalist_control.plants.plant import PlantConfigError
+
+    with pytest.raises(PlantConfigError, match=r"splits keys at dots.*e\.g\. my_plant\.yaml"):
+        plant_from_config("my.plant", {"tag": 30})
+    with pytest.raises(PlantConfigError, match="holds a list, not the mapping of a plant's"):
+        plant_from_config("listed", [{"tag": 30}])

@@ -6,26 +6,26 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from generalist_control.adaptation.recordings import read_recorded, write_recorded
 from generalist_control.data.generation import generate_demos
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import simulate
-from generalist_control.training.recorded import read_recorded, write_recorded
 from helpers import TINY_DATA
 
 FIELDS = ("state", "mask", "ref", "tag", "target")
 
 
-@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
-def test_an_lqi_recording_gives_the_data_stage_windows(tmp_path, suffix):
+@pytest.mark.parametrize(("suffix", "controls"), [(".csv", False), (".parquet", True)])
+def test_an_lqi_recording_gives_the_data_stage_windows(tmp_path, suffix, controls):
     """A file written from the data stage's LQI simulation reproduces its windows exactly."""
     plant = load_plant("hydraulic_actuator")  # order 3: padding and the integral channel
     demos = generate_demos([plant], TINY_DATA, progress=False)
     path = write_recorded(tmp_path / f"rec{suffix}", plant, demos.x, demos.r, demos.y, demos.u)
     df = pd.read_csv(path) if suffix == ".csv" else pd.read_parquet(path)
     assert list(df.columns) == ["traj", "t", "x0", "x1", "x2", "r", "y", "u"]
-    got = read_recorded(path, plant, tag=plant.tag, history=8, horizon=3)
-    want = demos.windows(8, 3, integral=True)
+    got = read_recorded(path, plant, tag=plant.tag, history=8, horizon=3, controls=controls)
+    want = demos.windows(8, 3, True, controls)  # with the previous-control channel or not
     for key in FIELDS:
         np.testing.assert_array_equal(getattr(got.windows, key), getattr(want, key), err_msg=key)
     assert got.trajectories == len(demos.r) and got.samples == demos.r.size

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import mlflow
@@ -12,9 +14,10 @@ import pytest
 from hydra.core.utils import JobReturn, JobStatus
 from omegaconf import OmegaConf
 
-from generalist_control.sweeps.hydra_callback import MLflowSweepCallback, sweep_overrides
+from generalist_control.sweeps.hydra_callback import sweep_overrides
+from generalist_control.sweeps.stop_signals import Stopped
 from generalist_control.tracking import mlflow_utils
-from helpers import quick_overrides
+from helpers import quick_overrides, sweep_callback
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -97,7 +100,7 @@ def test_sweep_callback_parents_runs_and_ends_failed_on_a_failed_job(
     for key in (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV):
         monkeypatch.delenv(key, raising=False)
     cfg = _sweep_config(tmp_path, mlflow_uri)
-    callback = MLflowSweepCallback()
+    callback = sweep_callback()
     callback.on_multirun_start(cfg)
     parent_id = callback.run_id
     assert os.environ[mlflow_utils.PARENT_RUN_ENV] == parent_id
@@ -123,7 +126,7 @@ def test_sweep_callback_parents_runs_and_ends_failed_on_a_failed_job(
 
 
 def test_sweep_callback_ignores_other_entry_points(tmp_path, mlflow_uri):
-    callback = MLflowSweepCallback(jobs=["train"])
+    callback = sweep_callback(jobs=["train"])
     callback.on_multirun_start(_sweep_config(tmp_path, mlflow_uri, job="generate"))
     assert callback.run_id is None
     assert mlflow_utils.PARENT_RUN_ENV not in os.environ
@@ -132,3 +135,26 @@ def test_sweep_callback_ignores_other_entry_points(tmp_path, mlflow_uri):
 def test_sweep_overrides_keeps_only_sweeping_ones():
     given = ["model.hidden=16,32,64", "experts=range(1,6,2)", "seed=1", "+x=choice(a,b)"]
     assert sweep_overrides(given) == [given[0], given[1], given[3]]
+
+
+def test_a_signal_stops_the_sweep_and_ends_its_parent_killed(tmp_path, mlflow_uri):
+    """SIGTERM in the launching process: an interrupt there (no next job), the parent and
+    the runs of its jobs whose process is gone KILLED at exit, the handlers restored."""
+    before = signal.getsignal(signal.SIGTERM)
+    cfg = _sweep_config(tmp_path, mlflow_uri)
+    callback = sweep_callback()
+    callback.on_multirun_start(cfg)
+    client = mlflow.MlflowClient()
+    exp_id = client.get_run(callback.run_id).info.experiment_id
+    # a job's run whose worker the launcher killed (a pid that is no process)
+    tags = {**mlflow_utils.parent_run_tags(), **mlflow_utils.process_tags()}
+    tags[mlflow_utils.PID_TAG] = str(2**22 + 7)
+    orphan = client.create_run(exp_id, tags=tags).info.run_id
+    parent_id = callback.run_id
+    with pytest.raises(Stopped, match="stopped by SIGTERM"):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler raises here
+    callback._end_at_exit()  # what atexit runs as the process ends
+    assert client.get_run(parent_id).info.status == "KILLED"
+    assert client.get_run(orphan).info.status == "KILLED"
+    assert signal.getsignal(signal.SIGTERM) is before

@@ -2,21 +2,29 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 
 import mlflow
 import optuna
 import pytest
 import sqlalchemy
+from omegaconf import OmegaConf
 from optuna.trial import TrialState
 
-from generalist_control.sweeps.fixed import CHANGES_ATTR, FIXED_ATTR, StudyConfigChangedError
-from generalist_control.sweeps.space import parse_space
+from generalist_control.sweeps.fixed_config import (
+    CHANGES_ATTR,
+    FIXED_ATTR,
+    StudyConfigChangedError,
+)
+from generalist_control.sweeps.search_space import parse_space
 from generalist_control.sweeps.storage import open_storage
 from generalist_control.sweeps.study import PARENT_ATTR
 from generalist_control.tracking import mlflow_utils
@@ -77,12 +85,13 @@ def test_unknown_search_key_is_named_with_a_suggestion(tmp_path):
     with pytest.raises(KeyError, match=r"unknown search-space key 'model\.hiden'.*model\.hidden"):
         run(cfg)
     assert not storage.exists()  # checked before the storage is touched
+    tree = OmegaConf.to_container(cfg)
     with pytest.raises(ValueError, match="names a config section"):
-        parse_space({"optimizer": {"type": "categorical", "choices": [1]}}, cfg)
+        parse_space({"optimizer": {"type": "categorical", "choices": [1]}}, tree)
     with pytest.raises(ValueError, match=r"needs low < high"):
-        parse_space({"experts": {"type": "int", "low": 5, "high": 1}}, cfg)
+        parse_space({"experts": {"type": "int", "low": 5, "high": 1}}, tree)
     with pytest.raises(ValueError, match=r"type must be one of"):
-        parse_space({"experts": {"type": "uniform", "low": 1, "high": 5}}, cfg)
+        parse_space({"experts": {"type": "uniform", "low": 1, "high": 5}}, tree)
 
 
 @pytest.mark.parametrize(
@@ -249,20 +258,15 @@ def test_two_workers_share_a_postgresql_study(tiny_data_dir, tmp_path, postgres_
     assert {c.data.tags["mlflow.parentRunId"] for c in children} == {parents[0].info.run_id}
 
 
-@pytest.mark.slow
-def test_killed_workers_trial_fails_and_the_study_goes_on(tiny_data_dir, tmp_path, mlflow_uri):
-    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
-    heartbeat = ["hparams_search.heartbeat.interval=1", "hparams_search.heartbeat.grace_period=2"]
-    common = _tune_overrides(tiny_data_dir, tmp_path, mlflow_uri, storage, *heartbeat)
-    # a trial that would train for hours: it is still running when the worker is killed
+def _endless_worker(common: list[str], storage: str, hydra_dir: Path):
+    """A worker whose one trial would train for hours, once its training has started."""
     endless = [
         "trainer.max_epochs=100000",
         "~callbacks.early_stopping",
         "hparams_search.n_trials=1",
     ]
-    proc = _worker([*common, *endless, "hparams_search.n_trials=1"], tmp_path / "hydra_killed")
+    proc = _worker([*common, *endless], hydra_dir)
     deadline = time.monotonic() + 180
-    trial = None
     while time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.5)
         try:
@@ -270,9 +274,16 @@ def test_killed_workers_trial_fails_and_the_study_goes_on(tiny_data_dir, tmp_pat
         except (KeyError, sqlalchemy.exc.SQLAlchemyError):  # no study (or tables) yet
             continue
         if trials and "mlflow_run_id" in trials[0].user_attrs:  # training has started
-            trial = trials[0]
-            break
-    assert trial is not None, proc.communicate(timeout=30)[0][-3000:]
+            return proc, trials[0]
+    raise AssertionError(proc.communicate(timeout=30)[0][-3000:])
+
+
+@pytest.mark.slow
+def test_killed_workers_trial_fails_and_the_study_goes_on(tiny_data_dir, tmp_path, mlflow_uri):
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    heartbeat = ["hparams_search.heartbeat.interval=1", "hparams_search.heartbeat.grace_period=2"]
+    common = _tune_overrides(tiny_data_dir, tmp_path, mlflow_uri, storage, *heartbeat)
+    proc, trial = _endless_worker(common, storage, tmp_path / "hydra_killed")
     proc.send_signal(signal.SIGKILL)
     proc.communicate(timeout=30)
     assert optuna.load_study(study_name="tiny", storage=storage).trials[0].state == (
@@ -288,6 +299,24 @@ def test_killed_workers_trial_fails_and_the_study_goes_on(tiny_data_dir, tmp_pat
     killed = mlflow.MlflowClient().get_run(trial.user_attrs["mlflow_run_id"])
     assert killed.info.status == "FAILED"
     assert killed.data.tags["optuna.state"] == "FAIL"
+
+
+@pytest.mark.slow
+def test_sigterm_fails_the_running_trial_and_ends_the_study_killed(
+    tiny_data_dir, tmp_path, mlflow_uri
+):
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    common = _tune_overrides(tiny_data_dir, tmp_path, mlflow_uri, storage)
+    proc, trial = _endless_worker(common, storage, tmp_path / "hydra")
+    proc.send_signal(signal.SIGTERM)
+    out = proc.communicate(timeout=120)[0]
+    assert proc.returncode == 128 + signal.SIGTERM, out[-3000:]
+    assert "stopped by SIGTERM" in out
+    study = optuna.load_study(study_name="tiny", storage=storage)
+    assert [t.state for t in study.trials] == [TrialState.FAIL]  # not left RUNNING
+    client = mlflow.MlflowClient(mlflow_uri)
+    assert client.get_run(trial.user_attrs["mlflow_run_id"]).info.status == "FAILED"
+    assert client.get_run(study.user_attrs[PARENT_ATTR]).info.status == "KILLED"
 
 
 def test_writes_to_the_shared_parent_run_retry_a_clash_between_workers():
@@ -324,7 +353,7 @@ def test_fit_pruning_reports_during_the_fit_only():
     import torch
     from lightning.pytorch.trainer.states import TrainerFn
 
-    from generalist_control.sweeps.pruning import FitPruning
+    from generalist_control.sweeps.trial_callbacks import FitPruning
 
     study = optuna.create_study(pruner=optuna.pruners.ThresholdPruner(upper=0.5))
     trial = study.ask()
@@ -344,3 +373,69 @@ def test_fit_pruning_reports_during_the_fit_only():
     trainer.callback_metrics = {"val/los": torch.tensor(1.0)}
     with pytest.raises(KeyError, match=r"'val/loss' \(hparams_search\.monitor\); logged: val/los"):
         callback.on_validation_end(trainer, module)
+
+
+# ------------------------------------------------------------------------------- dashboard
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _get(url: str) -> dict:
+    with urllib.request.urlopen(url, timeout=10) as answer:
+        return json.load(answer)
+
+
+def test_the_dashboard_command_serves_the_studys_trials(tmp_path):
+    """The README's ``optuna-dashboard <storage>``: the configured storage, served headless."""
+    line = next(
+        x for x in (REPO / "README.md").read_text().splitlines() if "optuna-dashboard" in x
+    )
+    command = line.split("#")[0].split()
+    storage = compose_cfg(config="tune").hparams_search.storage
+    assert command == ["optuna-dashboard", storage]  # the study tune.py writes by default
+    url = f"sqlite:///{tmp_path / 'optuna.db'}"
+    study = optuna.create_study(study_name="tiny", storage=url)
+    for hidden in (8, 16, 32):
+        study.enqueue_trial({"model.hidden": hidden})
+    study.optimize(lambda t: t.suggest_categorical("model.hidden", [8, 16, 32]) / 8, n_trials=3)
+    port = _free_port()
+    env = {**os.environ, "HOME": str(tmp_path)}  # gunicorn's control socket goes there
+    server = subprocess.Popen(
+        [str(Path(sys.executable).parent / command[0]), url, "--host", "127.0.0.1",
+         "--port", str(port)],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True,
+    )  # fmt: skip
+    base = f"http://127.0.0.1:{port}/api/studies"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            assert server.poll() is None, server.communicate()[0][-3000:]
+            try:
+                summaries = _get(base)["study_summaries"]
+                break
+            except OSError:
+                assert time.monotonic() < deadline, "the dashboard did not answer in 60 s"
+                time.sleep(0.5)
+        (summary,) = summaries
+        assert summary["study_name"] == "tiny"
+        trials = _get(f"{base}/{summary['study_id']}")["trials"]
+        served = [
+            (t["number"], t["state"], t["values"], [(p["name"], p["param_external_value"])
+                                                    for p in t["params"]])
+            for t in trials
+        ]  # fmt: skip
+        assert served == [
+            (0, "Complete", [1.0], [("model.hidden", "8")]),
+            (1, "Complete", [2.0], [("model.hidden", "16")]),
+            (2, "Complete", [4.0], [("model.hidden", "32")]),
+        ]
+    finally:
+        os.killpg(server.pid, signal.SIGTERM)
+        server.communicate(timeout=30)
+    left = subprocess.run(
+        ["ps", "-o", "pid=", "-s", str(server.pid)], capture_output=True, text=True
+    )
+    assert left.stdout.split() == []  # gunicorn's worker went with it

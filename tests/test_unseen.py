@@ -20,7 +20,7 @@ from generalist_control.plants.catalog import available_plants, load_plant
 from generalist_control.reports.held_out import POLICIES, judge, plant_class
 from generalist_control.reports.held_out_routes import ROUTES
 from generalist_control.training.settings import read_training
-from helpers import compose_cfg, tiny_train_overrides
+from helpers import compose_cfg, tiny_train_overrides, untrained_policy
 
 REPO = Path(__file__).resolve().parents[1]
 STAGE = yaml.safe_load((REPO / "beyond" / "dvc.yaml").read_text())["stages"]["unseen"]
@@ -64,6 +64,25 @@ def test_held_out_plants_are_left_out_of_training():
         read_training(compose_cfg("held_out=[nowhere]"))
     with pytest.raises(ValueError, match="leaves no plant of the set to train on"):
         read_training(compose_cfg("systems.include=[cstr]", "held_out=[cstr]"))
+
+
+def test_a_held_out_typo_is_refused_before_anything_is_adapted(tiny_demos, tmp_path):
+    """The three policies in place: the typo is named before the first plant is adapted."""
+    from generalist_control.unseen import run
+
+    for folder in ("default", "tag_free", "with"):
+        (tmp_path / "models" / folder).mkdir(parents=True)
+        untrained_policy(tmp_path / "models" / folder, tiny_demos, "policy.ckpt")
+    cfg = compose_cfg(
+        "held_out=[damped_oscillator,nosuchplant]", f"unseen.models={tmp_path / 'models'}",
+        f"unseen.trained_with={tmp_path / 'models/with/policy.ckpt'}",
+        f"logger.tracking_uri=sqlite:///{tmp_path / 'mlflow.db'}", "logger.log_model=false",
+        f"paths.reports_dir={tmp_path / 'reports'}", config="unseen",
+    )  # fmt: skip
+    with pytest.raises(ValueError, match=r"held_out names \['nosuchplant'\].*known: auv_yaw"):
+        run(cfg)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["models"]
+    assert not (tmp_path / "models" / "adapted").exists()
 
 
 def _commands() -> list[list[str]]:

@@ -1,36 +1,65 @@
 """Add a plant to a trained policy: ``python -m generalist_control.adapt plant=<name or path>``.
 
-Also ``python adapt.py`` at the root and ``gc-adapt``. The policy (``policy=``, default the
-pipeline's ``models/policy.ckpt``) gains a tag for the plant; only that tag's embedding row is
-learned, from the plant's LQI demonstrations (or a recording, ``demos=``) and DAgger rounds
-on the plant; the result is a new policy file in ``run_dir`` and a new version of the
-registered model (``docs/training.md``, "Adding a plant to a trained policy"). The work is
-:func:`generalist_control.training.adapt.adapt`.
+Also ``python adapt.py`` at the root and ``gc-adapt``. The policy gains a tag for the plant
+and only that row is learned (:mod:`generalist_control.adaptation`; docs/training.md,
+"Adding a plant to a trained policy").
 """
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import sys
+from datetime import datetime
+from pathlib import Path
 from typing import Any
 
 import hydra
-from omegaconf import DictConfig
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
 
+from generalist_control.adaptation import adapt
+from generalist_control.adaptation.request import read_request
+from generalist_control.adaptation.run_folder import Stopped, sigterm_raises
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
-from generalist_control.training.adapt import adapt
 
 __all__ = ["main", "run"]
 
 
+def _run_dir(cfg: DictConfig) -> Path:
+    """``run_dir``, else Hydra's output folder (``outputs/adapt/<time>``), else a new one."""
+    if cfg.run_dir:
+        return Path(cfg.run_dir)
+    if HydraConfig.initialized():
+        return Path(HydraConfig.get().runtime.output_dir)
+    return Path("outputs/adapt") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Adapt the configured policy to ``cfg.plant``; return the adaptation's record."""
-    record, _ = adapt(cfg)
+    plain = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+    record, _ = adapt(read_request(plain, _run_dir(cfg)))  # type: ignore[arg-type]
     return record
 
 
 @hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="adapt")
 def main(cfg: DictConfig) -> float:
-    """Hydra entry point: adapt, and return the kept closed-loop score (lower is better)."""
-    return float(run(cfg)["closed_loop"]["kept"])
+    """Hydra entry point: adapt, and return the kept closed-loop score (lower is better).
+
+    SIGTERM ends it as SIGINT does (exit 143, the MLflow run KILLED); Hydra's own folder is
+    removed unless the adaptation was written there (``conf/adapt.yaml`` keeps Hydra's files
+    out of it).
+    """
+    hydra_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        with sigterm_raises():
+            return float(run(cfg)["closed_loop"]["kept"])
+    except Stopped:
+        print("adapt: stopped by SIGTERM; nothing was published", file=sys.stderr)
+        sys.exit(128 + signal.SIGTERM)
+    finally:
+        with contextlib.suppress(OSError):
+            hydra_dir.rmdir()  # only if empty: a refused or stopped adaptation leaves none
 
 
 if __name__ == "__main__":

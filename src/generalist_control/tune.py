@@ -1,35 +1,121 @@
 """Optuna search of the training's hyper-parameters: ``python tune.py [overrides]``.
 
-Also ``gc-tune`` and ``python -m generalist_control.tune``; the study itself is
-:mod:`generalist_control.sweeps.study` (docs/sweeps.md).
+Also ``gc-tune`` and ``python -m generalist_control.tune``. The config is read here, once:
+the search into :class:`~generalist_control.sweeps.search_settings.SearchSettings`, the rest
+kept for the trials' trainings; the study is :mod:`generalist_control.sweeps.study`.
 """
 
 from __future__ import annotations
 
+import copy
+import logging
 import math
+import sys
+from collections.abc import Mapping
+from datetime import datetime
+from pathlib import Path
+from typing import Any, cast
 
 import hydra
 import optuna
-from omegaconf import DictConfig
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf, open_dict
 from optuna.trial import TrialState
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
-from generalist_control.sweeps import study as _study
+from generalist_control.common.settings import read_section
+from generalist_control.sweeps.fixed_config import fixed_config
+from generalist_control.sweeps.search_settings import SearchSettings
+from generalist_control.sweeps.search_space import parse_space
+from generalist_control.sweeps.stop_signals import Stopped
+from generalist_control.sweeps.study import run_study, tune_logger
+from generalist_control.sweeps.trial_callbacks import trial_pruning, trial_run_link
+from generalist_control.training.fit import train
+from generalist_control.training.settings import read_training
 
-__all__ = ["main", "run"]
+__all__ = ["main", "run", "trial_config"]
+
+log = logging.getLogger(__name__)
+
+
+def trial_config(
+    cfg: DictConfig, values: Mapping[str, Any], trial_dir: Path, monitor: str, experiment: str
+) -> DictConfig:
+    """The training config of one trial: ``cfg`` with ``values`` set, outputs in ``trial_dir``.
+
+    The search's own section is dropped, the checkpoints go to ``<trial_dir>/run``, the model
+    to ``<trial_dir>/models``, the run to the study's ``experiment``, and the callbacks get
+    the trial's pruning (on ``monitor``) and its link to the run.
+    """
+    tcfg = copy.deepcopy(cfg)
+    with open_dict(tcfg):
+        tcfg.pop("hparams_search", None)
+        for key, value in values.items():
+            OmegaConf.update(tcfg, key, value, merge=False)
+        tcfg.run_dir = str(trial_dir / "run")
+        tcfg.paths.models_dir = str(trial_dir / "models")
+        tcfg.logger.experiment_name = experiment
+        if tcfg.get("callbacks") is None:
+            tcfg.callbacks = {}
+        tcfg.callbacks.optuna_pruning = {
+            "_target_": f"{trial_pruning.__module__}.{trial_pruning.__name__}",
+            "monitor": monitor,
+        }
+        tcfg.callbacks.optuna_run_link = {
+            "_target_": f"{trial_run_link.__module__}.{trial_run_link.__name__}",
+        }
+    return tcfg
+
+
+def _trials_dir(search: SearchSettings) -> Path:
+    """``trials_dir``, else ``<Hydra output dir or outputs/tune/<time>>/<study_name>``."""
+    if search.trials_dir:
+        return Path(search.trials_dir)
+    if HydraConfig.initialized():
+        base = Path(HydraConfig.get().runtime.output_dir)
+    else:
+        base = Path("outputs/tune") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    return base / search.study_name
 
 
 def run(cfg: DictConfig) -> optuna.Study:
-    """Run (or continue) the configured study; see :func:`generalist_control.sweeps.study.run`."""
-    return _study.run(cfg)
+    """Run (or continue) the study that ``cfg.hparams_search`` configures; return it.
+
+    Everything is checked (the search settings, the search space against the config) before
+    the storage or MLflow is touched. See :func:`generalist_control.sweeps.study.run_study`.
+    """
+    if cfg.get("hparams_search") is None:
+        raise ValueError("no search configured: choose one, e.g. hparams_search=default")
+    search = read_section(SearchSettings, as_dict(cfg.hparams_search), "hparams_search")
+    space = parse_space(search.params, cast(dict, OmegaConf.to_container(cfg, resolve=False)))
+    tree = {k: v for k, v in as_dict(cfg).items() if k != "hparams_search"}
+    fixed = fixed_config(tree, search.metric, [p.key for p in space], search.identity_keys)
+    logger = tune_logger(as_dict(cfg.logger))
+
+    def train_point(values: Mapping[str, Any], trial_dir: Path) -> Mapping[str, Any]:
+        experiment = logger["experiment_name"]
+        tcfg = trial_config(cfg, values, trial_dir, search.monitor, experiment)
+        return train(read_training(tcfg))[0]
+
+    return run_study(search, space, fixed, logger, train_point, _trials_dir(search))
 
 
 @hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="tune")
-def main(cfg: DictConfig) -> float:
+def _main(cfg: DictConfig) -> float:
     """Hydra entry point: run the study; return its best value (NaN if none completed)."""
     study = run(cfg)
     complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     return float(study.best_value) if complete else math.nan
+
+
+def main() -> None:
+    """``python tune.py``: exit 128 + the signal's number when SIGTERM or SIGINT stops it."""
+    try:
+        _main()
+    except Stopped as stop:
+        log.error("%s; the running trial failed, the study's run ended KILLED", stop)
+        sys.exit(128 + stop.signum)
 
 
 if __name__ == "__main__":

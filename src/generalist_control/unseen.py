@@ -9,26 +9,59 @@ each on every scenario against the plant's LQI; ``reports/unseen/``. The work is
 
 from __future__ import annotations
 
+import signal
+import sys
+from pathlib import Path
 from typing import Any
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
+from generalist_control.adaptation.request import AdaptRequest, read_request
+from generalist_control.adaptation.run_folder import Stopped, sigterm_raises
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
+from generalist_control.plants.catalog import available_plants
 from generalist_control.reports.held_out import run_unseen
 
-__all__ = ["main", "run"]
+__all__ = ["main", "requests", "run"]
+
+
+def requests(cfg: DictConfig) -> dict[str, AdaptRequest]:
+    """Each held-out plant's adaptation (into ``<unseen.models>/adapted/<plant>``), checked.
+
+    Raises
+    ------
+    ValueError
+        If ``held_out`` is empty or names a plant the catalogue does not hold.
+    """
+    plain: dict[str, Any] = OmegaConf.to_container(cfg, resolve=True)  # type: ignore[assignment]
+    held = [str(name) for name in plain["held_out"] or []]
+    if not held:
+        raise ValueError("held_out is empty: name the held-out plants (conf/unseen.yaml)")
+    unknown = sorted(set(held) - set(available_plants()))
+    if unknown:
+        raise ValueError(
+            f"held_out names {unknown}, which conf/plants does not hold; known: "
+            f"{', '.join(available_plants())}"
+        )
+    adapted = Path(plain["unseen"]["models"]) / "adapted"
+    return {name: read_request({**plain, "plant": name}, adapted / name) for name in held}
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Adapt to and evaluate on every held-out plant; return the summary."""
-    return run_unseen(cfg)
+    return run_unseen(cfg, requests(cfg))
 
 
 @hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="unseen")
 def main(cfg: DictConfig) -> None:
-    """Hydra entry point of the held-out protocol's evaluation."""
-    run(cfg)
+    """Hydra entry point of the held-out protocol's evaluation (SIGTERM: exit 143)."""
+    try:
+        with sigterm_raises():
+            run(cfg)
+    except Stopped:
+        print("unseen: stopped by SIGTERM", file=sys.stderr)
+        sys.exit(128 + signal.SIGTERM)
 
 
 if __name__ == "__main__":

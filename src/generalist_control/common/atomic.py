@@ -1,31 +1,9 @@
 """Publish an output folder atomically; never replace or delete a folder the project did not write.
 
-A stage writes its outputs into a temporary sibling folder (:func:`staging_directory`) and
-then swaps it into place (:func:`publish_directory`):
-
-* **The stage's own output is what it recorded.** Publishing writes a marker,
-  :data:`MARKER` (``.gc-outputs.json``), into the folder: every file and sub-folder the
-  stage wrote. A folder that already exists is replaced only if everything in it is listed
-  by its marker; anything else (a file the user added, a folder without a marker that is
-  not empty) is foreign, :class:`ForeignDirectoryError` names it and nothing is touched.
-  ``paths.data_dir=data`` (a folder with ``.gitignore``) is refused.
-* **Folders from before the marker.** A folder without a marker is still the stage's own if
-  it holds nothing but the exact names the stage writes (``legacy``: a file name, or a
-  sub-folder name with the pattern of the files inside it, e.g. ``{"plots": "*.png"}``),
-  and files accepted by such a pattern only beside one of the stage's exact-named files:
-  an extension alone never makes a folder the stage's. Replacing it first records it in a
-  marker, so that its leftovers (below) are recognised too.
-* **Never half-written, never missing.** On Linux the two folders are exchanged in one
-  ``renameat2(RENAME_EXCHANGE)`` call, so the old outputs are in place until the new ones
-  are. Where that call is missing (another OS, an old file system) the old folder is first
-  renamed to ``.<name>.old-<pid>-0`` and the new one renamed into place; a kill between the
-  two renames leaves the old folder under that name, and :func:`recover` (called by every
-  publish, and by the loaders) moves it back.
-* **No clutter, and no user folder taken for clutter.** Staging and old folders of
-  processes that are no longer alive are removed at the next publish, but only those that
-  carry the project's marker (a staging folder gets one when it is made): a folder named
-  like a leftover (``.demos.old-2024``) without it is the user's and is left untouched.
-  ``.gitignore`` ignores ``.*.tmp-*``, ``.*.old-*`` and the markers.
+A stage writes into a staging sibling (:func:`staging_directory`) and swaps it into place
+(:func:`publish_directory`, ``renameat2(RENAME_EXCHANGE)`` on Linux, two renames and
+:func:`recover` elsewhere). A folder is replaced only if its :data:`MARKER` lists all it holds
+(or, without one, it holds only the stage's exact names). docs/guarantees.md: the rules, tested.
 """
 
 from __future__ import annotations
@@ -156,9 +134,8 @@ def check_replaceable(
 ) -> None:
     """Raise :class:`ForeignDirectoryError` unless ``out_dir`` may be replaced.
 
-    Call it before any work, so a refused run writes nothing. A missing or empty folder, one
-    whose every entry its marker lists, or one without a marker holding only the exact names
-    ``owned`` (see the module docstring) may be replaced.
+    Call it before any work, so a refused run writes nothing. ``owned``: the exact names a
+    stage wrote before markers (``None`` for a file, else the pattern of a sub-folder's files).
     """
     if any(c in key for key in owned for c in "*?["):
         raise ValueError(f"owned names must be exact names, not patterns: {sorted(owned)}")
@@ -195,9 +172,7 @@ def _alive(pid: int) -> bool:
 def _leftovers(out_dir: Path, kind: str) -> Iterator[tuple[Path, int]]:
     """The project's leftovers ``.<name>.<kind>-<pid>-...`` beside ``out_dir``, with the pid.
 
-    Only a folder that carries the project's marker is one: a staging folder's marker names
-    the folder it was made as; any other must list everything in the folder (an old
-    output folder). A folder with that name and no such marker is the user's.
+    Only folders whose marker names them as staging or lists all they hold; not the user's.
     """
     prefix = f".{out_dir.name}.{kind}-"
     for p in out_dir.parent.glob(f"{prefix}*"):
@@ -213,10 +188,7 @@ def _leftovers(out_dir: Path, kind: str) -> Iterator[tuple[Path, int]]:
 
 
 def recover(out_dir: str | Path) -> None:
-    """Restore ``out_dir`` from an interrupted two-rename publish; remove dead leftovers.
-
-    Leftovers are recognised by the marker the publisher wrote in them, never by name alone.
-    """
+    """Restore ``out_dir`` from an interrupted two-rename publish; remove dead leftovers."""
     out_dir = Path(out_dir)
     if not out_dir.parent.is_dir():
         return
@@ -267,9 +239,7 @@ def _exchange(a: Path, b: Path) -> bool:
 def publish_directory(
     staging: str | Path, out_dir: str | Path, owned: Owned, setting: str = "the output folder"
 ) -> Path:
-    """Put the finished ``staging`` folder in place of ``out_dir`` (see the module docstring).
-
-    The marker written into it lists what ``staging`` holds now: the stage's outputs.
+    """Put the finished ``staging`` folder (its marker lists what it holds) in ``out_dir``'s place.
 
     Raises
     ------

@@ -1,25 +1,16 @@
-"""No credential in what Hydra prints or saves for a job: one callback for every entry point.
+"""No credential in what Hydra prints or saves: one callback for every entry point.
 
-Hydra writes the command's overrides and the composed config to ``<run dir>/.hydra/`` (and
-``multirun.yaml``) before the job starts, prints ``Error executing job with overrides:
-[...]`` and the error itself when it fails, and logs to the console and ``<job>.log``. A
-tracking or storage URL typed with its password would show in all of them.
-:class:`RedactSecrets`, registered under ``hydra.callbacks`` in ``conf/hydra_settings.yaml``
-(which every entry point composes: ``generate``, ``train``, ``evaluate``, ``report``,
-``tune`` and the root shims), passes all of it through
-:func:`~generalist_control.common.secrets.redact`:
-
-* on job start, the saved ``.hydra/*.yaml`` files are rewritten masked, and every logging
-  handler gets a filter that masks each record (message and traceback);
-* on job end, the same files again (``multirun.yaml`` too), the job's overrides (the ones
-  Hydra prints on failure) and its error, which is replaced by
-  :class:`~generalist_control.common.secrets.RedactedError` when any text of it, or of the
-  errors it chains, holds a credential.
+Hydra saves a job's overrides and config (``.hydra/*.yaml``, ``multirun.yaml``), logs the
+jobs of a multirun (``#0 : <overrides>``, reconfiguring logging on the way) and prints a
+failed job's overrides and error. :class:`RedactSecrets` (``conf/hydra_settings.yaml``)
+passes all of it through :func:`~generalist_control.common.secrets.redact`; log records are
+masked when they are made (a record factory), so no handler set up later escapes it.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +22,7 @@ from omegaconf import DictConfig
 
 from generalist_control.common.secrets import redact, redact_exception
 
-__all__ = ["RedactSecrets", "RedactingFilter", "redact_log_handlers", "scrub_hydra_files"]
+__all__ = ["RedactSecrets", "redact_log_records", "redact_record", "scrub_hydra_files"]
 
 
 def _hydra_files() -> list[Path]:
@@ -47,46 +38,67 @@ def _hydra_files() -> list[Path]:
     return [f for f in files if f.is_file()]
 
 
+def _scrub(path: Path) -> None:
+    """Rewrite ``path`` masked, through a temporary file (never half-written)."""
+    text = path.read_text()
+    clean = redact(text)
+    if clean != text:
+        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+        tmp.write_text(clean)
+        os.replace(tmp, path)
+
+
 def scrub_hydra_files() -> None:
     """Rewrite Hydra's saved configs with credentials in URLs masked (``.hydra/*.yaml``)."""
     for path in _hydra_files():
-        text = path.read_text()
-        clean = redact(text)
-        if clean != text:
-            path.write_text(clean)
+        _scrub(path)
 
 
-class RedactingFilter(logging.Filter):
-    """A logging filter that masks credentials in a record's message and traceback."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        """Mask the record in place; never drop it."""
+def redact_record(record: logging.LogRecord) -> logging.LogRecord:
+    """Mask ``record``'s message, traceback and stack text in place; return it."""
+    try:
         message = record.getMessage()
-        clean = redact(message)
-        if clean != message:
-            record.msg, record.args = clean, None
-        if record.exc_info and not record.exc_text:
-            record.exc_text = logging.Formatter().formatException(record.exc_info)
-        if record.exc_text:
-            record.exc_text = redact(record.exc_text)
-        return True
+    except Exception:  # a bad format string: logging reports it when the record is emitted
+        return record
+    clean = redact(message)
+    if clean != message:
+        record.msg, record.args = clean, None
+    if record.exc_info and not record.exc_text:
+        record.exc_text = logging.Formatter().formatException(record.exc_info)
+    if record.exc_text:
+        record.exc_text = redact(record.exc_text)
+    if record.stack_info:
+        record.stack_info = redact(record.stack_info)
+    return record
 
 
-def redact_log_handlers() -> None:
-    """Add a :class:`RedactingFilter` to every handler of every logger (once)."""
-    loggers = [logging.getLogger(), *logging.Logger.manager.loggerDict.values()]
-    for logger in loggers:
-        for handler in getattr(logger, "handlers", ()):
-            if not any(isinstance(f, RedactingFilter) for f in handler.filters):
-                handler.addFilter(RedactingFilter())
+def redact_log_records() -> None:
+    """Mask every log record of this process from now on, whichever handler emits it (once)."""
+    make = logging.getLogRecordFactory()
+    if getattr(make, "redacts", False):
+        return
+
+    def redacting_factory(*args: Any, **kwargs: Any) -> logging.LogRecord:
+        return redact_record(make(*args, **kwargs))
+
+    redacting_factory.redacts = True  # type: ignore[attr-defined]
+    logging.setLogRecordFactory(redacting_factory)
 
 
 class RedactSecrets(Callback):
     """Hydra callback: the job's saved configs, log, overrides and error carry no credential."""
 
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """Mask every log record of the run."""
+        redact_log_records()
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """Mask every log record of the launching process (the launcher's ``#0 : ...``)."""
+        redact_log_records()
+
     def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
-        """Mask the configs Hydra has just saved; mask every log record from now on."""
-        redact_log_handlers()
+        """Mask the configs Hydra has just saved; mask every log record (a launcher's worker)."""
+        redact_log_records()
         scrub_hydra_files()
 
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
@@ -103,4 +115,4 @@ class RedactSecrets(Callback):
         """Mask ``multirun.yaml`` (saved after the sweep started)."""
         path = Path(str(config.hydra.sweep.dir)) / "multirun.yaml"
         if path.is_file():
-            path.write_text(redact(path.read_text()))
+            _scrub(path)

@@ -1,8 +1,7 @@
-"""Strict JSON: non-finite numbers become ``null`` (``json`` would write ``NaN``/``Infinity``).
+"""Strict JSON, written atomically: non-finite numbers become ``null``.
 
-DVC's metrics reader, MLflow and most JSON parsers reject ``NaN`` and ``Infinity``; a
-diverged closed-loop score is therefore written as ``null``. Every JSON file the project
-writes goes through :func:`write_json`, atomically (temporary file, then rename).
+DVC's metrics reader, MLflow and most parsers reject ``NaN``/``Infinity``, so a diverged
+score is written as ``null``; every JSON file the project writes goes through :func:`write_json`.
 """
 
 from __future__ import annotations

@@ -1,8 +1,4 @@
-"""Locations the package needs: the Hydra config directory and the default data directory.
-
-The config directory is ``conf/`` at the repository root (the package is installed in
-editable mode). ``GC_CONF_DIR`` overrides it, e.g. for a copy of the configs elsewhere.
-"""
+"""Locations the package needs: ``conf/`` (``GC_CONF_DIR`` overrides it) and stage commands."""
 
 from __future__ import annotations
 
@@ -20,9 +16,8 @@ GENERATE_COMMAND = "python -m generalist_control.generate  (or: dvc repro genera
 #: The command that trains the default policy (quoted in missing-model errors).
 TRAIN_COMMAND = "python train.py  (or: dvc repro train)"
 
-#: ``config_path`` of every ``@hydra.main``. Absolute on purpose: a relative one resolves
-#: against the *package* (pkg://) when ``main`` is imported rather than run as ``__main__``,
-#: i.e. from the root shims and the console scripts.
+#: ``config_path`` of every ``@hydra.main``; absolute, since a relative one resolves against
+#: the package when ``main`` is imported (the root shims, the console scripts).
 HYDRA_CONFIG_PATH = os.environ.get("GC_CONF_DIR", str(CONF_DIR))
 
 

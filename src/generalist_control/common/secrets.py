@@ -1,12 +1,11 @@
 """Credentials never leave the process: one redaction for every URL that is logged or stored.
 
-Tracking URIs and Optuna storage URLs may carry a password (``scheme://user:secret@host``)
-or a credential in the query (``?password=``, ``access_token=``, ``api_key=``, ``sig=``,
-``X-Amz-Signature=``, ``auth=``, ...: any parameter whose name ends in a password, token,
-secret, key, signature, credential or auth word). :func:`redact` hides it in a string, or in
-every string of a (nested) config, before the value is printed, logged, written to a file or
-sent to MLflow; :func:`redact_exception` does the same for an error and the errors it chains.
-Hydra's own output goes through both (:mod:`generalist_control.common.hydra_redact`).
+A URL may carry a password in its userinfo (``scheme://user:secret@host``, the password of any
+characters, ``/`` and ``@`` included; also without a scheme, ``user:secret@host``) or a
+credential in a query or fragment parameter whose name ends in a secret word (``?token=``,
+``#access_token=``, ``api_key``, ``sig``, ``sas``, ``jwt``, ``code``, ...). :func:`redact`
+masks both in a string, or in every string of a (nested) config, also in Hydra's escaped
+rendering of an override (a backslash before ``:`` and ``=``).
 """
 
 from __future__ import annotations
@@ -21,12 +20,23 @@ __all__ = ["MASK", "RedactedError", "redact", "redact_exception"]
 #: What a password is replaced with (as SQLAlchemy renders a hidden password).
 MASK = "***"
 
-_USERINFO = re.compile(r"(?P<head>[A-Za-z][A-Za-z0-9+.\-]*://[^:/@\s]*):(?P<secret>[^@\s/]*)@")
-#: A query parameter whose name ends in a credential word (``access_token``, ``apikey``, ...).
+# The password runs to the last "@" of its token (a raw "/" or "@" in it is common), never
+# across whitespace, a quote or the next URL's "://"; Hydra escapes ":" and "=" as "\:", "\=".
+_PASSWORD = r"(?P<sep>\\*:)(?P<secret>(?:(?!\\*://)[^\s'\"])*)@"
+_USERINFO = (
+    re.compile(r"(?P<head>[A-Za-z][A-Za-z0-9+.\-]*\\*://[^\s:/@'\"\\]*)" + _PASSWORD),
+    # without a scheme: user:secret@host, not scheme://user@host
+    re.compile(r"(?<![\w.%+\-/:\\@*])(?P<head>[\w.%+\-]+)(?!\\*://)" + _PASSWORD),
+)
+#: A user alone in an http(s) URL is how tokens travel (``https://<token>@host``): masked too.
+_HTTP_USER = re.compile(r"(?P<head>https?\\*://)(?P<user>[^\s:/@'\"\\]+)@", re.I)
+#: A query or fragment parameter whose name ends in a secret word (``access_token``, ``sas``).
+_SECRET_WORDS = (
+    r"pass|passwd|password|passphrase|pwd|token|secret|key|sig|signature|credentials?|auth\w*"
+    r"|sas|jwt|code|pat|bearer|session\w*|cookie"
+)
 _QUERY = re.compile(
-    r"(?P<head>[?&;][\w.\-]*?"
-    r"(?:pass|passwd|password|pwd|token|secret|key|sig|signature|credentials?|auth\w*)=)"
-    r"(?P<secret>[^&;#\s'\"\]]*)",
+    rf"(?P<head>[?&;#][\w.\-]*?(?:{_SECRET_WORDS})s?\\*=)(?P<secret>(?:\\.|[^&;#\s'\"\]\\])*)",
     re.I,
 )
 
@@ -40,11 +50,15 @@ def redact(value: Any) -> Any:
     'postgresql+psycopg2://gc:***@db:5432/optuna'
     >>> redact({"uri": "http://u:p@host/?token=abc&x=1"})
     {'uri': 'http://u:***@host/?token=***&x=1'}
+    >>> redact("https://ghp_abc123@github.com/org/repo.git")
+    'https://***@github.com/org/repo.git'
     >>> redact("https://store/blob?sv=2024&sig=abc%2F&api_key=k1&access_token=t")
     'https://store/blob?sv=2024&sig=***&api_key=***&access_token=***'
     """
     if isinstance(value, str):
-        value = _USERINFO.sub(lambda m: f"{m['head']}:{MASK}@", value)
+        for pattern in _USERINFO:
+            value = pattern.sub(rf"\g<head>\g<sep>{MASK}@", value)
+        value = _HTTP_USER.sub(rf"\g<head>{MASK}@", value)
         return _QUERY.sub(lambda m: f"{m['head']}{MASK}", value)
     if isinstance(value, Mapping):
         return {k: redact(v) for k, v in value.items()}

@@ -1,16 +1,9 @@
 """The demonstration dataset on disk: ``trajectories.parquet`` plus ``manifest.json``.
 
-Trajectories are stored one row per sample (long form); windows are cut at load time by
-:func:`generalist_control.data.windows.build_windows`, and the manifest counts them. Writes
-go to a temporary folder that is swapped into place
-(:func:`generalist_control.common.atomic.publish_directory`), so an interrupted run never
-leaves a half-written or missing dataset, and a folder holding anything else is never
-replaced. Loading checks the manifest against its own digest (``manifest_digest``, over
-every other field: a changed ``dt`` or count is refused), then the dataset against the
-manifest: the file's SHA-256, the table's shape, and the content hash recomputed from the
-arrays, so a changed or spliced file is refused with the command that regenerates it. The
-content hash covers the data alone (arrays and data config), so the same seed gives the same
-hash whatever the manifest records beside it.
+One row per sample; windows are cut at load time by the one window builder. Writes are
+atomic (:mod:`generalist_control.common.atomic`). Loading checks the manifest against its own
+digest, then the file's SHA-256, the table's shape and the content hash recomputed from the
+arrays (data and data config only: the same seed gives the same hash).
 """
 
 from __future__ import annotations
@@ -55,8 +48,7 @@ DIGEST = "manifest_digest"  # the manifest's field that seals all the others
 FORMAT_VERSION = 2  # 2: a family per trajectory
 
 
-#: What a dataset folder holds; without the outputs marker (a dataset written before markers,
-#: :mod:`generalist_control.common.atomic`), a folder of only these may be replaced.
+#: What a dataset folder holds (a folder without a marker holding only these may be replaced).
 OWNED: dict[str, str | None] = {TRAJECTORIES: None, MANIFEST: None}
 
 
@@ -85,8 +77,7 @@ class DemoSet:
     family : ndarray of str, shape (B,)
         The demonstration family of each trajectory (``steps``, ``staircase``, ...).
     variant : ndarray of int, shape (B,), optional
-        With ``data.variants``: 0 for the nominal plant, ``i`` for its ``i``-th variant
-        (:mod:`generalist_control.data.variants`); None (no column) otherwise.
+        With ``data.variants``: 0 for the nominal plant, ``i`` for its ``i``-th variant.
     """
 
     x: np.ndarray
@@ -104,12 +95,7 @@ class DemoSet:
     def windows(
         self, history: int, horizon: int, integral: bool = False, controls: bool = False
     ) -> Windows:
-        """All training windows of the set.
-
-        With ``integral``, the error integral is a state channel (see
-        :func:`~generalist_control.data.windows.integral_of_error`); with ``controls``, the
-        expert's control one sample earlier is the last channel.
-        """
+        """All training windows of the set, with the ``integral`` and ``controls`` channels."""
         z = integral_of_error(self.r, self.y, self.dt) if integral else None
         return build_windows(
             self.x, self.r, self.u, self.tag, self.order, history, horizon, z, controls
@@ -241,19 +227,14 @@ def _read_manifest(data_dir: Path) -> dict[str, Any]:
 
 
 def load_demos(data_dir: str | Path, verify: bool = True) -> tuple[DemoSet, dict[str, Any]]:
-    """Read and verify the dataset written by the ``generate`` stage.
-
-    The manifest's ``content_hash`` is recomputed from the arrays read (and the data
-    config it records); the returned manifest carries it as ``content_hash``.
+    """Read and verify the dataset; the manifest returned carries the recomputed ``content_hash``.
 
     Raises
     ------
     MissingDataError
-        If the directory, its manifest or its trajectories are missing, with the command
-        that creates them.
+        The directory, its manifest or its trajectories are missing (with the command).
     CorruptDataError
-        If the file's SHA-256, the table's shape or the content hash disagree with the
-        manifest, with the command that regenerates it.
+        The file's SHA-256, the table's shape or the content hash disagree with the manifest.
     """
     data_dir = Path(data_dir)
     manifest = _read_manifest(data_dir)

@@ -1,19 +1,9 @@
 """The one window builder shared by training, evaluation and deployment.
 
-A window at sample ``k`` holds the last ``history`` samples ``k - history + 1 .. k`` of the
-state (zero-padded to :data:`~generalist_control.plants.plant.MAX_ORDER` and masked) and of the
-reference, the plant's tag, and, for training, the next ``horizon`` expert controls
-``u[k] .. u[k + horizon - 1]``. Optionally (the ``integral`` channel, our recipe) the state
-gets one more channel after the padded plant state: the integral of the tracking error
-``z[k] = z[k-1] + dt (r[k-1] - y[k-1])``, ``z[0] = 0``, exactly the LQI expert's own
-integrator (:func:`integral_of_error`), so the window holds the expert's augmented state
-``[x; z]``. Optionally (the ``previous_control`` channel, issue 13's tag-free policy) one more
-channel after that holds the control applied one sample earlier, ``u[k-1]`` (zero at
-``k = 0``, :func:`previous_controls`), so the window pairs each state change with the
-control that caused it and the plant can be identified from the history. Before the first
-sample the history repeats the first
-sample (the runtime fills its buffer the same way on its first step), so every sample
-``k = 0 .. N - horizon`` of a trajectory of ``N`` samples yields a window.
+A window at sample ``k`` holds samples ``k - history + 1 .. k`` of the zero-padded, masked
+state and of the reference, and for training the next ``horizon`` expert controls. Optional
+channels after the state: the error integral (the LQI expert's own integrator, so the window
+holds its ``[x; z]``) and the previous control. The first sample is repeated before a start.
 """
 
 from __future__ import annotations
@@ -71,20 +61,10 @@ def windows_per_trajectory(n_samples: int, horizon: int) -> int:
 
 
 def integral_of_error(r: np.ndarray, y: np.ndarray, dt: float) -> np.ndarray:
-    """The LQI expert's forward-Euler error integrator before each sample's control.
+    """The LQI expert's forward-Euler error integrator (B, N) before each sample's control.
 
-    ``z[:, 0] = 0`` and ``z[:, k] = z[:, k - 1] + dt (r[:, k - 1] - y[:, k - 1])``, summed in
-    float64 in the same order as :class:`~generalist_control.simulation.lqi.LQIController` does.
-
-    Parameters
-    ----------
-    r, y : ndarray, shape (B, N)
-        Reference and measured output deviations.
-    dt : float
-
-    Returns
-    -------
-    ndarray, float64, shape (B, N)
+    ``z[:, 0] = 0``, ``z[:, k] = z[:, k - 1] + dt (r[:, k - 1] - y[:, k - 1])`` in float64,
+    in :class:`~generalist_control.simulation.lqi.LQIController`'s order; ``r``, ``y`` (B, N).
     """
     r = np.asarray(r, dtype=np.float64)
     inc = float(dt) * (r - np.asarray(y, dtype=np.float64))
@@ -95,16 +75,7 @@ def integral_of_error(r: np.ndarray, y: np.ndarray, dt: float) -> np.ndarray:
 
 
 def previous_controls(u: np.ndarray) -> np.ndarray:
-    """The control applied one sample earlier: ``u[:, k - 1]``, zero at ``k = 0``.
-
-    Parameters
-    ----------
-    u : ndarray, shape (B, N)
-
-    Returns
-    -------
-    ndarray, float64, shape (B, N)
-    """
+    """The control applied one sample earlier: ``u[:, k - 1]``, zero at ``k = 0`` (float64)."""
     u = np.asarray(u, dtype=np.float64)
     prev = np.zeros_like(u)
     prev[:, 1:] = u[:, :-1]
@@ -128,7 +99,6 @@ def history_windows(
     r : ndarray, shape (B, N)
     order : ndarray of int, shape (B,)
         Number of real state entries of each trajectory.
-    history : int
     z : ndarray, shape (B, N), optional
         Error integral (:func:`integral_of_error`), appended as a state channel.
     u_prev : ndarray, shape (B, N), optional
@@ -156,11 +126,7 @@ def history_windows(
 
 
 def validity_mask(order: np.ndarray, integral: bool = False, controls: bool = False) -> np.ndarray:
-    """Float32 (B, width): one for the real state entries of each order, zero for padding.
-
-    With ``integral`` and ``controls`` the width grows by one each, and those extra entries
-    (error integral, previous control) are one.
-    """
+    """Float32 (B, width): one for the real state entries and the channels, zero for padding."""
     valid = np.arange(MAX_ORDER) < np.asarray(order)[:, None]
     extra = int(integral) + int(controls)
     if extra:
@@ -171,25 +137,11 @@ def validity_mask(order: np.ndarray, integral: bool = False, controls: bool = Fa
 class HistoryBuffer:
     """The newest ``history`` samples of ``B`` running trajectories, for online stepping.
 
-    Gives, at every sample, exactly the last window :func:`history_windows` would build
-    from the whole trajectory so far (the first sample repeated in front until the history
-    is full), without rebuilding it: the deployment path of the one window builder.
-
-    :meth:`push` appends a sample. :meth:`stage` builds the window that pushing would give
-    without changing the buffer, and :meth:`commit` then makes it the newest, so a caller
-    can check the window (and what the policy makes of it) and drop it on failure. Both
-    write into preallocated arrays (two of each, swapped on commit): no allocation per
-    sample. :meth:`stage_one` stages the same window for a buffer of one trajectory from
-    plain numbers (the runtime's per-sample path for one plant).
-
-    Parameters
-    ----------
-    order : ndarray of int, shape (B,)
-    history : int
-    integral : bool
-        Keep the error integral as a state channel (``push(x, r, z)``).
-    controls : bool
-        Keep the previous control as the last channel (``push(x, r, z, u_prev)``).
+    At every sample, exactly the last window :func:`history_windows` would build from the
+    trajectory so far: the deployment path of the one window builder. :meth:`stage` builds
+    the window :meth:`push` would give and :meth:`commit` keeps it, so a caller can drop a
+    window on failure; both write into preallocated arrays, swapped on commit. ``integral``
+    and ``controls`` keep those channels (``push(x, r, z, u_prev)``).
     """
 
     def __init__(
@@ -244,12 +196,9 @@ class HistoryBuffer:
     def stage_one(
         self, x: np.ndarray, r: float, z: float = 0.0, u_prev: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`stage` for a buffer of one trajectory, writing the same window.
+        """:meth:`stage` for a buffer of one trajectory from plain numbers, unchecked.
 
-        ``x`` (n,): the real states only (``n`` the trajectory's order; the padding stays
-        zero, as the mask makes it in :meth:`stage`); ``r``, ``z``, ``u_prev``: numbers,
-        ``z`` and ``u_prev`` used where the buffer keeps them. Returns ``(state, ref)``;
-        the mask is :attr:`mask`. For the runtime's per-sample path: no argument checks.
+        ``x`` (n,): the real states only (the padding stays zero). Returns ``(state, ref)``.
         """
         (shift, older, row_x, row, ref_shift, ref_older, ref_row), _ = (
             self._views or self._one_views()
@@ -270,11 +219,7 @@ class HistoryBuffer:
         return self._next_state, self._next_ref
 
     def _one_views(self) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
-        """Views :meth:`stage_one` writes through, staging into each set of arrays in turn.
-
-        Made once (slicing costs more than the copies of a sample): for the arrays staged
-        into next and for the others, swapped by :meth:`commit`.
-        """
+        """Views :meth:`stage_one` writes through, one per set of arrays, made once."""
         order = int(self.mask[0, 0, :MAX_ORDER].sum())
         w = self.mask.shape[-1]
 
@@ -307,12 +252,9 @@ class HistoryBuffer:
         z: np.ndarray | None = None,
         u_prev: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Append zero-padded states ``x`` (B, MAX_ORDER) and references ``r`` (B,).
+        """Append states ``x`` (B, MAX_ORDER), references ``r``, integrals ``z``, ``u_prev`` (B,).
 
-        With ``integral``, also the error integrals ``z`` (B,) before this sample; with
-        ``controls``, the controls ``u_prev`` (B,) applied at the sample before.
-        Returns the newest window ``(state, mask, ref)``: float32 (B, history, width),
-        (B, history, width) and (B, history); the state is masked.
+        Returns the newest window ``(state, mask, ref)``, float32, the state masked.
         """
         self.stage(x, r, z, u_prev)
         self.commit()
@@ -347,14 +289,10 @@ def build_windows(
         Zero-padded states at each sample.
     r, u : ndarray, shape (B, N)
         Reference and expert control at each sample.
-    tag, order : ndarray of int, shape (B,)
-    history, horizon : int
     z : ndarray, shape (B, N), optional
-        Error integral before each sample (:func:`integral_of_error`); given, it becomes
-        a state channel.
+        Error integral (:func:`integral_of_error`), a state channel when given.
     controls : bool
-        The control applied one sample earlier (:func:`previous_controls` of ``u``) becomes
-        the last channel.
+        The previous control (:func:`previous_controls` of ``u``) is the last channel.
 
     Returns
     -------

@@ -1,21 +1,7 @@
-r"""Two cascaded tanks with Torricelli outflow (nonlinear).
+"""Two cascaded tanks with Torricelli outflow ``q = a sqrt(2 g h)`` (nonlinear).
 
-A pump fills the upper tank; it drains through an orifice into the lower tank, which drains
-through its own orifice to a reservoir. Bernoulli/Torricelli gives the orifice flow
-``q = a sqrt(2 g h)``, so
-
-.. math::
-    A_1 \dot h_1 = q_{in} - a_1 \sqrt{2 g h_1}, \qquad
-    A_2 \dot h_2 = a_1 \sqrt{2 g h_1} - a_2 \sqrt{2 g h_2},
-
-the standard cascaded-tank model (e.g. K. H. Johansson, "The quadruple-tank process",
-IEEE Trans. Control Syst. Technol. 8(3), 2000, one side of it; K. J. Astrom and
-R. M. Murray, *Feedback Systems*, 2008). Units: levels in cm, areas in cm^2, flows in
-cm^3/s, ``g = 981`` cm/s^2. Levels are clipped at zero inside the square root (an empty
-tank has no outflow); the plant file picks an operating point far from that.
-
-The linearisation at the level ``h_i`` has the time constant
-``T_i = (A_i / a_i) sqrt(2 h_i / g)``.
+``A1 h1' = q_in - q1``, ``A2 h2' = q1 - q2``; levels in cm, areas in cm^2, flows in cm^3/s.
+A level below zero has no outflow. Linearised at ``h_i``: ``T_i = (A_i / a_i) sqrt(2 h_i / g)``.
 """
 
 from __future__ import annotations

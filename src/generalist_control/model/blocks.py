@@ -27,12 +27,9 @@ class SummaryAttention(nn.Module):
 
     Notes
     -----
-    As in the paper the tokens are the temporal summary ``z`` alone (one token per window),
-    so the softmax over a single key is identically one and every head's output is its
-    value: :meth:`forward` computes ``z + W_O V z``, to the bit what the attention kernel
-    gives (tests/test_model.py), without the kernel (a tenth of a training step). The query
-    and key projections are kept for fidelity with the paper (and its parameter count);
-    they receive zero gradient.
+    As in the paper the one token is ``z``, so the softmax over one key is 1 and
+    :meth:`forward` computes ``z + W_O V z`` (the kernel's output to the bit). Q and K are
+    kept for the paper's parameter count; they get zero gradient.
     """
 
     def __init__(self, dim: int, heads: int) -> None:

@@ -1,9 +1,8 @@
 """Build the network from its config (``conf/model``, or the copy a policy file stores).
 
-The config is Hydra's: ``hydra.utils.instantiate`` builds it. Each nested part is a partial
-(``_partial_: true``) that the network calls with its sizes. A policy file stores the
-resolved config as plain types, and only classes of :mod:`generalist_control.model` may be
-named, so loading one cannot make the loader call anything else.
+Hydra's ``instantiate`` builds it, each nested part a partial the network calls with its
+sizes. Only classes of :mod:`generalist_control.model` may be named, so loading a policy
+file cannot make the loader call anything else.
 """
 
 from __future__ import annotations

@@ -1,9 +1,4 @@
-"""A one-tensor view of a :class:`~generalist_control.model.policy.Policy` for MLflow.
-
-MLflow's PyTorch flavour and its model signature take one input array; :class:`FlatPolicy`
-takes the window's state, mask and reference history and the tag as the columns of
-:func:`flat_columns`.
-"""
+"""A one-tensor view of a policy for MLflow, whose PyTorch flavour takes one input array."""
 
 from __future__ import annotations
 
@@ -15,11 +10,7 @@ __all__ = ["FlatPolicy", "flat_columns"]
 
 
 def flat_columns(history: int, state_dim: int) -> list[str]:
-    """Column names of :class:`FlatPolicy`'s input (``k = 0`` is the oldest sample).
-
-    ``state_dim`` is the state input's width (the padded plant state, then the channels of
-    ``model.channels``: the error integral, the previous control).
-    """
+    """Column names of :class:`FlatPolicy`'s input (``k = 0``: the oldest sample)."""
     cols = [f"state_{k}_{i}" for k in range(history) for i in range(state_dim)]
     cols += [f"mask_{k}_{i}" for k in range(history) for i in range(state_dim)]
     cols += [f"ref_{k}" for k in range(history)]
@@ -27,12 +18,7 @@ def flat_columns(history: int, state_dim: int) -> list[str]:
 
 
 class FlatPolicy(nn.Module):
-    """One-tensor view of a :class:`Policy` for MLflow's PyTorch flavour.
-
-    Input: float32 (B, 2 * history * width + history + 1) (``width``:
-    :attr:`Policy.width <generalist_control.model.policy.Policy.width>`), columns
-    :func:`flat_columns` (state, mask, reference, tag). Output: controls (B, horizon).
-    """
+    """Input float32 (B, 2 T width + T + 1) in :func:`flat_columns`; output (B, horizon)."""
 
     def __init__(self, policy: Policy) -> None:
         super().__init__()

@@ -1,15 +1,8 @@
 """A trained policy grown by one plant: a new tag, its embedding row and its normaliser scales.
 
-Adding a plant to a trained policy (``python -m generalist_control.adapt``,
-``docs/training.md``) learns one thing, the new plant's row of the tag embedding
-(``model.plant``: :class:`~generalist_control.model.plant.TagEmbedding`). This module makes
-the policy that row lives in: ``model.plant.n_tags`` one larger, every trained parameter and
-buffer copied bit for bit, the new row started where the caller says, and the normaliser's
-new row set to the RMS scales of the new plant's windows (as training sets every row).
-
-A tag-free policy (:class:`~generalist_control.model.plant.InferredPlant`) has no row to
-learn for a new plant; it only needs the plant's normaliser scales, on a row no trained
-plant uses (:func:`with_scales`).
+Every trained parameter and buffer is copied bit for bit; the new row starts where the caller
+says and its scales are the RMS of the plant's windows, as training sets every row. A
+tag-free policy needs only the scales, on a free row (:func:`with_scales`).
 """
 
 from __future__ import annotations

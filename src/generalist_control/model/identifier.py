@@ -1,34 +1,9 @@
 """The transition-set identifier of :class:`~generalist_control.model.plant.InferredPlant`.
 
-Reads the plant from the window's one-step transitions ``(x_j, u_j, x_(j+1) - x_j)``, each
-encoded alone by a shared MLP and averaged over the window (a DeepSets encoder, Zaheer et
-al. 2017), then mapped to the identifier's state. A transition depends on the plant only,
-not on the controller that chose ``u_j``; an LSTM over the window can also learn the shape
-of the expert's closed loop, which the policy's own loop does not reproduce. The average is
-over every transition of the window, so a few odd samples move it little; a longer window
-(``data.history``, the law reading only the newest ``model.law_history``) holds more.
-
-With one-step models (``models``) the identifier also weighs each plant's hypothesis against
-the window: every plant has a linear one-step model ``x_(j+1) - x_j = A_p x_j + b_p u_j +
-c_p``, its parameters a shared linear map of the plant's learned embedding row (nothing in
-it is indexed by plant but through the embedding, and nothing is fitted to an expert), and
-its evidence is ``-1/2 log`` of the model's mean squared residual over the window's
-transitions: Gaussian residuals of unknown variance give a likelihood that falls with that
-residual, whoever chose the controls. The models are trained to fit the true plant's
-transitions (:meth:`TransitionModels.fit_loss`) beside the identity head's cross-entropy.
-With ``input_gain`` each model's input column ``b_p`` is scaled by the gain
-within that range that fits the window best (closed-form least squares from the same
-moments): a plant whose actuator delivers 80 % of the control is still the plant whose
-model explains its window, where a fixed ``b_p`` leaves the identity to a near neighbour.
-
-Two more mismatches of a real actuator can be fitted the same way. With
-``lags`` the control a model sees is ``u_j + a (u_(j-1) - u_j)``, the
-lag ``a`` the one of ``lags`` that fits best: a first-order motor lag of time
-constant ``tau`` delivers, over a sample ``T``, about that mix with ``a`` rising to 0.5 at
-``tau = 0.6 T`` (the sim-to-real stand-in's 30-ms motor at 50-ms samples). With
-``offset`` a constant ``d`` joins the control, ``b_p (g u + d)``: a
-constant input disturbance (a heavier vehicle's unbalanced weight, an actuator bias), the
-one LQI's integral rejects, which otherwise leaves the plant's model a residual at rest.
+Reads the plant from the window's one-step transitions, each encoded alone and averaged (a
+DeepSets encoder): a transition depends on the plant, not on the controller. Optionally
+each plant's linear one-step model weighs its hypothesis against the window, with a fitted
+input gain, lag and offset. Why and how: docs/notes/transition-identifier.md.
 """
 
 from __future__ import annotations
@@ -67,12 +42,8 @@ class TransitionSet(nn.Module):
 
     Notes
     -----
-    The window's last channel is the control applied one sample earlier
-    (``previous_control`` in ``model.channels``), so the control that took sample ``j`` to
-    ``j + 1`` is that
-    channel at ``j + 1``. ``m`` is the plant's order mask (padding and the mask carry the
-    order). Samples the history repeats before the first one give ``x_(j+1) = x_j`` under
-    the control 0: seen identically in training and at run time (the one window builder).
+    ``u_j`` is the window's last channel (``previous_control``) at ``j + 1``; ``m`` is the
+    plant's order mask.
 
     Examples
     --------
@@ -137,11 +108,7 @@ class TransitionSet(nn.Module):
         return self.models(x, dx, u, rows, u_prev=state[:, :-1, -1])
 
     def read(self, state: Tensor, mask: Tensor, rows: Tensor | None, noise: float = 0.0) -> Tensor:
-        """The identifier's state of windows; with ``noise`` > 0 of noisy copies of them.
-
-        The copies get white noise on their plant states (:func:`noisy_states`); the
-        models' fit (:meth:`TransitionModels.fit_loss`) reads their evidence on those copies.
-        """
+        """The identifier's state of windows; with ``noise`` > 0, of noisy copies of them."""
         if noise > 0:
             state = noisy_states(state, mask, noise, self.state_dim)
         return self(state, mask, rows)
@@ -157,25 +124,18 @@ class TransitionModels(nn.Module):
     embedding : int
         Size of a plant's embedding row.
     eps : float
-        Added to the mean squared residual (normalised units): a window without motion
-        gives every plant the same evidence.
+        Added to the mean squared residual: a window without motion gives every plant the
+        same evidence.
     input_gain : sequence of two floats, optional
-        The range of the fitted input gain (e.g. ``[0.75, 1.25]``: the variants' +-25 %);
-        None: 1.
+        The range of the fitted input gain (e.g. ``[0.75, 1.25]``); None: 1.
     lags : sequence of float
-        The input lags tried (e.g. 0, 0.1, ..., 0.6: a first-order actuator of time constant
-        up to about the sample period); each model keeps the one that fits its window best.
-        ``(0.0,)``: none.
+        The input lags tried, the best kept per model; ``(0.0,)``: none.
     offset : bool
         Fit a constant input disturbance ``d``.
 
     Notes
     -----
-    ``theta_p = W e_p + w`` holds ``A_p`` (``state_dim``^2), ``b_p`` and ``c_p``; zero at
-    initialisation, so every plant starts with the same evidence and the network with the
-    identifier's view alone. Residuals are taken on every padded entry of the masked
-    window: a plant's model learns to predict nothing in the entries its order pads, so a
-    lower-order plant's model cannot fit a higher-order window by ignoring its last states.
+    ``theta_p = W e_p + w`` holds ``A_p``, ``b_p`` and ``c_p``, zero at initialisation.
 
     Examples
     --------
@@ -235,30 +195,16 @@ class TransitionModels(nn.Module):
     def residual(
         self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None = None
     ) -> Tensor:
-        """Each plant's mean squared residual (B, plants) over the transitions.
+        """Each plant's mean squared residual (B, plants), at its best gain, lag and offset.
 
-        From the window's second moments of ``z = [x; u; 1]`` and ``dx``, never forming
-        every plant's prediction (:meth:`predict`): ``|dx|^2 - 2 tr(Theta S_zd) +
-        tr(Theta S_zz Theta^T)``, about 1.5x cheaper a training step. In float64: the sum
-        cancels where a model fits, where float32 would leave the rounding of the window's
-        energy in place of the residual; clamped at 0. With :attr:`input_gain` each model's
-        input column is scaled by the gain within that range that fits the window best
-        (:meth:`gain`); with :attr:`lags` (``u_prev``, the control one transition earlier,
-        is then needed) the control is the best-fitting mix ``u + a (u_prev - u)``; with
-        :attr:`offset` a constant ``d`` joins it.
+        :attr:`lags` need ``u_prev``, the control one transition earlier.
         """
         return self._fit(x, dx, u, rows, u_prev)[0]
 
     def gain(
         self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None = None
     ) -> Tensor:
-        """Each model's input gain (B, plants) on the window: 1 without :attr:`input_gain`.
-
-        The least-squares scale ``g`` of ``b_p u`` against what the rest of the model leaves,
-        ``dx - A_p x - c_p``, clipped to :attr:`input_gain`: an actuator whose gain is off
-        leaves the plant's model its evidence (a window without control: 1). At the lag
-        that fits best (:attr:`lags`).
-        """
+        """Each model's least-squares input gain (B, plants) within :attr:`input_gain` (else 1)."""
         return self._fit(x, dx, u, rows, u_prev)[1]
 
     def _fit(
@@ -266,15 +212,10 @@ class TransitionModels(nn.Module):
     ) -> tuple[Tensor, Tensor]:
         """Residual and gain (B, plants), at the best of :attr:`lags` (least residual).
 
-        From the window's second moments of ``z = [x; u; 1; u_prev]`` and ``dx``, never
-        forming every plant's prediction (:meth:`predict`). Without a fitted input (gain,
-        lag or offset): ``|dx|^2 - 2 tr(Theta S_zd) + tr(Theta S_zz Theta^T)``. With one,
-        that sum for the model without its input column leaves ``r = dx - A_p x - c_p``,
-        and ``b_p (g u_a + d)`` is fitted to it in closed form; every lag's mix
-        ``u_a = u + a (u_prev - u)`` enters only through the moments of ``b_p . r`` with
-        ``u`` and ``u_prev`` and of the two controls, so all lags cost little more than one.
-        In float64: the sum cancels where a model fits, where float32 would leave the
-        rounding of the window's energy in place of the residual; clamped at 0.
+        From the window's second moments of ``z = [x; u; 1; u_prev]`` and ``dx``:
+        ``|dx|^2 - 2 tr(Theta S_zd) + tr(Theta S_zz Theta^T)``; with a fitted input, that of
+        the model without its input column, ``b_p (g u_a + d)`` then fitted in closed form.
+        In float64, since the sum cancels where a model fits; clamped at 0.
         """
         n = self.state_dim
         fitted_input = self.input_gain is not None or self.offset or self.lags != (0.0,)

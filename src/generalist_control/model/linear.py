@@ -1,15 +1,8 @@
 """Linear paths added to the experts' output (ours): ``model.skip``.
 
-They read the newest ``samples`` samples of the law's window (:func:`linear_features`: the
-state ``[x; z]`` and the reference). With the error-integral channel the LQI law is linear
-in the newest augmented state alone, so one sample lets such a path carry the feedback
-exactly and leaves the experts the rest.
-
-* :class:`LinearSkip` (the default): gains computed from the plant's code by one layer
-  shared by every plant, so nothing in it is indexed by plant.
-* :class:`ContextSkip` (without the tag): the gains' input also sees a projection of the
-  window's summary, and the gains are scaled by ``exp(s)``, ``s`` learned from that input,
-  so a plant inferred from its history gets gains over the ~200x range LQI's span.
+They read the newest ``samples`` of the law's window (the state ``[x; z]`` and reference).
+With the error integral the LQI law is linear in the newest augmented state alone, so one
+sample lets such a path carry the feedback exactly and leaves the experts the rest.
 """
 
 from __future__ import annotations
@@ -23,11 +16,7 @@ __all__ = ["ContextSkip", "LinearSkip", "linear_features"]
 
 
 def linear_features(state: Tensor, ref: Tensor, samples: int) -> Tensor:
-    """The newest ``samples`` of the law's state ``[x; z]`` (B, T, w) and reference (B, T).
-
-    Returns (B, samples * (w + 1)): the states, flattened sample by sample, then the
-    references.
-    """
+    """The newest ``samples`` of the state ``[x; z]`` (B, T, w), flattened, then of ``ref``."""
     return torch.cat([state[:, -samples:].flatten(1), ref[:, -samples:]], dim=1)
 
 
@@ -44,17 +33,9 @@ def _samples(key: str, samples: int, history: int) -> int:
 class LinearSkip(nn.Module):
     """``u += G(code) w``: gains ``G = A code + b`` from the plant's code, ``A, b`` shared.
 
-    Parameters
-    ----------
-    dim, horizon, width, history, summary : int
-        Given by the network: code size, controls, law state width, samples the law reads,
-        size of the window's summary (not read here: see :class:`ContextSkip`).
-    samples : int
-        How many of the newest samples ``w`` holds (1 with the error integral).
-
-    Notes
-    -----
-    Zero at initialisation: training starts from the paper's network.
+    ``dim``, ``horizon``, ``width``, ``history`` and ``summary`` (read by
+    :class:`ContextSkip` only) are given by the network; ``samples``: how many of the newest
+    samples ``w`` holds. Zero at initialisation: training starts from the paper's network.
     """
 
     def __init__(
@@ -86,16 +67,9 @@ class LinearSkip(nn.Module):
 class ContextSkip(LinearSkip):
     """A :class:`LinearSkip` whose gains also read the window's summary, scaled by ``exp(s)``.
 
-    Parameters
-    ----------
-    dim, horizon, width, history, samples
-        As :class:`LinearSkip`.
-    summary : int
-        Size of the summary the gains read (given by the network: the law's ``2 hidden``
-        and what the plant part read).
-    gain_range : float
-        ``s = gain_range tanh(s' / gain_range)``, ``s'`` a learned linear function of the
-        gains' input (zero at first): the gains move within a factor ``e^gain_range``.
+    A plant inferred from its history thus gets gains over the ~200x range LQI's span:
+    ``s = gain_range tanh(s' / gain_range)``, ``s'`` learned from the gains' input (zero at
+    first), so the gains move within a factor ``e^gain_range``.
     """
 
     def __init__(

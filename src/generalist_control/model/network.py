@@ -1,25 +1,9 @@
 """The Generalist Controller network (paper, Section 4), composed from named parts.
 
-One forward pass maps a window of normalised inputs to ``horizon`` normalised controls:
-
-1. *Feature encoding*, per time step of the window: two state encoders on the masked,
-   zero-padded state ``X * M``, a reference encoder and a plant encoder of the plant's code
-   (a row of the learned tag embedding: ``model.plant``), each a two-layer ReLU MLP with
-   output size ``hidden // 2``, concatenated into ``2 * hidden`` features per step.
-2. *Temporal processing*: an LSTM over every step and a second LSTM over the steps
-   subsampled with stride ``stride`` (ending at the newest), both of size ``hidden``; their
-   final hidden states form ``z`` (``2 * hidden``), then multi-head attention with a
-   residual, ``z + W_O a(z)``.
-3. *Mixture of experts*: ``experts`` three-layer MLPs (ReLU, LayerNorm after each hidden
-   layer) each give ``horizon`` controls; a softmax gate on ``z_att`` weighs them.
-
-Parts chosen in config (``conf/model``; each a partial that the network calls with its
-sizes): the plant part (:mod:`~generalist_control.model.plant`) and an optional skip path
-(:mod:`~generalist_control.model.linear`) added to the output.
-Inputs of ours: ``channels`` (the error integral, the previous control) and per-window
-scaling. Normalisation is not here: :class:`~generalist_control.model.policy.Policy` wraps
-the network with the fitted normaliser. Where the paper is silent (``docs/training.md``):
-``d_k = ceil(2 d_h / N_h)`` per head, and the one-hot tag is an embedding lookup.
+Per step, state, reference and plant encoders; a fast and a strided LSTM; attention with a
+residual; a softmax-gated mixture of experts giving ``horizon`` normalised controls. Parts
+chosen in ``conf/model``: the plant part and an optional skip path; ours besides: extra
+``channels`` and per-window scaling. Where the paper is silent: docs/training.md.
 """
 
 from __future__ import annotations
@@ -39,9 +23,8 @@ from generalist_control.plants.plant import MAX_ORDER
 
 __all__ = ["CHANNELS", "WINDOW_SCALE_FLOOR", "GeneralistNetwork", "count_parameters"]
 
-#: The window's extra state channels, in their order after the plant's padded state:
-#: the integral of the tracking error (as the LQI expert keeps it) and the control applied
-#: one sample earlier (read by an inferred plant's identifier only).
+#: The window's extra state channels, in order after the padded state: the tracking-error
+#: integral (as the LQI expert keeps it), the previous control (an identifier's input).
 CHANNELS = ("integral", "previous_control")
 
 #: Smallest window scale (normalised units): a window at rest maps to inputs near zero.
@@ -63,7 +46,7 @@ def _channels(channels: Sequence[str]) -> tuple[str, ...]:
 
 
 class GeneralistNetwork(nn.Module):
-    """The network of the paper on *normalised* inputs (see the module docstring).
+    """The network of the paper on *normalised* inputs (docs/training.md).
 
     Parameters
     ----------
@@ -86,8 +69,7 @@ class GeneralistNetwork(nn.Module):
 
     Notes
     -----
-    Each sample's state is the plant's, zero-padded to
-    :data:`~generalist_control.plants.plant.MAX_ORDER` entries, then the channels.
+    Each sample's state is the plant's, zero-padded to ``MAX_ORDER`` entries, then the channels.
 
     Examples
     --------
@@ -174,9 +156,7 @@ class GeneralistNetwork(nn.Module):
     def scaled_inputs(self, state: Tensor, ref: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Each window divided by its peak (at least :data:`WINDOW_SCALE_FLOOR`), and the peaks.
 
-        The LQI law is linear, so its step responses from rest are proportional to the step:
-        scaled windows of every amplitude coincide and the error is relative to the signal.
-        Without window scaling the scale is one.
+        The LQI law is linear, so scaled step responses of every amplitude coincide.
         """
         if not self.window_scale:
             return state, ref, torch.ones_like(ref[:, :1])

@@ -18,8 +18,7 @@ class PlantReading:
     logits : Tensor or None, shape (B, n_tags)
         The identity head's logits over the training plants (None: a part without one).
     summary : Tensor, shape (B, features)
-        The identifier's state (its one-step models' evidence last, where it has them):
-        what a context skip reads beside the law's summary.
+        The identifier's state (with its models' evidence last): what a context skip reads.
     evidence : Tensor or None, shape (B, n_tags)
         Each plant's one-step model's evidence on the window (None without models).
     """
@@ -36,8 +35,7 @@ class NetOutput:
     Attributes
     ----------
     control : Tensor, shape (B, horizon)
-        The control sequence in normalised units divided by the window scale: what the
-        imitation loss compares with the target divided by :attr:`scale`.
+        The controls in normalised units divided by the window scale.
     gates : Tensor, shape (B, experts)
         The mixture's softmax gate weights (rows sum to one).
     scale : Tensor, shape (B, 1)

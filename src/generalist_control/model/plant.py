@@ -41,11 +41,15 @@ class PlantPart(nn.Module):
         Size of what it adds to a context skip's summary.
     n_tags : int
         System tags ``0 .. n_tags - 1``: the training plants.
+    reads_tag : bool
+        Whether the code is the tag's row (a new plant then needs one: ``adapt``).
     """
 
     needs: tuple[str, ...] = ()
     summary_size = 0
     n_tags: int
+    #: The code is the tag's row: a new plant needs a row of its own (``adapt``).
+    reads_tag = True
 
     def loss(self, reading: PlantReading | None, tag: Tensor) -> tuple[Tensor, Tensor] | None:
         """The part's own training term: ``(logged, weighted)``, or None where it has none.
@@ -114,6 +118,8 @@ class InferredPlant(PlantPart):
     """
 
     needs: tuple[str, ...] = ("previous_control",)
+    #: The tag is a training label only: a new plant needs no row (``adapt``).
+    reads_tag = False
 
     def __init__(
         self,

@@ -59,7 +59,7 @@ def load_plant(name: str) -> Plant:
     if not path.is_file():
         raise _unknown(name, available_plants())
     cfg = cast(dict[str, Any], OmegaConf.to_container(OmegaConf.load(path), resolve=True))
-    return plant_from_config(name, cfg)
+    return plant_from_config(name, cfg, path)
 
 
 def plants_from_config(systems: DictConfig | Mapping[str, Any]) -> list[Plant]:

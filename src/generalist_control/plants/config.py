@@ -1,14 +1,18 @@
 """Building a :class:`~generalist_control.plants.plant.Plant` from its configuration.
 
-Every field of ``conf/plants/<name>.yaml`` is checked here (see ``conf/plants/README.md``
-for the schema); fitness for LQI (stabilisability, no zero at s = 0) is checked by
+Every field of ``conf/plants/<name>.yaml`` is checked here, once (``conf/plants/README.md``
+has the schema): the name, the tag, every number finite and within +-:data:`MAX_ENTRY`;
+fitness for LQI (stabilisability, no zero at s = 0) is checked by
 :func:`generalist_control.simulation.lqi.design_lqi`.
 """
 
 from __future__ import annotations
 
 import importlib
+import numbers
+import re
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,7 +27,14 @@ from generalist_control.plants.plant import (
 )
 from generalist_control.plants.variants import register_spec
 
-__all__ = ["plant_from_config"]
+__all__ = ["MAX_ENTRY", "plant_from_config"]
+
+#: The largest magnitude of a number in a plant file: beyond it the LQI design's Riccati
+#: solver fails in its own words (1e300 squared overflows); no catalogue plant comes near.
+MAX_ENTRY = 1e12
+
+#: A plant's name, the key Hydra reaches it by (``systems.plants.<name>``): no dots.
+_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
 def _import(path: str, plant: str, key: str) -> Dynamics:
@@ -48,9 +59,28 @@ def _matrix(cfg: Mapping[str, Any], key: str, plant: str, shape: tuple[int, int]
         raise PlantConfigError(
             f"plant '{plant}': field '{key}' has shape {m.shape}, expected {shape}"
         )
+    return _sane(m, key, plant)
+
+
+def _sane(m: np.ndarray, key: str, plant: str) -> np.ndarray:
+    """``m`` if every entry is finite and within +-:data:`MAX_ENTRY`."""
     if not np.all(np.isfinite(m)):
         raise PlantConfigError(f"plant '{plant}': field '{key}' contains NaN or inf")
+    if np.abs(m).max(initial=0.0) > MAX_ENTRY:
+        raise PlantConfigError(
+            f"plant '{plant}': field '{key}' has an entry of {np.abs(m).max():.3g}, beyond "
+            f"+-{MAX_ENTRY:.0e}; rescale the plant's units (states, input, output) so that "
+            "its numbers are of moderate size (conf/plants/README.md, units)"
+        )
     return m
+
+
+def _number(cfg: Mapping[str, Any], key: str, plant: str, default: float | None = None) -> float:
+    """The field ``key``: a finite real number (``default`` when absent, if given)."""
+    value = cfg.get(key, default) if default is not None else cfg[key]
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise PlantConfigError(f"plant '{plant}': field '{key}' must be a number, got {value!r}")
+    return float(_sane(np.array([value], dtype=float), key, plant)[0])
 
 
 def _weight(value: Any, n: int, key: str, plant: str) -> np.ndarray:
@@ -68,8 +98,7 @@ def _weight(value: Any, n: int, key: str, plant: str) -> np.ndarray:
             f"plant '{plant}': field '{key}' has shape {np.shape(value)}; expected a list of "
             f"{n} diagonal entries or a {n}x{n} matrix"
         )
-    if not np.all(np.isfinite(w)):
-        raise PlantConfigError(f"plant '{plant}': field '{key}' contains NaN or inf")
+    _sane(w, key, plant)
     if not np.allclose(w, w.T):
         raise PlantConfigError(f"plant '{plant}': field '{key}' is not symmetric")
     return w
@@ -93,9 +122,10 @@ def _nonlinear_model(name: str, cfg: Mapping[str, Any], n: int) -> dict[str, Any
     """``f``, ``h``, parameters, operating point and the linearisation of a nonlinear plant."""
     dyn = cfg["dynamics"]
     f = _import(str(dyn.get("f", "")), name, "dynamics.f")
-    params = {str(k): float(v) for k, v in (dyn.get("params") or {}).items()}
+    params = dyn.get("params") or {}
+    params = {str(k): _number(params, k, name) for k in params}
     x_op = _matrix(dyn, "x_op", name, (1, n))[0]
-    u_op = float(dyn.get("u_op", 0.0))
+    u_op = _number(dyn, "u_op", name, 0.0)
     h = _import(str(dyn["h"]), name, "dynamics.h") if dyn.get("h") is not None else None
     f0 = f(x_op[None, :], np.array([u_op]), **params)[0]
     A, B, C_lin = linearise(f, h, x_op, u_op, params)
@@ -141,19 +171,46 @@ def _lqi_weights(name: str, lqi: Mapping[str, Any], n: int) -> tuple[np.ndarray,
 
 def _settings(name: str, cfg: Mapping[str, Any]) -> dict[str, Any]:
     """Sample time, amplitude scale and RK4 sub-steps, each checked."""
-    dt = float(cfg["dt"])
+    dt = _number(cfg, "dt", name)
     if not dt > 0:
         raise PlantConfigError(f"plant '{name}': field 'dt' must be positive, got {dt}")
-    scale = float(cfg.get("amplitude_scale", 1.0))
+    scale = _number(cfg, "amplitude_scale", name, 1.0)
     if not scale > 0:
         raise PlantConfigError(f"plant '{name}': field 'amplitude_scale' must be positive")
-    substeps = int(cfg.get("substeps", 10))
-    if substeps < 1:
-        raise PlantConfigError(f"plant '{name}': field 'substeps' must be at least 1")
-    return {"dt": dt, "amplitude_scale": scale, "substeps": substeps}
+    substeps = cfg.get("substeps", 10)
+    if isinstance(substeps, bool) or not isinstance(substeps, numbers.Integral) or substeps < 1:
+        raise PlantConfigError(
+            f"plant '{name}': field 'substeps' must be an integer >= 1, got {substeps!r}"
+        )
+    return {"dt": dt, "amplitude_scale": scale, "substeps": int(substeps)}
 
 
-def plant_from_config(name: str, cfg: Mapping[str, Any]) -> Plant:
+def _identity(name: str, cfg: Any) -> int:
+    """The file is a mapping, the name a Hydra key, the tag a non-negative integer."""
+    if not isinstance(cfg, Mapping):
+        raise PlantConfigError(
+            f"plant '{name}': the file holds a {type(cfg).__name__}, not the mapping of a "
+            "plant's fields (tag, dt, states, ...; conf/plants/README.md)"
+        )
+    if not _NAME.fullmatch(name):
+        plain = re.sub(r"\W", "_", name)
+        raise PlantConfigError(
+            f"plant '{name}': a plant's name (its file's stem) must be letters, digits and "
+            f"underscores (Hydra splits keys at dots); rename the file, e.g. {plain}.yaml"
+        )
+    for key in ("tag", "description", "source", "dt", "lqi"):
+        if key not in cfg:
+            raise PlantConfigError(f"plant '{name}': missing field '{key}'")
+    tag = cfg["tag"]
+    if isinstance(tag, bool) or not isinstance(tag, numbers.Integral) or tag < 0:
+        raise PlantConfigError(
+            f"plant '{name}': field 'tag' must be a non-negative integer (the policy's row "
+            f"for the plant), got {tag!r}"
+        )
+    return int(tag)
+
+
+def plant_from_config(name: str, cfg: Any, source: str | Path | None = None) -> Plant:
     """Build and validate a :class:`Plant` from its configuration mapping.
 
     Parameters
@@ -161,19 +218,31 @@ def plant_from_config(name: str, cfg: Mapping[str, Any]) -> Plant:
     name : str
         Catalogue name (the file stem of ``conf/plants/<name>.yaml``).
     cfg : mapping
-        The plant's configuration (see ``conf/plants/README.md`` for the schema).
+        The plant's configuration (see ``conf/plants/README.md`` for the schema); anything
+        else is refused.
+    source : str or Path, optional
+        The file it was read from, named first in every refusal.
 
     Raises
     ------
     PlantConfigError
-        If a field is missing, has the wrong shape, the weights are not (semi)definite, or
-        the ``variants`` block is malformed (:func:`~.variants.register_spec`).
-        Fitness for LQI (stabilisability, zero at s = 0) is checked by
-        :func:`generalist_control.simulation.lqi.design_lqi`.
+        If the file is not a mapping, the name has characters other than letters, digits
+        and underscores, the tag is not a non-negative integer, a field is missing, has
+        the wrong shape, a number that is not finite or beyond +-:data:`MAX_ENTRY`, the
+        weights are not (semi)definite, or the ``variants`` block is malformed
+        (:func:`~.variants.register_spec`). Fitness for LQI (stabilisability, zero at
+        s = 0) is checked by :func:`generalist_control.simulation.lqi.design_lqi`.
     """
-    for key in ("tag", "description", "source", "dt", "lqi"):
-        if key not in cfg:
-            raise PlantConfigError(f"plant '{name}': missing field '{key}'")
+    try:
+        return _plant(name, cfg)
+    except PlantConfigError as exc:
+        if source is None:
+            raise
+        raise PlantConfigError(f"{source}: {exc}") from None
+
+
+def _plant(name: str, cfg: Any) -> Plant:
+    tag = _identity(name, cfg)
     states = _signals(cfg, "states", name)
     (inp,) = _signals(cfg, "input", name)
     (out,) = _signals(cfg, "output", name)
@@ -187,7 +256,7 @@ def plant_from_config(name: str, cfg: Mapping[str, Any]) -> Plant:
     Q, R = _lqi_weights(name, cfg["lqi"], n)
     plant = Plant(
         name=name,
-        tag=int(cfg["tag"]),
+        tag=tag,
         description=str(cfg["description"]),
         source=str(cfg["source"]),
         states=states,

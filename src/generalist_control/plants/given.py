@@ -28,8 +28,8 @@ __all__ = ["MODEL_KEYS", "plant_from_file", "plant_from_model"]
 #: The keys of a model dict (``name`` optional).
 MODEL_KEYS = ("A", "B", "C", "dt", "Q", "R")
 
-#: What a plant given at run time need not say: it gets a row of its own, not a tag.
-_DEFAULTS = {"tag": -1, "description": "a plant given at run time", "source": "given"}
+#: What a plant given at run time need not say: it gets a row of its own; its tag is unused.
+_DEFAULTS = {"tag": 0, "description": "a plant given at run time", "source": "given"}
 
 
 def _order(A: Any, where: str) -> int:

@@ -8,7 +8,7 @@ adapted ones (:func:`judge`). docs/pipeline.md describes the files.
 
 from __future__ import annotations
 
-import copy
+import dataclasses
 import json
 import logging
 from collections.abc import Mapping
@@ -21,6 +21,9 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
+from generalist_control.adaptation import adapt
+from generalist_control.adaptation.job import learn, prepare
+from generalist_control.adaptation.request import AdaptRequest
 from generalist_control.common.atomic import (
     check_replaceable,
     publish_directory,
@@ -41,7 +44,6 @@ from generalist_control.reports.held_out_routes import (
     zero_shot,
 )
 from generalist_control.tracking import mlflow_utils
-from generalist_control.training.adapt import adapt, learn, prepare
 
 __all__ = ["DEFAULT_BAR", "OWNED", "POLICIES", "judge", "plant_class", "run_unseen"]
 
@@ -135,20 +137,10 @@ def _paths(cfg: DictConfig) -> dict[str, Path]:
     return paths
 
 
-def _sub(cfg: DictConfig, **values: Any) -> DictConfig:
-    """A copy of ``cfg`` with top-level ``values`` and ``adapt.learn``."""
-    sub = copy.deepcopy(cfg)
-    learn_row = values.pop("learn", True)
-    for key, value in values.items():
-        sub[key] = value
-    sub.adapt.learn = learn_row
-    return sub
-
-
-def _zero_shot(cfg: DictConfig, name: str, path: Path) -> tuple[Policy, dict[str, Any]]:
+def _zero_shot(request: AdaptRequest, path: Path) -> tuple[Policy, dict[str, Any]]:
     """The tag-free policy named for the plant (its scales only); nothing written."""
-    job = prepare(_sub(cfg, plant=name, policy=str(path), learn=False, run_dir=None))
-    policy, meta, _ = learn(job)
+    named = dataclasses.replace(request, adapt=dataclasses.replace(request.adapt, learn=False))
+    policy, meta, _ = learn(prepare(dataclasses.replace(named, policy=str(path))))
     return policy, meta
 
 
@@ -182,16 +174,17 @@ def _figures(df: pd.DataFrame) -> dict[str, Any]:
 
 
 def _plant(
-    cfg: DictConfig, name: str, paths: Mapping[str, Path], routes: Mapping[str, Path]
+    cfg: DictConfig,
+    request: AdaptRequest,
+    paths: Mapping[str, Path],
+    routes: Mapping[str, Path],
 ) -> tuple[pd.DataFrame, dict]:
     """Adapt, name and load the policies for one plant (and the zero-shot routes'); evaluate."""
-    run_dir = Path(str(cfg.unseen.models)) / "adapted" / name
-    record, objects = adapt(
-        _sub(cfg, plant=name, policy=str(paths["adapted"]), run_dir=str(run_dir))
-    )
+    name = request.plant
+    record, objects = adapt(dataclasses.replace(request, policy=str(paths["adapted"])))
     policies = {
         "adapted": (objects["policy"], objects["meta"]),
-        "zero_shot": _zero_shot(cfg, name, paths["zero_shot"]),
+        "zero_shot": _zero_shot(request, paths["zero_shot"]),
         "trained_with": load_policy(paths["trained_with"]),
     }
     plant = load_plant(name)
@@ -250,28 +243,25 @@ def _log(cfg: DictConfig, summary: Mapping[str, Any], out_dir: Path) -> None:
         mlflow.log_artifacts(str(out_dir), "unseen")
 
 
-def run_unseen(cfg: DictConfig) -> dict[str, Any]:
+def run_unseen(cfg: DictConfig, requests: Mapping[str, AdaptRequest]) -> dict[str, Any]:
     """Adapt to, and evaluate on, every held-out plant; write ``paths.reports_dir``.
+
+    ``requests``: each held-out plant's adaptation, read by the entry point.
 
     Raises
     ------
-    ValueError
-        If ``held_out`` is empty.
     FileNotFoundError
         If one of the three policies is missing (with the command that makes it).
     generalist_control.common.atomic.ForeignDirectoryError
         If the reports folder holds files the stage does not write.
     """
-    held = [str(h) for h in (cfg.get("held_out") or [])]
-    if not held:
-        raise ValueError("held_out is empty: name the held-out plants (conf/unseen.yaml)")
     out_dir = Path(cfg.paths.reports_dir)
     check_replaceable(out_dir, OWNED, "paths.reports_dir")
     paths = _paths(cfg)
     routes = route_paths(Path(str(cfg.unseen.models))) if cfg.unseen.routes else {}
     frames, entries = [], {}
-    for name in held:
-        df, entries[name] = _plant(cfg, name, paths, routes)
+    for name, request in requests.items():
+        df, entries[name] = _plant(cfg, request, paths, routes)
         frames.append(df)
         log.info("held-out plant %s: adapted in %.0f s", name, entries[name]["adaptation_wall_s"])
     summary = {

@@ -1,8 +1,7 @@
-"""The anti-windup rule shared by the LQI expert and the policy runtime.
+"""Conditional integration, shared by the LQI expert and the policy runtime.
 
-Conditional integration: while the actuator clips the command, the error integral is
-frozen whenever integrating would push the command further into the limit. ``direction``
-is the sign of ``d u / d z`` of the law (``-Ki`` for LQI ``u = -Kx x - Ki z``).
+While the actuator clips the command, the error integral is frozen whenever integrating
+would push the command further into the limit.
 """
 
 from __future__ import annotations

@@ -1,8 +1,7 @@
 """Closed-loop scores of any batch controller against the LQI experts, on steps from rest.
 
-Used by training (the closed-loop validation and the ablation's score) and by evaluation;
-the controller is anything with the simulator's batch protocol, e.g. the policy runtime's
-adapter :class:`~generalist_control.deploy.adapter.RuntimeAdapter`.
+Training's closed-loop validation, the ablation's score and the evaluation use them; the
+controller is anything with the simulator's batch protocol (e.g. the runtime's adapter).
 """
 
 from __future__ import annotations
@@ -28,11 +27,9 @@ __all__ = ["ClosedLoopScore", "closed_loop_score", "output_mse"]
 def output_mse(
     controller: BatchController, plants: Sequence[Plant], duration: float = 15.0
 ) -> dict[str, float]:
-    """The ablation study's closed-loop score: per plant, the output MSE against LQI.
+    """Per plant, the mean ``(y - y_LQI)**2`` on a unit step from rest (``inf`` if diverged).
 
-    Both controllers track a unit step (scaled by the plant's ``amplitude_scale``) from
-    rest for ``duration`` seconds; the score is the mean of ``(y - y_LQI)**2`` over the
-    samples. A diverged run scores ``inf``.
+    The ablation's closed-loop score; the step is scaled by the plant's ``amplitude_scale``.
     """
     spec = {"kind": "step", "amplitude": 1.0, "duration": float(duration)}
     runs = [Run(p, *references("step", spec, p), None) for p in plants]
@@ -45,11 +42,7 @@ def output_mse(
 
 
 class ClosedLoopScore:
-    """:func:`closed_loop_score` for one set of plants and steps, LQI's responses kept.
-
-    LQI's responses do not depend on the controller scored, so a score taken again and
-    again (the closed-loop validation after every epoch) simulates them once, at the first
-    call; the numbers are those of :func:`closed_loop_score`.
+    """:func:`closed_loop_score` for one set of plants and steps, LQI's responses simulated once.
 
     Raises
     ------
@@ -101,11 +94,8 @@ def closed_loop_score(
     """Per plant, the output error against LQI on steps, relative to LQI's, capped at 1.
 
     ``mean((y - y_LQI)**2) / mean(y_LQI**2)`` over steps of each amplitude (times the
-    plant's ``amplitude_scale``) from rest; 1 for a diverged run (and at most 1 anyway), so
-    the mean over plants is a bounded closed-loop validation score. Keyed by ``labels``
-    (one per plant, distinct; e.g. for variants, which share their plant's name), else by
-    the plants' names. Each plant's LQI is designed for that plant itself. Scored again and
-    again: :class:`ClosedLoopScore`.
+    plant's ``amplitude_scale``) from rest, 1 for a diverged run. Keyed by ``labels`` (one
+    per plant, distinct: variants share their plant's name), else by the plants' names.
 
     Raises
     ------

@@ -1,12 +1,8 @@
-"""A Crazyflie 2.1 altitude stand-in for the paper's hardware test (sim-to-real).
+"""A nonlinear Crazyflie 2.1 altitude stand-in for the paper's hardware test (sim-to-real).
 
-The policy and the LQI expert are designed on the linear model of ``crazyflie_altitude``
-(``m = 0.027 kg``, linear drag). Here they fly a nonlinear model that differs the way the
-real vehicle does: first-order motor lag, thrust limits, quadratic drag, a heavier vehicle
-(battery and marker deck) and noisy altitude/velocity estimates. The loop runs at 100 Hz,
-as the paper's Crazyradio loop did; a controller designed for ``dt = 0.05 s`` is sampled
-every fifth tick and its command is held in between (zero-order hold), so the policy sees
-its history at the sample time it was trained on.
+Controllers designed on the linear ``crazyflie_altitude`` fly a model that differs the way
+the vehicle does: motor lag, thrust limits, quadratic drag, more mass, noisy estimates. The
+loop runs at 100 Hz; a controller of ``dt = 0.05 s`` is sampled every fifth tick (ZOH).
 """
 
 from __future__ import annotations
@@ -59,9 +55,8 @@ def fly(
 ) -> Trajectory:
     """Fly ``controller`` on the stand-in from hover for references ``r`` (B, N) at 100 Hz.
 
-    The controller's output is the thrust deviation from the *nominal* hover thrust
-    ``nominal_mass * g`` (as in the linear design model); the true vehicle is heavier, so
-    integral action has to find the real hover thrust.
+    The controller commands the thrust deviation from the *nominal* hover thrust
+    ``nominal_mass * g``; the vehicle is heavier, so integral action must find the real one.
 
     Returns
     -------
@@ -79,12 +74,7 @@ def fly_many(
     params: CrazyflieParams | None = None,
     seed: int = 0,
 ) -> list[Trajectory]:
-    """:func:`fly` for several controllers in one loop, each on the same noise.
-
-    Every controller's trajectory equals its own :func:`fly` with the same ``seed``: the
-    vehicles are stacked, one batch per controller, and each batch sees the noise one
-    :func:`fly` would draw.
-    """
+    """:func:`fly` for several controllers in one loop, each equal to its own :func:`fly`."""
     p = params or CrazyflieParams()
     r = np.atleast_2d(np.asarray(r, dtype=float))
     batch, steps = r.shape

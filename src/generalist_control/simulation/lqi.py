@@ -1,17 +1,9 @@
-r"""LQI (linear-quadratic-integral) expert design and its sampled controller.
+r"""LQI expert design and its sampled controller.
 
-The plant is augmented with the integral of the tracking error,
-
-.. math:: \dot z = r - y = r - C x, \qquad
-   A_a = \begin{bmatrix} A & 0 \\ -C & 0 \end{bmatrix},\;
-   B_a = \begin{bmatrix} B \\ 0 \end{bmatrix},
-
-and ``u = -K [x; z]`` minimises the infinite-horizon cost with weights ``Q`` (size n+1)
-and ``R``. python-control's ``lqr(..., integral_action=C)`` integrates ``+C x`` instead,
-so its integral gain is the negative of ours; tests check the two agree.
-
-The controller runs at the plant's sample time with a forward-Euler integrator,
-``z[k+1] = z[k] + dt (r[k] - y[k])``, as a digital implementation would.
+The plant is augmented with the error integral ``dz/dt = r - C x`` and ``u = -K [x; z]``
+minimises the LQR cost with weights ``Q`` (size n+1) and ``R``; python-control's
+``lqr(..., integral_action=C)`` integrates ``+C x``, so its ``Ki`` has the other sign. The
+controller integrates with forward Euler at the plant's sample time.
 """
 
 from __future__ import annotations
@@ -106,12 +98,9 @@ def sampled_closed_loop(plant: Plant, gains: LQIGains) -> np.ndarray:
 def _lqr(
     A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(K, P, poles)`` of the continuous LQR: python-control's ``lqr`` without Slycot.
+    """``(K, P, poles)`` of the continuous LQR, python-control's ``lqr`` bit for bit.
 
-    That is SciPy's Riccati solver and the two lines below, the same numbers bit for bit
-    (tests/test_lqi.py). Importing python-control costs a second (SciPy's signal module,
-    matplotlib) that the evaluation and the data stage otherwise do not need. ``Q`` and
-    ``R`` are symmetric (:mod:`~generalist_control.plants.config` checks).
+    Its Riccati solver and two lines, without the second that importing python-control costs.
     """
     A, B, Q, R = (np.array(M, ndmin=2, dtype=float) for M in (A, B, Q, R))
     P = solve_continuous_are(A, B, Q, R)
@@ -179,12 +168,10 @@ class LQIController:
 
 
 class AntiWindupLQIController(LQIController):
-    """LQI with conditional integration against known actuator limits.
+    """LQI with conditional integration against the known actuator ``limits``.
 
-    The controller knows the actuator (``limits.u_limit`` and ``limits.rate_limit``) and
-    predicts the control it will deliver. While the command is clipped, the integrator is
-    frozen whenever integrating would push the command further into the limit; otherwise it
-    integrates as :class:`LQIController` does, so without limits the two are identical.
+    It predicts the delivered control and freezes the integrator where integrating would push
+    a clipped command further into the limit; without limits it is :class:`LQIController`.
     """
 
     def __init__(self, plant: Plant, limits: Perturbation, gains: LQIGains | None = None) -> None:

@@ -1,33 +1,16 @@
 """Step-response and tracking metrics from sampled responses, vectorised over runs.
 
-Definitions (the reference's final value ``r_f`` is the target; responses start at rest):
-
-- rise time: time from first reaching 10 % of ``r_f`` to first reaching 90 % (as
-  python-control's ``step_info``);
-- overshoot: ``100 * (max(sign(r_f) y) - |r_f|) / |r_f|``, 0 if never exceeded;
-- settling time: first sample after which ``|y / r_f - 1| < 2 %`` for good;
-- steady-state error: ``|r_f - y[-1]|``; relative: divided by ``|r_f|``;
-- ISE ``= int e^2 dt`` and ITAE ``= int t |e| dt`` with ``e = r - y``, trapezoidal rule;
-- u_max ``= max |u|``.
-
-A metric that is undefined (never reached 90 %, never settled) is NaN.
+The target is the reference's final value ``r_f``: rise time 10-90 % (as python-control's
+``step_info``), overshoot in % of ``|r_f|``, 2 % settling time, ``|r_f - y[-1]|``, ISE and
+ITAE by the trapezoidal rule, ``max |u|``. An undefined metric (never reached, never
+settled) is NaN.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["METRIC_NAMES", "step_metrics", "tracking_metrics"]
-
-METRIC_NAMES = (
-    "rise_time",
-    "overshoot",
-    "settling_time",
-    "steady_state_error",
-    "ISE",
-    "ITAE",
-    "u_max",
-)
+__all__ = ["step_metrics", "tracking_metrics"]
 
 
 def _first_true(mask: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -71,8 +54,8 @@ def step_metrics(
     Returns
     -------
     dict of str to ndarray
-        The entries of :data:`METRIC_NAMES` plus ``relative_steady_state_error``, each of
-        shape ``y.shape[:-1]``.
+        ``rise_time``, ``overshoot``, ``settling_time``, ``steady_state_error``,
+        ``relative_steady_state_error``, ``ISE``, ``ITAE``, ``u_max``; each ``y.shape[:-1]``.
     """
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)

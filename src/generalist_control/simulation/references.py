@@ -1,31 +1,9 @@
 """Randomised reference families and random initial states, for data, DAgger and evaluation.
 
-One implementation serves three users: the data stage's demonstration families
-(``conf/data``), DAgger's rollouts (the same families, other seeds) and the evaluation's
-scenarios (other levels, frequencies and seeds). Every draw comes from
-``numpy.random.default_rng(seed + 1000 * plant.tag)``, so a family is reproducible per plant.
-All amplitudes, levels and slopes are multiplied by the plant's ``amplitude_scale``.
-
-Families (``kind``) and their parameters (defaults in brackets):
-
-- ``staircase``: ``count`` [8] references of ``levels`` [[2, 4]] equal-length levels,
-  each uniform in ``+-limit`` [10];
-- ``sines``: ``count`` [8] sines ``c + A sin(omega t + phi)`` with ``A`` uniform in
-  ``amplitude`` [[0.2, 3]], ``omega`` log-uniform in ``omega`` [[0.2, 3]] rad/s, ``phi``
-  uniform, offset ``c`` uniform in ``+-offset`` [2];
-- ``sweep``: ``count`` [1] linear chirps of amplitude ``amplitude`` [1] (a range draws it)
-  whose frequency runs from ``omega[0]`` to ``omega[1]`` [[0.1, 2]] rad/s, random phase
-  when ``count > 1``, offset as for ``sines`` [0];
-- ``ramps``: ``count`` [6] ramps ``c + s t`` with ``|s|`` uniform in ``slope`` [[0.05, 1]]
-  per second, random sign, offset ``c`` uniform in ``+-offset`` [2];
-- ``hold``: ``count`` [8] constant references uniform in ``+-limit`` [5], every run from a
-  random initial state.
-
-Random initial states: a share ``x0_fraction`` of the runs ([1] for ``hold``, [0] otherwise)
-starts at ``x0 = u * x0_scale * envelope`` with ``u`` uniform in ``[-1, 1]`` per state
-entry and ``envelope`` the largest magnitude each state reaches when the plant's LQI expert
-tracks steps of ``+-x0_amplitude`` [3] (:func:`state_envelope`): a state the plant visits
-in operation, never an arbitrary one.
+One implementation for the data stage's families, DAgger's rollouts and the evaluation's
+scenarios. Draws come from ``default_rng(seed + 1000 * plant.tag)``; amplitudes, levels and
+slopes are scaled by ``plant.amplitude_scale``. A random initial state lies within the
+plant's :func:`state_envelope`: a state it visits in operation, never an arbitrary one.
 """
 
 from __future__ import annotations
@@ -107,7 +85,7 @@ def _hold(spec: Mapping[str, Any], t: np.ndarray, rng: np.random.Generator) -> n
 
 Family = Callable[[Mapping[str, Any], np.ndarray, np.random.Generator], np.ndarray]
 
-#: The families: ``kind`` -> reference generator (unscaled; see the module docstring).
+#: ``kind`` -> generator of unscaled references; each reads its parameters from ``spec``.
 FAMILIES: dict[str, Family] = {
     "staircase": _staircase,
     "sines": _sines,
@@ -124,10 +102,9 @@ _ENVELOPES: weakref.WeakKeyDictionary[Plant, dict[tuple[float, float], np.ndarra
 
 
 def state_envelope(plant: Plant, amplitude: float = 3.0, duration: float = 10.0) -> np.ndarray:
-    """Largest ``|x_i|`` along the LQI expert's responses to steps of ``+-amplitude``.
+    """Largest ``|x_i|`` (n,) along the LQI expert's responses to steps of ``+-amplitude``.
 
-    ``amplitude`` is multiplied by the plant's ``amplitude_scale``; the result has shape
-    ``(n,)`` and bounds the states the plant visits in such operation (cached per plant).
+    ``amplitude`` is scaled by the plant's ``amplitude_scale``; cached per plant.
     """
     return state_envelopes([(plant, amplitude)], duration)[0]
 
@@ -135,11 +112,7 @@ def state_envelope(plant: Plant, amplitude: float = 3.0, duration: float = 10.0)
 def state_envelopes(
     requests: Sequence[tuple[Plant, float]], duration: float = 10.0
 ) -> list[np.ndarray]:
-    """:func:`state_envelope` of many ``(plant, amplitude)`` at once, the missing ones in one loop.
-
-    The same numbers as one simulation each (every run has its two rows; the stacked loop
-    steps each row as :func:`~generalist_control.simulation.simulate.simulate` does).
-    """
+    """:func:`state_envelope` of many ``(plant, amplitude)``, the missing ones in one loop."""
     missing = list(dict.fromkeys(
         (p, float(a)) for p, a in requests
         if (float(a), float(duration)) not in _ENVELOPES.get(p, {})

@@ -1,18 +1,9 @@
-"""Evaluation scenarios: reference signals, initial states and perturbations per plant.
+"""Evaluation scenarios (``conf/evaluation/*.yaml``): references, initial states, perturbations.
 
-A scenario is a mapping from ``conf/evaluation/*.yaml``::
-
-    kind: step | random_steps | sine | ramp | composite   # or a family of references.py
-    duration: 15.0               # seconds
-    plants: [two_mass_spring]    # optional: only these plants (default: every evaluated plant)
-    perturbation: {u_limit: 0.5} # optional: fields of simulate.Perturbation
-
-plus the parameters of its kind (see :func:`references`; the randomised families
-``staircase``, ``sines``, ``sweep``, ``ramps`` and ``hold``, with random initial states, are
-those of :mod:`generalist_control.simulation.references`, shared with the data stage).
-Amplitudes are multiplied by each plant's ``amplitude_scale`` (the same factor the data
-stage applies to its grid). ``perturbation.noise_rel`` gives measurement noise relative to
-each plant's state envelope (:func:`~generalist_control.simulation.references.state_envelope`).
+A scenario names its ``kind`` (:data:`KINDS`), ``duration``, optional ``plants`` and
+``perturbation`` (fields of :class:`~generalist_control.simulation.simulate.Perturbation`,
+plus ``noise_rel``: noise relative to the plant's state envelope), and its kind's parameters.
+Amplitudes are scaled by each plant's ``amplitude_scale``.
 """
 
 from __future__ import annotations

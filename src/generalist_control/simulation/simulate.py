@@ -1,9 +1,8 @@
 """Closed-loop simulation of a plant under any controller, vectorised over runs.
 
-Linear plants are advanced with the exact zero-order-hold discretisation of ``(A, B)``;
-nonlinear plants with fixed-step RK4 using ``plant.substeps`` sub-steps per sample. The
-controller is sampled every ``plant.dt``: at sample ``k`` it sees the state ``x[k]`` and the
-reference ``r[k]`` and returns ``u[k]``, held constant until ``k + 1``.
+Linear plants advance by the exact zero-order hold, nonlinear ones by RK4 with
+``plant.substeps`` sub-steps. At sample ``k`` the controller sees ``x[k]`` and ``r[k]`` and
+returns ``u[k]``, held until ``k + 1``.
 """
 
 from __future__ import annotations
@@ -212,11 +211,7 @@ class _Group:
 
 
 def plant_stepper(plant: Plant) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-    """``advance(x, u) -> x_next``: one sample of ``plant`` for batches (B, n) and (B,).
-
-    The simulator's own update: exact zero-order hold for linear plants, RK4 with the
-    plant's sub-steps for nonlinear ones (no perturbation).
-    """
+    """``advance(x, u) -> x_next``: the simulator's unperturbed sample of ``plant``, batched."""
     return _Group(plant, np.zeros((1, 1)), None, None)._advance
 
 
@@ -231,18 +226,12 @@ def simulate(
 
     Parameters
     ----------
-    plant : Plant
-    controller : Controller
     r : ndarray, shape (batch, N)
         Reference deviation at each sample.
     x0 : ndarray, shape (batch, n), optional
         Initial state deviation; rest (zeros) by default.
     perturbation : Perturbation, optional
         Actuator limits, measurement noise and input disturbance.
-
-    Returns
-    -------
-    Trajectory
     """
     g = _Group(plant, r, x0, perturbation)
     controller.reset(g.batch)

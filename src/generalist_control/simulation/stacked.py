@@ -1,25 +1,9 @@
 """Many batches of runs, on many plants and under several controllers, in one sampled loop.
 
-:func:`~generalist_control.simulation.simulate.simulate_many` steps the runs of one scenario
-under one controller; an evaluation has dozens of those (scenarios x controllers), and each
-loop pays Python's price per sample and per plant again. :func:`simulate_stacked` steps them
-all at once: each :class:`Segment` is a controller with its runs, runs may differ in length
-(every run records its own samples only), and the plants are advanced once per sample for
-all the rows they have, whatever segment or run the rows belong to.
-
-Every row follows the arithmetic of :func:`simulate_many` exactly (the same expressions on the
-same values: zero-order hold or RK4, actuator, noise, disturbance, divergence), and rows never
-mix, so a run's trajectory is the one :func:`simulate_many` gives for it, bit for bit
-(tests/test_stacked.py), with one proviso: BLAS multiplies a single row by another path than
-several, which can change the last bit of a linear update. A linear plant is updated once
-per segment for all its rows there (and a controller sees all its rows of a plant at once),
-so a run equals its own :func:`simulate_many` when its plant has as many rows in the
-segment as in that batch, or two or more in both (1 ulp a sample otherwise,
-docs/evaluation.md).
-
-A run that has ended is commanded NaN (its later samples are never recorded) and its
-controller, if it has a ``finish(rows)`` method, is told which of its rows ended, so that a
-controller that pays per row (the learned policy) can drop them.
+An evaluation has dozens of scenario x controller loops; :func:`simulate_stacked` steps them
+all at once, each row with :func:`~generalist_control.simulation.simulate.simulate_many`'s
+arithmetic, so a run's trajectory is the one it gives (bit for bit, tests/test_stacked.py,
+but for BLAS's last bit when a plant's row count in a segment differs from the batch's).
 """
 
 from __future__ import annotations
@@ -45,9 +29,9 @@ __all__ = ["Segment", "controller_rows", "simulate_stacked"]
 class Segment:
     """Runs one batch controller drives (see :func:`simulate_stacked`).
 
-    The controller is reset with the segment's distinct plants in order of first appearance
-    and, per plant, the rows of all its runs (runs in order, rows in order); it may have a
-    ``finish(rows)`` method, called with the rows (of its own batch) whose runs ended.
+    The controller is reset with the segment's distinct plants and each one's rows (runs in
+    order). Rows of ended runs are commanded NaN; an optional ``finish(rows)`` method is told
+    which rows of its batch ended, so a controller that pays per row can drop them.
     """
 
     controller: BatchController
@@ -286,10 +270,7 @@ class _Loop:
 
 
 def controller_rows(segments: Sequence[Segment]) -> list[list[slice]]:
-    """Per segment, per run: the run's rows in the batch its controller is reset with.
-
-    E.g. to read what a controller kept per row (an error integral at the run's end).
-    """
+    """Per segment, per run: the run's rows in the batch its controller is reset with."""
     local = _Layout(segments).local
     return [[local[s, i] for i in range(len(seg.runs))] for s, seg in enumerate(segments)]
 

@@ -1,22 +1,9 @@
-"""Sampling plant variants that are fit for LQI, with the reason for every one refused.
+"""Sampling plant variants fit for LQI, with the reason for every one refused.
 
-A candidate (:func:`generalist_control.plants.variants.make_variant`) is kept only if
-
-1. it has an equilibrium at the nominal operating state (nonlinear plants);
-2. it is of the nominal plant's class (:func:`check_class`): as many open-loop poles and as
-   many zeros in the open right half-plane as the nominal plant (of the linearisation at the
-   operating point), so a variant of a stable plant is stable, a minimum-phase one stays
-   minimum-phase, and the DC gain cannot change sign (a real pole or zero would have to cross
-   s = 0). Independent factors on a linear plant's entries can break the physics the entries
-   came from: ``hvac_two_zone``'s rows are heat balances, and 17 of 40 draws at +-25 % were
-   unstable with a DC gain of the other sign (heating that cools);
-3. :func:`~generalist_control.simulation.lqi.design_lqi` accepts it with the plant's own
-   ``Q`` and ``R`` (no zero at s = 0, stabilisable, a stable loop sampled at ``dt``);
-4. its LQI expert does not diverge on steps of the given amplitudes from rest (the
-   nonlinear plant, not only its linearisation).
-
-Otherwise it is recorded as rejected with that reason and another is drawn, up to
-``max_tries`` draws per variant wanted; a plant that cannot get enough is an error.
+A candidate is kept if it has an equilibrium at the operating point, keeps the nominal
+plant's class (:func:`check_class`), passes :func:`~generalist_control.simulation.lqi.design_lqi`
+and its LQI expert does not diverge on steps from rest; else another is drawn, up to
+``max_tries`` draws per variant wanted.
 """
 
 from __future__ import annotations
@@ -103,6 +90,9 @@ def _right_half_plane(plant: Plant) -> tuple[np.ndarray, np.ndarray]:
 def check_class(variant: Plant, nominal: Plant) -> None:
     """Refuse a variant whose right-half-plane poles or zeros differ from the nominal's.
 
+    So a stable plant stays stable, a minimum-phase one minimum-phase, and the DC gain keeps
+    its sign (docs/notes/plant-variants.md).
+
     Raises
     ------
     VariantError
@@ -122,9 +112,7 @@ def check_class(variant: Plant, nominal: Plant) -> None:
 def check_variant(
     variant: Plant, amplitudes: Sequence[float], steps: int, nominal: Plant | None = None
 ) -> None:
-    """Refuse a variant unfit for LQI (see the module docstring) with the reason.
-
-    ``nominal`` (None: no class check) is the plant the variant must keep the class of.
+    """Refuse a variant unfit for LQI (see the module docstring); ``nominal`` None: no class check.
 
     Raises
     ------
@@ -145,11 +133,7 @@ def check_variant(
 
 
 def candidate_factors(plant: Plant, seed: int, default_range: float) -> Iterator[dict[str, float]]:
-    """The endless stream of factor draws :func:`sample_variants` takes its candidates from.
-
-    Seeded by ``seed`` and the plant's tag, so every candidate a draw may have tried
-    (kept or refused) can be listed again, e.g. to keep evaluation variants disjoint.
-    """
+    """The endless, seeded stream of factor draws :func:`sample_variants` takes candidates from."""
     ranges = parameter_ranges(plant, default_range)
     rng = np.random.default_rng([int(seed), plant.tag])
     while True:
@@ -171,12 +155,10 @@ def sample_variants(
     ----------
     plant : Plant
         The nominal plant (its ``variants`` block sets the ranges, :func:`parameter_ranges`).
-    count, seed : int
     default_range : float
         The range of parameters the plant file does not set.
     amplitudes, steps
-        The LQI expert of each candidate must not diverge on these steps (times the plant's
-        amplitude scale) over ``steps`` samples.
+        The LQI expert of each candidate must not diverge on these steps over ``steps`` samples.
     max_tries : int
         Draws allowed per variant wanted.
 

@@ -1,31 +1,10 @@
-"""Grouped sweeps: one MLflow parent run per Hydra multirun, every job's run nested under it.
+"""One MLflow parent run per Hydra multirun of the training, every job's run nested under it.
 
-``python train.py -m model.hidden=16,32,64`` (or ``experts=1,3,5``, or both: the product)
-runs one training per point. :class:`MLflowSweepCallback`, registered under
-``hydra.callbacks`` in ``conf/config.yaml``, opens a *parent* run in the MLflow experiment of
-kind ``sweep`` (``<logger.experiment_prefix>/sweep``, unless ``logger.experiment_name`` is
-set; :mod:`generalist_control.tracking.experiments`) before the first job and exports its id
-in ``GC_PARENT_RUN_ID`` (and the sweep's name in ``GC_SWEEP_NAME``); the training then files
-every job's run in that experiment and tags it with ``mlflow.parentRunId`` and ``sweep``, so
-the MLflow UI shows the points as children of one row and compares them side by side.
-After the last job the parent gets a summary (``sweep/n_runs``, ``sweep/best/<metric>``,
-tag ``sweep.best_run_id``) and ends ``FINISHED``, or ``FAILED`` if a job failed.
-
-Hydra's basic launcher runs the jobs one after another in this process. A parallel launcher
-runs them elsewhere: ``hydra/launcher=parallel`` or ``joblib`` in worker processes of this
-machine (loky, which may reuse workers started for an earlier multirun, with that one's
-environment), ``submitit_local`` and ``submitit_slurm`` in processes of their own, on a
-cluster's nodes for SLURM. Each of them pickles Hydra's callbacks, this one with its
-``run_id``, into the job, and :meth:`MLflowSweepCallback.on_job_start` sets the variables
-there before the training starts: the parent reaches a job whatever its process inherited.
-
-A single run (no ``-m``) with ``group`` set is filed under the parent run of that name in
-its experiment, found or created by
-:func:`generalist_control.tracking.parents.named_parent`: separate commands (the DVC
-ablation's trainings, started two at a time) share one parent that way.
-:func:`generalist_control.tracking.parents.parent_run` is the same mechanism for code (the
-Optuna study of :mod:`generalist_control.sweeps.study` files its trials under a study run
-with it).
+The callback runs in the launching process and, pickled by Hydra, in every job's process
+(joblib's workers, submitit's jobs), where it sets the parent's id before the training
+starts. A single run with ``group`` set is filed under a parent found or made by name (the
+DVC ablation's separate commands). SIGTERM or SIGINT stops the sweep: no further job, a
+non-zero exit, the killed jobs' runs and the parent ``KILLED`` (docs/sweeps.md).
 """
 
 from __future__ import annotations
@@ -33,7 +12,6 @@ from __future__ import annotations
 import atexit
 import json
 import logging
-import os
 from collections.abc import Sequence
 from typing import Any
 
@@ -44,34 +22,20 @@ from omegaconf import DictConfig
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.secrets import redact
+from generalist_control.sweeps import stop_signals
 from generalist_control.tracking import mlflow_utils
 from generalist_control.tracking.experiments import experiment_name
 from generalist_control.tracking.parents import (
     create_parent_run,
+    export_parent,
     named_parent,
+    restore_parent,
     summarise_children,
 )
 
 __all__ = ["MLflowSweepCallback", "sweep_overrides"]
 
 log = logging.getLogger(__name__)
-
-_ENV_KEYS = (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV)
-
-
-def _set_env(values: Sequence[str]) -> dict[str, str | None]:
-    """Set the parent's variables; return their previous values."""
-    saved = {k: os.environ.get(k) for k in _ENV_KEYS}
-    os.environ.update(dict(zip(_ENV_KEYS, values, strict=True)))
-    return saved
-
-
-def _restore_env(saved: dict[str, str | None]) -> None:
-    for key, value in saved.items():
-        if value is None:
-            os.environ.pop(key, None)
-        else:
-            os.environ[key] = value
 
 
 def sweep_overrides(overrides: Sequence[str]) -> list[str]:
@@ -89,28 +53,20 @@ def sweep_overrides(overrides: Sequence[str]) -> list[str]:
 class MLflowSweepCallback(Callback):
     """Hydra callback: one MLflow parent run per multirun of the training.
 
-    Parameters
+    Parameters (``hydra.callbacks.mlflow_sweep`` in ``conf/hydra_settings.yaml``)
     ----------
     jobs : sequence of str
         Hydra job names (``hydra.job.name``) whose multiruns are grouped; other entry points
-        sharing ``conf/config.yaml`` (``generate``, ``evaluate``) log no MLflow runs and get
-        no parent.
-    name : str, optional
-        The parent run's name and the children's ``sweep`` tag; default ``sweep:`` followed
-        by the sweeping overrides, e.g. ``sweep:model.hidden=16,32,64``.
-    group : str, optional
+        (``generate``, ``evaluate``) log no training runs and get no parent.
+    name : str or None
+        The parent run's name and the children's ``sweep`` tag; None: ``sweep:`` followed by
+        the sweeping overrides, e.g. ``sweep:model.hidden=16,32,64``.
+    group : str or None
         A single run (no ``-m``) is filed under the parent run of this name in its
         experiment, made if missing (e.g. ``ablation:default``); a multirun ignores it.
-
-    Each job of a multirun writes its model to ``<its output dir>/models`` unless
-    ``paths.models_dir`` is on the command line
-    (:attr:`generalist_control.training.settings.TrainingSettings.models_dir`),
-    so the jobs overwrite neither each other's model nor the DVC output ``models/``.
     """
 
-    def __init__(
-        self, jobs: Sequence[str] = ("train",), name: str | None = None, group: str | None = None
-    ) -> None:
+    def __init__(self, *, jobs: Sequence[str], name: str | None, group: str | None) -> None:
         self.jobs = tuple(jobs)
         self.name = name
         self.group = group
@@ -120,6 +76,7 @@ class MLflowSweepCallback(Callback):
         self._tracking_uri: str | None = None
         self._saved_env: dict[str, str | None] = {}
         self._job_env: dict[str, str | None] | None = None
+        self._stops = False
 
     def _active(self, config: DictConfig) -> bool:
         return str(config.hydra.job.name) in self.jobs
@@ -129,7 +86,6 @@ class MLflowSweepCallback(Callback):
         if not self._active(config):
             return
         import mlflow  # only a sweep that logs pays for its import
-        from mlflow.entities import RunStatus
 
         overrides = [str(o) for o in config.hydra.overrides.task]
         swept = [redact(o) for o in sweep_overrides(overrides)]
@@ -146,9 +102,10 @@ class MLflowSweepCallback(Callback):
         self._parent_name = name
         self._tracking_uri = mlflow.get_tracking_uri()
         self._failed = 0
-        self._saved_env = _set_env((self.run_id, name))
-        # A failed job makes Hydra raise before on_multirun_end: end the parent at exit then.
-        atexit.register(self._end, RunStatus.to_string(RunStatus.FAILED))
+        self._saved_env = export_parent(self.run_id, name)
+        # A failed job or a signal makes Hydra raise before on_multirun_end: end it at exit.
+        atexit.register(self._end_at_exit)
+        self._stops = stop_signals.install()
         log.info("MLflow sweep %r: parent run %s", name, self.run_id)
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
@@ -163,12 +120,12 @@ class MLflowSweepCallback(Callback):
     def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
         """Export the parent to this job, in whichever process the launcher runs it."""
         if self.run_id and self._parent_name and self._active(config):
-            self._job_env = _set_env((self.run_id, self._parent_name))
+            self._job_env = export_parent(self.run_id, self._parent_name)
 
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
         """Count the failed jobs (the parent then ends ``FAILED``); restore the environment."""
         if self._job_env is not None:
-            _restore_env(self._job_env)
+            restore_parent(self._job_env)
             self._job_env = None
         if self.run_id and job_return.status == JobStatus.FAILED:
             self._failed += 1
@@ -183,17 +140,18 @@ class MLflowSweepCallback(Callback):
         if self.run_id is None:
             return
         import mlflow
-        from mlflow.entities import RunStatus
 
         try:
             if self._tracking_uri:
                 mlflow.set_tracking_uri(self._tracking_uri)
-            metric = str(config.get("optimized_metric") or "val/loss")
-            summary = summarise_children(self.run_id, metric)
+            summary = summarise_children(self.run_id, str(config.optimized_metric))
             log.info("MLflow sweep %s: %s", self.run_id, summary)
         finally:
-            status = RunStatus.FAILED if self._failed else RunStatus.FINISHED
-            self._end(RunStatus.to_string(status))
+            self._end("FAILED" if self._failed else "FINISHED")
+
+    def _end_at_exit(self) -> None:
+        """The process exits before ``on_multirun_end``: a job failed, or a signal stopped it."""
+        self._end("FAILED" if stop_signals.received() is None else "KILLED")
 
     def _end(self, status: str) -> None:
         if self.run_id is None:
@@ -201,9 +159,14 @@ class MLflowSweepCallback(Callback):
         import mlflow
 
         run_id, self.run_id = self.run_id, None
-        atexit.unregister(self._end)
-        _restore_env(self._saved_env)
+        atexit.unregister(self._end_at_exit)
+        if self._stops:
+            stop_signals.restore()
+        restore_parent(self._saved_env)
         self._parent_name = None
         if self._tracking_uri:
             mlflow.set_tracking_uri(self._tracking_uri)
-        mlflow.MlflowClient().set_terminated(run_id, status)
+        client = mlflow.MlflowClient()
+        if status == "KILLED":  # the jobs' runs whose process the launcher killed
+            mlflow_utils.end_stale_runs(client.get_run(run_id).info.experiment_id)
+        client.set_terminated(run_id, status)

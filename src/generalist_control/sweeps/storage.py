@@ -6,7 +6,7 @@ import logging
 import random
 import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +17,7 @@ from mlflow.exceptions import MlflowException
 from optuna.trial import FrozenTrial
 
 from generalist_control.common.secrets import redact
+from generalist_control.sweeps.search_settings import HeartbeatSettings
 from generalist_control.tracking import mlflow_utils
 
 __all__ = ["fail_stale_trials", "open_storage", "StaleTrialHandler"]
@@ -48,22 +49,10 @@ def _parse(url: str) -> sqlalchemy.engine.URL:
     return parsed
 
 
-def _heartbeat_kwargs(heartbeat: Mapping[str, Any] | None, on_stale_trial: Any) -> dict[str, Any]:
-    """``RDBStorage`` keywords of ``hparams_search.heartbeat`` (none when it is off)."""
-    hb = dict(heartbeat or {})
-    if not hb.get("interval"):
-        return {}
-    return {
-        "heartbeat_interval": int(hb["interval"]),
-        "grace_period": int(hb["grace_period"]) if hb.get("grace_period") else None,
-        "heartbeat_stale_trial_callback": on_stale_trial,
-    }
-
-
 def open_storage(
     url: str,
-    heartbeat: Mapping[str, Any] | None = None,
-    on_stale_trial: Any | None = None,
+    heartbeat: HeartbeatSettings | None = None,
+    on_stale_trial: Callable[[optuna.Study, FrozenTrial], None] | None = None,
 ) -> optuna.storages.RDBStorage:
     """Open (and create the tables of) the Optuna RDB storage at ``url``.
 
@@ -72,9 +61,8 @@ def open_storage(
     url : str
         SQLAlchemy URL: ``sqlite:///optuna.db`` (relative to the working directory),
         ``postgresql+psycopg2://user:password@host:5432/db``, or a MySQL URL.
-    heartbeat : mapping, optional
-        ``interval`` and ``grace_period`` (positive whole seconds); ``interval`` null
-        turns the heartbeat (and the failing of dead workers' trials) off.
+    heartbeat : HeartbeatSettings, optional
+        None, or ``interval`` None: no heartbeat (dead workers' trials are never failed).
     on_stale_trial : callable, optional
         Called with ``(study, trial)`` for each trial the heartbeat check sets to ``FAIL``.
 
@@ -89,7 +77,13 @@ def open_storage(
     backend = parsed.get_backend_name()
     if backend == "sqlite" and parsed.database not in (None, "", ":memory:"):
         Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
-    kwargs = _heartbeat_kwargs(heartbeat, on_stale_trial)
+    kwargs: dict[str, Any] = {}
+    if heartbeat is not None and heartbeat.interval:
+        kwargs = {
+            "heartbeat_interval": heartbeat.interval,
+            "grace_period": heartbeat.grace_period,
+            "heartbeat_stale_trial_callback": on_stale_trial,
+        }
     engine_kwargs = {} if backend == "sqlite" else {"pool_pre_ping": True}
     where = redact(url)
     for attempt in range(1, _CREATE_ATTEMPTS + 1):
@@ -114,7 +108,7 @@ class StaleTrialHandler:
 
     def __init__(self, logger: Mapping[str, Any], max_retry: int) -> None:
         self.logger = dict(logger)
-        self.max_retry = int(max_retry or 0)
+        self.max_retry = max_retry
 
     def __call__(self, study: optuna.Study, trial: FrozenTrial) -> None:
         """Fail the trial's MLflow run; retry the trial if configured."""

@@ -65,7 +65,7 @@ log = logging.getLogger(__name__)
 EXCLUDED = ("systems.plants", "hydra")
 MAX_VALUE = 6000  # MLflow's limit on a param value
 
-#: Environment variables through which a sweep (:mod:`generalist_control.sweep`) or a study
+#: Environment variables through which a sweep (``python train.py -m``) or a study
 #: (:mod:`generalist_control.tune`) hands its parent run to the training runs it starts.
 PARENT_RUN_ENV = "GC_PARENT_RUN_ID"
 SWEEP_ENV = "GC_SWEEP_NAME"

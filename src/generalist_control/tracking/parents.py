@@ -23,8 +23,10 @@ __all__ = [
     "GROUP_ROLE",
     "ROLE_TAG",
     "create_parent_run",
+    "export_parent",
     "named_parent",
     "parent_run",
+    "restore_parent",
     "summarise_children",
 ]
 
@@ -120,26 +122,38 @@ def named_parent(logger: Mapping[str, Any], name: str, kind: str = "train") -> s
     return oldest
 
 
-@contextmanager
-def parent_run(run_id: str, name: str) -> Iterator[None]:
-    """Within the block, new training runs are children of ``run_id`` (tag ``sweep=name``).
+def export_parent(run_id: str, name: str) -> dict[str, str | None]:
+    """New training runs are children of ``run_id`` (tag ``sweep=name``) from now on.
 
-    The previous values of ``GC_PARENT_RUN_ID`` and ``GC_SWEEP_NAME`` come back afterwards.
+    Returns the previous values of ``GC_PARENT_RUN_ID`` and ``GC_SWEEP_NAME``, for
+    :func:`restore_parent`.
     """
     keys = (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV)
     saved = {k: os.environ.get(k) for k in keys}
     os.environ.update(dict(zip(keys, (run_id, name), strict=True)))
+    return saved
+
+
+def restore_parent(saved: Mapping[str, str | None]) -> None:
+    """The parent variables as :func:`export_parent` found them."""
+    for key, value in saved.items():
+        if value is None:
+            os.environ.pop(key, None)
+        else:
+            os.environ[key] = value
+
+
+@contextmanager
+def parent_run(run_id: str, name: str) -> Iterator[None]:
+    """Within the block, new training runs are children of ``run_id`` (tag ``sweep=name``)."""
+    saved = export_parent(run_id, name)
     try:
         yield
     finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
+        restore_parent(saved)
 
 
-def summarise_children(parent_id: str, metric: str = "val/loss", mode: str = "min") -> dict:
+def summarise_children(parent_id: str, metric: str) -> dict:
     """Log a summary of the parent's child runs to the parent; return it.
 
     Parameters
@@ -147,9 +161,8 @@ def summarise_children(parent_id: str, metric: str = "val/loss", mode: str = "mi
     parent_id : str
         The parent run (its experiment is searched for runs tagged with it).
     metric : str
-        The children's score: their ``best/<metric>`` if logged, else ``<metric>``.
-    mode : {"min", "max"}
-        Whether lower or higher is better.
+        The children's score (lower is better): their ``best/<metric>`` if logged, else
+        ``<metric>``.
 
     Returns
     -------
@@ -160,8 +173,6 @@ def summarise_children(parent_id: str, metric: str = "val/loss", mode: str = "mi
     """
     import mlflow
 
-    if mode not in ("min", "max"):
-        raise ValueError(f"mode must be 'min' or 'max', not {mode!r}")
     client = mlflow.MlflowClient()
     parent = client.get_run(parent_id)
     children = client.search_runs(
@@ -180,7 +191,7 @@ def summarise_children(parent_id: str, metric: str = "val/loss", mode: str = "mi
             scored.append((value, child.info.run_id))
     metrics = {"sweep/n_runs": summary["n_runs"], "sweep/n_finished": summary["n_finished"]}
     if scored:
-        best_value, best_id = (min if mode == "min" else max)(scored)
+        best_value, best_id = min(scored)
         summary.update(best_value=best_value, best_run_id=best_id)
         metrics[f"sweep/best/{metric}"] = best_value
         client.set_tag(parent_id, "sweep.best_run_id", best_id)

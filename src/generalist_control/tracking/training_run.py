@@ -1,24 +1,9 @@
-"""The MLflow run of a training: Lightning's ``MLFlowLogger``, and what it cannot do.
+"""The MLflow run of a training: Lightning's ``MLFlowLogger``, plus what it cannot do.
 
-Lightning's :class:`~lightning.pytorch.loggers.MLFlowLogger` is the trainer's logger: it
-creates the run (or, given a run id, continues one) with MLflow's source tags and sends the
-metrics. Our own code remains only where the logger cannot do the job:
-
-* the experiment is looked up or created beforehand, under
-  :func:`~.mlflow_utils.store_lock`: the logger creates a missing experiment unlocked, and
-  trainings started together on a fresh SQLite store would race on it. It is the parent
-  run's experiment for a job of a sweep or a trial of a study, else the ``train``
-  experiment of :func:`~.experiments.experiment_name`;
-* runs of this host left ``RUNNING`` by a dead process are ended first
-  (:func:`~.mlflow_utils.end_stale_runs`), and the run is tagged with its process;
-* the run is nested under the parent run named by the environment
-  (:func:`~.mlflow_utils.parent_run_tags`);
-* :class:`RunRecorder`: the logger sends what is logged with ``logger=True``, with the
-  global step as the step; the project's metrics are logged with ``logger=False`` (the
-  progress bar and callbacks use them) and belong to epochs, so the recorder sends each
-  epoch's ``train/*``, ``val/*``, ``dagger/*``, the learning rate and the epoch's time once,
-  with the epoch as the step. The logger keeps nothing in a checkpoint, so the recorder
-  keeps the run id there: a resume continues the same run (:func:`run_id_from_checkpoint`).
+The experiment is made beforehand under :func:`~.mlflow_utils.store_lock` (trainings started
+together on a fresh SQLite store would race); stale runs are ended; the run is nested under
+its sweep's parent; :class:`RunRecorder` logs each epoch's metrics with the epoch as the step
+and keeps the run id in the checkpoint, so a resume continues the same run.
 """
 
 from __future__ import annotations
@@ -74,11 +59,8 @@ def _select(cfg: Mapping[str, Any], key: str) -> tuple[bool, Any]:
 def training_params(cfg: Mapping[str, Any], keys: Sequence[str]) -> dict[str, str]:
     """The params of a training run: the config ``keys`` (each with its subtree), flattened.
 
-    A part chosen in config (a node with ``_target_``) is logged under its own key as its
-    class name, followed by its settings; Hydra's ``_partial_`` markers and settings that
-    are null (a part or option not chosen) are left out, but a chosen key that is null
-    itself (``dagger: null``) is logged as ``None``. Values are redacted as in
-    :func:`~.mlflow_utils.flatten_params`. Keys the config does not hold are skipped.
+    A part (a node with ``_target_``) is logged as its class name, then its settings; null
+    settings and ``_partial_`` are left out, a null key itself is ``None``; values redacted.
 
     Examples
     --------
@@ -106,11 +88,7 @@ def training_params(cfg: Mapping[str, Any], keys: Sequence[str]) -> dict[str, st
 
 
 def training_experiment(logger: Mapping[str, Any]) -> str:
-    """The experiment id of a new training run: its parent's, else the ``train`` kind's.
-
-    MLflow is pointed at ``logger``'s store first. A parent run (``GC_PARENT_RUN_ID``) that
-    the store does not hold is reported and ignored.
-    """
+    """The experiment of a new training run in ``logger``'s store: its parent's, else ``train``."""
     mlflow_utils.set_tracking(logger)
     parent = os.environ.get(mlflow_utils.PARENT_RUN_ENV)
     if parent:
@@ -135,18 +113,9 @@ def _existing_run(run_id: str | None) -> str | None:
 def training_logger(logger: Mapping[str, Any], resume_run_id: str | None = None) -> MLFlowLogger:
     """Lightning's MLflow logger on the training's run, which exists when this returns.
 
-    Parameters
-    ----------
-    logger : mapping
-        The ``logger`` config: ``tracking_uri``, ``experiment_name`` or
-        ``experiment_prefix``, ``artifact_location``, ``run_name``.
-    resume_run_id : str, optional
-        The run to continue (from :func:`run_id_from_checkpoint`), if this store holds it.
-
-    Returns
-    -------
-    MLFlowLogger
-        With ``log_model=False``: the project logs its own policy and checkpoint.
+    ``logger`` is the ``logger`` config; ``resume_run_id`` the run to continue (from
+    :func:`run_id_from_checkpoint`) if this store holds it. ``log_model=False``: the project
+    logs its own policy and checkpoint.
     """
     exp_id = training_experiment(logger)
     client = mlflow.MlflowClient()
@@ -172,15 +141,9 @@ def training_logger(logger: Mapping[str, Any], resume_run_id: str | None = None)
 
 
 class RunRecorder(L.Callback):
-    """Send each epoch's metrics to the trainer's logger, with the epoch as the step.
+    """Send each epoch's metrics, ``lr`` and ``time/epoch_s`` to the logger at step = epoch.
 
-    Also logs ``lr`` and ``time/epoch_s``, renews the run's heartbeat tag ``gc.heartbeat``
-    (UTC time), and keeps the run id in the checkpoint.
-
-    Parameters
-    ----------
-    run_id : str
-        The training's MLflow run.
+    Also renews the run's heartbeat tag and keeps ``run_id`` in the checkpoint.
     """
 
     def __init__(self, run_id: str) -> None:
@@ -214,8 +177,7 @@ class RunRecorder(L.Callback):
         """Keep the current run id (the resumed run is chosen before fitting)."""
 
 
-#: Names under which a checkpoint keeps the run id (``MLflowEpochLogger``: before Lightning's
-#: logger was used).
+#: Names under which a checkpoint keeps the run id (``MLflowEpochLogger``: older checkpoints).
 _STATE_KEYS = (RunRecorder.__qualname__, "MLflowEpochLogger")
 
 
@@ -230,10 +192,9 @@ def run_id_from_checkpoint(ckpt_path: str | Path) -> str | None:
 
 
 def log_params_once(params: Mapping[str, str]) -> dict[str, tuple[str, str]]:
-    """Log params to the active run, skipping those it already has (a resumed run).
+    """Log params to the active run, skipping those it has (a resume); return the changed ones.
 
-    Returns the params whose value differs from the one already logged, ``{key: (old,
-    new)}``; they are also written to the tag ``resume.changed_params``.
+    ``{key: (old, new)}``, also written to the tag ``resume.changed_params``.
     """
     run = mlflow.active_run()
     old = mlflow.get_run(run.info.run_id).data.params if run else {}
@@ -254,12 +215,9 @@ def log_input_shared(
 ) -> None:
     """:func:`mlflow.log_input`, again when another process logged the same dataset first.
 
-    MLflow's database store looks a dataset up by (experiment, name, digest) and inserts it
-    when missing, in one transaction without a lock: two trainings on one data set that
-    start together (the workers of a study) can both miss it, and the second insert then
-    fails on the table's unique key. The failed transaction is rolled back, so logging again
-    finds the row the other process wrote and only links it to this run. Any other error,
-    or the same one ``attempts`` times, is raised.
+    MLflow inserts a missing dataset without a lock, so two trainings starting together can
+    both insert it and the second fails on the unique key; logging again links the row the
+    other wrote. Any other error, or the same one ``attempts`` times, is raised.
     """
     for attempt in range(1, attempts + 1):
         try:
@@ -275,10 +233,9 @@ def log_input_shared(
 
 
 def find_training_run(sha256: str) -> str | None:
-    """The newest finished training run of the current store that wrote the policy ``sha256``.
+    """The newest finished run that wrote the policy ``sha256`` (tag :data:`POLICY_HASH_TAG`).
 
-    The policy file holds no run id (its bytes must reproduce), so an evaluation or an
-    adaptation finds the run that trained it by the tag :data:`POLICY_HASH_TAG`.
+    The policy file holds no run id: its bytes must reproduce.
     """
     runs = mlflow.search_runs(
         search_all_experiments=True,

@@ -1,12 +1,8 @@
-"""An actuator that is not the model's, between DAgger's rollouts and their plants.
+"""A random actuator between DAgger's rollouts and their plants (``dagger.sampler.actuator``).
 
-``dagger.sampler.actuator`` (sim-to-real without the tag): each rollout row gets a
-first-order lag and a constant input disturbance of its own, drawn at random, between the
-control the policy commands and the control the plant receives. The policy's windows keep
-the *commanded* control (the one a deployed policy knows), the experts label what they
-would command, and the identifier learns to name a plant whose actuator lags or is offset
-(a motor's time constant, a heavier vehicle's unbalanced weight), as a real one does. The
-plants in the data are untouched.
+Each rollout row gets a first-order lag and a constant input offset of its own; the windows
+keep the *commanded* control (what a deployed policy knows), so the identifier learns to name
+a plant whose actuator lags or is offset, as a real one does.
 """
 
 from __future__ import annotations
@@ -19,24 +15,15 @@ __all__ = ["Actuator", "lag_mix"]
 def lag_mix(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A first-order lag's mean weight and decay over one sample.
 
-    Parameters
-    ----------
-    tau : ndarray
-        Time constants in sample periods (>= 0).
-
-    Returns
-    -------
-    mix, decay : ndarray
-        Holding the command ``u`` over a sample that starts at the lag's output ``s``, the
-        output's mean over the sample is ``u + mix (s - u)`` and its end value
-        ``u + decay (s - u)``: ``decay = exp(-1/tau)``, ``mix = tau (1 - decay)``; both 0
-        at ``tau = 0`` (no lag).
+    For a command ``u`` held over a sample from the lag's output ``s`` (time constants
+    ``tau`` in samples), the mean output is ``u + mix (s - u)`` and the end value
+    ``u + decay (s - u)``: ``decay = exp(-1/tau)``, ``mix = tau (1 - decay)``, 0 at ``tau = 0``.
 
     Examples
     --------
     >>> mix, decay = lag_mix(np.array([0.0, 0.6]))
     >>> np.round(mix, 3).tolist(), np.round(decay, 3).tolist()
-    ([0.0, 0.488], [0.0, 0.189])
+    ([0.0, 0.487], [0.0, 0.189])
     """
     tau = np.asarray(tau, dtype=float)
     safe = np.where(tau > 0, tau, 1.0)
@@ -47,20 +34,10 @@ def lag_mix(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class Actuator:
     """Per row a lag (time constant uniform in ``[0, lag]`` samples) and an offset.
 
-    Parameters
-    ----------
-    lag : ndarray, shape (rows,)
-        Each row's largest time constant, in sample periods (0: no lag).
-    offset : ndarray, shape (rows,)
-        Each row's largest constant input disturbance, in its plant's control units; the
-        row's own is uniform in ``[-offset, offset]``.
-    rng : numpy.random.Generator
-        Draws the rows' time constants, then their offsets.
-
-    Notes
-    -----
-    The lag starts at rest (output 0, as the plant does). Over a sample the plant receives
-    the lag's mean output (:func:`lag_mix`) plus the offset, held over the sample.
+    ``lag`` (rows,) is each row's largest time constant in samples, ``offset`` (rows,) its
+    largest input offset in control units (the row's own uniform in ``+-offset``), drawn from
+    ``rng``. The lag starts at rest; over a sample the plant receives the lag's mean output
+    (:func:`lag_mix`) plus the offset.
 
     Examples
     --------

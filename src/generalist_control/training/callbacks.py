@@ -17,19 +17,15 @@ __all__ = ["ClosedLoopValidation"]
 
 
 class ClosedLoopValidation(L.Callback):
-    """Log ``val/closed_loop`` after each validation: the mean :func:`closed_loop_score`.
+    """Log ``val/closed_loop`` after each validation: the mean of ``score`` over its plants.
 
-    Open-loop validation MSE says little about the closed loop (a small error in the
-    feedback of an unstable plant diverges), so with DAgger the best checkpoint is chosen
-    on this score (``monitor: val/closed_loop``). Per plant: ``val/closed_loop/<plant>``, or
-    per label where the score's ``labels`` name the plants (e.g. ``<plant>/v<index>`` for a
-    variant). ``score``: the plants and steps (:class:`ClosedLoopScore`).
-    The mean is shown in the progress bar too (3 significant digits, see
-    :meth:`~generalist_control.training.lit_module.ImitationModule.setup`).
+    Open-loop MSE says little about the closed loop (a small feedback error on an unstable
+    plant diverges), so DAgger's best checkpoint is chosen on this. Per plant (or label):
+    ``val/closed_loop/<plant>``.
     """
 
     def __init__(self, score: ClosedLoopScore) -> None:
-        self.score = score  # LQI's responses are simulated once, at the first validation
+        self.score = score
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Score the current policy in closed loop and log it."""

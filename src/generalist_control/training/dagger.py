@@ -1,13 +1,8 @@
 """DAgger during training (ours, not the paper's): a thin callback around a sampler and a labeller.
 
-After epoch ``start_epoch`` and then every ``every`` epochs, for ``rounds`` rounds: the
-:class:`~generalist_control.training.sampler.RolloutSampler` rolls the current policy out,
-the :class:`~generalist_control.training.labeller.ExpertLabeller` labels the visited states
-with the LQI experts' plans, and the windows join the training set. The expert's share of
-the executed control decays over the rounds (``dagger.beta``, ``dagger.beta_decay``). The
-trainer reloads its dataloaders every epoch (:func:`generalist_control.training.fit.train`
-sets it); validation stays on the demonstrations; after each round early stopping's
-patience starts again (the training set has changed).
+After epoch ``start_epoch``, then every ``every`` epochs, for ``rounds`` rounds, the sampler
+rolls the policy out, the labeller labels the visited states with the experts' plans, and
+the windows join the training set (validation stays on the demonstrations).
 """
 
 from __future__ import annotations
@@ -32,17 +27,8 @@ log = logging.getLogger(__name__)
 class DAggerCallback(L.Callback):
     """Aggregate expert-labelled policy rollouts into the training set during training.
 
-    Parameters
-    ----------
-    sampler : RolloutSampler
-    labeller : ExpertLabeller
-    settings : DaggerSettings
-        The schedule (``start_epoch``, ``every``, ``rounds``) and the expert's share.
-
-    Attributes
-    ----------
-    history : list of dict
-        Per round: its number, ``beta``, the windows added and per plant the windows kept.
+    ``history`` holds per round its number, ``beta``, the windows added and kept per plant.
+    Early stopping's patience restarts after each round: the training set has changed.
     """
 
     def __init__(

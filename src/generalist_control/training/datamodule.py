@@ -1,16 +1,8 @@
 """Training and validation windows of ``data/demos``, split by trajectory, held in memory.
 
-The windows come from the one window builder (:meth:`DemoSet.windows
-<generalist_control.demos.DemoSet.windows>`). The split is by trajectory, stratified by
-plant: a fraction of each plant's trajectories (at least one, when it has two or more)
-goes to validation, so no window of a validation trajectory is seen in training and every
-plant has a validation MSE.
-
-All windows live in a few tensors (about 110 MB for the full 317k-window set). Batches are
-cut by a sampler that yields whole index batches (shuffled per epoch from ``seed + epoch``,
-so a resumed run sees the same order as an uninterrupted one) and a dataset that indexes
-the tensors with them: one gather per batch, no per-sample ``__getitem__`` and no worker
-processes, which would only copy the tensors around.
+Windows come from the one window builder; a fraction of each plant's trajectories goes whole
+to validation. Batches are whole index batches (shuffled from ``seed + epoch``, so a resume
+sees the same order) gathered from a few tensors: no per-sample ``__getitem__``, no workers.
 """
 
 from __future__ import annotations
@@ -46,18 +38,8 @@ FIELDS = ("state", "mask", "ref", "tag", "target")
 def split_by_trajectory(plant: np.ndarray, val_fraction: float, seed: int) -> np.ndarray:
     """Validation flags of ``B`` trajectories, stratified by plant.
 
-    Parameters
-    ----------
-    plant : ndarray of str, shape (B,)
-        Plant of each trajectory.
-    val_fraction : float
-        Fraction of each plant's trajectories for validation, in ``[0, 1)``; a plant with
-        two or more trajectories gets at least one.
-    seed : int
-
-    Returns
-    -------
-    ndarray of bool, shape (B,)
+    ``plant`` (B,) names each trajectory's plant; a fraction ``val_fraction`` in ``[0, 1)``
+    of each plant's goes to validation, at least one of a plant with two or more.
     """
     if not 0.0 <= val_fraction < 1.0:
         raise ValueError(f"loader.val_fraction must lie in [0, 1), got {val_fraction}")
@@ -95,7 +77,7 @@ class WindowTensors(Dataset):
             self.tensors[k] = torch.cat([self.tensors[k], extra.to(self.tensors[k].dtype)])
 
     def __getitem__(self, idx: Tensor) -> dict[str, Tensor]:
-        # index_select: the same rows as v[idx], in a third of the time (a batch of 512)
+        # index_select: the same rows as v[idx], faster
         return {k: v.index_select(0, idx) for k, v in self.tensors.items()}
 
 
@@ -133,18 +115,13 @@ class DemoDataModule(L.LightningDataModule):
         Directory written by the ``generate`` stage.
     history, horizon : int
         Window sizes (the policy's ``T_h`` and ``K``).
-    loader : LoaderSettings
-        The validation fraction (of each plant's trajectories) and the batch sizes.
     seed : int
         Seeds the split and the per-epoch shuffling.
     plants : sequence of str, optional
-        Train and validate on these plants only (the config's set); None: all the dataset
-        holds. The split is made over the whole dataset first, so a plant kept has the same
-        training and validation trajectories whatever else is kept.
+        Only these plants (None: all). The split is made over the whole dataset first, so a
+        plant has the same split whatever else is kept.
     channels : sequence of str
-        The window's extra channels (``model.channels``): ``integral`` (the tracking-error
-        integral, :func:`~generalist_control.data.windows.integral_of_error`) and
-        ``previous_control`` (the control one sample earlier, the last channel).
+        The window's extra channels (``model.channels``: ``integral``, ``previous_control``).
     families : FamilySet, optional
         Plant families whose demonstrations join the dataset's (``train_families``); list
         their plants in ``plants`` too.
@@ -192,10 +169,8 @@ class DemoDataModule(L.LightningDataModule):
 
         Raises
         ------
-        generalist_control.demos.MissingDataError
-            If ``data_dir`` holds no dataset; the message gives the command that creates it.
-        MissingPlantError
-            If ``plants`` names a plant the dataset does not hold (with the command).
+        generalist_control.data.demos.MissingDataError
+            No dataset at ``data_dir``, or (:class:`MissingPlantError`) not one of ``plants``.
         """
         if self.train_set is not None:
             return

@@ -1,18 +1,9 @@
 """Training: demonstrations -> trained policy, logged to MLflow.
 
-:func:`train` does the work for the ``train`` stage (:mod:`generalist_control.train`, run
-as ``python train.py``) and for every sweep job and Optuna trial. Outputs:
-
-* ``<run_dir>/checkpoints/``: Lightning checkpoints (best on ``monitor``, and ``last.ckpt``,
-  the last finished epoch, to resume with ``ckpt_path=<run_dir>/checkpoints/last.ckpt``);
-* ``policy.ckpt`` (the best policy, loadable with
-  :func:`generalist_control.model.policy.load_policy`) and ``metrics.json`` (headline
-  numbers, :func:`.outputs.dvc_metrics`), in ``<run_dir>/models``, or in
-  ``paths.published_dir`` (``models/``) when the run publishes (``publish=true``: the DVC
-  stage); see :attr:`.settings.TrainingSettings.models_dir`;
-* one MLflow run, opened by Lightning's ``MLFlowLogger``
-  (:mod:`generalist_control.tracking.training_run`), and a new version of the registered
-  model ``logger.registered_model_name``.
+:func:`train` does the work of the ``train`` stage (``python train.py``), every sweep job and
+every Optuna trial: checkpoints in ``<run_dir>/checkpoints/``, ``policy.ckpt`` and
+``metrics.json`` in :attr:`.settings.TrainingSettings.models_dir`, one MLflow run and a new
+registered model version (docs/training.md, "Outputs, MLflow, DVC").
 """
 
 from __future__ import annotations
@@ -166,7 +157,7 @@ def _fit(
 ) -> tuple[str, dict[str, Any]]:
     """Fit, then validate the best checkpoint; return its path and the metrics."""
     with warnings.catch_warnings():
-        # batches are gathered from in-memory tensors: worker processes would only slow it
+        # batches are gathered from in-memory tensors: workers would only slow it
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
         trainer.fit(lit, datamodule=dm, ckpt_path=ckpt_path)
         best = ckpt_cb.best_model_path or ckpt_cb.last_model_path
@@ -189,10 +180,10 @@ def _fit(
 
 
 def _stopped(exc: SystemExit, trainer: L.Trainer) -> int | None:
-    """The exit status of a training stopped by a signal (Lightning leaves by SystemExit).
+    """The exit status of a training stopped by a signal, else None.
 
-    Lightning turns SIGTERM into :class:`SIGTERMException`, a ``SystemExit`` with no code
-    (status 0), and Ctrl-C into ``SystemExit(1)``: neither may read as success.
+    Lightning leaves by ``SystemExit`` with status 0 (SIGTERM) or 1 (Ctrl-C): neither may
+    read as success.
     """
     if isinstance(exc, SIGTERMException):
         return 128 + signal.SIGTERM
@@ -230,8 +221,7 @@ def _publish(
 ) -> tuple[Policy, Path]:
     """Save the best policy and its metrics, log them to the run, add closed-loop scores.
 
-    The policy file holds what reproduces (weights, config, data facts, metrics), so the same
-    training writes the same bytes; the run finds it by its hash (``policy.sha256``).
+    The policy file holds only what reproduces, so the run is tagged with its hash.
     """
     policy, _ = load_policy(best)
     models_dir = settings.models_dir
@@ -276,11 +266,6 @@ def _prepare(
 
 def train(settings: TrainingSettings) -> tuple[dict[str, Any], dict[str, Any]]:
     """Train the policy ``settings`` describe; return its metrics and the objects made.
-
-    Parameters
-    ----------
-    settings : TrainingSettings
-        The training's config, read once (:func:`~.settings.read_training`).
 
     Returns
     -------

@@ -1,20 +1,9 @@
 """DAgger's expert labeller: LQI labels on the states the learned policy itself visits.
 
-The demonstrations are step responses from rest: for each plant they trace essentially one
-curve per amplitude, so a policy that imitates them well can still have the wrong
-*feedback* off that curve, and a small error in the feedback gain of an open-loop unstable
-plant (magnetic levitation, the cart-pole, ball and beam) diverges. DAgger (Ross et al.,
-2011) fixes the distribution: roll the current policy out
-(:class:`~generalist_control.training.sampler.RolloutSampler`), ask the expert what it would
-have done at every visited state, and add those windows to the training set.
-
-The label at sample ``k`` is the expert's plan from there (:func:`expert_plans`): its next
-``horizon`` controls had it taken over at ``k``. Its integrator: a policy that sees the error
-integral (``model.channels`` with ``integral``) is labelled from that integral, the one the
-expert tracked along the rollout; without it, from a *bumpless* take-over
-(:func:`bumpless_integrator`), the LQI law in velocity form, a function of the window.
-Rollouts are cut where they leave the plant's data range (``dagger.labeller.bound_factor``
-times the largest state the data reaches).
+The label at sample ``k`` is the expert's plan from there (:func:`expert_plans`), its
+integrator the one tracked along the rollout when the policy sees the error integral, else a
+bumpless take-over (:func:`bumpless_integrator`). Rollouts are cut where they leave
+``bound_factor`` times the data's range.
 """
 
 from __future__ import annotations
@@ -41,14 +30,12 @@ def expert_plans(
 
     Parameters
     ----------
-    plant : Plant
     x : ndarray, shape (B, N, n)
         Visited states (deviations).
     z : ndarray, shape (B, N)
         Expert integrator at each visited state (before that sample's control).
     r : ndarray, shape (B, N)
         References; beyond the last sample the last one is held.
-    horizon : int
 
     Returns
     -------
@@ -75,25 +62,10 @@ def expert_plans(
 def bumpless_integrator(plant: Plant, x: np.ndarray, u: np.ndarray, r: np.ndarray) -> np.ndarray:
     """The expert's integrator for a bumpless take-over at every sample of a rollout.
 
-    At sample ``k`` the integrator is set so that the LQI law reproduces the control that
-    was actually applied at ``k - 1``, ``z_(k-1) = -(u_(k-1) + Kx x_(k-1)) / Ki``, and then
-    integrates that sample's error: ``z_k = z_(k-1) + dt (r_(k-1) - y_(k-1))``. The label
-    ``u_k = u_(k-1) - Kx (x_k - x_(k-1)) - Ki dt (r_(k-1) - y_(k-1))`` is the LQI law in
-    velocity form: a function of the last two samples of the window, so it never
-    contradicts the demonstrations and, at a biased equilibrium, it integrates the error.
-    At ``k = 0`` (from rest) the integrator is zero, as in the demonstrations.
-
-    Parameters
-    ----------
-    plant : Plant
-    x : ndarray, shape (B, N, n)
-    u : ndarray, shape (B, N)
-        Controls applied.
-    r : ndarray, shape (B, N)
-
-    Returns
-    -------
-    ndarray, shape (B, N)
+    ``z_k = z_(k-1) + dt (r_(k-1) - y_(k-1))`` from the ``z_(k-1)`` with which the LQI law
+    gives the applied ``u_(k-1)``: the label is the LQI law in velocity form, a function of
+    the window's last two samples, so it never contradicts the demonstrations. ``z_0 = 0``.
+    ``x`` (B, N, n), ``u`` (applied) and ``r`` (B, N); returns (B, N).
     """
     g = design_lqi(plant)
     z = np.zeros(u.shape)
@@ -113,15 +85,7 @@ def _in_range(x: np.ndarray, bound: np.ndarray) -> np.ndarray:
 class ExpertLabeller:
     """Windows of the visited states with the experts' plans as targets (``dagger.labeller``).
 
-    Parameters
-    ----------
-    settings : LabellerSettings
-    history, horizon : int
-        The policy's window sizes.
-    channels : sequence of str
-        The policy's window channels (``model.channels``): with ``integral`` the label's
-        integrator is the one tracked along the rollout, without it a bumpless take-over;
-        with ``previous_control`` the windows carry the control one sample earlier.
+    ``history``, ``horizon`` and ``channels`` are the policy's window (``model.channels``).
     """
 
     def __init__(

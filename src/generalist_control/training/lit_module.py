@@ -1,9 +1,7 @@
-"""Lightning training of a :class:`~generalist_control.policy.Policy` by behaviour cloning.
+"""Lightning training of a :class:`~generalist_control.model.policy.Policy` by behaviour cloning.
 
-The loss is the MSE between the network's ``horizon`` controls and the LQI expert's, both in
-the per-tag normalised units of the policy's :class:`~generalist_control.normalise.Normaliser`
-(so every plant weighs alike whatever the scale of its input). Logged names:
-``train/loss`` and ``val/loss`` per epoch and ``val/mse/<plant>`` (normalised units).
+The loss is the MSE between the network's ``horizon`` controls and the LQI expert's, in the
+policy's per-tag normalised units, so every plant weighs alike whatever its scale.
 """
 
 from __future__ import annotations
@@ -20,10 +18,7 @@ from torch import Tensor
 from generalist_control.model.output import NetOutput
 from generalist_control.model.policy import Policy
 
-__all__ = ["METRICS_FORMAT", "ImitationModule"]
-
-#: How the progress bar prints a metric: 3 significant digits (1.23e-09, 0.0457, 12.3).
-METRICS_FORMAT = ".3g"
+__all__ = ["ImitationModule"]
 
 
 class ImitationModule(L.LightningModule):
@@ -32,23 +27,17 @@ class ImitationModule(L.LightningModule):
     Parameters
     ----------
     model : dict
-        The network's config (``conf/model``, plain types; see
-        :class:`~generalist_control.model.policy.Policy`).
-    optimizer : dict
-        Hydra config of a partial optimiser (``_target_``, ``_partial_: true``, ...).
-    scheduler : dict, optional
-        Hydra config of a partial epoch-wise LR scheduler.
+        The network's config (``conf/model``, plain types).
+    optimizer, scheduler : dict
+        Hydra partials of the optimiser and an epoch-wise LR scheduler (optional).
     meta : dict, optional
-        Plain-typed data facts (``tags`` plant -> tag, ``dt``, ``content_hash``, ...),
-        stored in every checkpoint with the hyper-parameters.
+        Plain-typed data facts (``tags``, ``dt``, ``content_hash``, ...), kept in checkpoints.
 
     Notes
     -----
-    A plant part with a loss of its own (``PlantPart.loss``: an inferred plant's identity
-    term) adds it, logged as ``train/identity``; a part that reads the plant from the window
-    also logs its accuracy, ``val/identity_acc``. All arguments are plain dicts, so checkpoints
-    load with ``weights_only=True``; the normaliser's scales are buffers of ``policy``, saved
-    in its ``state_dict``.
+    A plant part's own loss (an inferred plant's identity term) is added and logged as
+    ``train/identity``, its accuracy as ``val/identity_acc``. Plain-dict arguments keep
+    checkpoints loadable with ``weights_only=True``.
     """
 
     def __init__(
@@ -59,7 +48,7 @@ class ImitationModule(L.LightningModule):
         meta: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
-        # in checkpoints only: the run's params are chosen (logger.params), not the hparams
+        # in checkpoints only: the run's params are logger.params, not the hparams
         self.save_hyperparameters(logger=False)
         self.policy = Policy(model)
         self._val_hits = torch.zeros((), dtype=torch.float64)
@@ -78,11 +67,7 @@ class ImitationModule(L.LightningModule):
         return self.policy(state, mask, ref, tag)
 
     def _errors(self, batch: dict[str, Tensor]) -> tuple[Tensor, NetOutput]:
-        """Squared errors (B, horizon) and the network's output.
-
-        Errors in normalised units, relative to the window scale; without window scaling
-        the scale is one: the paper's MSE in normalised units.
-        """
+        """Squared errors (B, horizon), normalised units over the window scale; the output."""
         out = self.policy.output(batch["state"], batch["mask"], batch["ref"], batch["tag"])
         target = self.policy.normaliser.normalise_controls(batch["target"], batch["tag"])
         return (out.control - target / out.scale) ** 2, out
@@ -93,10 +78,10 @@ class ImitationModule(L.LightningModule):
         self._train_count = 0
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        """MSE on the control sequence of one batch (plus an inferred plant's identity loss).
+        """MSE on the control sequence of one batch (plus a plant part's own loss).
 
-        ``train/loss`` is the epoch's mean over its windows, logged once, with the epoch's
-        last batch: Lightning's logging costs half a millisecond a call, 4 % of a step.
+        ``train/loss``, the epoch's mean, is logged once, with the last batch: a log per step
+        costs 4 % of it.
         """
         errors, out = self._errors(batch)
         loss = errors.mean()
@@ -147,17 +132,13 @@ class ImitationModule(L.LightningModule):
             self.log(f"val/mse/{name}", mse.float(), logger=False)
 
     def setup(self, stage: str) -> None:
-        """Show the progress bar's metrics in 3 significant digits.
+        """Show the rich progress bar's metrics in 3 significant digits (``.3f`` shows 1e-9 as 0).
 
-        Lightning's default bar, when ``rich`` is installed, prints metrics with the theme's
-        ``metrics_format`` (``.3f``), so a loss of 1e-4 and a closed-loop error of 1e-9 both
-        read ``0.000``; its tqdm bar already prints ``.3g``. Set here, on the bar the trainer
-        made, since ``enable_progress_bar=false`` refuses a bar passed in ``callbacks``.
+        Set on the bar the trainer made: ``enable_progress_bar=false`` refuses one passed in.
         """
         bar = self.trainer.progress_bar_callback
-        if isinstance(bar, RichProgressBar):
-            # a copy: the bar's default theme is one instance shared by every bar
-            bar.theme = dataclasses.replace(bar.theme, metrics_format=METRICS_FORMAT)
+        if isinstance(bar, RichProgressBar):  # a copy: the default theme is shared by every bar
+            bar.theme = dataclasses.replace(bar.theme, metrics_format=".3g")
 
     def configure_optimizers(self) -> Any:
         """The optimiser (and epoch-wise scheduler) from the Hydra partials in the hparams."""

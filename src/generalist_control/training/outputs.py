@@ -1,10 +1,4 @@
-"""What a training run leaves behind: the policy file, metrics, and its MLflow record.
-
-``metrics.json`` (the DVC metric of the stage ``train``; :func:`dvc_metrics`) holds a few
-headline numbers in a form that ``dvc metrics show`` (five decimals) does not round to 0:
-the closed-loop errors, 1e-12 .. 1e-5, as their base-10 logarithms (``log10_`` in the key,
--7.5 is 3.2e-8). MLflow keeps every metric under its own name and unit.
-"""
+"""What a training run leaves behind: the policy file, ``metrics.json`` and its MLflow record."""
 
 from __future__ import annotations
 
@@ -60,8 +54,6 @@ DVC_METRICS: dict[str, tuple[str, bool]] = {
 def check_models_dir(models_dir: Path) -> None:
     """Refuse, before training, a ``policy.ckpt`` or ``metrics.json`` no training wrote.
 
-    A user's file of that name in the folder the run publishes to would be overwritten.
-
     Raises
     ------
     FileExistsError
@@ -96,8 +88,8 @@ def closed_loop_scores(
 ) -> dict[str, float]:
     """``closed_loop/mse/<plant>``: GC-vs-LQI unit-step output MSE on ``closed_loop.systems``.
 
-    The ablation study's score (Section 7), computed right after training so that every
-    sweep point carries it; plants the policy was not trained on are skipped.
+    The ablation's score (Section 7), so that every sweep point carries it; untrained plants
+    are skipped.
     """
     wanted = set(settings.closed_loop.systems)
     plants = [p for p in settings.plants if p.name in wanted and p.name in meta["tags"]]
@@ -117,23 +109,9 @@ def log_model(
 ) -> str | None:
     """Log the best policy as an MLflow PyTorch model (``torch.export``, one flat input).
 
-    The input is float32 (B, F) with the columns of :func:`flat_columns`, which are also
-    stored in the model's metadata; the output is the control sequence (B, horizon). The
-    signature is inferred from eight validation windows, which are also the input example.
-
-    Parameters
-    ----------
-    policy : Policy
-    windows : dict of Tensor
-        Validation windows (``state``, ``mask``, ``ref``, ``tag``).
-    registered_name : str, optional
-        Register the model under this name in the model registry: a new version, tagged
-        with the run (``run_id``, ``run_name``, ``data.content_hash``).
-
-    Returns
-    -------
-    str or None
-        The registered version, if registered.
+    Input float32 (B, F) in the columns of :func:`flat_columns` (also in the metadata),
+    output the controls (B, horizon); eight validation ``windows`` are the signature's
+    example. With ``registered_name``, a new registered version tagged with the run, returned.
     """
     flat = FlatPolicy(policy).eval()
     n = min(8, windows["tag"].shape[0])
@@ -214,13 +192,10 @@ def log_inputs(settings: TrainingSettings, dm: DemoDataModule, n_params: int) ->
 
 
 def log_dataset(dm: DemoDataModule) -> None:
-    """Log the training windows as the run's dataset input (context ``training``).
+    """Log the training windows' schema as the run's dataset input (context ``training``).
 
-    The digest is the content hash computed when the data module loaded the data
-    (:func:`generalist_control.data.demos.load_demos` recomputes it from the arrays and
-    refuses data that disagree with the manifest), cut to MLflow's 36 characters: the
-    first 36 hex digits of its SHA-256; the input's tag ``content_hash`` holds it whole.
-    The source is the data directory; MLflow stores the schema and shapes, not the data.
+    The digest is the data's content hash cut to MLflow's 36 characters; the input's tag
+    ``content_hash`` holds it whole.
     """
     meta = dm.meta()
     if dm.train_set is None:
@@ -241,11 +216,10 @@ def log_dataset(dm: DemoDataModule) -> None:
 
 
 def dvc_metrics(metrics: Mapping[str, float]) -> dict[str, float]:
-    """The headline numbers for ``metrics.json`` (:data:`DVC_METRICS`), rounded to 6 digits.
+    """The headline numbers for ``metrics.json`` (:data:`DVC_METRICS`), 7 significant digits.
 
-    Closed-loop errors as ``log10``; a non-finite value (a diverged mean, a perfect 0) is
-    written as ``null`` (:func:`~generalist_control.common.jsonsafe.write_json`). A metric
-    the run does not have is left out.
+    Closed-loop errors (1e-12 .. 1e-5) as ``log10``, which ``dvc metrics show``'s five
+    decimals do not round to 0; a metric the run lacks is left out.
 
     Examples
     --------

@@ -1,13 +1,9 @@
 """DAgger's rollout sampler: which rollouts a round runs, and the loop that runs them.
 
-A round rolls the current policy out on every training plant version (the plants, and with
-variant data their variants; ``dagger.sampler.variants``) from rest on steps of random
-amplitude within the data's range, and on references of the data's families from random
-initial states (``dagger.sampler.families`` of each). The executed control is the mix
-``beta * LQI + (1 - beta) * policy`` (:class:`MixedController`), with, as options of the
-sampler, white noise on it (``noise``) and a random actuator between it and the plant
-(``actuator``). :class:`~generalist_control.training.labeller.ExpertLabeller` then labels
-what the rollouts visited.
+Per round and plant version (with variant data, the variants too): steps from rest of random
+amplitude within the data's range and references of the data's families from random states,
+executed as ``beta * LQI + (1 - beta) * policy`` (:class:`MixedController`), optionally with
+control noise and a random actuator.
 """
 
 from __future__ import annotations
@@ -42,22 +38,12 @@ def _per_row(
 class MixedController:
     """Executes ``beta * LQI + (1 - beta) * policy``; records the experts' integrators.
 
-    ``noise`` (plant name -> standard deviation, in the plant's control units) adds zero-mean
-    white noise to the executed control of that plant's rows, drawn from a generator seeded
-    with ``seed`` at every :meth:`reset`: the rollouts then visit states off the smooth
-    closed-loop curve, where the experts label how they would correct a small deviation
-    (noise injection, as in DART: Laskey et al., 2017). The policy's runtime is told the
-    executed control (:meth:`~generalist_control.deploy.runtime.PolicyRuntime.record_applied`),
-    so a policy that reads its previous control sees the control that moved the plant.
-
-    ``actuator`` (plant name -> (lag, offset), :class:`~generalist_control.training.actuator.
-    Actuator`) puts a random first-order lag and constant offset of each row's own between
-    the mixed command and that plant's rows, drawn from the same generator at :meth:`reset`.
-    The runtime is then told the command, which is all a deployed policy knows, and
-    :attr:`commanded` holds it for the windows.
-
-    A :class:`~generalist_control.simulation.simulate.BatchController`. After a run, :attr:`z`
-    holds the expert integrator *before* each sample's control, shape (rows, N).
+    ``noise`` (plant name -> std in control units) adds white noise to the executed control,
+    so rollouts visit states off the closed-loop curve (as in DART, Laskey et al., 2017);
+    ``actuator`` (plant name -> (lag, offset)) puts an :class:`Actuator` between command and
+    plant; both draw from ``seed`` at :meth:`reset`. The policy's runtime is told the executed
+    control (or the command, with an actuator). After a run, :attr:`z` holds the expert's
+    integrator before each sample's control, (rows, N).
     """
 
     def __init__(
@@ -145,9 +131,8 @@ RolloutSpec = tuple[np.ndarray, np.ndarray | None]
 class Rollouts:
     """A round's rollouts: per plant version its trajectories and the experts' integrators.
 
-    ``trajectories[i].u`` is the control the windows carry: the executed mix, or with an
-    actuator the command (what a deployed policy knows). ``z[i]`` (B, N) is plant ``i``'s
-    expert integrator before each sample's control.
+    ``trajectories[i].u`` is what the windows carry: the executed mix, or with an actuator
+    the command.
     """
 
     plants: list[Plant]
@@ -185,7 +170,6 @@ class RolloutSampler:
     ----------
     plants : sequence of Plant
         The training plant versions: each plant, then (with variant data) its variants.
-    settings : SamplerSettings
     limit : float
         Largest step amplitude, before each plant's ``amplitude_scale`` (``data.amplitudes``).
     families : mapping

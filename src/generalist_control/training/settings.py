@@ -31,9 +31,7 @@ from generalist_control.plants.plant import Plant
 from generalist_control.plants.variants import variant_range
 
 __all__ = [
-    "INITS",
     "ActuatorSettings",
-    "AdaptSettings",
     "ClosedLoopSettings",
     "ClosedLoopValSettings",
     "DaggerSettings",
@@ -180,41 +178,6 @@ class RolloutData:
     variant_tries: int  #: ``data.variants.max_tries``
 
 
-#: Where a new plant's row starts (``adapt.init``).
-INITS = ("nearest", "mean")
-
-
-@dataclass(frozen=True)
-class AdaptSettings:
-    """``adapt``: how a new plant's row is learned (``python -m generalist_control.adapt``)."""
-
-    learn: bool = True  #: false: name the plant only (its scales and start row)
-    init: str = "nearest"  #: the row's start: nearest (a trained row) or mean
-    epochs: int = 20  #: passes over the windows, first and after each round
-    lr: float = 1.0e-2
-    batch_size: int = 512
-    rounds: int = 3  #: DAgger rounds on the plant (generated demonstrations only)
-    beta: float = 0.5  #: the expert's share in round 0 ...
-    beta_decay: float = 0.5  #: ... times this per round
-    unfreeze: tuple[str, ...] = ()  #: parameters learned beside the row, by name prefix
-
-    def __post_init__(self) -> None:
-        if self.init not in INITS:
-            raise SettingError("init", f"must be one of {list(INITS)}, got {self.init!r}")
-        for name in ("epochs", "rounds"):
-            if getattr(self, name) < 0:
-                raise SettingError(name, f"must be >= 0, got {getattr(self, name)}")
-        if self.batch_size < 1:
-            raise SettingError("batch_size", f"must be >= 1, got {self.batch_size}")
-        positive("lr", self.lr)
-        unit_interval("beta", self.beta)
-        unit_interval("beta_decay", self.beta_decay)
-
-    def beta_at(self, round_index: int) -> float:
-        """The expert's share in round ``round_index`` (0-based)."""
-        return self.beta * self.beta_decay**round_index
-
-
 @dataclass(frozen=True)
 class TrainingSettings:
     """Every section a training reads, checked (:func:`read_training`)."""
@@ -309,10 +272,8 @@ def _run_dir(cfg: DictConfig) -> Path:
 def _models_dir(cfg: DictConfig, run_dir: Path) -> Path:
     """Where the run writes ``policy.ckpt`` and ``metrics.json``.
 
-    ``paths.published_dir`` (``models/``, the DVC stage's output and evaluate's default) is
-    written only by a run that publishes (``publish=true``: ``dvc repro train``). Any other
-    run writes to ``paths.models_dir`` when that is another folder (e.g. an Optuna trial's
-    own), else to ``<run_dir>/models``.
+    ``paths.published_dir`` only when it publishes (``publish=true``: the DVC stage); else
+    ``paths.models_dir`` if that is another folder (an Optuna trial's), else ``<run_dir>/models``.
     """
     published = _plain(cfg, "paths.published_dir")
     models_dir = Path(str(_plain(cfg, "paths.models_dir")))
@@ -347,10 +308,8 @@ def read_training(cfg: DictConfig) -> TrainingSettings:
     Raises
     ------
     ValueError
-        Naming the key: a value of the wrong type or out of range, an unknown key, an
-        optimiser that refuses its settings, sections that do not fit together (``monitor:
-        val/closed_loop`` without ``closed_loop_val``), ``held_out`` or ``systems.include``
-        naming a plant the set does not hold.
+        Naming the key: a wrong type or range, an unknown key, an optimiser that refuses its
+        settings, sections that do not fit together, a plant the set does not hold.
     """
     max_epochs = require_int("trainer.max_epochs", _plain(cfg, "trainer.max_epochs"))
     monitor = _plain(cfg, "monitor")

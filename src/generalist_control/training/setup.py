@@ -29,12 +29,10 @@ __all__ = [
 
 
 def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
-    """The plants DAgger rolls out on: ``plants`` and, with variant data, their variants.
+    """The plants DAgger rolls out on: ``plants`` and the data's variants of them.
 
-    With variant data the policy must also recover on the variants it imitates, so each
-    training plant's kept variants join the rollouts, rebuilt from the factors the data's
-    manifest records (:func:`~generalist_control.plants.variants.make_variant`: the very
-    plants the data stage simulated); each is labelled by its own LQI expert.
+    The variants are rebuilt from the factors the manifest records: the very plants the data
+    stage simulated.
     """
     recorded = manifest.get("variants") or {}
     out: list[Plant] = []
@@ -53,8 +51,6 @@ def dagger_callback(
 ) -> L.Callback | None:
     """The DAgger callback of ``settings.dagger`` on ``plants`` (None when it is off).
 
-    ``plants`` are the training plant versions (:func:`dagger_plants`); the sampler takes
-    the data's amplitude limit, families and variant range (``settings.rollout_data``).
     ``rotating`` plants (a family's) join each round, ``per_round`` at a time, in turn.
     """
     spec = settings.dagger
@@ -85,10 +81,9 @@ def closed_loop_validation(settings: TrainingSettings, plants: list[Plant]) -> L
 
 
 def config_callbacks(nodes: Sequence[Mapping[str, Any]], run_dir: Path) -> list[L.Callback]:
-    """The callbacks named in ``callbacks`` (checkpoints go to ``<run_dir>/checkpoints``).
+    """The callbacks named in ``callbacks``; ``dirpath: null`` becomes ``<run_dir>/checkpoints``.
 
-    A callback with ``dirpath: null`` (both checkpoint callbacks) gets that directory:
-    Lightning would otherwise put it under the logger's run (``<exp_id>/<run_id>``).
+    Lightning would otherwise put checkpoints under the logger's run.
     """
     callbacks = []
     for node in nodes:
@@ -105,10 +100,8 @@ def check_resume(ckpt_path: str, meta: dict[str, Any], max_epochs: int | None = 
     Raises
     ------
     ValueError
-        If the checkpoint was trained on data with another content hash, on another plant
-        set (``systems``), or (given ``max_epochs``) has already run ``trainer.max_epochs``
-        epochs, so that a resume would train nothing and publish the old run's checkpoint;
-        each message says what to do.
+        Other data (content hash), another plant set, or (given ``max_epochs``) all epochs
+        already run, so that a resume would only publish the old checkpoint.
     """
     blob = torch.load(ckpt_path, map_location="cpu", weights_only=True)
     old = blob.get("hyper_parameters", {}).get("meta", {})

@@ -5,10 +5,9 @@ from __future__ import annotations
 import difflib
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any
 
 import optuna
-from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.tracking import mlflow_utils
 
@@ -60,7 +59,7 @@ class Param:
         return trial.suggest_float(self.key, low, high, step=self.step, log=self.log)
 
 
-def parse_space(params: Mapping[str, Any], cfg: DictConfig) -> list[Param]:
+def parse_space(params: Mapping[str, Any], tree: Mapping[str, Any]) -> list[Param]:
     """Validate ``hparams_search.params`` against the config; return the search space.
 
     Parameters
@@ -69,8 +68,9 @@ def parse_space(params: Mapping[str, Any], cfg: DictConfig) -> list[Param]:
         The config's tree down to the searched keys, each ending in a distribution (a
         mapping with a ``type``): ``{model: {hidden: {type: categorical, choices: [...]}}}``
         searches ``model.hidden``.
-    cfg : DictConfig
-        The composed config the trials modify: every key must name a value in it.
+    tree : mapping
+        The composed config the trials modify, as plain containers: every key must name a
+        value in it.
 
     Raises
     ------
@@ -83,16 +83,16 @@ def parse_space(params: Mapping[str, Any], cfg: DictConfig) -> list[Param]:
     if not specs:
         raise ValueError("hparams_search.params is empty: nothing to search")
     space = []
-    leaves = None
     for key, spec in specs.items():
-        node = OmegaConf.select(cfg, key, default=KeyError)
+        node: Any = tree
+        for part in key.split("."):
+            node = node.get(part, KeyError) if isinstance(node, Mapping) else KeyError
         if node is KeyError:
-            if leaves is None:
-                leaves = _leaf_keys(cfg)
+            leaves = list(mlflow_utils.flatten_params(tree, exclude=()))
             close = difflib.get_close_matches(key, leaves, n=3)
             hint = f"; did you mean {', '.join(close)}?" if close else ""
             raise KeyError(f"unknown search-space key {key!r}: the config has no such key{hint}")
-        if OmegaConf.is_config(node):
+        if isinstance(node, Mapping):
             raise ValueError(f"search-space key {key!r} names a config section, not a value")
         space.append(_param(key, spec))
     return space
@@ -102,7 +102,7 @@ def _specs(node: Any, prefix: str) -> dict[str, Any]:
     """``{dotted key: distribution}`` from the nested ``params`` tree."""
     if node is None:
         return {}
-    if not isinstance(node, Mapping) and not OmegaConf.is_dict(node):
+    if not isinstance(node, Mapping):
         raise ValueError(
             f"hparams_search.params.{prefix} must be a distribution (a mapping with a "
             f"'type') or a mapping of them, not {node!r}"
@@ -115,14 +115,9 @@ def _specs(node: Any, prefix: str) -> dict[str, Any]:
     return out
 
 
-def _leaf_keys(cfg: DictConfig) -> list[str]:
-    container = OmegaConf.to_container(cfg, resolve=False)
-    return list(mlflow_utils.flatten_params(cast(dict[str, Any], container), exclude=()))
-
-
 def _param(key: str, spec: Any) -> Param:
     where = f"hparams_search.params.{key}"
-    if not isinstance(spec, Mapping) and not OmegaConf.is_dict(spec):
+    if not isinstance(spec, Mapping):
         raise ValueError(f"{where} must be a mapping with a 'type', not {spec!r}")
     spec = dict(spec)
     kind = spec.get("type")
@@ -139,7 +134,7 @@ def _param(key: str, spec: Any) -> Param:
     low, high = spec.get("low"), spec.get("high")
     if low is None or high is None or not low < high:
         raise ValueError(f"{where} needs low < high, got low={low!r}, high={high!r}")
-    log_scale = bool(spec.get("log", False))
+    log_scale = bool(spec.get("log"))
     if log_scale and low <= 0:
         raise ValueError(f"{where}: a log-scale range needs low > 0, got {low!r}")
     return Param(key, kind, low=low, high=high, step=spec.get("step"), log=log_scale)

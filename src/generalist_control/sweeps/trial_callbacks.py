@@ -1,9 +1,7 @@
-"""Pruning a trial from inside its training, and linking the trial with its MLflow run.
+"""A trial's Lightning callbacks: pruning from inside the fit, and the trial-run link.
 
-The pruning itself is optuna-integration's
-:class:`optuna_integration.PyTorchLightningPruningCallback`. ``train(cfg)`` builds its
-callbacks from the config (``hydra.utils.instantiate``), which cannot carry the live trial,
-so the config names the factories :func:`trial_pruning` and :func:`trial_run_link`, which
+``train`` builds its callbacks from the config, which cannot carry the live trial, so the
+trial's config names the factories :func:`trial_pruning` and :func:`trial_run_link`, which
 take the trial that :func:`active_trial` set.
 """
 
@@ -72,7 +70,7 @@ class FitPruning(PyTorchLightningPruningCallback):
         super().on_validation_end(trainer, pl_module)
 
 
-def trial_pruning(monitor: str = "val/loss") -> FitPruning:
+def trial_pruning(monitor: str) -> FitPruning:
     """The pruning callback of the active trial, reporting ``monitor`` after each epoch."""
     return FitPruning(current_trial(), monitor)
 

@@ -1,29 +1,10 @@
 """Demonstrations recorded from any controller: the file a user gives ``adapt`` (``demos=``).
 
-One row per sample, in a Parquet (``.parquet``) or CSV (``.csv``) file:
-
-=================  ===========================================================================
-column             meaning
-=================  ===========================================================================
-``traj``           trajectory id (any integer; rows of one trajectory need not be contiguous)
-``t``              time in seconds; within a trajectory the samples are ``dt`` apart
-``x0 .. x{n-1}``   the plant's ``n`` states, in the order of its ``states`` (as ``A``'s rows)
-``r``, ``y``       reference and measured output
-``u``              the control the controller applied at that sample
-=================  ===========================================================================
-
-Every value is a deviation from the plant's operating point ``(x_op, u_op, y_op)`` (zero for
-a linear plant: the values themselves), as in the data stage's demonstrations. Windows are
-cut by the one window builder (:func:`~generalist_control.data.windows.build_windows`), with
-the error integral of ``r - y`` as the LQI expert keeps it
-(:func:`~generalist_control.data.windows.integral_of_error`), so a file written from an LQI
-simulation gives exactly the data stage's windows, trajectory by trajectory in the order of
-their ids. Trajectories may differ in length (each needs more than ``horizon`` samples). A
-missing column, a NaN or infinite value, samples not ``dt`` apart, or state columns that do
-not match the plant's order are refused, naming the fix.
-
-This reader lives with training rather than in ``data/``: only adaptation reads it, and the
-data stage (``dvc.yaml``: ``generate``, which depends on ``data/``) need not run again.
+One row per sample (Parquet or CSV): ``traj``, ``t``, the states ``x0 .. x{n-1}``, ``r``,
+``y``, ``u`` (docs/training.md), deviations from the operating point. The windows come from
+the one window builder with the error integral of ``r - y``, so a recording of an LQI
+simulation gives exactly the data stage's windows. It is read here, not in ``data/``: only
+adaptation reads it, and the data stage need not run again when it changes.
 """
 
 from __future__ import annotations
@@ -69,10 +50,14 @@ class RecordedDemos:
 def _table(path: Path) -> pd.DataFrame:
     if not path.is_file():
         raise RecordingError(f"no recorded demonstrations at {path}: give demos=<file>")
-    if path.suffix == ".parquet":
-        return pd.read_parquet(path)
-    if path.suffix == ".csv":
-        return pd.read_csv(path)
+    if path.suffix in (".parquet", ".csv"):
+        try:
+            return pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path)
+        except (OSError, ValueError) as exc:
+            raise RecordingError(
+                f"{path}: not a readable {path.suffix[1:]} file ({exc}); write the recording "
+                "again (columns traj, t, x0..x{n-1}, r, y, u; docs/training.md)"
+            ) from None
     raise RecordingError(
         f"{path}: recorded demonstrations must be a .parquet or .csv file (columns traj, t, "
         "x0..x{n-1}, r, y, u; docs/training.md)"

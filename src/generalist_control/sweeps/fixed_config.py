@@ -1,13 +1,8 @@
 """The fixed part of a study's config: recorded when the study is created, checked on resume.
 
-A study compares its trials by one score, which only means something when everything that
-shapes a trial apart from the searched keys stays the same: a study created with
-``trainer.max_epochs=1`` and resumed with ``trainer.max_epochs=60`` would rank 1-epoch
-trials against 60-epoch ones. :func:`fixed_config` is that part (the flattened, resolved
-config less the searched keys and the keys ``hparams_search.identity_keys`` matches: run
-names, paths, tracking, progress display, ...); :func:`check_fixed_config` records it as the
-study's user attribute ``fixed_config`` and refuses a resume under another one unless
-``hparams_search.allow_config_change=true``.
+A study ranks its trials by one score, which means something only while everything that
+shapes a trial apart from the searched keys stays the same (a 1-epoch study resumed with 60
+epochs would rank unlike trials); a resume under another fixed config is refused.
 """
 
 from __future__ import annotations
@@ -19,9 +14,7 @@ from datetime import datetime, timezone
 from typing import Any
 
 import optuna
-from omegaconf import DictConfig
 
-from generalist_control.common.configs import as_dict
 from generalist_control.tracking import mlflow_utils
 
 __all__ = [
@@ -46,29 +39,27 @@ class StudyConfigChangedError(ValueError):
     """A study is resumed under a fixed config other than the one it was created with."""
 
 
-def fixed_config(cfg: DictConfig, searched: Iterable[str], identity: Sequence[str]) -> dict:
+def fixed_config(
+    tree: Mapping[str, Any], metric: str, searched: Iterable[str], identity: Sequence[str]
+) -> dict[str, str]:
     """What shapes a trial apart from the searched keys, as ``{dotted key: text}``.
 
     Parameters
     ----------
-    cfg : DictConfig
-        The composed config of ``tune.py``.
+    tree : mapping
+        The resolved config of the trials (``tune.py``'s, less ``hparams_search``).
+    metric : str
+        The score (``hparams_search.metric``), kept as ``hparams_search.metric``: of the
+        search section only the score is fixed (sampler, pruner, trial counts and storage may
+        change between runs of a study).
     searched : iterable of str
         The searched keys (``model.hidden``, ...): left out.
     identity : sequence of str
         Glob patterns (:mod:`fnmatch`) of keys that name or place a run or do not shape it
         (``logger.*``, ``paths.*``, ...): left out.
-
-    Returns
-    -------
-    dict
-        Of the search section only ``hparams_search.metric`` (the score) is kept: the
-        sampler, pruner, trial counts and storage may change between runs of a study.
     """
-    tree = as_dict(cfg)
-    search = tree.pop("hparams_search", None) or {}
     flat = mlflow_utils.flatten_params(tree, exclude=("hydra",))
-    flat["hparams_search.metric"] = str(search.get("metric"))
+    flat["hparams_search.metric"] = metric
     skip = set(searched)
     return {
         key: value
@@ -94,7 +85,7 @@ def config_diff(old: Mapping[str, Any], new: Mapping[str, Any]) -> dict[str, tup
 
 
 def check_fixed_config(
-    study: optuna.Study, fixed: Mapping[str, str], allow_change: bool = False
+    study: optuna.Study, fixed: Mapping[str, str], allow_change: bool
 ) -> dict[str, tuple[str, str]]:
     """Record ``fixed`` on a new study; on a resumed one, compare it with the recorded one.
 

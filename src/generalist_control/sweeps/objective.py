@@ -1,106 +1,90 @@
-"""One Optuna trial: its training config, the training run, and its MLflow run's state."""
+"""One Optuna trial: its values trained as one MLflow training run, the run's state kept in step.
+
+The training itself is a function the entry point gives (``tune.py`` trains its config with
+the trial's values set), so the study never holds the raw config.
+"""
 
 from __future__ import annotations
 
-import copy
 import logging
 import math
 import os
 import socket
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import mlflow
 import optuna
 from mlflow.exceptions import MlflowException
-from omegaconf import DictConfig, OmegaConf, open_dict
 
-from generalist_control.sweeps.pruning import active_trial, trial_pruning, trial_run_link
-from generalist_control.sweeps.space import Param
+from generalist_control.sweeps import stop_signals
+from generalist_control.sweeps.search_space import Param
+from generalist_control.sweeps.trial_callbacks import active_trial
 from generalist_control.tracking.parents import parent_run
-from generalist_control.training.fit import train
-from generalist_control.training.settings import read_training
 
-__all__ = ["Objective", "trial_config"]
+__all__ = ["Objective", "TrainPoint"]
 
 log = logging.getLogger(__name__)
 
-
-def trial_config(
-    cfg: DictConfig,
-    values: Mapping[str, Any],
-    trial_dir: Path,
-    monitor: str = "val/loss",
-    experiment: str | None = None,
-) -> DictConfig:
-    """The training config of one trial: ``cfg`` with ``values`` set, outputs in ``trial_dir``.
-
-    The search's own section (``hparams_search``) is dropped, the checkpoints go to
-    ``<trial_dir>/run`` and the model to ``<trial_dir>/models``, ``experiment`` (the study's,
-    of kind ``tune``) becomes ``logger.experiment_name`` if given, and the callbacks get the
-    pruning (:func:`~generalist_control.sweeps.pruning.trial_pruning`) and the trial-run link
-    (:func:`~generalist_control.sweeps.pruning.trial_run_link`).
-    """
-    tcfg = copy.deepcopy(cfg)
-    with open_dict(tcfg):
-        tcfg.pop("hparams_search", None)
-        for key, value in values.items():
-            OmegaConf.update(tcfg, key, value, merge=False)
-        tcfg.run_dir = str(trial_dir / "run")
-        tcfg.paths.models_dir = str(trial_dir / "models")
-        if experiment is not None:
-            tcfg.logger.experiment_name = experiment
-        if tcfg.get("callbacks") is None:
-            tcfg.callbacks = {}
-        tcfg.callbacks.optuna_pruning = {
-            "_target_": f"{trial_pruning.__module__}.{trial_pruning.__name__}",
-            "monitor": monitor,
-        }
-        tcfg.callbacks.optuna_run_link = {
-            "_target_": f"{trial_run_link.__module__}.{trial_run_link.__name__}",
-        }
-    return tcfg
+#: Train the config with ``values`` set, outputs in ``trial_dir``; return its metrics.
+TrainPoint = Callable[[Mapping[str, Any], Path], Mapping[str, Any]]
 
 
 class Objective:
-    """Train one trial's config; return its metric."""
+    """Train one trial's values; return its metric.
+
+    Parameters
+    ----------
+    train_point : callable
+        ``(values, trial_dir) -> metrics``; run inside :func:`active_trial`, so the trial's
+        callbacks (:mod:`~generalist_control.sweeps.trial_callbacks`) find the trial.
+    space : list of Param
+        What each trial draws.
+    metric : str
+        The key of the metrics returned (``hparams_search.metric``).
+    trials_dir : Path
+        Each trial trains in ``<trials_dir>/trial_<number>``.
+    parent_id : str
+        The study's MLflow parent run.
+    """
 
     def __init__(
         self,
-        cfg: DictConfig,
+        train_point: TrainPoint,
         space: list[Param],
-        search: DictConfig,
+        metric: str,
         trials_dir: Path,
         parent_id: str,
-        experiment: str | None = None,
     ) -> None:
-        self.cfg = cfg
-        self.experiment = experiment
+        self.train_point = train_point
         self.space = space
-        self.metric = str(search.metric)
-        self.monitor = str(search.get("monitor") or "val/loss")
+        self.metric = metric
         self.trials_dir = trials_dir
         self.parent_id = parent_id
 
     def __call__(self, trial: optuna.Trial) -> float:
-        """Train the trial's config; return its metric (``hparams_search.metric``)."""
+        """Train the trial's values; return its metric."""
         values = {p.key: p.suggest(trial) for p in self.space}
         trial_dir = self.trials_dir / f"trial_{trial.number:04d}"
-        tcfg = trial_config(self.cfg, values, trial_dir, self.monitor, self.experiment)
         trial.set_user_attr("trial_dir", str(trial_dir))
         trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
         name = f"study:{trial.study.study_name}"
         try:
             with active_trial(trial), parent_run(self.parent_id, name):
-                metrics, _ = train(read_training(tcfg))
+                metrics = self.train_point(values, trial_dir)
         except optuna.TrialPruned:
             steps = trial.storage.get_trial(trial._trial_id).intermediate_values
             trial.set_user_attr("pruned_at_epoch", max(steps) if steps else None)
             self._end_run(trial, "PRUNED", "KILLED")
             raise
-        except BaseException:
+        except BaseException as exc:
             self._end_run(trial, "FAIL", None)  # the failed run already ended FAILED
+            signum = stop_signals.received()
+            if signum is not None and not isinstance(exc, stop_signals.Stopped):
+                # Lightning turns the interrupt into SystemExit, which Optuna would not
+                # catch (the trial would stay RUNNING): stop as the signal said
+                raise stop_signals.Stopped(signum) from exc
             raise
         if self.metric not in metrics:
             raise KeyError(

@@ -1,15 +1,9 @@
-"""Learning one plant's row of a grown policy, everything else frozen.
+"""Learning one plant's row of a grown policy, everything else frozen; scoring its loop.
 
 The optimiser holds the row alone (a parameter of its own, spliced into the embedding for
 each forward pass with :func:`torch.func.functional_call`), plus, only when asked
-(``adapt.unfreeze``), a few named parameters of the network. Nothing else can move: the
-trained rows are the embedding's own, detached; every other parameter has
-``requires_grad`` off while the row is fitted. The loss is the training's (the MSE on the
-horizon's controls in the plant's normalised units, relative to the window scale).
-
-DAgger rounds on the plant reuse the training's sampler and labeller
-(:mod:`.sampler`, :mod:`.labeller`); the row kept is the one whose closed loop is nearest
-LQI's (:func:`~generalist_control.simulation.comparison.closed_loop_score`).
+(``adapt.unfreeze``), a few named parameters; every other parameter has ``requires_grad``
+off. The loss is the training's. DAgger rounds reuse the training's sampler and labeller.
 """
 
 from __future__ import annotations
@@ -22,22 +16,23 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call
 
+from generalist_control.adaptation.request import AdaptSettings
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.grow import ROWS, set_row
 from generalist_control.model.policy import Policy
 from generalist_control.plants.plant import Plant
-from generalist_control.simulation.comparison import closed_loop_score
+from generalist_control.simulation.comparison import ClosedLoopScore
+from generalist_control.simulation.simulate import simulate_many
 from generalist_control.training.datamodule import WindowTensors
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
 from generalist_control.training.settings import ClosedLoopValSettings
 
 __all__ = [
-    "closed_loop",
+    "LoopScore",
     "dagger_round",
     "fit_row",
-    "imitation_loss",
     "learned_parameters",
     "nearest_row",
 ]
@@ -49,7 +44,7 @@ _NET_ROWS = ROWS.removeprefix("net.")
 _COMPARED = 4096
 
 
-def imitation_loss(
+def _imitation_loss(
     policy: Policy, batch: Mapping[str, Tensor], rows: Tensor | None = None
 ) -> Tensor:
     """The training's loss on ``batch``, with the embedding's weight ``rows`` if given."""
@@ -77,7 +72,7 @@ def nearest_row(
     pick = torch.randperm(n, generator=torch.Generator().manual_seed(0))[:_COMPARED]
     batch = {k: v[pick] for k, v in tensors.items()}
     losses = {
-        name: float(imitation_loss(policy, batch, _spliced(frozen, tag, row)))
+        name: float(_imitation_loss(policy, batch, _spliced(frozen, tag, row)))
         for name, row in candidates.items()
     }
     finite = {k: v for k, v in losses.items() if v == v}
@@ -132,16 +127,14 @@ def fit_row(
     policy: Policy,
     tag: int,
     tensors: Mapping[str, Tensor],
-    settings: Any,
+    settings: AdaptSettings,
     learned: Mapping[str, nn.Parameter],
     seed: int,
 ) -> list[float]:
     """Fit row ``tag`` (and ``learned``) on ``tensors`` for ``settings.epochs`` epochs.
 
-    ``settings``: :class:`~generalist_control.training.settings.AdaptSettings` (``epochs``,
-    ``lr``, ``batch_size``). The row is written into the policy at the end; every other row
-    and every parameter not in ``learned`` is left bit for bit as it was. Returns the mean
-    loss of each epoch.
+    The row is written into the policy at the end; every other row and every parameter not
+    in ``learned`` is left bit for bit as it was. Returns the mean loss of each epoch.
     """
     frozen = policy.state_dict()[ROWS].clone()
     row = nn.Parameter(frozen[tag].clone())
@@ -153,7 +146,7 @@ def fit_row(
             total = 0.0
             for idx in torch.randperm(n, generator=generator).split(settings.batch_size):
                 batch = {k: v[idx] for k, v in tensors.items()}
-                loss = imitation_loss(policy, batch, _spliced(frozen, tag, row))
+                loss = _imitation_loss(policy, batch, _spliced(frozen, tag, row))
                 optimiser.zero_grad(set_to_none=True)
                 loss.backward()
                 optimiser.step()
@@ -163,19 +156,27 @@ def fit_row(
     return losses
 
 
-def closed_loop(
-    policy: Policy, meta: dict[str, Any], plant: Plant, scoring: ClosedLoopValSettings
-) -> float:
-    """The plant's step error against its LQI, relative to LQI's (1: diverged).
+class LoopScore:
+    """The plant's step error in closed loop against its LQI, relative to LQI's (1: diverged).
 
-    :func:`~generalist_control.simulation.comparison.closed_loop_score` on the steps of
-    ``scoring`` (``closed_loop_val``: the training's own closed-loop validation).
+    On the steps of ``closed_loop_val`` (the training's closed-loop validation,
+    :class:`~generalist_control.simulation.comparison.ClosedLoopScore`, LQI simulated once).
     """
-    runtime = PolicyRuntime(policy, meta)
-    steps, duration = scoring.amplitudes, scoring.duration
-    with torch.inference_mode():
-        scores = closed_loop_score(RuntimeAdapter(runtime), [plant], steps, duration)
-    return scores[plant.name]
+
+    def __init__(self, plant: Plant, scoring: ClosedLoopValSettings) -> None:
+        self.plant = plant
+        self.steps = ClosedLoopScore([plant], scoring.amplitudes, scoring.duration)
+
+    def __call__(self, policy: Policy, meta: dict[str, Any]) -> float:
+        """The score of ``policy`` (lower is better, at most 1)."""
+        with torch.inference_mode():
+            return self.steps(RuntimeAdapter(PolicyRuntime(policy, meta)))[self.plant.name]
+
+    def diverges(self, policy: Policy, meta: dict[str, Any]) -> bool:
+        """Whether a step run of ``policy`` diverges (a state beyond the simulator's bound)."""
+        with torch.inference_mode():
+            runs = simulate_many(self.steps.runs, RuntimeAdapter(PolicyRuntime(policy, meta)))
+        return any(bool(run.diverged.any()) for run in runs)
 
 
 def dagger_round(

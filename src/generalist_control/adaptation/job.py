@@ -1,0 +1,242 @@
+"""An adaptation's work: everything read and checked first (:func:`prepare`), then the row learned.
+
+:func:`learn` grows the policy by one tag (:mod:`~generalist_control.model.grow`), starts the
+new row (``adapt.init``), fits it, runs DAgger rounds on the plant and keeps the row whose
+closed loop is nearest LQI's, the start row included. A tag-free policy is only named for
+the plant: its scales on a free row, nothing learned.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from generalist_control.adaptation.new_plant import (
+    NewPlant,
+    generated_windows,
+    load_new_plant,
+    plant_meta,
+)
+from generalist_control.adaptation.recordings import read_recorded
+from generalist_control.adaptation.request import AdaptRequest, AdaptSettings
+from generalist_control.adaptation.row_fit import (
+    LoopScore,
+    dagger_round,
+    fit_row,
+    learned_parameters,
+    nearest_row,
+)
+from generalist_control.common.secrets import redact
+from generalist_control.data.generation import enabled_families
+from generalist_control.data.windows import Windows
+from generalist_control.deploy.policy_source import resolve
+from generalist_control.model.grow import (
+    ROWS,
+    RecipeError,
+    check_growable,
+    free_rows,
+    grow_policy,
+    plant_scales,
+    set_row,
+    start_rows,
+    with_scales,
+)
+from generalist_control.model.policy import Policy, load_policy, policy_sha256
+from generalist_control.tracking import mlflow_utils
+from generalist_control.training.datamodule import WindowTensors
+from generalist_control.training.labeller import ExpertLabeller
+from generalist_control.training.sampler import RolloutSampler
+
+__all__ = ["AdaptJob", "learn", "prepare"]
+
+
+@dataclass(frozen=True)
+class AdaptJob:
+    """Everything an adaptation needs, checked (:func:`prepare`); nothing written yet."""
+
+    request: AdaptRequest
+    new: NewPlant  #: the plant, on the policy's new row (or a free one, tag-free)
+    policy: Policy  #: the base policy, as loaded
+    meta: dict[str, Any]
+    windows: Windows
+    demos: dict[str, Any]  #: where the windows came from, how many
+    dagger: tuple[RolloutSampler, ExpertLabeller] | None  #: None: no DAgger round
+    score: LoopScore  #: picks the row kept
+    base_sha256: str  #: the base policy file's hash: how its training run is found
+
+    @property
+    def settings(self) -> AdaptSettings:
+        """The ``adapt`` section."""
+        return self.request.adapt
+
+
+def _free_row(policy: Policy, meta: dict[str, Any], new: NewPlant) -> int:
+    """A normaliser row no trained plant holds (tag-free): its file's tag if free."""
+    free = free_rows(policy, meta["tags"].values())
+    if not free:
+        raise RecipeError(
+            f"every one of the tag-free policy's {policy.net.n_tags} normaliser rows is a "
+            "trained plant's: none is free for the new plant's scales; retrain it with a "
+            "larger model.plant.n_tags"
+        )
+    return new.file_tag if new.file_tag in free else free[0]
+
+
+def _windows(request: AdaptRequest, new: NewPlant, policy: Policy) -> tuple[Windows, dict]:
+    """The plant's windows: recorded (``demos=``) or generated from its LQI expert."""
+    history, horizon, channels = policy.history, policy.horizon, policy.channels
+    if request.demos is None:
+        return generated_windows(new.plant, request.data, history, horizon, channels)
+    controls = "previous_control" in channels
+    rec = read_recorded(request.demos, new.plant, new.plant.tag, history, horizon, controls)
+    facts = {"source": request.demos, "expert": "recorded", "trajectories": rec.trajectories,
+             "windows": len(rec.windows)}  # fmt: skip
+    return rec.windows, facts
+
+
+def _dagger(request: AdaptRequest, new: NewPlant, policy: Policy) -> tuple | None:
+    """The training's sampler (on the new plant alone) and labeller; None without rounds."""
+    spec, data = request.dagger, request.data
+    if spec is None or request.demos is not None or not request.adapt.rounds:
+        return None  # a recorded controller cannot label the states the policy visits
+    sampler = RolloutSampler(
+        [new.plant],
+        spec.sampler,
+        limit=float(data["amplitudes"]["limit"]),
+        families=enabled_families(data),
+        seed=request.seed,
+        variant_range=float(data["variants"]["range"]),
+        variant_tries=int(data["variants"]["max_tries"]),
+    )
+    return sampler, ExpertLabeller(spec.labeller, policy.history, policy.horizon, policy.channels)
+
+
+def prepare(request: AdaptRequest) -> AdaptJob:
+    """Load the policy, the plant and its windows and check them together; nothing written.
+
+    Raises
+    ------
+    ValueError
+        Naming the fix: a policy whose recipe cannot take a row
+        (:class:`~generalist_control.model.grow.RecipeError`), a plant refused by
+        :func:`~.new_plant.load_new_plant`, unusable recorded demonstrations
+        (:class:`~.recordings.RecordingError`), an ``adapt.unfreeze`` name the policy lacks.
+    """
+    torch.set_num_threads(request.threads)
+    if request.policy.startswith(("runs:/", "models:/")):  # the store is touched for these only
+        mlflow_utils.set_tracking(request.logger)
+    path = resolve(request.policy)
+    policy, meta = load_policy(path)
+    named_only = not policy.net.plant.reads_tag and not request.adapt.learn
+    if not named_only:
+        check_growable(policy, request.policy)
+    new = load_new_plant(request.plant, meta)
+    new = new.on_row(_free_row(policy, meta, new) if named_only else policy.net.n_tags)
+    learned_parameters(policy, request.adapt.unfreeze)  # the names checked before any work
+    windows, demos = _windows(request, new, policy)
+    dagger = None if named_only else _dagger(request, new, policy)
+    return AdaptJob(request, new, policy, meta, windows, demos, dagger,
+                    LoopScore(new.plant, request.scoring), policy_sha256(path))  # fmt: skip
+
+
+def _start(job: AdaptJob, tensors: dict[str, torch.Tensor]) -> tuple[Policy, dict[str, Any]]:
+    """The grown policy, its new row at its start (``adapt.init``), and how it was chosen."""
+    scales = plant_scales(tensors["state"], tensors["mask"], tensors["ref"], tensors["target"])
+    if not job.policy.net.plant.reads_tag:  # tag-free: named on a free row, nothing learned
+        named = with_scales(job.policy, job.new.plant.tag, scales)
+        return named, {"mode": "none", "chosen": None}
+    tags = {str(k): int(v) for k, v in job.meta["tags"].items()}
+    rows = job.policy.state_dict()[ROWS]
+    candidates = {**start_rows(job.policy, tags.values()), **{n: rows[t] for n, t in tags.items()}}
+    grown = grow_policy(job.policy, candidates["mean"], scales)
+    chosen, losses = "mean", dict[str, float]()
+    if job.settings.init == "nearest":
+        chosen, losses = nearest_row(grown, job.new.plant.tag, tensors, candidates)
+        set_row(grown, job.new.plant.tag, candidates[chosen])
+    return grown, {"mode": job.settings.init, "chosen": chosen, "losses": losses}
+
+
+def _meta(job: AdaptJob, record: dict[str, Any]) -> dict[str, Any]:
+    """The adapted policy's meta: the plant added, with what it was adapted from."""
+    base = {
+        "source": redact(job.request.policy),
+        "sha256": job.base_sha256,
+        "n_tags": job.policy.net.n_tags,
+    }
+    keep = ("tag", "file_tag", "demonstrations", "learned")
+    facts = {"base": base, "init": record["init"]["chosen"], **{k: record[k] for k in keep}}
+    return plant_meta(job.meta, job.new.plant, facts)
+
+
+def _snapshot(policy: Policy, tag: int, learned: dict[str, torch.nn.Parameter]) -> dict:
+    """The row ``tag`` and the ``learned`` parameters, copied."""
+    keep = {"row": policy.state_dict()[ROWS][tag].clone()}
+    return keep | {k: p.detach().clone() for k, p in learned.items()}
+
+
+def _fit(
+    job: AdaptJob, policy: Policy, meta: dict[str, Any], data: WindowTensors, start: float
+) -> dict[str, Any]:
+    """The fit, then each DAgger round and fit; the best row (and learned) restored.
+
+    Kept: the lowest closed-loop score of the start, the fit and the rounds (the later on a
+    tie), so the row kept is never worse than the start row.
+    """
+    s, tag = job.settings, job.new.plant.tag
+    learned = learned_parameters(policy, s.unfreeze)
+    best, kept, keep = start, "start", _snapshot(policy, tag, learned)
+    scores, losses, added = [], [], 0
+    for i in range(1 + (s.rounds if job.dagger else 0)):
+        if i:  # DAgger round i: roll out, label, add, fit again
+            sampler, labeller = job.dagger  # type: ignore[misc]
+            added += dagger_round(policy, meta, sampler, labeller, data, i - 1, s.beta_at(i - 1))
+        losses += fit_row(policy, tag, data.tensors, s, learned, job.request.seed + i)
+        scores.append(job.score(policy, meta))
+        if scores[-1] <= best:
+            best, kept, keep = (
+                scores[-1],
+                f"round {i}" if i else "fit",
+                _snapshot(policy, tag, learned),
+            )
+    set_row(policy, tag, keep["row"])
+    with torch.no_grad():
+        for k, p in learned.items():
+            p.copy_(keep[k])
+    loop = {
+        "start": start,
+        "fit": scores[0],
+        "rounds": scores[1:],
+        "kept": best,
+        "kept_from": kept,
+    }
+    return {"closed_loop": loop, "loss": losses, "dagger_windows": added}
+
+
+def learn(job: AdaptJob) -> tuple[Policy, dict[str, Any], dict[str, Any]]:
+    """The adapted policy, its meta, and the adaptation's record (scores, losses, windows)."""
+    data = WindowTensors(job.windows)
+    plant, tag = job.new.plant, job.new.plant.tag
+    policy, init = _start(job, data.tensors)
+    learning = job.settings.learn and policy.net.plant.reads_tag
+    record: dict[str, Any] = {
+        "plant": plant.name, "tag": tag, "file_tag": job.new.file_tag,
+        "plant_file": str(job.new.path), "demonstrations": dict(job.demos),
+        "learned": [f"{ROWS}[{tag}]", *job.settings.unfreeze] if learning else [],
+        "init": init,
+    }  # fmt: skip
+    meta = _meta(job, record)
+    start = job.score(policy, meta)
+    record["closed_loop"] = {"start": start, "kept": start, "kept_from": "start"}
+    if learning:
+        fitted = _fit(job, policy, meta, data, start)
+        record.update(closed_loop=fitted["closed_loop"], loss=fitted["loss"])
+        record["demonstrations"]["dagger_windows"] = fitted["dagger_windows"]
+    if job.request.demos is not None and policy.net.plant.reads_tag:
+        u, _ = policy.predict_windows(job.windows)  # the recorded controller: the baseline
+        target = np.asarray(job.windows.target, dtype=np.float64)
+        err = float(np.mean((u - target) ** 2) / max(float(np.mean(target**2)), 1e-300))
+        record["recorded_relative_mse"] = err
+    return policy, _meta(job, record), record

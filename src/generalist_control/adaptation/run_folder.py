@@ -1,0 +1,283 @@
+"""What an adaptation leaves: its run folder, its MLflow run and a registered model version.
+
+``run_dir`` (``outputs/adapt/<time>`` by default) holds ``policy.ckpt``, ``adapt.json`` and
+``plants/<name>.yaml`` (so that ``hydra.searchpath`` finds the plant for an evaluation). It
+is the command's own as a stage's output folder is (:mod:`~generalist_control.common.atomic`:
+its marker names ``run_dir``): missing, empty, or written by an adaptation before. It is
+written under a lock, staged beside its place and swapped in last, after the model version
+is registered, so a folder that looks complete always has its version.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import fcntl
+import json
+import os
+import shutil
+import signal
+import threading
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import mlflow
+import torch
+from mlflow.exceptions import MlflowException
+
+from generalist_control.adaptation.job import AdaptJob
+from generalist_control.common.atomic import (
+    MARKER,
+    ForeignDirectoryError,
+    check_replaceable,
+    publish_directory,
+    staging_directory,
+)
+from generalist_control.common.jsonsafe import write_json
+from generalist_control.common.secrets import redact
+from generalist_control.model.policy import POLICY_FILE, Policy, policy_sha256, save_policy
+from generalist_control.tracking import mlflow_utils
+from generalist_control.tracking.training_run import POLICY_HASH_TAG, find_training_run
+from generalist_control.training.outputs import log_model
+
+__all__ = [
+    "ADAPT_FILE",
+    "RunDirBusy",
+    "Stopped",
+    "base_version",
+    "check_run_dir",
+    "end_message",
+    "locked",
+    "publish",
+    "sigterm_raises",
+]
+
+#: The adaptation's record beside its policy.
+ADAPT_FILE = "adapt.json"
+#: The setting a run folder's marker names: ``run_dir`` of ``adapt``.
+SETTING = "run_dir"
+
+
+class RunDirBusy(RuntimeError):
+    """Another adaptation is writing the same ``run_dir``."""
+
+
+class Stopped(KeyboardInterrupt):
+    """SIGTERM, raised where the command was so that it unwinds (:func:`sigterm_raises`)."""
+
+
+@contextmanager
+def sigterm_raises() -> Iterator[None]:
+    """Inside, SIGTERM raises :class:`Stopped` as SIGINT raises ``KeyboardInterrupt``."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, frame: Any) -> None:
+        raise Stopped(signum)
+
+    old = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def check_run_dir(run_dir: Path) -> None:
+    """Refuse a ``run_dir`` that is not this command's: a file, another's outputs, user files.
+
+    Raises
+    ------
+    ForeignDirectoryError
+        Naming the files that are not an adaptation's, or the other command's setting
+        (``paths.data_dir``, ...) whose marker the folder holds; nothing is changed.
+    """
+    check_replaceable(run_dir, {}, SETTING)
+    if (run_dir / MARKER).is_file():
+        setting = json.loads((run_dir / MARKER).read_text()).get("setting")
+        if setting != SETTING:
+            raise ForeignDirectoryError(
+                f"refusing to write run_dir '{run_dir}': it holds the outputs of another "
+                f"command ({setting}, {MARKER}). Nothing was changed; point run_dir at a new "
+                "or empty folder"
+            )
+
+
+@contextmanager
+def locked(run_dir: Path) -> Iterator[None]:
+    """Hold ``.<name>.lock`` beside ``run_dir``: a second adaptation into it is refused.
+
+    Folders made for the lock are removed again if nothing else was written in them.
+    """
+    lock = run_dir.parent / f".{run_dir.name}.lock"
+    made = [p for p in (lock.parent, *lock.parent.parents) if not p.exists()]
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with open(lock, "a") as handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                if os.fstat(handle.fileno()).st_ino != os.stat(lock).st_ino:
+                    raise BlockingIOError  # its holder removed it as we opened it
+            except (BlockingIOError, FileNotFoundError):
+                raise RunDirBusy(
+                    f"another adaptation is writing run_dir '{run_dir}' ({lock} is held): wait "
+                    "for it to end, or choose another run_dir"
+                ) from None
+            try:
+                yield
+            finally:
+                lock.unlink(missing_ok=True)
+    finally:
+        for folder in made:  # deepest first
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+
+
+def base_version(source: str, run_id: str | None, name: str | None) -> str | None:
+    """The registered version the base policy is: from a ``models:/`` URI, else its run's."""
+    if not name:
+        return None
+    if source.startswith("models:/"):
+        model, _, version = source[len("models:/") :].partition("/")
+        return version or None if model == name else None
+    if not run_id:
+        return None
+    try:
+        versions = mlflow.MlflowClient().search_model_versions(f"run_id='{run_id}'")
+    except MlflowException:
+        return None
+    found = sorted((int(v.version) for v in versions if v.name == name), reverse=True)
+    return str(found[0]) if found else None
+
+
+def _log(
+    job: AdaptJob, record: Mapping[str, Any], policy: Policy, base: str | None, base_run: str
+) -> None:
+    """The run's params, tags and metrics."""
+    settings = {f"adapt.{k}": str(v) for k, v in dataclasses.asdict(job.settings).items()}
+    mlflow.log_params({
+        "plant": job.new.name, "plant.file": str(job.new.path),
+        "policy": redact(job.request.policy), "demos": str(job.demos["source"]),
+        "tag": str(job.new.plant.tag), "n_tags": str(policy.net.n_tags),
+        "init.chosen": str(record["init"]["chosen"]), **settings,
+    })  # fmt: skip
+    mlflow.set_tags({
+        "adapt.plant": job.new.name, "adapt.base_run_id": base_run,
+        "adapt.base_version": str(base), "run_dir": str(job.request.run_dir),
+        "data.content_hash": str(job.demos.get("content_hash") or job.demos["source"]),
+    })  # fmt: skip
+    for i, loss in enumerate(record.get("loss", [])):
+        mlflow.log_metric("adapt/loss", loss, step=i)
+    scores = record["closed_loop"]
+    for i, score in enumerate(scores.get("rounds", [])):
+        mlflow.log_metric("adapt/closed_loop/round", score, step=i + 1)
+    flat = {f"adapt/closed_loop/{k}": scores[k] for k in ("start", "fit") if k in scores}
+    flat.update({
+        "adapt/closed_loop": scores["kept"], "adapt/wall_s": record["wall_s"],
+        "adapt/windows": record["demonstrations"]["windows"],
+        "adapt/dagger_windows": record["demonstrations"].get("dagger_windows", 0),
+    })  # fmt: skip
+    if "recorded_relative_mse" in record:
+        flat["adapt/recorded_relative_mse"] = record["recorded_relative_mse"]
+    mlflow.log_metrics({k: float(v) for k, v in flat.items()})
+
+
+def _register(
+    job: AdaptJob, policy: Policy, name: str | None, base: str | None, base_run: str
+) -> str | None:
+    """Log the MLflow model and register it; tag the version with its base and plant."""
+    w = job.windows
+    windows = {k: torch.from_numpy(getattr(w, k)[:8]) for k in ("state", "mask", "ref", "tag")}
+    version = log_model(policy, windows, name)
+    if version is not None and name:
+        client = mlflow.MlflowClient()
+        for key, value in (
+            ("base_version", base or ""),
+            ("base_run_id", base_run),
+            ("adapted_plant", job.new.name),
+            ("adapted_tag", str(job.new.plant.tag)),
+        ):
+            client.set_model_version_tag(name, version, key, value)
+    return version
+
+
+def _write(folder: Path, job: AdaptJob, policy: Policy, meta: dict, record: dict) -> list[Path]:
+    """The policy, its record and the plant's file, written into ``folder``."""
+    (folder / "plants").mkdir()
+    plant_file = folder / "plants" / f"{job.new.name}.yaml"
+    shutil.copyfile(job.new.path, plant_file)
+    return [save_policy(folder / POLICY_FILE, policy, meta),
+            write_json(folder / ADAPT_FILE, record), plant_file]  # fmt: skip
+
+
+def publish(
+    job: AdaptJob, policy: Policy, meta: dict[str, Any], record: dict[str, Any]
+) -> dict[str, Any]:
+    """Log the run, register the model, then put the run folder in place (last).
+
+    Interrupted (SIGINT, SIGTERM under :func:`sigterm_raises`), the run ends KILLED and no
+    run folder appears; any other error ends it FAILED.
+    """
+    logger = dict(job.request.logger)
+    logger["run_name"] = redact(logger["run_name"]) or f"adapt-{job.new.name}"
+    name = logger["registered_model_name"]
+    run_dir = job.request.run_dir
+    with (
+        staging_directory(run_dir) as staging,
+        mlflow_utils.mlflow_run(logger, kind="adapt") as run,
+    ):
+        try:
+            base_run = find_training_run(job.base_sha256) or ""
+            record["base_version"] = base = base_version(job.request.policy, base_run, name)
+            written = _write(staging, job, policy, meta, record)
+            mlflow.set_tag(POLICY_HASH_TAG, policy_sha256(written[0]))  # found as a training's
+            for path in written:
+                mlflow.log_artifact(
+                    str(path), path.parent.name if path.suffix == ".yaml" else "policy"
+                )
+            _log(job, record, policy, base, base_run)
+            version = _register(job, policy, name, base, base_run) if logger["log_model"] else None
+            check_run_dir(run_dir)  # nothing of the user's appeared meanwhile
+            publish_directory(staging, run_dir, {}, SETTING)
+        except KeyboardInterrupt:
+            mlflow.end_run("KILLED")
+            raise
+    experiment = mlflow.MlflowClient().get_experiment(run.info.experiment_id).name
+    return {
+        "policy_path": run_dir / POLICY_FILE, "run_id": run.info.run_id,
+        "experiment": experiment, "registered_version": version, "base_version": base,
+    }  # fmt: skip
+
+
+def evaluate_command(job: AdaptJob, policy_path: Path) -> str:
+    """The command that evaluates the adapted policy on the plant, every scenario."""
+    name, run_dir = job.new.name, job.request.run_dir
+    words = ["python -m generalist_control.evaluate"]
+    if not job.new.in_catalogue:  # the run folder's plants/ holds the plant's file
+        words.append(f"'hydra.searchpath=[file://{run_dir.resolve()}]'")
+    if name not in job.request.listed:
+        words.append(f"+plants@systems.plants.{name}={name}")
+    words += [f"systems.include=[{name}]", f"policy={policy_path}",
+              f"paths.reports_dir={run_dir / 'eval'}"]  # fmt: skip
+    return " ".join(words)
+
+
+def end_message(job: AdaptJob, objects: Mapping[str, Any]) -> str:
+    """The lines an adaptation ends with: the policy, the run, the model, how to evaluate."""
+    uri = redact(mlflow.get_tracking_uri())
+    version, base = objects["registered_version"], objects["base_version"]
+    model = job.request.logger["registered_model_name"]
+    registered = (
+        f"registered model {model} version {version} (adapted from version {base or '-'})"
+        if version
+        else "not registered"
+    )
+    return (
+        f"plant '{job.new.name}' added on tag {job.new.plant.tag}; MLflow run "
+        f"{objects['run_id']} in experiment '{objects['experiment']}' ({uri}); {registered}\n"
+        f"evaluate it with: {evaluate_command(job, objects['policy_path'])}\n"
+        f"policy written to {objects['policy_path']}"
+    )

@@ -1,0 +1,72 @@
+"""SIGTERM and SIGINT stop a sweep or a study: non-zero exit, no further job, parent ``KILLED``.
+
+The first signal becomes :class:`Stopped` in the main thread. It is a ``KeyboardInterrupt``,
+so joblib kills its workers, Optuna fails the running trial and Lightning ends the training
+run; nothing catches it as a job's ordinary failure and goes on with the next point.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from types import FrameType
+from typing import Any
+
+__all__ = ["Stopped", "install", "received", "restore", "stopping_on_signals"]
+
+log = logging.getLogger(__name__)
+
+SIGNALS = (signal.SIGTERM, signal.SIGINT)
+_saved: dict[int, Any] = {}
+_received: list[int] = []
+
+
+class Stopped(KeyboardInterrupt):
+    """The command received ``signum`` and stops."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(f"stopped by {signal.Signals(signum).name}")
+        self.signum = signum
+
+
+def _handle(signum: int, frame: FrameType | None) -> None:
+    _received.append(signum)
+    if len(_received) == 1:  # later signals: the command is stopping already
+        log.warning("%s received: stopping", signal.Signals(signum).name)
+        raise Stopped(signum)
+
+
+def install() -> bool:
+    """Stop on SIGTERM and SIGINT from now on; False where it cannot (not the main thread)."""
+    if _saved or threading.current_thread() is not threading.main_thread():
+        return False
+    _received.clear()
+    for signum in SIGNALS:
+        _saved[signum] = signal.signal(signum, _handle)
+    return True
+
+
+def restore() -> None:
+    """The handlers from before :func:`install`."""
+    for signum, handler in _saved.items():
+        signal.signal(signum, signal.SIG_DFL if handler is None else handler)
+    _saved.clear()
+
+
+def received() -> int | None:
+    """The first signal received since :func:`install`, if any."""
+    return _received[0] if _received else None
+
+
+@contextmanager
+def stopping_on_signals() -> Iterator[None]:
+    """:func:`install` for the block (if not installed already), :func:`restore` after it."""
+    installed = install()
+    try:
+        yield
+    finally:
+        if installed:
+            restore()
