@@ -1,9 +1,7 @@
 """Plants a runtime is given by their model (the model card route), not by name.
 
-``PolicyRuntime.reset`` takes a plant never trained on as a plant YAML's path or a model dict
-(:mod:`~generalist_control.plants.given`); a policy of the model card route grows a row
-computed from the plant's card (:func:`~generalist_control.model.bank.add_plant`), nothing
-learned. Any other policy refuses it here, saying what to do instead.
+A card policy grows a row computed from the plant's card; any other refuses it here, saying
+what to do instead.
 """
 
 from __future__ import annotations

@@ -1,11 +1,8 @@
-"""A policy's per-plant rows that are not learned: the card bank and the normaliser's rows.
+"""A policy's per-plant rows that are computed, not learned: the card bank and its frames.
 
-The model card route (:class:`~generalist_control.model.card.CardPlant`) keeps one card per
-plant, indexed like tags, and its normaliser holds each plant's frame; both are computed
-from the plant's model, never fitted. :func:`fit_cards` fills them for the training plants;
-:func:`add_card` grows a trained policy by a plant it never saw (a new tag, nothing
-learned), :func:`add_scales` does the same for a policy whose rows are only its normaliser's
-(the in-context route). A tag embedding's rows are learned: such a policy cannot grow here.
+Training fills them for its plants (:func:`fit_cards`); a plant never seen grows the policy
+by one row (:func:`add_plant`), nothing learned. A tag embedding's rows are learned: such a
+policy cannot grow here.
 """
 
 from __future__ import annotations

@@ -1,25 +1,10 @@
 """The model card route: the plant reaches the network as a descriptor of its model.
 
-A plant's *card* is what its user knows: ``A, B, C, dt`` and the LQI weights ``Q, R``. From
-it, by rules stated here (why: ``docs/notes/family-policy.md``), a plant never trained on
-is served with no training:
-
-* a **normalised realisation** (:func:`card_frame`): the state seen as the output and its
-  derivatives, ``q = [C; C A/w; C (A/w)^2; ...] x``, ``w`` the geometric mean of the nominal
-  LQI loop's pole magnitudes; then each ``q_i``, the error integral and the control divided
-  by its RMS over that loop's unit step from rest (sampled as the expert runs, ``duration``
-  seconds; the reference's scale is 1). Every realisation of a plant gives the same frame,
-  so the network never meets the plant's own coordinates;
-* a **descriptor** (:func:`card_features`) in that frame: the ZOH model's rates
-  ``(Ad - I) / dt``, input column and output row, the open-loop step response at
-  :data:`STEP_SAMPLES`, the frequency response at ``w`` times :data:`FREQUENCIES`, the
-  log-diagonal and correlations of ``Q / R``, the order mask; padded to
-  :data:`~generalist_control.plants.plant.MAX_ORDER`.
-
-The LQI gain and the Riccati solution never enter the descriptor (that is the hybrid); the
-nominal loop sets only the frame's time scale and units, as the data's RMS sets a tag's.
-:class:`CardPlant` is the plant part: a bank of descriptors indexed like tags (buffers,
-standardised by the training rows' mean and spread), encoded by an MLP into the plant's code.
+From a plant's card (A, B, C, dt, Q, R) two things are computed by stated rules, never
+fitted, so that a plant never trained on is served with no training: its frame (the state as
+the output and its scaled derivatives, units from the nominal LQI loop's unit step) and its
+descriptor in that frame. The LQI gain never enters (that is the hybrid). Why each rule:
+``docs/notes/family-policy.md``.
 """
 
 from __future__ import annotations

@@ -1,16 +1,8 @@
 """The in-context route: the plant read from the policy's own window, no row per plant.
 
-:class:`ContextPlant` encodes the window's one-step transitions ``(x_j, u_j, x_(j+1))`` with
-the transition-set encoder (:class:`~generalist_control.model.identifier.TransitionSet`, no
-one-step models) into the plant's code: no parameter of the network is indexed by plant, so
-a plant never trained on is read the same way as a training plant. Trained over plant
-families, the code is also asked to predict the plant's card descriptor
-(:func:`~generalist_control.model.card.card_features`, standardised), a target known for
-every training plant and never an input: the encoder learns to identify the model, as the
-identity head of :class:`~generalist_control.model.plant.InferredPlant` learns to name one of
-its rows. Its normaliser rows are the data's RMS per plant (:class:`~generalist_control.model.
-normalise.Normaliser`): a plant never seen needs its signals' scales, from a recording or its
-demonstrations, not its model (``docs/notes/family-policy.md``).
+The window's transitions are encoded with no per-plant parameter; over a plant family the
+code also learns to predict the plant's card (a training target, never an input). Its
+normaliser rows are the RMS of each plant's operating data (``docs/notes/family-policy.md``).
 """
 
 from __future__ import annotations

@@ -1,19 +1,8 @@
 """The held-out protocol's zero-shot routes and its held-out family draw (issue 50).
 
-Beside the adapted row and the policy trained with each held-out plant
-(:mod:`~generalist_control.reports.held_out`), two policies trained over a plant family and
-the 20 other catalogue plants meet the held-out plants with no training:
-
-* ``card``: the model card route takes each plant by its model
-  (:meth:`~generalist_control.deploy.runtime.PolicyRuntime.add_plant`);
-* ``in_context``: the in-context route reads the plant from its window; the plant gets a
-  normaliser row of its own, the RMS of its demonstrations (the data recipe, as the tag-free
-  zero-shot is named), nothing learned.
-
-The held-out family draw: ``count`` plants of a family drawn from a seed no training family
-used, each met by the card route zero-shot on every scenario; the distribution of its
-unit-step ISE ratios to each plant's LQI, the worst plants named (:func:`family_draw`). The
-bars of issue 50 on both: :func:`judge_routes`.
+Each held-out plant is met, nothing learned, by the model card route (its model) and the
+in-context route (a normaliser row of its demonstrations' RMS); the card route also meets a
+family draw no training saw. :func:`judge_routes` holds issue 50's bars (docs/pipeline.md).
 """
 
 from __future__ import annotations

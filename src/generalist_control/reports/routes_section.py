@@ -1,8 +1,4 @@
 """The results page's held-out section with the zero-shot routes and the family draw (issue 50).
-
-The held-out stage's summary (``reports/unseen/summary.json``) holds, where it ran them, the
-model card and in-context routes on each held-out plant, the card route on a family draw no
-training saw, and issue 50's bars on both (:mod:`~generalist_control.reports.held_out_routes`).
 """
 
 from __future__ import annotations

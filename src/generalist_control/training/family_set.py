@@ -1,11 +1,8 @@
 """Training over plant families beside the catalogue (``train_families``, issue 50).
 
-A family's demonstrations (``python -m generalist_control.generate_families``) are a dataset
-of their own whose plants carry tags ``0 .. count - 1``. Trained beside the catalogue, the
-family's plants take the tags after the catalogue's (and after earlier families'): the
-policy's rows are the catalogue's, then each family's. :class:`FamilySet` reads the
-families' data and rebuilds their plants from the manifests (bit for bit, as drawn), joins
-their demonstrations to the catalogue's and gives the policy's meta what it needs of them.
+A family's plants (tags ``0 .. count - 1`` in its own data) take the tags after the
+catalogue's: the policy's rows are the catalogue's, then each family's. Their plants are
+rebuilt from the families' manifests, bit for bit as drawn.
 """
 
 from __future__ import annotations
