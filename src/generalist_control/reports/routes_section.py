@@ -1,5 +1,4 @@
-"""The results page's held-out section with the zero-shot routes and the family draw (issue 50).
-"""
+"""The results page's held-out section, with the zero-shot routes and the family draw."""
 
 from __future__ import annotations
 
