@@ -19,6 +19,7 @@ import json
 import os
 import platform
 import resource
+import signal
 import subprocess
 import sys
 import tempfile
@@ -47,6 +48,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--models", type=Path, default=None, help="keep the policy here (default: not)")
     p.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. trainer.max_epochs=2")
     args = p.parse_args(argv)
+    # stopped, the training stops too: subprocess.run kills it on the exception
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     with tempfile.TemporaryDirectory(prefix="bench_family_") as tmp:
         cmd = [
             sys.executable, "-m", "generalist_control.train", f"experiment={args.experiment}",

@@ -7,6 +7,7 @@ import functools
 
 import numpy as np
 import pytest
+import torch
 
 from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
@@ -153,3 +154,34 @@ def test_the_in_context_part_has_no_per_plant_parameter():
     assert all(p.shape[0] != 30 for p in part.parameters())
     with pytest.raises(ValueError, match="identifier.models must be null"):
         ContextPlant(16, functools.partial(TransitionSet, models=TransitionModels), n_tags=3)
+
+
+def test_the_in_context_normaliser_whitens_each_plant_over_its_windows(monkeypatch):
+    from generalist_control.model import normalise
+
+    torch.manual_seed(0)
+    W, n_tags = 4000, 3
+    mixing = torch.tensor([[1.0, 0, 0], [0.999, 0.01, 0], [0.3, -2.0, 50.0], [0, 0, 0]])
+    x = torch.randn(W, 8, 3) @ mixing.T  # two states nearly equal: a stiff realisation (W, 8, 4)
+    order = torch.tensor([2, 3, 1])
+    tag = torch.randint(0, 2, (W,))  # tag 2 has no windows
+    mask = (torch.arange(4) < order[tag][:, None]).float()[:, None, :].expand(W, 8, 4)
+    state = torch.cat([x * mask, torch.randn(W, 8, 1)], -1)
+    mask = torch.cat([mask, torch.ones(W, 8, 1)], -1)
+    args = (state, mask, torch.randn(W, 8), tag, torch.randn(W, 3))
+    fitted = normalise.Normaliser(n_tags, 5, mapped=True)
+    fitted.fit(*args)
+    for t in (0, 1):
+        sel = tag == t
+        z = fitted.normalise_inputs(state[sel], mask[sel], args[2][sel], tag[sel])[0]
+        z = z[..., :4].reshape(-1, 4).double()
+        n = int(order[t])
+        torch.testing.assert_close((z.T @ z / len(z))[:n, :n], torch.eye(n, dtype=torch.float64),
+                                   atol=1e-4, rtol=0)  # fmt: skip
+        assert torch.all(z[:, n:] == 0)
+    torch.testing.assert_close(fitted.state_map[2], torch.eye(4))
+    monkeypatch.setattr(normalise, "_ONEHOT_LIMIT", 0)  # sums scattered per tag: the same
+    scattered = normalise.Normaliser(n_tags, 5, mapped=True)
+    scattered.fit(*args)
+    for key, value in fitted.state_dict().items():
+        torch.testing.assert_close(scattered.state_dict()[key], value, rtol=1e-12, atol=1e-12)

@@ -15,6 +15,7 @@ from torch import Tensor
 
 from generalist_control.model.card import CardFrame, CardPlant, card_features, card_frame
 from generalist_control.model.context import ContextPlant
+from generalist_control.model.normalise import Normaliser
 from generalist_control.model.policy import Policy
 from generalist_control.plants.plant import MAX_ORDER, Plant
 
@@ -28,6 +29,7 @@ __all__ = [
     "add_rows",
     "add_scales",
     "card_part",
+    "data_rows",
     "fit_cards",
     "fit_model_rows",
     "fit_targets",
@@ -185,6 +187,15 @@ def add_plant(policy: Policy, plant: Plant) -> Policy:
     if not isinstance(part, CardPlant):
         raise NoModelRowError(type(part).__name__)
     return add_card(policy, plant)
+
+
+def data_rows(
+    policy: Policy, state: Tensor, mask: Tensor, ref: Tensor, target: Tensor
+) -> dict[str, Tensor]:
+    """A new plant's normaliser row fitted on its windows, as training fits every row."""
+    one = Normaliser(1, policy.width, policy.normaliser.mapped)
+    one.fit(state, mask, ref, torch.zeros(len(state), dtype=torch.long), target)
+    return {f"normaliser.{k}": v.detach().clone() for k, v in one.named_buffers()}
 
 
 def add_scales(policy: Policy, scales: Mapping[str, Tensor]) -> Policy:

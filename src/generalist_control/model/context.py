@@ -2,7 +2,8 @@
 
 The window's transitions are encoded with no per-plant parameter; over a plant family the
 code also learns to predict the plant's card (a training target, never an input). Its
-normaliser rows are the RMS of each plant's operating data (``docs/notes/family-policy.md``).
+normaliser rows come from each plant's operating data: RMS scales, the state whitened by its
+covariance (``docs/notes/family-policy.md``).
 """
 
 from __future__ import annotations
@@ -49,6 +50,8 @@ class ContextPlant(PlantPart):
     """
 
     needs: tuple[str, ...] = ("previous_control",)
+    #: The normaliser whitens each plant's state over its data (``Normaliser.state_map``).
+    maps_states = True
 
     targets: Tensor
     has_target: Tensor
