@@ -39,8 +39,8 @@ def _probabilities(
     args = [torch.as_tensor(np.asarray(a)) for a in windows]
     with torch.no_grad():
         reading = policy.output(*args).plant
-    if reading is None:
-        raise ValueError("the policy's plant part reads nothing from the window (a tag)")
+    if reading is None or reading.logits is None:
+        raise ValueError("the policy's plant part has no identity head (a tag or a card)")
     logits = reading.logits
     return torch.softmax(logits[:, [p.tag for p in plants]], dim=1).double().numpy()
 

@@ -22,6 +22,7 @@ import torch
 
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
+from generalist_control.plants.definition import PlantConfigError
 from helpers import net_config, policy_meta
 
 PLANTS = ("cstr", "hydraulic_actuator")  # orders 2 and 3
@@ -155,18 +156,22 @@ def test_a_bool_batch_or_applied_control_is_refused(policy):
 
 
 @pytest.mark.parametrize("bad", [None, 25, 2.5, [1, 2], {"cstr": 1}, b"cstr"])
-def test_reset_without_plant_names_says_what_it_takes_and_changes_nothing(policy, bad):
+def test_reset_without_plants_says_what_it_takes_and_changes_nothing(policy, bad):
     rt = PolicyRuntime(*policy)
     rt.reset("cstr")
     rt.step([0.1, 0.0], 1.0)
     before = _state(rt)
-    with pytest.raises(TypeError) as err:
-        rt.reset(bad)
-    assert str(err.value).startswith("reset takes a plant's name or a list of names")
-    assert str(err.value).endswith("This policy knows: cstr, hydraulic_actuator")
+    if isinstance(bad, dict):  # a dict is a plant's model: this one lacks its keys
+        with pytest.raises(PlantConfigError, match=r"needs the keys \['A', 'B', 'C', 'dt'"):
+            rt.reset(bad)
+    else:
+        with pytest.raises(TypeError) as err:
+            rt.reset(bad)
+        assert str(err.value).startswith("reset takes a plant (a name, a plant YAML's path")
+        assert str(err.value).endswith("This policy knows: cstr, hydraulic_actuator")
     for a, b in zip(_state(rt), before, strict=True):
         np.testing.assert_array_equal(a, b)
-    with pytest.raises(ValueError, match="at least one plant name; known: cstr, hydraulic"):
+    with pytest.raises(ValueError, match="at least one plant; known: cstr, hydraulic"):
         rt.reset([])
     rt.step([0.1, 0.0], 1.0)  # still the run on cstr
 

@@ -18,6 +18,7 @@ import yaml
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import available_plants, load_plant
 from generalist_control.reports.held_out import POLICIES, judge, plant_class
+from generalist_control.reports.held_out_routes import ROUTES
 from generalist_control.training.settings import read_training
 from helpers import compose_cfg, tiny_train_overrides, untrained_policy
 
@@ -89,15 +90,20 @@ def _commands() -> list[list[str]]:
 
 
 def test_the_stage_commands_write_where_the_protocol_reads():
-    train_default, train_free, evaluate = _commands()
+    train_default, train_free, train_card, train_context, evaluate = _commands()
     models = CONFIG["unseen"]["models"]
     assert "--config-name" in train_default and "unseen" in train_default
     assert CONFIG["paths"]["published_dir"] == f"{models}/default"
     assert f"paths.published_dir={models}/tag_free" in train_free
     assert "experiment=tag_free" in train_free
+    for folder, cmd in zip(ROUTES.values(), (train_card, train_context), strict=True):
+        assert f"experiment={folder}" in cmd and "unseen" in cmd
+        assert f"paths.published_dir={models}/{folder}" in cmd
     assert evaluate == ["python", "-m", "generalist_control.unseen"]
     outs = [o if isinstance(o, str) else next(iter(o)) for o in STAGE["outs"]]
-    assert {f"{models}/default/policy.ckpt", f"{models}/tag_free/policy.ckpt"} <= set(outs)
+    assert {f"{models}/{f}/policy.ckpt" for f in ("default", "tag_free", *ROUTES.values())} <= set(
+        outs
+    )
     assert f"{models}/adapted" in outs and CONFIG["unseen"]["trained_with"] in STAGE["deps"]
 
 
@@ -107,8 +113,12 @@ TINY_TRAIN = (
     "trainer.max_epochs=1", "trainer.accelerator=cpu", "trainer.enable_progress_bar=false",
     "trainer.enable_model_summary=false", "logger.log_model=false",
 )  # fmt: skip
+#: ... and what the family trainings add (the tiny family: 4 plants).
+TINY_FAMILY = ("train_families.dagger_plants=2", "train_families.closed_loop_plants=2")
 TINY_UNSEEN = (
-    "held_out=[hydraulic_actuator]", "adapt.epochs=2", "adapt.rounds=1", "adapt.batch_size=64",
+    "held_out=[hydraulic_actuator]", "unseen.family_draw.count=3",
+    "unseen.family_draw.checks={duration:10.0}",
+    "adapt.epochs=2", "adapt.rounds=1", "adapt.batch_size=64",
     "logger.log_model=false", "data.duration=2.0", "data.families=null",
     "data.amplitudes.segments=[{start:1.0,stop:4.0,step:1.0}]", "evaluation.backend=torch",
     "~evaluation.scenarios",
@@ -131,8 +141,13 @@ def test_the_stage_runs_on_tiny_data(tiny_data_dir, tmp_path, mlflow_uri):
     shutil.copy(trained["policy_path"], tmp_path / "models" / "policy.ckpt")
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     env["PYTHONPATH"] = os.pathsep.join([str(REPO / "src"), env.get("PYTHONPATH", "")])
+    family = [sys.executable, "-m", "generalist_control.generate_families", "families.count=4",
+              "data.duration=2.0", "families.checks.duration=10.0"]  # fmt: skip
+    proc = subprocess.run(family, cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
     for cmd in _commands():
         tiny = TINY_UNSEEN if cmd[-1] == "generalist_control.unseen" else TINY_TRAIN
+        tiny += TINY_FAMILY if any("experiment=family" in c for c in cmd) else ()
         argv = [sys.executable, *cmd[1:], *tiny]
         proc = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True,
                               timeout=900)  # fmt: skip
@@ -144,13 +159,17 @@ def test_the_stage_runs_on_tiny_data(tiny_data_dir, tmp_path, mlflow_uri):
     df = pd.read_csv(tmp_path / "reports/unseen/metrics.csv")
     assert list(df.columns) == ["policy", "system", "scenario", "controller", "run", "metric",
                                 "value"]  # fmt: skip
-    assert set(df.policy) == set(POLICIES) and set(df.system) == {"hydraulic_actuator"}
+    assert set(df.policy) == {*POLICIES, *ROUTES}
+    drawn = set(df.system) - {"hydraulic_actuator"}
+    assert len(drawn) == 3 and set(df[df.system.isin(drawn)].policy) == {"card"}
     assert set(df.scenario) == {"step", "sine"}
     summary = json.loads((tmp_path / "reports/unseen/summary.json").read_text())
     entry = summary["held_out"]["hydraulic_actuator"]
+    assert summary["family_draw"]["plants"] == 3 and summary["family_draw"]["seed"] == 1001
+    assert set(summary["routes"]["bars"]) >= {"card_no_divergence", "draw_median"}
     assert entry["adaptation_wall_s"] > 0 and entry["demonstrations"]["windows"] == 8 * 38
     assert entry["class"]["order"] == 3
-    for label in POLICIES:
+    for label in (*POLICIES, *ROUTES):
         figures = entry["policies"][label]
         assert figures["ISE_ratio"] is None or np.isfinite(figures["ISE_ratio"]), label
         assert "RMSE_ratio_worst" in figures and "diverged_runs" in figures

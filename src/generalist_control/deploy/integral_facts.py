@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from generalist_control.plants.catalog import available_plants, load_plant
-from generalist_control.plants.definition import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import design_lqi
 
 __all__ = ["IntegralFacts", "integral_facts"]
@@ -42,6 +42,11 @@ class IntegralFacts:
         #: per plant, the sign of d u / d z of the expert the policy imitates (``-Ki``)
         self.directions = {str(k): float(v) for k, v in directions.items()}
         self._unknown: set[str] = set()  # plants neither the meta nor the catalogue knows
+
+    def add(self, plant: Plant) -> None:
+        """Take ``plant``'s output row and its expert's integral direction (a plant given)."""
+        self.outputs[plant.name] = np.asarray(plant.C[0], np.float64)
+        self.directions[plant.name] = float(np.sign(-design_lqi(plant).Ki))
 
     def _complete(self, names: Sequence[str]) -> None:
         missing = sorted(set(names) - (set(self.outputs) & set(self.directions)) - self._unknown)

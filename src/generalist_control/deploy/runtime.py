@@ -19,6 +19,13 @@ import numpy as np
 
 from generalist_control.data.windows import HistoryBuffer
 from generalist_control.deploy.export import backend as _backend
+from generalist_control.deploy.given_plants import (
+    GIVEN_TYPES,
+    grown_for,
+    plant_of,
+    refused_reset,
+    unknown_plant,
+)
 from generalist_control.deploy.integral_facts import IntegralFacts
 from generalist_control.deploy.one_plant import OnePlantStep, output_of
 from generalist_control.deploy.policy_source import resolve
@@ -30,7 +37,7 @@ from generalist_control.deploy.refusals import (
     shaped_inputs,
 )
 from generalist_control.model.policy import Policy, load_policy
-from generalist_control.plants.definition import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER, Plant
 from generalist_control.simulation.antiwindup import conditional_increment
 from generalist_control.simulation.simulate import Perturbation
 
@@ -139,47 +146,44 @@ class PolicyRuntime:
         return sorted(self.tags)
 
     def _plants(self, system: Any) -> tuple[list[str], bool]:
-        """The plants ``reset(system)`` starts, ``(names, single)``: the one place that reads it.
-
-        ``system``: a plant's name (one plant stepped alone, unpadded states) or a list of
-        names (a batch, zero-padded states); anything else is refused naming the known plants.
-        """
-        single = isinstance(system, str)
-        items = [system] if single else system
-        if not isinstance(items, list | tuple | np.ndarray) or not all(
-            isinstance(s, str) for s in items
-        ):
-            raise TypeError(
-                f"reset takes a plant's name or a list of names, e.g. reset('cstr') or "
-                f"reset(['cstr', 'cstr']); got {system!r:.80} ({type(system).__name__}). "
-                f"This policy knows: {', '.join(self.systems)}"
-            )
-        if not len(items):
-            raise ValueError(
-                f"reset needs at least one plant name; known: {', '.join(self.systems)}"
-            )
-        names = [str(s) for s in items]
+        """``(names, single)`` of ``reset``: names, or models (:mod:`.given_plants`)."""
+        single = not isinstance(system, list | tuple | np.ndarray)
+        items = [system] if single else list(system)
+        if not items or not all(isinstance(s, GIVEN_TYPES) for s in items):
+            raise refused_reset(system, self.systems)
+        given = [plant_of(s) for s in items]
+        names = [s if isinstance(s, str) else self.add_plant(s) for s in given]
         for name in names:
             if name not in self.tags:
-                raise KeyError(
-                    f"unknown plant '{name}' for this policy; it was trained on: "
-                    f"{', '.join(self.systems)}"
-                )
+                raise unknown_plant(name, self.systems)
         return names, single
 
+    def add_plant(self, plant: Plant) -> str:
+        """``plant``'s name; a new one's row added from its model (:func:`.grown_for`)."""
+        if plant.name not in self.tags:
+            self.policy = grown_for(self.policy, plant, self.dt)
+            self._backend = self._run = _backend(self.policy, self.backend)
+            self.tags[plant.name] = self.policy.net.n_tags - 1
+            self.orders[plant.name] = plant.order
+            self._facts.add(plant)
+        return plant.name
+
     @_one_thread
-    def reset(self, system: str | Sequence[str]) -> None:
-        """Start a new run on ``system`` (a name) or a batch of runs (a list of names).
+    def reset(self, system: Any) -> None:
+        """Start a new run on ``system`` (a plant) or a batch of runs (a list of plants).
+
+        A plant is a name the policy knows, or one never trained on given by its model: a
+        plant YAML's path or a model dict (:mod:`~generalist_control.plants.given`).
 
         Raises
         ------
         TypeError
-            If ``system`` is not a name or a list of names (e.g. None, a number).
+            If ``system`` is not a plant or a non-empty list of plants (e.g. None, a number).
         KeyError
             If a name is not one of the policy's plants (:attr:`systems`).
         ValueError
-            If the list is empty, or actuator limits are known and a plant's integral
-            direction is not.
+            If a plant given by its model cannot be taken (:meth:`add_plant`), or actuator
+            limits are known and a plant's integral direction is not.
         """
         names, single = self._plants(system)
         limited = self.limits is not None and self.integral

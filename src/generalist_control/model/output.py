@@ -15,15 +15,15 @@ class PlantReading:
 
     Attributes
     ----------
-    logits : Tensor, shape (B, n_tags)
-        The identity head's logits over the training plants.
+    logits : Tensor or None, shape (B, n_tags)
+        The identity head's logits over the training plants (None: a part without one).
     summary : Tensor, shape (B, features)
         The identifier's state (with its models' evidence last): what a context skip reads.
     evidence : Tensor or None, shape (B, n_tags)
         Each plant's one-step model's evidence on the window (None without models).
     """
 
-    logits: Tensor
+    logits: Tensor | None
     summary: Tensor
     evidence: Tensor | None
 

@@ -168,7 +168,7 @@ class InferredPlant(PlantPart):
         (:meth:`~generalist_control.model.identifier.TransitionModels.fit_loss`), times
         :attr:`loss_weight`.
         """
-        if reading is None:
+        if reading is None or reading.logits is None:
             return None
         cross_entropy = F.cross_entropy(reading.logits, tag)
         models = self.identifier.models

@@ -72,7 +72,8 @@ class Policy(nn.Module):
         super().__init__()
         self.config: dict[str, Any] = dict(model)
         net = build_network(self.config)
-        self.normaliser = Normaliser(net.n_tags, net.width)
+        mapped = bool(getattr(net.plant, "maps_states", False))  # the card route's frame
+        self.normaliser = Normaliser(net.n_tags, net.width, mapped)
         self.net = net
 
     @property

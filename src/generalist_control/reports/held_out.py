@@ -38,6 +38,12 @@ from generalist_control.evaluation.summary import summarise
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.definition import Plant
+from generalist_control.reports.held_out_routes import (
+    family_draw,
+    judge_routes,
+    route_paths,
+    zero_shot,
+)
 from generalist_control.tracking import mlflow_utils
 
 __all__ = ["DEFAULT_BAR", "OWNED", "POLICIES", "judge", "plant_class", "run_unseen"]
@@ -168,9 +174,12 @@ def _figures(df: pd.DataFrame) -> dict[str, Any]:
 
 
 def _plant(
-    cfg: DictConfig, request: AdaptRequest, paths: Mapping[str, Path]
+    cfg: DictConfig,
+    request: AdaptRequest,
+    paths: Mapping[str, Path],
+    routes: Mapping[str, Path],
 ) -> tuple[pd.DataFrame, dict]:
-    """Adapt, name and load the three policies for one plant; evaluate each."""
+    """Adapt, name and load the policies for one plant (and the zero-shot routes'); evaluate."""
     name = request.plant
     record, objects = adapt(dataclasses.replace(request, policy=str(paths["adapted"])))
     policies = {
@@ -179,6 +188,8 @@ def _plant(
         "trained_with": load_policy(paths["trained_with"]),
     }
     plant = load_plant(name)
+    data = as_dict(cfg.data)
+    policies.update({k: zero_shot(k, path, plant, data) for k, path in routes.items()})
     frames = [_evaluated(cfg, k, p, m, plant) for k, (p, m) in policies.items()]
     df = pd.concat(frames, ignore_index=True)
     entry = {
@@ -187,9 +198,26 @@ def _plant(
         "adaptation_wall_s": record["wall_s"],
         "adaptation": {k: record[k] for k in ("init", "closed_loop", "learned")},
         "adapted_policy": str(objects["policy_path"]),
-        "policies": {k: _figures(df[df.policy == k]) for k in POLICIES},
+        "policies": {k: _figures(df[df.policy == k]) for k in policies},
     }
     return df, entry
+
+
+def _family_draw(cfg: DictConfig, card: Path, frames: list[pd.DataFrame]) -> dict | None:
+    """The card route on the held-out family draw (``unseen.family_draw``; None: off)."""
+    if cfg.unseen.family_draw is None:
+        return None
+    scenarios = as_dict(cfg.evaluation.scenarios)
+
+    def run(rt: PolicyRuntime, plants: list[Plant]) -> pd.DataFrame:
+        df, _ = evaluate(rt, plants, scenarios)
+        df.insert(0, "policy", "card")
+        return df
+
+    df, draw = family_draw(card, as_dict(cfg.unseen.family_draw), as_dict(cfg.data), run)
+    frames.append(df)
+    log.info("held-out family draw: median ISE ratio %.4g", draw["ISE_ratio"]["median"])
+    return draw
 
 
 def _write(out_dir: Path, df: pd.DataFrame, summary: Mapping[str, Any]) -> None:
@@ -230,16 +258,21 @@ def run_unseen(cfg: DictConfig, requests: Mapping[str, AdaptRequest]) -> dict[st
     out_dir = Path(cfg.paths.reports_dir)
     check_replaceable(out_dir, OWNED, "paths.reports_dir")
     paths = _paths(cfg)
+    routes = route_paths(Path(str(cfg.unseen.models))) if cfg.unseen.routes else {}
     frames, entries = [], {}
     for name, request in requests.items():
-        df, entries[name] = _plant(cfg, request, paths)
+        df, entries[name] = _plant(cfg, request, paths, routes)
         frames.append(df)
         log.info("held-out plant %s: adapted in %.0f s", name, entries[name]["adaptation_wall_s"])
     summary = {
         "held_out": entries,
         **judge(entries, as_dict(cfg.unseen.get("bar") or {})),
-        "policies": {k: str(v) for k, v in paths.items()},
+        "policies": {k: str(v) for k, v in {**paths, **routes}.items()},
     }
+    if routes:
+        draw = _family_draw(cfg, routes["card"], frames)
+        summary["routes"] = {**judge_routes(entries, draw, as_dict(cfg.unseen.routes_bar))}
+        summary["family_draw"] = draw
     _write(out_dir, pd.concat(frames, ignore_index=True), summary)
     _log(cfg, summary, out_dir)
     return summary

@@ -27,12 +27,12 @@ from generalist_control.reports.figures import (
 from generalist_control.reports.results_sections import (
     FIGURES,
     MAX_ROWS,
-    SECTIONS,
     Recipe,
     fmt,
     number,
     table,
 )
+from generalist_control.reports.routes_section import SECTIONS
 
 __all__ = [
     "FIGURES",

@@ -56,7 +56,7 @@ class DAggerCallback(L.Callback):
         runtime = PolicyRuntime(policy, dm.meta())
         with torch.inference_mode():
             rollouts = self.sampler.run(self.done, runtime, beta)
-            bounds = self.labeller.bounds(dm.train_set, self.sampler.plants)
+            bounds = self.labeller.bounds(dm.train_set, rollouts.plants)
             windows, counts = self.labeller.label(rollouts, bounds)
         policy.train(was_training)
         dm.train_set.append(windows)

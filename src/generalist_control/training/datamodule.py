@@ -21,6 +21,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from generalist_control.common.schema import require_int
 from generalist_control.data.demos import MissingDataError, load_demos
 from generalist_control.data.windows import Windows
+from generalist_control.training.family_set import FamilySet
 from generalist_control.training.settings import LoaderSettings
 
 __all__ = [
@@ -121,6 +122,9 @@ class DemoDataModule(L.LightningDataModule):
         plant has the same split whatever else is kept.
     channels : sequence of str
         The window's extra channels (``model.channels``: ``integral``, ``previous_control``).
+    families : FamilySet, optional
+        Plant families whose demonstrations join the dataset's (``train_families``); list
+        their plants in ``plants`` too.
 
     Attributes
     ----------
@@ -140,8 +144,10 @@ class DemoDataModule(L.LightningDataModule):
         seed: int = 0,
         plants: Sequence[str] | None = None,
         channels: Sequence[str] = (),
+        families: FamilySet | None = None,
     ) -> None:
         super().__init__()
+        self.families = families
         self.data_dir = Path(data_dir)
         self.integral = "integral" in channels
         self.controls = "previous_control" in channels
@@ -169,6 +175,8 @@ class DemoDataModule(L.LightningDataModule):
         if self.train_set is not None:
             return
         demos, self.manifest = load_demos(self.data_dir)
+        if self.families is not None:  # their plants after the catalogue's (train_families)
+            demos, self.manifest = self.families.joined(demos, self.manifest)
         kept_traj = self._kept(demos.plant)
         windows = demos.windows(self.history, self.horizon, self.integral, self.controls)
         is_val = split_by_trajectory(demos.plant, self.val_fraction, self.seed)[windows.traj]

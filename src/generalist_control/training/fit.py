@@ -8,6 +8,7 @@ registered model version (docs/training.md, "Outputs, MLflow, DVC").
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import signal
 import warnings
@@ -25,6 +26,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.secrets import redact
 from generalist_control.deploy.integral_facts import integral_facts
+from generalist_control.model.bank import fit_model_rows
 from generalist_control.model.network import count_parameters
 from generalist_control.model.policy import (
     POLICY_FILE,
@@ -33,11 +35,14 @@ from generalist_control.model.policy import (
     policy_sha256,
     save_policy,
 )
+from generalist_control.plants.catalog import tag_count
+from generalist_control.plants.definition import Plant
 from generalist_control.tracking import training_run
 from generalist_control.tracking.policy_runs import POLICY_HASH_TAG
 from generalist_control.training import outputs
 from generalist_control.training.dagger import DAggerCallback
 from generalist_control.training.datamodule import DemoDataModule, WindowTensors
+from generalist_control.training.family_set import FamilySet, read_family_training, with_rows
 from generalist_control.training.lit_module import ImitationModule
 from generalist_control.training.settings import TrainingSettings
 from generalist_control.training.setup import (
@@ -56,20 +61,25 @@ METRICS_FILE = "metrics.json"
 
 
 def _data(
-    settings: TrainingSettings, channels: tuple[str, ...]
+    settings: TrainingSettings, channels: tuple[str, ...], families: FamilySet | None
 ) -> tuple[DemoDataModule, dict[str, Any]]:
-    """The loaded, split data (the set's plants only) and the policy's meta."""
+    """The loaded, split data (the set's plants and the families') and the policy's meta."""
     dm = DemoDataModule(
         settings.data_dir,
         settings.history,
         settings.horizon,
         settings.loader,
         seed=settings.seed,
-        plants=settings.trained_names,
+        plants=settings.trained_names + (families.names if families else []),
         channels=channels,
+        families=families,
     )
     dm.setup("fit")
-    return dm, {**dm.meta(), **integral_facts(list(dm.tags))}
+    facts = integral_facts(list(dm.tags))
+    for key, more in (families.facts() if families else {}).items():
+        facts[key] = {**facts[key], **more}
+    trained = {"families": families.record()} if families else {}
+    return dm, {**dm.meta(), **facts, **trained}
 
 
 def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
@@ -82,7 +92,10 @@ def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
 def _module(
     settings: TrainingSettings, dm: DemoDataModule, meta: dict[str, Any]
 ) -> ImitationModule:
-    """The Lightning module, its normaliser fitted on the training windows."""
+    """The Lightning module, its normaliser fitted on the training windows.
+
+    Rows a recipe computes from its plants' models (the card bank) replace the fitted ones.
+    """
     lit = ImitationModule(
         model=settings.model,
         optimizer=settings.optimizer,
@@ -90,7 +103,14 @@ def _module(
         meta=meta,
     )
     lit.policy.normaliser.fit(**_tensors(dm.train_set))
+    fit_model_rows(lit.policy, _trained(settings, dm))
     return lit
+
+
+def _trained(settings: TrainingSettings, dm: DemoDataModule) -> list[Plant]:
+    """The plants the data holds: the set's, then the families'."""
+    family = dm.families.plants if dm.families else []
+    return [p for p in settings.plants if p.name in dm.tags] + family
 
 
 def _callbacks(
@@ -101,9 +121,12 @@ def _callbacks(
     ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
     plants = [p for p in settings.plants if p.name in dm.tags]
     channels = lit.policy.channels
+    family = dm.families.plants if dm.families else []
+    spec = dm.families.spec if dm.families else None
+    turn, checked = (spec.dagger_plants, spec.closed_loop_plants) if spec else (0, 0)
     own = [
-        dagger_callback(settings, dagger_plants(plants, dm.manifest), channels),
-        closed_loop_validation(settings, plants),
+        dagger_callback(settings, dagger_plants(plants, dm.manifest), channels, family, turn),
+        closed_loop_validation(settings, plants + family[:checked]),
     ]
     return [*callbacks, *(c for c in own if c is not None)], ckpt_cb
 
@@ -220,22 +243,25 @@ def _publish(
 
 def _prepare(
     settings: TrainingSettings,
-) -> tuple[DemoDataModule, dict[str, Any], ImitationModule]:
+) -> tuple[TrainingSettings, DemoDataModule, dict[str, Any], ImitationModule]:
     """Threads and seed set, data loaded, module built, resume checked; nothing logged yet."""
     outputs.scrub_hydra_files()
     torch.set_num_threads(settings.threads)
     L.seed_everything(settings.seed, workers=True)
     ckpt_path = settings.ckpt_path
+    spec = read_family_training(settings.resolved["train_families"])  # null: none
+    families = FamilySet.load(spec.dirs, tag_count(), spec) if spec else None
+    settings = dataclasses.replace(settings, model=with_rows(settings.model, families))
     with torch.random.fork_rng():  # the model config checked before the data is read
         channels = Policy(settings.model).channels
-    dm, meta = _data(settings, channels)
+    dm, meta = _data(settings, channels, families)
     if ckpt_path:
         check_resume(ckpt_path, meta)
     lit = _module(settings, dm, meta)
     if ckpt_path:
         _check_fits(settings, ckpt_path, lit)
         check_resume(ckpt_path, meta, settings.max_epochs)
-    return dm, meta, lit
+    return settings, dm, meta, lit
 
 
 def train(settings: TrainingSettings) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -259,7 +285,7 @@ def train(settings: TrainingSettings) -> tuple[dict[str, Any], dict[str, Any]]:
     SystemExit
         143 (SIGTERM) or 130 (Ctrl-C) when a signal stops the fit: the run ends KILLED.
     """
-    dm, meta, lit = _prepare(settings)
+    settings, dm, meta, lit = _prepare(settings)
     ckpt_path = settings.ckpt_path
     n_params = count_parameters(lit.policy)
     outputs.check_models_dir(settings.models_dir)

@@ -111,7 +111,7 @@ class ImitationModule(L.LightningModule):
         """Accumulate squared errors per system tag."""
         err, out = self._errors(batch)
         err = err.to(torch.float64)
-        if out.plant is not None:
+        if out.plant is not None and out.plant.logits is not None:  # an identity head's
             self._val_hits_seen = True
             self._val_hits += (out.plant.logits.argmax(1) == batch["tag"]).sum()
         self._val_sse.index_add_(0, batch["tag"], err.sum(1))

@@ -178,6 +178,10 @@ class RolloutSampler:
         Seeds the round's draws (round ``i``: amplitudes from ``seed + i``).
     variant_range, variant_tries : float, int
         Parameter range and draws per variant of the fresh variants (``data.variants``).
+    rotating : sequence of Plant
+        Plants rolled out ``per_round`` at a time, in turn, after ``plants`` (a plant
+        family's, ``train_families``).
+    per_round : int
     """
 
     def __init__(
@@ -189,8 +193,11 @@ class RolloutSampler:
         seed: int,
         variant_range: float,
         variant_tries: int,
+        rotating: Sequence[Plant] = (),
+        per_round: int = 0,
     ) -> None:
         self.plants, self.settings = list(plants), settings
+        self.rotating, self.per_round = list(rotating), min(int(per_round), len(rotating))
         self.limit, self.seed = float(limit), int(seed)
         self.families = {k: dict(v) for k, v in families.items()} if settings.families else {}
         self.variant_range, self.variant_tries = float(variant_range), int(variant_tries)
@@ -209,7 +216,12 @@ class RolloutSampler:
         return list(groups.values())
 
     def round_plants(self, round_index: int) -> list[Plant]:
-        """The round's plant versions: the data's (all, or in turn), then fresh variants."""
+        """The round's plant versions: the data's (all, or in turn), fresh variants, rotating."""
+        k = self.per_round
+        turn = [self.rotating[(round_index * k + j) % len(self.rotating)] for j in range(k)]
+        return self._versions_of_round(round_index) + turn
+
+    def _versions_of_round(self, round_index: int) -> list[Plant]:
         variants = self.settings.variants
         if variants is None or variants.data is None:
             out = list(self.plants)

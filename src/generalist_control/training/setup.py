@@ -43,9 +43,16 @@ def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
 
 
 def dagger_callback(
-    settings: TrainingSettings, plants: list[Plant], channels: tuple[str, ...]
+    settings: TrainingSettings,
+    plants: list[Plant],
+    channels: tuple[str, ...],
+    rotating: Sequence[Plant] = (),
+    per_round: int = 0,
 ) -> L.Callback | None:
-    """The DAgger callback of ``settings.dagger`` on ``plants`` (None when it is off)."""
+    """The DAgger callback of ``settings.dagger`` on ``plants`` (None when it is off).
+
+    ``rotating`` plants (a family's) join each round, ``per_round`` at a time, in turn.
+    """
     spec = settings.dagger
     if spec is None:
         return None
@@ -58,6 +65,8 @@ def dagger_callback(
         seed=settings.seed,
         variant_range=data.variant_range,
         variant_tries=data.variant_tries,
+        rotating=rotating,
+        per_round=per_round,
     )
     labeller = ExpertLabeller(spec.labeller, settings.history, settings.horizon, channels)
     return DAggerCallback(sampler, labeller, spec)

@@ -1,0 +1,251 @@
+"""The model card route: the plant reaches the network as a descriptor of its model.
+
+From a plant's card (A, B, C, dt, Q, R) two things are computed by stated rules, never
+fitted, so that a plant never trained on is served with no training: its frame (the state as
+the output and its scaled derivatives, units from the nominal LQI loop's unit step) and its
+descriptor in that frame. The LQI gain never enters (that is the hybrid). Why each rule:
+``docs/notes/family-policy.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from generalist_control.common.schema import require_int, require_nonnegative
+from generalist_control.model.plant import PlantPart
+from generalist_control.plants.definition import MAX_ORDER, Plant
+from generalist_control.simulation.lqi import design_lqi, sampled_closed_loop
+from generalist_control.simulation.simulate import discretise
+
+__all__ = [
+    "CARD_FEATURES",
+    "FREQUENCIES",
+    "STEP_SAMPLES",
+    "CardFrame",
+    "CardPlant",
+    "card_features",
+    "card_frame",
+]
+
+#: Samples at which the descriptor reads the open-loop unit-step response.
+STEP_SAMPLES = (1, 2, 4, 8, 16, 32, 64, 128)
+#: Frequencies (times the frame's ``w``) at which it reads the frequency response.
+FREQUENCIES = (0.1, 0.3, 1.0, 3.0, 10.0)
+
+_W = MAX_ORDER + 1  # the augmented state [x; z], the integral last
+#: Size of a descriptor (:func:`card_features`).
+CARD_FEATURES = (
+    MAX_ORDER * MAX_ORDER + 2 * MAX_ORDER + len(STEP_SAMPLES) + 3 * len(FREQUENCIES)
+    + _W + _W * (_W - 1) // 2 + MAX_ORDER
+)  # fmt: skip
+
+#: Weights of ``Q / R`` (frame units) below this count as zero in the log-diagonal.
+WEIGHT_FLOOR = 1e-8
+#: RMS below this (a signal the step leaves at rest) gives the scale 1, as the normaliser does.
+_TINY = 1e-12
+
+
+class CardError(ValueError):
+    """A card the route cannot serve (unobservable output, unfit for LQI); says why."""
+
+
+@dataclass(frozen=True)
+class CardFrame:
+    """A plant's normalised realisation (:func:`card_frame`).
+
+    Attributes
+    ----------
+    map : ndarray, shape (n, n)
+        ``x -> q / s_q``: the state in the frame.
+    state, integral, control : ndarray (n,), float, float
+        RMS of ``x`` (its own coordinates: the runtime's input range), ``z`` and ``u`` over
+        the nominal loop's unit step.
+    omega : float
+        The frame's time scale ``w`` (rad/s).
+    reference : float
+        The reference's scale (1: a unit step).
+    """
+
+    map: np.ndarray
+    state: np.ndarray
+    integral: float
+    control: float
+    omega: float
+    reference: float = 1.0
+
+
+def _rms(v: np.ndarray) -> np.ndarray:
+    rms = np.sqrt(np.mean(np.square(v), axis=0))
+    return np.where(rms > _TINY, rms, 1.0)
+
+
+def _observability(plant: Plant, omega: float) -> np.ndarray:
+    rows = [plant.C[0]]
+    for _ in range(plant.order - 1):
+        rows.append(rows[-1] @ plant.A / omega)
+    T = np.array(rows)
+    if np.linalg.cond(T) > 1e12:
+        raise CardError(
+            f"plant '{plant.name}': its states are not observable from its output (the model "
+            "is not minimal): give a minimal realisation (A, B, C) of the plant"
+        )
+    return T
+
+
+def card_frame(plant: Plant, duration: float) -> CardFrame:
+    """The plant's normalised realisation and scales (module docstring).
+
+    The nominal loop is the expert's, sampled at ``plant.dt``:
+    ``[x; z]_(k+1) = M [x; z]_k + [0; dt r]``
+    (:func:`~generalist_control.simulation.lqi.sampled_closed_loop`), ``u_k = -K [x; z]_k``,
+    ``r = 1``, samples ``0 .. round(duration / dt) - 1``.
+
+    Raises
+    ------
+    CardError
+        If the plant is unfit for LQI or its output does not observe every state.
+    """
+    try:
+        gains = design_lqi(plant)
+    except ValueError as exc:
+        raise CardError(str(exc)) from None
+    omega = float(np.exp(np.mean(np.log(np.abs(gains.poles)))))
+    T = _observability(plant, omega)
+    M = sampled_closed_loop(plant, gains)
+    n, steps = plant.order, max(1, int(round(float(duration) / plant.dt)))
+    drive = np.zeros(n + 1)
+    drive[n] = plant.dt
+    s, run = np.zeros(n + 1), np.empty((steps, n + 1))
+    for k in range(steps):
+        run[k] = s
+        s = M @ s + drive
+    rms = _rms(np.hstack([run, run[:, :n] @ T.T, -run @ gains.K.T]))
+    sq = rms[n + 1 : 2 * n + 1]
+    return CardFrame(
+        map=T / sq[:, None], state=rms[:n], integral=float(rms[n]),
+        control=float(rms[-1]), omega=omega,
+    )  # fmt: skip
+
+
+def _step_response(Ad: np.ndarray, Bd: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """The discrete model's unit-step response at :data:`STEP_SAMPLES` (from rest)."""
+    x, out = np.zeros(Ad.shape[0]), []
+    for k in range(1, max(STEP_SAMPLES) + 1):
+        x = Ad @ x + Bd[:, 0]
+        if k in STEP_SAMPLES:
+            out.append(float(C[0] @ x))
+    return np.array(out)
+
+
+def _frequency_response(A: np.ndarray, B: np.ndarray, C: np.ndarray, omega: float) -> np.ndarray:
+    """``log10 |G|``, ``cos`` and ``sin`` of its phase at ``omega`` times :data:`FREQUENCIES`."""
+    out = []
+    for ratio in FREQUENCIES:
+        s = 1j * omega * ratio
+        g = complex(C[0] @ np.linalg.solve(s * np.eye(A.shape[0]) - A, B[:, 0]))
+        out += [np.log10(abs(g) + 1e-12), np.cos(np.angle(g)), np.sin(np.angle(g))]
+    return np.array(out)
+
+
+def _weights(plant: Plant, frame: CardFrame) -> np.ndarray:
+    """``log10`` of the diagonal of ``Q / R`` in the frame, then its correlations."""
+    n = plant.order
+    back = np.zeros((n + 1, n + 1))  # frame's [q; z] -> the plant's [x; z]
+    back[:n, :n] = np.linalg.inv(frame.map)
+    back[n, n] = frame.integral
+    slots = [*range(n), MAX_ORDER]
+    Q = np.zeros((_W, _W))
+    Q[np.ix_(slots, slots)] = back.T @ plant.Q @ back / (float(plant.R[0, 0]) * frame.control**2)
+    diag = np.diag(Q).copy()
+    logd = np.zeros(_W)
+    logd[slots] = np.log10(np.maximum(diag[slots], WEIGHT_FLOOR))
+    norm = np.sqrt(np.outer(np.maximum(diag, 0.0), np.maximum(diag, 0.0)))
+    corr = np.divide(Q, norm, out=np.zeros_like(Q), where=norm > 0)
+    return np.concatenate([logd, corr[np.triu_indices(_W, 1)]])
+
+
+def card_features(plant: Plant, frame: CardFrame) -> np.ndarray:
+    """The plant's descriptor (:data:`CARD_FEATURES`,) in ``frame`` (module docstring).
+
+    In order: ``asinh`` of the rates ``(Ad - I) / dt`` (MAX_ORDER x MAX_ORDER, row-major),
+    of the input column ``Bd / dt`` and of the output row, all zero-padded; ``asinh`` of the
+    open-loop step response at :data:`STEP_SAMPLES`; ``log10 |G|``, ``cos`` and ``sin`` of
+    the phase at ``w`` times :data:`FREQUENCIES`; ``log10`` of the diagonal of ``Q / R`` (the
+    integral's last, floored at :data:`WEIGHT_FLOOR`, zero where padded) and the
+    correlations above the diagonal; one per real state (the order mask).
+    """
+    n, dt = plant.order, plant.dt
+    T, Ti = frame.map, np.linalg.inv(frame.map)
+    A, B, C = T @ plant.A @ Ti, T @ plant.B / frame.control, plant.C @ Ti / frame.reference
+    Ad, Bd = discretise(A, B, dt)
+    rates = np.zeros((MAX_ORDER, MAX_ORDER))
+    rates[:n, :n] = (Ad - np.eye(n)) / dt
+    b, c = np.zeros(MAX_ORDER), np.zeros(MAX_ORDER)
+    b[:n], c[:n] = Bd[:, 0] / dt, C[0]
+    mask = (np.arange(MAX_ORDER) < n).astype(float)
+    return np.concatenate([
+        np.arcsinh(rates.ravel()), np.arcsinh(b), np.arcsinh(c),
+        np.arcsinh(_step_response(Ad, Bd, C)), _frequency_response(A, B, C, frame.omega),
+        _weights(plant, frame), mask,
+    ])  # fmt: skip
+
+
+class CardPlant(PlantPart):
+    """The plant's code from its model card: a bank of descriptors, encoded by an MLP.
+
+    Parameters
+    ----------
+    dim : int
+        Size of the code (the network's ``hidden``); given by the network.
+    n_tags : int
+        Rows of the bank (the training plants' tags; a plant added at run time gets a row).
+    hidden : int
+        Width of the encoder's two hidden layers.
+    duration : float
+        Seconds of the unit step the frame's scales are taken over (:func:`card_frame`).
+
+    Attributes
+    ----------
+    cards : Tensor, shape (n_tags, CARD_FEATURES)
+        The descriptors (:func:`card_features`), buffers: in every checkpoint and export.
+    card_mean, card_std : Tensor, shape (CARD_FEATURES,)
+        The training rows' mean and spread (set with them): the encoder reads
+        ``(card - mean) / std``.
+    """
+
+    #: The normaliser maps each plant's state into its card's frame (``Normaliser.state_map``).
+    maps_states = True
+
+    cards: Tensor
+    card_mean: Tensor
+    card_std: Tensor
+
+    def __init__(self, dim: int, n_tags: int, hidden: int = 128, duration: float = 10.0) -> None:
+        super().__init__()
+        self.n_tags = require_int("model.plant.n_tags", n_tags)
+        self.duration = require_nonnegative("model.plant.duration", duration)
+        if self.duration == 0:
+            raise ValueError("model.plant.duration must be > 0 (seconds of the scales' step)")
+        width = require_int("model.plant.hidden", hidden)
+        self.register_buffer("cards", torch.zeros(self.n_tags, CARD_FEATURES))
+        self.register_buffer("card_mean", torch.zeros(CARD_FEATURES))
+        self.register_buffer("card_std", torch.ones(CARD_FEATURES))
+        self.encoder = nn.Sequential(
+            nn.Linear(CARD_FEATURES, width), nn.ReLU(),
+            nn.Linear(width, width), nn.ReLU(), nn.Linear(width, dim),
+        )  # fmt: skip
+
+    def forward(
+        self, state: Tensor | None, mask: Tensor | None, ref: Tensor | None, tag: Tensor
+    ) -> tuple[Tensor, None]:
+        """The code (B, dim) of each row's card; nothing read from the window."""
+        return self.encoder((self.cards[tag] - self.card_mean) / self.card_std), None
+
+    def card(self, plant: Plant) -> tuple[np.ndarray, CardFrame]:
+        """``plant``'s descriptor and frame by this part's rule."""
+        frame = card_frame(plant, self.duration)
+        return card_features(plant, frame), frame

@@ -1,0 +1,174 @@
+"""Training over plant families beside the catalogue (``train_families``, issue 50).
+
+A family's plants (tags ``0 .. count - 1`` in its own data) take the tags after the
+catalogue's: the policy's rows are the catalogue's, then each family's. Their plants are
+rebuilt from the families' manifests, bit for bit as drawn.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from generalist_control.common.sections import SettingError, read_section
+from generalist_control.data.demos import DemoSet, load_demos, read_manifest
+from generalist_control.plants.definition import Plant
+from generalist_control.plants.families import plant_from_record
+from generalist_control.simulation.lqi import design_lqi
+
+__all__ = ["FamilySet", "FamilyTraining", "join_demos", "read_family_training", "with_rows"]
+
+
+@dataclass(frozen=True)
+class FamilyTraining:
+    """``train_families``: the families trained on and how much of them each check sees."""
+
+    dirs: tuple[str, ...]  #: the families' data folders (``generate_families``' data_dir)
+    dagger_plants: int  #: family plants rolled out per DAgger round, in turn
+    closed_loop_plants: int  #: the first family plants in the closed-loop validation
+
+    def __post_init__(self) -> None:
+        if not self.dirs:
+            raise SettingError("dirs", "must name at least one family's data folder")
+        for name in ("dagger_plants", "closed_loop_plants"):
+            if getattr(self, name) < 0:
+                raise SettingError(name, f"must be >= 0, got {getattr(self, name)}")
+
+
+def read_family_training(node: Any) -> FamilyTraining | None:
+    """``train_families`` (a mapping, or null: the catalogue alone) read and checked."""
+    return None if node is None else read_section(FamilyTraining, node, "train_families")
+
+
+def join_demos(first: DemoSet, second: DemoSet, offset: int) -> DemoSet:
+    """``first``'s trajectories, then ``second``'s with their tags raised by ``offset``.
+
+    Raises
+    ------
+    ValueError
+        If the two sets differ in sample time or trajectory length, or carry variants.
+    """
+    if first.dt != second.dt or first.r.shape[1] != second.r.shape[1]:
+        raise ValueError(
+            f"a family's demonstrations must match the catalogue's sample time and duration: "
+            f"dt {second.dt} against {first.dt}, {second.r.shape[1]} samples against "
+            f"{first.r.shape[1]} (generate both with the same data.duration)"
+        )
+    if first.variant is not None or second.variant is not None:
+        raise ValueError("train_families does not take variant data (data.variants)")
+    cat = lambda a, b: np.concatenate([a, b])  # noqa: E731
+    return DemoSet(
+        x=cat(first.x, second.x), r=cat(first.r, second.r), u=cat(first.u, second.u),
+        y=cat(first.y, second.y), tag=cat(first.tag, second.tag + offset),
+        order=cat(first.order, second.order), plant=cat(first.plant, second.plant),
+        amplitude=cat(first.amplitude, second.amplitude), dt=first.dt,
+        family=cat(first.family, second.family),
+    )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FamilySet:
+    """The families trained on, their plants tagged after the catalogue's.
+
+    Attributes
+    ----------
+    dirs : tuple of Path
+        The families' data folders, in the order their tags follow each other.
+    plants : list of Plant
+        Every family plant, tag ``offset + i``.
+    offset : int
+        The first family tag (the catalogue's tag count).
+    spec : FamilyTraining, optional
+        How much of the families DAgger and the closed-loop validation see.
+    """
+
+    dirs: tuple[Path, ...]
+    plants: list[Plant]
+    offset: int
+    spec: FamilyTraining | None = None
+
+    @classmethod
+    def load(
+        cls, dirs: Sequence[str | Path], offset: int, spec: FamilyTraining | None = None
+    ) -> FamilySet:
+        """The families at ``dirs`` (each checked against its manifest), tagged from ``offset``.
+
+        Raises
+        ------
+        generalist_control.data.demos.MissingDataError
+            A folder holds no dataset (with the command that makes it).
+        ValueError
+            A dataset that is not a family's (its manifest has no ``plant_family``).
+        """
+        plants: list[Plant] = []
+        for d in (Path(p) for p in dirs):
+            _, manifest = load_demos(d, verify=False)
+            block = manifest.get("plant_family")
+            if not isinstance(block, dict):
+                raise ValueError(
+                    f"{d} holds demonstrations but not a plant family's (its manifest has no "
+                    "plant_family block); make one with python -m "
+                    "generalist_control.generate_families"
+                )
+            start = offset + len(plants)
+            for name in sorted(block["plants"], key=lambda n: block["plants"][n]["tag"]):
+                p = plant_from_record(block, name, float(manifest["dt"]))
+                plants.append(dataclasses.replace(p, tag=start + p.tag))
+        return cls(tuple(Path(p) for p in dirs), plants, int(offset), spec)
+
+    @property
+    def rows(self) -> int:
+        """The policy's rows with the families: the catalogue's, then one per family plant."""
+        return self.offset + len(self.plants)
+
+    @property
+    def names(self) -> list[str]:
+        """The family plants' names."""
+        return [p.name for p in self.plants]
+
+    def joined(self, demos: DemoSet, manifest: dict[str, Any]) -> tuple[DemoSet, dict[str, Any]]:
+        """The catalogue's demonstrations with every family's, and the joint manifest.
+
+        The joint ``content_hash`` is the SHA-256 of the catalogue's and each family's.
+        """
+        hashes = [str(manifest.get("content_hash", ""))]
+        start = self.offset
+        for d in self.dirs:
+            fam, fam_manifest = load_demos(d)
+            demos = join_demos(demos, fam, start)
+            start += len(fam_manifest["plant_family"]["plants"])
+            hashes.append(str(fam_manifest["content_hash"]))
+        joint = "sha256:" + hashlib.sha256("\0".join(hashes).encode()).hexdigest()
+        return demos, {**manifest, "content_hash": joint, "families": [str(d) for d in self.dirs]}
+
+    def record(self) -> list[dict[str, Any]]:
+        """Per family: its folder, name, seed and plant count (the policy's meta)."""
+        out = []
+        for d in self.dirs:
+            block = read_manifest(d)["plant_family"]
+            out.append({"dir": str(d), "name": block["name"], "seed": int(block["seed"]),
+                        "plants": len(block["plants"])})  # fmt: skip
+        return out
+
+    def facts(self) -> dict[str, dict[str, Any]]:
+        """The meta's ``outputs`` and ``integral_directions`` of the family plants."""
+        return {
+            "outputs": {p.name: [float(c) for c in p.C[0]] for p in self.plants},
+            "integral_directions": {
+                p.name: float(np.sign(-design_lqi(p).Ki)) for p in self.plants
+            },
+        }
+
+
+def with_rows(model: dict[str, Any], families: FamilySet | None) -> dict[str, Any]:
+    """The network's config with a plant part of at least one row per training plant."""
+    plant = model.get("plant")
+    if families is None or not isinstance(plant, dict) or "n_tags" not in plant:
+        return model
+    return {**model, "plant": {**plant, "n_tags": max(int(plant["n_tags"]), families.rows)}}

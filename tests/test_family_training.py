@@ -1,0 +1,187 @@
+"""Training over a plant family beside the catalogue, and a plant never seen met zero-shot."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+import pytest
+import torch
+
+from generalist_control.common.configs import as_dict
+from generalist_control.common.paths import conf_dir
+from generalist_control.data.demos import load_demos
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.evaluation.runner import evaluate
+from generalist_control.generate_families import run as generate_family
+from generalist_control.model.card import card_features, card_frame
+from generalist_control.plants.catalog import load_plant, tag_count
+from generalist_control.reports.held_out_routes import judge_routes, zero_shot
+from generalist_control.reports.routes_section import routes_lines
+from generalist_control.training.family_set import (
+    FamilySet,
+    join_demos,
+    read_family_training,
+    with_rows,
+)
+from helpers import compose_cfg, tiny_train_overrides, train
+
+#: Four drawn plants, 2 s trajectories (the tiny catalogue data's), checked over 10 s.
+TINY_FAMILY = ("families.count=4", "data.duration=2.0", "families.checks.duration=10.0")
+NEVER_SEEN = "magnetic_levitation"
+
+
+@pytest.fixture(scope="module")
+def family_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("families") / "tiny"
+    generate_family(compose_cfg(*TINY_FAMILY, f"families.data_dir={out}",
+                                config="generate_families"))  # fmt: skip
+    return out
+
+
+def test_the_family_joins_the_catalogue_with_tags_after_it(tiny_data_dir, family_dir):
+    families = FamilySet.load([family_dir], tag_count())
+    assert [p.tag for p in families.plants] == [25, 26, 27, 28]
+    catalogue, manifest = load_demos(tiny_data_dir)
+    joined, joint = families.joined(catalogue, manifest)
+    fam, fam_manifest = load_demos(family_dir)
+    assert len(joined.r) == len(catalogue.r) + len(fam.r)
+    np.testing.assert_array_equal(joined.tag[len(catalogue.r) :], fam.tag + 25)
+    assert joint["content_hash"] not in (manifest["content_hash"], fam_manifest["content_hash"])
+    assert families.record() == [{"dir": str(family_dir), "name": "default", "seed": 1,
+                                  "plants": 4}]  # fmt: skip
+
+
+@pytest.mark.parametrize("experiment", ["family_card", "family_context"])
+def test_train_over_a_family_and_meet_a_plant_never_seen(
+    experiment, tiny_data_dir, family_dir, tmp_path, mlflow_uri
+):
+    """Tiny: one short epoch on two catalogue plants and four drawn ones; then zero-shot."""
+    over = tiny_train_overrides(tiny_data_dir, tmp_path, mlflow_uri, f"experiment={experiment}",
+                                f"train_families.dirs=[{family_dir}]", "trainer.max_epochs=2",
+                                "+trainer.limit_train_batches=5", "dagger.start_epoch=1",
+                                "dagger.every=1", "dagger.rounds=1", "dagger.sampler.rollouts=1",
+                                "train_families.dagger_plants=2",
+                                "train_families.closed_loop_plants=2", "logger.log_model=false",
+                                "closed_loop.systems=[]")  # fmt: skip
+    _, objects = train(compose_cfg(*over))
+    policy, meta = objects["policy"], objects["datamodule"].meta()
+    families = objects["datamodule"].families
+    assert policy.net.n_tags == 29 and set(families.names) <= set(meta["tags"])
+    if experiment == "family_card":  # the bank holds each training plant's card
+        p = families.plants[0]
+        card = card_features(p, card_frame(p, 10.0))
+        np.testing.assert_allclose(policy.net.plant.cards[p.tag].numpy(), card, rtol=1e-6)
+    route = "card" if experiment == "family_card" else "in_context"
+    cfg = compose_cfg("data.duration=2.0", "data.families=null", config="unseen")
+    plant = load_plant(NEVER_SEEN)
+    grown, grown_meta = zero_shot(route, objects["policy_path"], plant, as_dict(cfg.data))
+    assert grown_meta["tags"][NEVER_SEEN] == grown.net.n_tags - 1 == 29
+    scenarios = {"step": {"kind": "step", "amplitude": 1.0, "duration": 3.0}}
+    df, _ = evaluate(PolicyRuntime(grown, grown_meta), [plant], scenarios, progress=False)
+    assert set(df.controller) >= {"GC", "LQI"} and set(df.system) == {NEVER_SEEN}
+
+
+def test_a_card_policy_takes_the_plant_by_its_yaml_path_in_the_runtime(
+    tiny_data_dir, family_dir, tmp_path, mlflow_uri
+):
+    over = tiny_train_overrides(tiny_data_dir, tmp_path, mlflow_uri, "experiment=family_card",
+                                f"train_families.dirs=[{family_dir}]", "dagger=null",
+                                "+trainer.limit_train_batches=3", "closed_loop_val=null",
+                                "monitor=val/loss", "logger.log_model=false",
+                                "closed_loop.systems=[]")  # fmt: skip
+    _, objects = train(compose_cfg(*over))
+    rt = PolicyRuntime.load(objects["policy_path"])
+    rt.reset(str(conf_dir() / "plants" / f"{NEVER_SEEN}.yaml"))
+    assert np.isfinite(rt.step(np.zeros(3), 1.0))
+
+
+def _figures(ise, rmse=1.0, diverged=0):
+    return {"ISE_ratio": ise, "RMSE_ratio_worst": rmse, "diverged_runs": diverged}
+
+
+def test_the_routes_bars_and_their_section():
+    entries = {
+        n: {"policies": {"card": _figures(v), "in_context": _figures(w)}}
+        for n, v, w in (("a", 1.05, 1.2), ("b", 1.2, 1.3), ("c", 1.0, 1.1))
+    }
+    worst = [{"plant": "p7", "ISE_ratio": 2.0, "plant_is": "drawn: order 4"}]
+    draw = {"plants": 100, "diverged_runs": 0, "diverged_plants": 0, "family": "default",
+            "seed": 1001, "ISE_ratio": {"median": 1.01, "p95": 1.3, "max": float("inf")},
+            "worst": worst}  # fmt: skip
+    verdict = judge_routes(entries, draw, {})
+    bars = verdict["bars"]
+    assert bars["card_most_within"] and bars["card_all_within"] and bars["draw_median"]
+    assert not bars["draw_p95"] and not verdict["pass"]  # p95 1.3 > 1.25
+    assert verdict["card_over"] == ["b"] and verdict["context_over"] == ["b"]
+    over = judge_routes(
+        {**entries, "d": {"policies": {"card": _figures(None), "in_context": _figures(1.0)}}},
+        None,
+        {},
+    )
+    assert not over["bars"]["card_all_within"]  # a missing ratio (every run diverged) fails
+    page = "\n".join(routes_lines({"held_out": entries, "routes": verdict, "family_draw": draw},
+                                  "reports/unseen/summary.json"))  # fmt: skip
+    assert "| `b` | 1.2 / 1 / 0 | 1.3 / 1 / 0 |" in page
+    assert "median 1.01, 95th percentile 1.3, worst inf" in page and "`p7`" in page
+    assert "`draw_p95` **fail**" in page
+    assert routes_lines({"held_out": entries}, "x") == []
+
+
+def test_bad_family_settings_and_data_are_refused(tiny_data_dir, family_dir, tmp_path):
+    with pytest.raises(ValueError, match="train_families.dirs must name at least one"):
+        read_family_training({"dirs": [], "dagger_plants": 1, "closed_loop_plants": 1})
+    with pytest.raises(ValueError, match="train_families.dagger_plants must be >= 0"):
+        read_family_training({"dirs": ["x"], "dagger_plants": -1, "closed_loop_plants": 1})
+    assert read_family_training(None) is None
+    with pytest.raises(ValueError, match="not a plant family's"):
+        FamilySet.load([tiny_data_dir], 25)  # the catalogue's data: no plant_family block
+    catalogue, _ = load_demos(tiny_data_dir)
+    longer = dataclasses.replace(catalogue, r=np.hstack([catalogue.r, catalogue.r]))
+    with pytest.raises(ValueError, match="match the catalogue's sample time and duration"):
+        join_demos(catalogue, longer, 25)
+    model = {"_target_": "generalist_control.model.card.CardPlant", "n_tags": 25}
+    assert with_rows(model, None) is model
+    assert with_rows({"plant": model}, FamilySet.load([family_dir], 25))["plant"]["n_tags"] == 29
+
+
+def test_the_in_context_part_has_no_per_plant_parameter():
+    from generalist_control.model.context import ContextPlant
+    from generalist_control.model.identifier import TransitionModels, TransitionSet
+
+    part = ContextPlant(16, functools.partial(TransitionSet), n_tags=30, card_weight=0.1)
+    assert all(p.shape[0] != 30 for p in part.parameters())
+    with pytest.raises(ValueError, match="identifier.models must be null"):
+        ContextPlant(16, functools.partial(TransitionSet, models=TransitionModels), n_tags=3)
+
+
+def test_the_in_context_normaliser_whitens_each_plant_over_its_windows(monkeypatch):
+    from generalist_control.model import normalise
+
+    torch.manual_seed(0)
+    W, n_tags = 4000, 3
+    mixing = torch.tensor([[1.0, 0, 0], [0.999, 0.01, 0], [0.3, -2.0, 50.0], [0, 0, 0]])
+    x = torch.randn(W, 8, 3) @ mixing.T  # two states nearly equal: a stiff realisation (W, 8, 4)
+    order = torch.tensor([2, 3, 1])
+    tag = torch.randint(0, 2, (W,))  # tag 2 has no windows
+    mask = (torch.arange(4) < order[tag][:, None]).float()[:, None, :].expand(W, 8, 4)
+    state = torch.cat([x * mask, torch.randn(W, 8, 1)], -1)
+    mask = torch.cat([mask, torch.ones(W, 8, 1)], -1)
+    args = (state, mask, torch.randn(W, 8), tag, torch.randn(W, 3))
+    fitted = normalise.Normaliser(n_tags, 5, mapped=True)
+    fitted.fit(*args)
+    for t in (0, 1):
+        sel = tag == t
+        z = fitted.normalise_inputs(state[sel], mask[sel], args[2][sel], tag[sel])[0]
+        z = z[..., :4].reshape(-1, 4).double()
+        n = int(order[t])
+        torch.testing.assert_close((z.T @ z / len(z))[:n, :n], torch.eye(n, dtype=torch.float64),
+                                   atol=1e-4, rtol=0)  # fmt: skip
+        assert torch.all(z[:, n:] == 0)
+    torch.testing.assert_close(fitted.state_map[2], torch.eye(4))
+    monkeypatch.setattr(normalise, "_ONEHOT_LIMIT", 0)  # sums scattered per tag: the same
+    scattered = normalise.Normaliser(n_tags, 5, mapped=True)
+    scattered.fit(*args)
+    for key, value in fitted.state_dict().items():
+        torch.testing.assert_close(scattered.state_dict()[key], value, rtol=1e-12, atol=1e-12)
