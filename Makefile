@@ -34,7 +34,7 @@ PYTEST_WORKERS ?= 2
 test: setup
 	$(VENV)/ruff check src analysis tests benchmarks scripts train.py tune.py adapt.py
 	$(VENV)/mypy
-	$(VENV)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
+	$(VENV)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile --durations=25
 
 ## The fast tests only (no whole-stage runs: those are marked slow), a minute or two.
 test-fast: setup

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -13,6 +14,11 @@ from generalist_control.data.generation import build_manifest, generate_demos
 from generalist_control.plants.catalog import load_plant
 from generalist_control.tracking import mlflow_utils
 from helpers import TINY_DATA
+
+# A shell that starts the suite in the background ignores SIGINT, and the commands the tests
+# start would inherit that: the tests that send them Ctrl-C need Python's default handler.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # One thread: the tiny batches gain nothing from two, and on a shared 2-core machine a second
 # OpenMP thread that waits for a busy core can stall every step by orders of magnitude.

@@ -300,3 +300,28 @@ def test_report_answers_the_paper_with_every_seed_and_its_evaluation(tmp_path, m
     assert "| cstr |" in text.split("## Gate weights")[1]
     runs_csv = pd.read_csv(out / "runs.csv").set_index("label")
     assert runs_csv.loc["d=16", "seed"] == 42 and runs_csv.loc["M=1", "status"] == "ok"
+
+
+def test_an_evaluation_is_matched_to_the_run_that_wrote_its_policy(tmp_path, monkeypatch):
+    """By the folder the run wrote (tag ``policy_dir``), resolved from where the stages run;
+    an evaluation of another folder is no run's, an older summary's run id still counts."""
+    from generalist_control.reports.evaluations import Evaluation, match
+
+    monkeypatch.chdir(tmp_path)
+
+    def ev(name: str, policy: dict) -> Evaluation:
+        return Evaluation(tmp_path / name, {"policy": policy}, None)
+
+    runs = [
+        RunPoint("r32", "", 32, 3, 1, 0.1, policy_dir=str(tmp_path / "models/d32")),
+        RunPoint("r5", "", 32, 5, 1, 0.1, policy_dir=str(tmp_path / "models/m5")),
+    ]
+    found = match(
+        [
+            ev("a", {"source": "models/d32/policy.ckpt"}),
+            ev("b", {"source": "models/other/policy.ckpt"}),
+            ev("c", {"source": "elsewhere/policy.ckpt", "mlflow_run_id": "r5"}),
+        ],
+        runs,
+    )
+    assert {k: v.path.name for k, v in found.items()} == {"r32": "a", "r5": "c"}

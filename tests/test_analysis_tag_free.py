@@ -140,7 +140,7 @@ def test_identity_table_reads_the_head_on_each_plant_s_expert_step():
         expected = p_two_tank if name == "two_tank" else 1.0 / (math.exp(2.0) + 2.0)
         assert group.p_true.to_numpy() == pytest.approx([expected] * 2)
         assert (group.guess == "two_tank").all()
-    with pytest.raises(ValueError, match="reads nothing from the window"):
+    with pytest.raises(ValueError, match="has no identity head"):
         identity_table(Policy(net_config(skip="linear", channels=["integral"])), plants)
 
 

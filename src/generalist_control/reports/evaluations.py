@@ -59,16 +59,17 @@ def load_evaluations(directory: str | Path | None) -> list[Evaluation]:
 def match(evaluations: Sequence[Evaluation], runs: Sequence[RunPoint]) -> dict[str, Evaluation]:
     """Each run's evaluation, by run id (the newest of several).
 
-    An evaluation is a run's when it names the run (``policy.mlflow_run_id``) or, naming
-    none, evaluated the policy the run published (``policy.source`` in ``paths.models_dir``).
+    An evaluation is a run's when it names the run (``policy.mlflow_run_id``, older
+    summaries) or evaluated the policy the run wrote (``policy.source`` in the run's
+    ``policy_dir``, resolved from the working directory, as the stages run).
     """
     out: dict[str, Evaluation] = {}
     for ev in evaluations:  # oldest first: the newest wins
         policy = ev.summary.get("policy") or {}
-        folder = str(Path(str(policy.get("source") or "")).parent)
+        folder = str(Path(str(policy.get("source") or "")).resolve().parent)
         for p in runs:
             if policy.get("mlflow_run_id") == p.run_id or (
-                not policy.get("mlflow_run_id") and folder == p.params.get("paths.models_dir")
+                not policy.get("mlflow_run_id") and folder == p.policy_dir
             ):
                 out[p.run_id] = ev
     for p in runs:

@@ -77,6 +77,8 @@ class RunPoint:
         Every logged param (what :mod:`generalist_control.reports.selection` compares).
     parent_id : str or None
         The sweep's or study's parent run (tag ``mlflow.parentRunId``).
+    policy_dir : str or None
+        The absolute folder the run wrote its policy to (tag ``policy_dir``).
     """
 
     run_id: str
@@ -93,6 +95,7 @@ class RunPoint:
     val_loss: float | None = None
     best_val_loss: float | None = None
     seed: int | None = None
+    policy_dir: str | None = None
 
     @property
     def label(self) -> str:
@@ -136,6 +139,7 @@ def _point(run: Any) -> RunPoint | None:
         val_loss=float(val) if val is not None else None,
         best_val_loss=float(best) if best is not None else None,
         seed=_as_int(params.get("seed")),
+        policy_dir=tags.get("policy_dir"),
     )
 
 
