@@ -201,3 +201,14 @@ def test_the_bar_fails_on_a_divergence_a_missing_ratio_or_a_slow_adaptation():
     slow = judge({**good, "x": _entry(1.0, 1.0, wall=181.0)})
     assert not slow["bars"]["adaptation_wall_s"]["pass"]
     assert judge({**good, "x": _entry(1.0, 1.0, wall=181.0)}, {"wall_s": 200})["pass"]
+
+
+def test_the_stage_reads_its_config_once_into_settings():
+    from generalist_control.unseen import read_unseen
+
+    cfg = compose_cfg("+unseen.bar.ISE_ratio=2.0", "unseen.family_draw=null", config="unseen")
+    settings = read_unseen(cfg)
+    assert settings.bar == {"ISE_ratio": 2.0} and settings.routes_bar == {}
+    assert settings.family_draw is None and settings.routes is True
+    assert settings.models == Path("models/unseen") and settings.evaluation.scenarios
+    assert settings.trained_with == Path("models/policy.ckpt")

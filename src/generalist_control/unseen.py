@@ -19,11 +19,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.adaptation.request import AdaptRequest, read_request
 from generalist_control.adaptation.run_folder import Stopped, sigterm_raises
+from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
+from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.plants.catalog import available_plants
-from generalist_control.reports.held_out import run_unseen
+from generalist_control.reports.held_out import UnseenSettings, run_unseen
 
-__all__ = ["main", "requests", "run"]
+__all__ = ["main", "read_unseen", "requests", "run"]
 
 
 def requests(cfg: DictConfig) -> dict[str, AdaptRequest]:
@@ -48,9 +50,26 @@ def requests(cfg: DictConfig) -> dict[str, AdaptRequest]:
     return {name: read_request({**plain, "plant": name}, adapted / name) for name in held}
 
 
+def read_unseen(cfg: DictConfig) -> UnseenSettings:
+    """The stage's settings, read once (every key from ``conf/unseen.yaml``)."""
+    unseen = as_dict(cfg.unseen)
+    return UnseenSettings(
+        reports_dir=Path(cfg.paths.reports_dir),
+        models=Path(unseen["models"]),
+        trained_with=Path(unseen["trained_with"]),
+        routes=bool(unseen["routes"]),
+        family_draw=unseen["family_draw"],
+        bar=unseen["bar"],
+        routes_bar=unseen["routes_bar"],
+        evaluation=read_evaluation(as_dict(cfg.evaluation)),
+        data=as_dict(cfg.data),
+        logger=as_dict(cfg.logger),
+    )
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Adapt to and evaluate on every held-out plant; return the summary."""
-    return run_unseen(cfg, requests(cfg))
+    return run_unseen(read_unseen(cfg), requests(cfg))
 
 
 @hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="unseen")

@@ -19,7 +19,6 @@ import control
 import mlflow
 import numpy as np
 import pandas as pd
-from omegaconf import DictConfig
 
 from generalist_control.adaptation import adapt
 from generalist_control.adaptation.job import learn, prepare
@@ -29,10 +28,9 @@ from generalist_control.common.atomic import (
     publish_directory,
     staging_directory,
 )
-from generalist_control.common.configs import as_dict
 from generalist_control.common.jsonsafe import strict
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.eval_config import read_evaluation
+from generalist_control.evaluation.eval_config import EvaluationSettings
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.summary import summarise
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
@@ -46,7 +44,15 @@ from generalist_control.reports.held_out_routes import (
 )
 from generalist_control.tracking import mlflow_utils
 
-__all__ = ["DEFAULT_BAR", "OWNED", "POLICIES", "judge", "plant_class", "run_unseen"]
+__all__ = [
+    "DEFAULT_BAR",
+    "OWNED",
+    "POLICIES",
+    "UnseenSettings",
+    "judge",
+    "plant_class",
+    "run_unseen",
+]
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +61,27 @@ POLICIES = ("adapted", "zero_shot", "trained_with")
 
 #: What ``reports/unseen`` holds: the only entries the stage may replace.
 OWNED: dict[str, str | None] = {"metrics.csv": None, "summary.json": None}
+
+
+@dataclasses.dataclass(frozen=True)
+class UnseenSettings:
+    """What the stage reads of its config (``conf/unseen.yaml``), read once by the entry point.
+
+    ``models``, ``trained_with``, ``routes``, ``family_draw``, ``bar`` and ``routes_bar`` are
+    the ``unseen`` group's keys; the rest are the groups of the same names.
+    """
+
+    reports_dir: Path
+    models: Path
+    trained_with: Path
+    routes: bool
+    family_draw: Mapping[str, Any] | None
+    bar: Mapping[str, Any]
+    routes_bar: Mapping[str, Any]
+    evaluation: EvaluationSettings
+    data: Mapping[str, Any]
+    logger: Mapping[str, Any]
+
 
 #: The stage's trainings: ``<unseen.models>/<folder>/policy.ckpt``.
 TRAININGS = {"adapted": "default", "zero_shot": "tag_free"}
@@ -126,11 +153,10 @@ def judge(entries: Mapping[str, Any], bar: Mapping[str, Any] | None = None) -> d
     return {"bars": bars, "pass": all(v["pass"] for v in bars.values())}
 
 
-def _paths(cfg: DictConfig) -> dict[str, Path]:
+def _paths(settings: UnseenSettings) -> dict[str, Path]:
     """The three policies' files, each checked to exist (before any work)."""
-    models = Path(str(cfg.unseen.models))
-    paths = {k: models / v / POLICY_FILE for k, v in TRAININGS.items()}
-    paths["trained_with"] = Path(str(cfg.unseen.trained_with))
+    paths = {k: settings.models / v / POLICY_FILE for k, v in TRAININGS.items()}
+    paths["trained_with"] = settings.trained_with
     for key, path in paths.items():
         if not path.is_file():
             make = "dvc repro train (the pipeline's policy)" if key == "trained_with" else STAGE
@@ -146,10 +172,9 @@ def _zero_shot(request: AdaptRequest, path: Path) -> tuple[Policy, dict[str, Any
 
 
 def _evaluated(
-    cfg: DictConfig, label: str, policy: Policy, meta: dict[str, Any], plant: Plant
+    settings: EvaluationSettings, label: str, policy: Policy, meta: dict[str, Any], plant: Plant
 ) -> pd.DataFrame:
     """Every scenario on ``plant``: GC (this policy), LQI and LQI-AW; a ``policy`` column."""
-    settings = read_evaluation(as_dict(cfg.evaluation))
     runtime = PolicyRuntime(policy, meta, backend=settings.backend)
     df, _ = evaluate(runtime, [plant], settings.scenarios, settings.crazyflie)
     df.insert(0, "policy", label)
@@ -174,7 +199,7 @@ def _figures(df: pd.DataFrame) -> dict[str, Any]:
 
 
 def _plant(
-    cfg: DictConfig,
+    settings: UnseenSettings,
     request: AdaptRequest,
     paths: Mapping[str, Path],
     routes: Mapping[str, Path],
@@ -188,9 +213,8 @@ def _plant(
         "trained_with": load_policy(paths["trained_with"]),
     }
     plant = load_plant(name)
-    data = as_dict(cfg.data)
-    policies.update({k: zero_shot(k, path, plant, data) for k, path in routes.items()})
-    frames = [_evaluated(cfg, k, p, m, plant) for k, (p, m) in policies.items()]
+    policies.update({k: zero_shot(k, path, plant, settings.data) for k, path in routes.items()})
+    frames = [_evaluated(settings.evaluation, k, p, m, plant) for k, (p, m) in policies.items()]
     df = pd.concat(frames, ignore_index=True)
     entry = {
         "class": plant_class(plant),
@@ -203,18 +227,18 @@ def _plant(
     return df, entry
 
 
-def _family_draw(cfg: DictConfig, card: Path, frames: list[pd.DataFrame]) -> dict | None:
+def _family_draw(settings: UnseenSettings, card: Path, frames: list[pd.DataFrame]) -> dict | None:
     """The card route on the held-out family draw (``unseen.family_draw``; None: off)."""
-    if cfg.unseen.family_draw is None:
+    if settings.family_draw is None:
         return None
-    scenarios = as_dict(cfg.evaluation.scenarios)
+    scenarios = settings.evaluation.scenarios
 
     def run(rt: PolicyRuntime, plants: list[Plant]) -> pd.DataFrame:
         df, _ = evaluate(rt, plants, scenarios)
         df.insert(0, "policy", "card")
         return df
 
-    df, draw = family_draw(card, as_dict(cfg.unseen.family_draw), as_dict(cfg.data), run)
+    df, draw = family_draw(card, settings.family_draw, settings.data, run)
     frames.append(df)
     log.info("held-out family draw: median ISE ratio %.4g", draw["ISE_ratio"]["median"])
     return draw
@@ -227,7 +251,7 @@ def _write(out_dir: Path, df: pd.DataFrame, summary: Mapping[str, Any]) -> None:
         publish_directory(staging, out_dir, OWNED, "paths.reports_dir")
 
 
-def _log(cfg: DictConfig, summary: Mapping[str, Any], out_dir: Path) -> None:
+def _log(logger: Mapping[str, Any], summary: Mapping[str, Any], out_dir: Path) -> None:
     """The stage's own run (experiment ``<prefix>/unseen``): the per-plant figures."""
     flat = {}
     for name, entry in summary["held_out"].items():
@@ -236,14 +260,13 @@ def _log(cfg: DictConfig, summary: Mapping[str, Any], out_dir: Path) -> None:
             for key in ("ISE_ratio", "ITAE_ratio", "RMSE_ratio_worst", "diverged_runs"):
                 if fig[key] is not None and np.isfinite(fig[key]):
                     flat[f"unseen/{name}/{label}/{key}"] = float(fig[key])
-    logger = {**as_dict(cfg.logger), "run_name": "unseen"}
-    with mlflow_utils.mlflow_run(logger, kind="unseen"):
+    with mlflow_utils.mlflow_run({**logger, "run_name": "unseen"}, kind="unseen"):
         mlflow.log_params({"held_out": ",".join(summary["held_out"])})
         mlflow.log_metrics(flat)
         mlflow.log_artifacts(str(out_dir), "unseen")
 
 
-def run_unseen(cfg: DictConfig, requests: Mapping[str, AdaptRequest]) -> dict[str, Any]:
+def run_unseen(settings: UnseenSettings, requests: Mapping[str, AdaptRequest]) -> dict[str, Any]:
     """Adapt to, and evaluate on, every held-out plant; write ``paths.reports_dir``.
 
     ``requests``: each held-out plant's adaptation, read by the entry point.
@@ -255,24 +278,24 @@ def run_unseen(cfg: DictConfig, requests: Mapping[str, AdaptRequest]) -> dict[st
     generalist_control.common.atomic.ForeignDirectoryError
         If the reports folder holds files the stage does not write.
     """
-    out_dir = Path(cfg.paths.reports_dir)
+    out_dir = settings.reports_dir
     check_replaceable(out_dir, OWNED, "paths.reports_dir")
-    paths = _paths(cfg)
-    routes = route_paths(Path(str(cfg.unseen.models))) if cfg.unseen.routes else {}
+    paths = _paths(settings)
+    routes = route_paths(settings.models) if settings.routes else {}
     frames, entries = [], {}
     for name, request in requests.items():
-        df, entries[name] = _plant(cfg, request, paths, routes)
+        df, entries[name] = _plant(settings, request, paths, routes)
         frames.append(df)
         log.info("held-out plant %s: adapted in %.0f s", name, entries[name]["adaptation_wall_s"])
     summary = {
         "held_out": entries,
-        **judge(entries, as_dict(cfg.unseen.get("bar") or {})),
+        **judge(entries, settings.bar),
         "policies": {k: str(v) for k, v in {**paths, **routes}.items()},
     }
     if routes:
-        draw = _family_draw(cfg, routes["card"], frames)
-        summary["routes"] = {**judge_routes(entries, draw, as_dict(cfg.unseen.routes_bar))}
+        draw = _family_draw(settings, routes["card"], frames)
+        summary["routes"] = {**judge_routes(entries, draw, settings.routes_bar)}
         summary["family_draw"] = draw
     _write(out_dir, pd.concat(frames, ignore_index=True), summary)
-    _log(cfg, summary, out_dir)
+    _log(settings.logger, summary, out_dir)
     return summary
