@@ -153,12 +153,16 @@ def test_tiny_pipeline_runs_once_then_skips(repo):
                 "where t.key = 'gc.role' and t.value = 'group'"
             ).fetchall()
         )
+        names = dict(db.execute("select run_uuid, name from runs").fetchall())
         evaluated = db.execute(
             "select count(distinct run_uuid) from metrics where key = 'eval/bar_passed'"
         ).fetchone()[0]
     # every training under its recipe's one parent, in one experiment, its verdicts logged
+    # in an evaluation run of its own nested under the training run
     assert sorted(parents.values()) == ["ablation:default", "ablation:paper"]
-    by_parent = sorted((parents[p], name) for name, p in rows)
+    by_parent = sorted((parents[p], name) for name, p in rows if p in parents)
+    nested = {p for _, p in rows if p not in parents}
+    assert sorted(names[p] for p in nested) == [name for _, name in by_parent]
     assert by_parent == [
         ("ablation:default", "default-d32"), ("ablation:default", "default-m5"),
         ("ablation:paper", "paper-d32"), ("ablation:paper", "paper-m5"),
