@@ -27,7 +27,9 @@ from generalist_control.adaptation.job import learn, prepare
 from generalist_control.adaptation.new_plant import load_new_plant
 from generalist_control.adaptation.recordings import RecordingError, write_recorded
 from generalist_control.common.atomic import (
+    FolderBusy,
     ForeignDirectoryError,
+    folder_lock,
     publish_directory,
     staging_directory,
 )
@@ -122,8 +124,8 @@ def test_an_adaptations_folder_is_replaced_and_a_file_added_to_it_stops_the_next
 def test_a_second_adaptation_into_a_run_dir_being_written_is_refused(base, tmp_path):
     run_dir = tmp_path / "run"
     uri = f"sqlite:///{tmp_path / 'refused.db'}"
-    with run_folder.locked(run_dir):
-        with pytest.raises(run_folder.RunDirBusy, match="another adaptation is writing run_dir"):
+    with folder_lock(run_dir, "adaptation", wait=False):
+        with pytest.raises(FolderBusy, match=rf"{run_dir} is being written by adaptation pid"):
             adapt(adapt_request(base, run_dir, uri))
     assert not run_dir.exists()
     _untouched(tmp_path, run_dir)

@@ -19,8 +19,8 @@ import mlflow
 import pytest
 from mlflow.entities import LoggedModelOutput
 
+from generalist_control.common.atomic import folder_lock
 from generalist_control.evaluate import run as evaluate_run
-from generalist_control.evaluation.writer import folder_lock
 from generalist_control.model.policy import policy_sha256, save_policy
 from generalist_control.simulation.lqi import design_lqi
 from generalist_control.tracking import mlflow_utils
@@ -127,14 +127,17 @@ def test_an_unreachable_tracking_server_is_refused_before_any_output_changes(
         _evaluate(policy, reports, "logger.tracking_uri=http://127.0.0.1:9")
     assert time.monotonic() - start < 60  # one try, not minutes of back-off
     assert {p.name: p.read_bytes() for p in reports.iterdir()} == before
-    assert not [p.name for p in tmp_path.iterdir() if ".tmp-" in p.name]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["policy.ckpt", "reports"]  # no lock
+    with pytest.raises(ConnectionError):  # into a new folder: none made, none left
+        _evaluate(policy, tmp_path / "new" / "eval", "logger.tracking_uri=http://127.0.0.1:9")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["policy.ckpt", "reports"]
 
 
 #: Holds the lock of a folder until its stdin closes.
 _HOLDER = """
 import sys
-from generalist_control.evaluation.writer import folder_lock
-with folder_lock(sys.argv[1]):
+from generalist_control.common.atomic import folder_lock
+with folder_lock(sys.argv[1], "evaluation"):
     print("held", flush=True)
     sys.stdin.read()
 """
@@ -156,7 +159,7 @@ def test_a_second_evaluation_of_a_folder_waits_for_the_first(tmp_path, caplog):
         holder.stdin.close()
 
     threading.Thread(target=release).start()
-    with caplog.at_level(logging.WARNING), folder_lock(out):
+    with caplog.at_level(logging.WARNING), folder_lock(out, "evaluation"):
         got = time.monotonic()
     holder.wait(timeout=60)
     holder.stdout.close()
