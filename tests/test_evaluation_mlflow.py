@@ -13,13 +13,14 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 import mlflow
 import pytest
 from mlflow.entities import LoggedModelOutput
 
-from generalist_control.common.atomic import folder_lock
+from generalist_control.common.atomic import FolderBusy, folder_lock
 from generalist_control.evaluate import run as evaluate_run
 from generalist_control.model.policy import policy_sha256, save_policy
 from generalist_control.simulation.lqi import design_lqi
@@ -136,7 +137,7 @@ def test_an_unreachable_tracking_server_is_refused_before_any_output_changes(
 #: Holds the lock of a folder until its stdin closes.
 _HOLDER = """
 import sys
-from generalist_control.common.atomic import folder_lock
+from generalist_control.common.atomic import FolderBusy, folder_lock
 with folder_lock(sys.argv[1], "evaluation"):
     print("held", flush=True)
     sys.stdin.read()
@@ -165,3 +166,27 @@ def test_a_second_evaluation_of_a_folder_waits_for_the_first(tmp_path, caplog):
     holder.stdout.close()
     assert released and got >= released[0]
     assert f"{out} is being written by evaluation pid {holder.pid}" in caplog.text
+
+
+def test_a_waiter_whose_lock_file_was_removed_takes_the_new_one(tmp_path):
+    """The holder removes the lock file as it ends: its waiter must lock the file now at the
+    place, so that a third command is still kept out."""
+    out, first, holding, done = tmp_path / "reports", ExitStack(), threading.Event(), []
+    first.enter_context(folder_lock(out, "first"))
+
+    def second() -> None:
+        with folder_lock(out, "second"):
+            holding.set()
+            time.sleep(1.0)
+        done.append(True)
+
+    waiter = threading.Thread(target=second)
+    waiter.start()
+    time.sleep(0.5)  # the second waits on the first's file
+    first.close()
+    assert holding.wait(timeout=30)
+    with pytest.raises(FolderBusy, match="is being written by second pid"):
+        with folder_lock(out, "third", wait=False):
+            pass
+    waiter.join(timeout=30)
+    assert done and not list(tmp_path.iterdir())
