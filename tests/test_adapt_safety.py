@@ -151,7 +151,7 @@ def test_an_interrupted_publish_leaves_no_run_folder_and_ends_the_run_killed(
 
 def _command(base: Path, tmp_path: Path, uri: str, plant: str) -> list[str]:
     overrides = [f"plant={plant}", f"policy={base}", f"run_dir={tmp_path / 'run'}",
-                 f"logger.tracking_uri={uri}", f"hydra.run.dir={tmp_path / 'hydra'}",
+                 f"logger.tracking_uri={uri}",
                  f"logger.artifact_location={tmp_path / 'mlruns'}",
                  "adapt.rounds=0", *TINY_ADAPT]  # fmt: skip
     return [sys.executable, "adapt.py", *overrides]
@@ -178,7 +178,7 @@ def test_sigterm_during_publish_exits_non_zero_and_publishes_nothing(base, tmp_p
         assert proc.wait(timeout=60) == 128 + signal.SIGTERM, proc.stderr.read()[-2000:]
     finally:
         proc.kill()
-    assert not (tmp_path / "run").exists() and not (tmp_path / "hydra").exists()
+    assert not (tmp_path / "run").exists()
     _untouched(tmp_path, tmp_path / "run")
     mlflow.set_tracking_uri(mlflow_uri)
     runs = mlflow.search_runs(experiment_names=["generalist-control/adapt"],
@@ -190,12 +190,13 @@ def test_sigterm_during_publish_exits_non_zero_and_publishes_nothing(base, tmp_p
 def test_a_refused_command_exits_non_zero_and_leaves_no_folder(base, tmp_path):
     """A user plant file named like a catalogue plant, refused by ``python adapt.py``."""
     cstr = _plant_file(tmp_path, "cstr")
-    cmd = _command(base, tmp_path, f"sqlite:///{tmp_path / 'refused.db'}", str(cstr))
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
+    cmd = [sys.executable, "-m", "generalist_control.adapt", f"plant={cstr}", f"policy={base}",
+           f"logger.tracking_uri=sqlite:///{tmp_path / 'refused.db'}", *TINY_ADAPT]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 1
     assert f"{cstr}: the file's stem 'cstr' is the name of a catalogue plant" in proc.stderr
-    assert not (tmp_path / "hydra").exists() and not (tmp_path / "run").exists()
-    _untouched(tmp_path, tmp_path / "run")
+    assert [p.name for p in tmp_path.iterdir()] == ["cstr.yaml"]  # no outputs/adapt/<time>
 
 
 # --- a diverged adaptation is refused; the best row is kept, never one worse than the start --
