@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import subprocess
 import sys
 import threading
@@ -190,3 +191,27 @@ def test_a_waiter_whose_lock_file_was_removed_takes_the_new_one(tmp_path):
             pass
     waiter.join(timeout=30)
     assert done and not list(tmp_path.iterdir())
+
+
+#: Loads a policy by its MLflow URI, then exits.
+_LOAD = """
+import sys, mlflow
+from generalist_control.deploy.policy_source import resolve
+from generalist_control.model.policy import load_policy
+mlflow.set_tracking_uri(sys.argv[1])
+load_policy(resolve(sys.argv[2]))
+"""
+
+
+def test_a_policy_fetched_from_mlflow_leaves_no_temporary_folder(tmp_path, mlflow_uri):
+    policy = _policy(tmp_path / "policy.ckpt")
+    mlflow.set_tracking_uri(mlflow_uri)
+    mlflow.set_experiment(tmp_path.name)
+    with mlflow.start_run() as run:
+        mlflow.log_artifact(str(policy), artifact_path="policy")
+    (tmp_path / "temp").mkdir()
+    env = {**os.environ, "TMPDIR": str(tmp_path / "temp")}
+    done = subprocess.run([sys.executable, "-c", _LOAD, mlflow_uri, f"runs:/{run.info.run_id}"],
+                          env=env, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert not list((tmp_path / "temp").iterdir())
