@@ -19,7 +19,7 @@ import shutil
 import socket
 import tempfile
 from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -233,12 +233,13 @@ def _take(lock: Path, out_dir: Path, wait: bool) -> int:
                     ) from None
                 log.warning("%s is being written by %s: waiting for it", out_dir, holder)
                 fcntl.flock(fd, fcntl.LOCK_EX)
-            if lock.exists() and os.stat(lock).st_ino == os.fstat(fd).st_ino:
-                return fd
+            with suppress(FileNotFoundError):  # removed by its holder as we waited: retake
+                if os.stat(lock).st_ino == os.fstat(fd).st_ino:
+                    return fd
         except BaseException:
             os.close(fd)
             raise
-        os.close(fd)  # its holder removed the file as we waited: take the new one
+        os.close(fd)
 
 
 @contextmanager
