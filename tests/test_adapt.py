@@ -338,7 +338,7 @@ def test_command_line_adapts_a_registered_version(tiny_data_dir, tmp_path, mlflo
     cmd = [
         sys.executable, "adapt.py", "plant=mass_spring_damper", f"policy=models:/{name}/1",
         f"run_dir={tmp_path / 'run'}", f"logger.tracking_uri={mlflow_uri}",
-        f"logger.registered_model_name={name}", f"hydra.run.dir={tmp_path / 'hydra'}",
+        f"logger.registered_model_name={name}",
         f"logger.artifact_location={tmp_path / 'mlruns'}",
         "adapt.epochs=1", "adapt.rounds=1", *TINY_ADAPT[-3:],
     ]  # fmt: skip

@@ -27,7 +27,9 @@ from generalist_control.adaptation.job import learn, prepare
 from generalist_control.adaptation.new_plant import load_new_plant
 from generalist_control.adaptation.recordings import RecordingError, write_recorded
 from generalist_control.common.atomic import (
+    FolderBusy,
     ForeignDirectoryError,
+    folder_lock,
     publish_directory,
     staging_directory,
 )
@@ -122,8 +124,8 @@ def test_an_adaptations_folder_is_replaced_and_a_file_added_to_it_stops_the_next
 def test_a_second_adaptation_into_a_run_dir_being_written_is_refused(base, tmp_path):
     run_dir = tmp_path / "run"
     uri = f"sqlite:///{tmp_path / 'refused.db'}"
-    with run_folder.locked(run_dir):
-        with pytest.raises(run_folder.RunDirBusy, match="another adaptation is writing run_dir"):
+    with folder_lock(run_dir, "adaptation", wait=False):
+        with pytest.raises(FolderBusy, match=rf"{run_dir} is being written by adaptation pid"):
             adapt(adapt_request(base, run_dir, uri))
     assert not run_dir.exists()
     _untouched(tmp_path, run_dir)
@@ -149,7 +151,7 @@ def test_an_interrupted_publish_leaves_no_run_folder_and_ends_the_run_killed(
 
 def _command(base: Path, tmp_path: Path, uri: str, plant: str) -> list[str]:
     overrides = [f"plant={plant}", f"policy={base}", f"run_dir={tmp_path / 'run'}",
-                 f"logger.tracking_uri={uri}", f"hydra.run.dir={tmp_path / 'hydra'}",
+                 f"logger.tracking_uri={uri}",
                  f"logger.artifact_location={tmp_path / 'mlruns'}",
                  "adapt.rounds=0", *TINY_ADAPT]  # fmt: skip
     return [sys.executable, "adapt.py", *overrides]
@@ -176,7 +178,7 @@ def test_sigterm_during_publish_exits_non_zero_and_publishes_nothing(base, tmp_p
         assert proc.wait(timeout=60) == 128 + signal.SIGTERM, proc.stderr.read()[-2000:]
     finally:
         proc.kill()
-    assert not (tmp_path / "run").exists() and not (tmp_path / "hydra").exists()
+    assert not (tmp_path / "run").exists()
     _untouched(tmp_path, tmp_path / "run")
     mlflow.set_tracking_uri(mlflow_uri)
     runs = mlflow.search_runs(experiment_names=["generalist-control/adapt"],
@@ -188,12 +190,13 @@ def test_sigterm_during_publish_exits_non_zero_and_publishes_nothing(base, tmp_p
 def test_a_refused_command_exits_non_zero_and_leaves_no_folder(base, tmp_path):
     """A user plant file named like a catalogue plant, refused by ``python adapt.py``."""
     cstr = _plant_file(tmp_path, "cstr")
-    cmd = _command(base, tmp_path, f"sqlite:///{tmp_path / 'refused.db'}", str(cstr))
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
+    cmd = [sys.executable, "-m", "generalist_control.adapt", f"plant={cstr}", f"policy={base}",
+           f"logger.tracking_uri=sqlite:///{tmp_path / 'refused.db'}", *TINY_ADAPT]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 1
     assert f"{cstr}: the file's stem 'cstr' is the name of a catalogue plant" in proc.stderr
-    assert not (tmp_path / "hydra").exists() and not (tmp_path / "run").exists()
-    _untouched(tmp_path, tmp_path / "run")
+    assert [p.name for p in tmp_path.iterdir()] == ["cstr.yaml"]  # no outputs/adapt/<time>
 
 
 # --- a diverged adaptation is refused; the best row is kept, never one worse than the start --

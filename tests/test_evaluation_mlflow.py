@@ -9,18 +9,20 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import subprocess
 import sys
 import threading
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 import mlflow
 import pytest
 from mlflow.entities import LoggedModelOutput
 
+from generalist_control.common.atomic import FolderBusy, folder_lock
 from generalist_control.evaluate import run as evaluate_run
-from generalist_control.evaluation.writer import folder_lock
 from generalist_control.model.policy import policy_sha256, save_policy
 from generalist_control.simulation.lqi import design_lqi
 from generalist_control.tracking import mlflow_utils
@@ -127,14 +129,17 @@ def test_an_unreachable_tracking_server_is_refused_before_any_output_changes(
         _evaluate(policy, reports, "logger.tracking_uri=http://127.0.0.1:9")
     assert time.monotonic() - start < 60  # one try, not minutes of back-off
     assert {p.name: p.read_bytes() for p in reports.iterdir()} == before
-    assert not [p.name for p in tmp_path.iterdir() if ".tmp-" in p.name]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["policy.ckpt", "reports"]  # no lock
+    with pytest.raises(ConnectionError):  # into a new folder: none made, none left
+        _evaluate(policy, tmp_path / "new" / "eval", "logger.tracking_uri=http://127.0.0.1:9")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["policy.ckpt", "reports"]
 
 
 #: Holds the lock of a folder until its stdin closes.
 _HOLDER = """
 import sys
-from generalist_control.evaluation.writer import folder_lock
-with folder_lock(sys.argv[1]):
+from generalist_control.common.atomic import FolderBusy, folder_lock
+with folder_lock(sys.argv[1], "evaluation"):
     print("held", flush=True)
     sys.stdin.read()
 """
@@ -156,9 +161,57 @@ def test_a_second_evaluation_of_a_folder_waits_for_the_first(tmp_path, caplog):
         holder.stdin.close()
 
     threading.Thread(target=release).start()
-    with caplog.at_level(logging.WARNING), folder_lock(out):
+    with caplog.at_level(logging.WARNING), folder_lock(out, "evaluation"):
         got = time.monotonic()
     holder.wait(timeout=60)
     holder.stdout.close()
     assert released and got >= released[0]
     assert f"{out} is being written by evaluation pid {holder.pid}" in caplog.text
+
+
+def test_a_waiter_whose_lock_file_was_removed_takes_the_new_one(tmp_path):
+    """The holder removes the lock file as it ends: its waiter must lock the file now at the
+    place, so that a third command is still kept out."""
+    out, first, holding, done = tmp_path / "reports", ExitStack(), threading.Event(), []
+    first.enter_context(folder_lock(out, "first"))
+
+    def second() -> None:
+        with folder_lock(out, "second"):
+            holding.set()
+            time.sleep(1.0)
+        done.append(True)
+
+    waiter = threading.Thread(target=second)
+    waiter.start()
+    time.sleep(0.5)  # the second waits on the first's file
+    first.close()
+    assert holding.wait(timeout=30)
+    with pytest.raises(FolderBusy, match="is being written by second pid"):
+        with folder_lock(out, "third", wait=False):
+            pass
+    waiter.join(timeout=30)
+    assert done and not list(tmp_path.iterdir())
+
+
+#: Loads a policy by its MLflow URI, then exits.
+_LOAD = """
+import sys, mlflow
+from generalist_control.deploy.policy_source import resolve
+from generalist_control.model.policy import load_policy
+mlflow.set_tracking_uri(sys.argv[1])
+load_policy(resolve(sys.argv[2]))
+"""
+
+
+def test_a_policy_fetched_from_mlflow_leaves_no_temporary_folder(tmp_path, mlflow_uri):
+    policy = _policy(tmp_path / "policy.ckpt")
+    mlflow.set_tracking_uri(mlflow_uri)
+    mlflow.set_experiment(tmp_path.name)
+    with mlflow.start_run() as run:
+        mlflow.log_artifact(str(policy), artifact_path="policy")
+    (tmp_path / "temp").mkdir()
+    env = {**os.environ, "TMPDIR": str(tmp_path / "temp")}
+    done = subprocess.run([sys.executable, "-c", _LOAD, mlflow_uri, f"runs:/{run.info.run_id}"],
+                          env=env, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert not list((tmp_path / "temp").iterdir())

@@ -7,7 +7,6 @@ and only that row is learned (:mod:`generalist_control.adaptation`; docs/trainin
 
 from __future__ import annotations
 
-import contextlib
 import signal
 import sys
 from datetime import datetime
@@ -15,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.adaptation import adapt
@@ -27,11 +25,9 @@ __all__ = ["main", "run"]
 
 
 def _run_dir(cfg: DictConfig) -> Path:
-    """``run_dir``, else Hydra's output folder (``outputs/adapt/<time>``), else a new one."""
+    """``run_dir``, else a new ``outputs/adapt/<time>``."""
     if cfg.run_dir:
         return Path(cfg.run_dir)
-    if HydraConfig.initialized():
-        return Path(HydraConfig.get().runtime.output_dir)
     return Path("outputs/adapt") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
 
 
@@ -46,20 +42,15 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 def main(cfg: DictConfig) -> float:
     """Hydra entry point: adapt, and return the kept closed-loop score (lower is better).
 
-    SIGTERM ends it as SIGINT does (exit 143, the MLflow run KILLED); Hydra's own folder is
-    removed unless the adaptation was written there (``conf/adapt.yaml`` keeps Hydra's files
-    out of it).
+    SIGTERM ends it as SIGINT does (exit 143, the MLflow run KILLED). Hydra writes no folder
+    (``conf/adapt.yaml``): a refused or stopped adaptation leaves none.
     """
-    hydra_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         with sigterm_raises():
             return float(run(cfg)["closed_loop"]["kept"])
     except Stopped:
         print("adapt: stopped by SIGTERM; nothing was published", file=sys.stderr)
         sys.exit(128 + signal.SIGTERM)
-    finally:
-        with contextlib.suppress(OSError):
-            hydra_dir.rmdir()  # only if empty: a refused or stopped adaptation leaves none
 
 
 if __name__ == "__main__":

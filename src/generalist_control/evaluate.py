@@ -21,6 +21,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
+from generalist_control.common.atomic import folder_lock
 from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.common.secrets import redact
@@ -34,12 +35,7 @@ from generalist_control.evaluation.provenance import command, provenance, weight
 from generalist_control.evaluation.runner import run_suite
 from generalist_control.evaluation.variant_eval import OWNED as VARIANTS_OWNED
 from generalist_control.evaluation.variant_eval import TrainingDraws, run_variants
-from generalist_control.evaluation.writer import (
-    OWNED,
-    check_reports_dir,
-    folder_lock,
-    write_reports,
-)
+from generalist_control.evaluation.writer import OWNED, check_reports_dir, write_reports
 from generalist_control.model.policy import POLICY_FILE, load_policy, policy_sha256
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.tracking.mlflow_utils import check_store
@@ -97,7 +93,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     out_dir = Path(cfg.paths.reports_dir)
     logger = as_dict(cfg.logger)
     variants = settings.variants.enabled  # unseen plant variants instead (experiment=variants)
-    with folder_lock(out_dir):  # one evaluation at a time writes a folder
+    with folder_lock(out_dir, "evaluation"):  # one evaluation at a time writes a folder
         check_reports_dir(out_dir, VARIANTS_OWNED if variants else OWNED)
         check_store(logger)  # an MLflow store that does not answer: refused now
         runtime, record, tags = _policy(cfg, settings)

@@ -16,6 +16,7 @@ from typing import Any
 from generalist_control.adaptation import run_folder
 from generalist_control.adaptation.job import learn, prepare
 from generalist_control.adaptation.request import AdaptRequest
+from generalist_control.common.atomic import folder_lock
 
 __all__ = ["AdaptationDiverged", "adapt"]
 
@@ -47,7 +48,7 @@ def adapt(request: AdaptRequest) -> tuple[dict[str, Any], dict[str, Any]]:
         If the kept row's closed loop diverges on ``closed_loop_val``'s steps.
     """
     start = time.perf_counter()
-    with run_folder.locked(request.run_dir):
+    with folder_lock(request.run_dir, "adaptation", wait=False):
         run_folder.check_run_dir(request.run_dir)
         job = prepare(request)
         policy, meta, record = learn(job)

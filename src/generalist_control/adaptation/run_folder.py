@@ -11,9 +11,7 @@ is registered, so a folder that looks complete always has its version.
 from __future__ import annotations
 
 import dataclasses
-import fcntl
 import json
-import os
 import shutil
 import signal
 import threading
@@ -43,12 +41,10 @@ from generalist_control.training.outputs import log_model
 
 __all__ = [
     "ADAPT_FILE",
-    "RunDirBusy",
     "Stopped",
     "base_version",
     "check_run_dir",
     "end_message",
-    "locked",
     "publish",
     "sigterm_raises",
 ]
@@ -57,10 +53,6 @@ __all__ = [
 ADAPT_FILE = "adapt.json"
 #: The setting a run folder's marker names: ``run_dir`` of ``adapt``.
 SETTING = "run_dir"
-
-
-class RunDirBusy(RuntimeError):
-    """Another adaptation is writing the same ``run_dir``."""
 
 
 class Stopped(KeyboardInterrupt):
@@ -102,38 +94,6 @@ def check_run_dir(run_dir: Path) -> None:
                 f"command ({setting}, {MARKER}). Nothing was changed; point run_dir at a new "
                 "or empty folder"
             )
-
-
-@contextmanager
-def locked(run_dir: Path) -> Iterator[None]:
-    """Hold ``.<name>.lock`` beside ``run_dir``: a second adaptation into it is refused.
-
-    Folders made for the lock are removed again if nothing else was written in them.
-    """
-    lock = run_dir.parent / f".{run_dir.name}.lock"
-    made = [p for p in (lock.parent, *lock.parent.parents) if not p.exists()]
-    lock.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        with open(lock, "a") as handle:
-            try:
-                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                if os.fstat(handle.fileno()).st_ino != os.stat(lock).st_ino:
-                    raise BlockingIOError  # its holder removed it as we opened it
-            except (BlockingIOError, FileNotFoundError):
-                raise RunDirBusy(
-                    f"another adaptation is writing run_dir '{run_dir}' ({lock} is held): wait "
-                    "for it to end, or choose another run_dir"
-                ) from None
-            try:
-                yield
-            finally:
-                lock.unlink(missing_ok=True)
-    finally:
-        for folder in made:  # deepest first
-            try:
-                folder.rmdir()
-            except OSError:
-                break
 
 
 def base_version(source: str, run_id: str | None, name: str | None) -> str | None:

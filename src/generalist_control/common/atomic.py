@@ -10,20 +10,25 @@ from __future__ import annotations
 
 import ctypes
 import errno
+import fcntl
 import fnmatch
 import json
+import logging
 import os
 import shutil
+import socket
 import tempfile
 from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
 __all__ = [
     "MARKER",
+    "FolderBusy",
     "ForeignDirectoryError",
     "check_replaceable",
+    "folder_lock",
     "publish_directory",
     "recover",
     "staging_directory",
@@ -39,8 +44,15 @@ _RENAME_EXCHANGE = 2
 _UNSUPPORTED = {errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.EXDEV, errno.EPERM}
 
 
+log = logging.getLogger(__name__)
+
+
 class ForeignDirectoryError(FileExistsError):
     """An output folder holds files the stage did not write; it is left untouched."""
+
+
+class FolderBusy(RuntimeError):
+    """Another process holds the lock of the output folder (:func:`folder_lock`)."""
 
 
 #: Exact top-level names a stage wrote before markers: ``None`` for a file, or the pattern
@@ -203,6 +215,59 @@ def recover(out_dir: str | Path) -> None:
     for path, pid in _leftovers(out_dir, "tmp"):
         if not _alive(pid):
             shutil.rmtree(path, ignore_errors=True)
+
+
+def _take(lock: Path, out_dir: Path, wait: bool) -> int:
+    """A descriptor of ``lock`` holding its ``flock`` (the file still at its place)."""
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+                if not wait:
+                    raise FolderBusy(
+                        f"{out_dir} is being written by {holder} ({lock} is held): wait for it "
+                        "to end, or write elsewhere"
+                    ) from None
+                log.warning("%s is being written by %s: waiting for it", out_dir, holder)
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            with suppress(FileNotFoundError):  # removed by its holder as we waited: retake
+                if os.stat(lock).st_ino == os.fstat(fd).st_ino:
+                    return fd
+        except BaseException:
+            os.close(fd)
+            raise
+        os.close(fd)
+
+
+@contextmanager
+def folder_lock(out_dir: str | Path, who: str, wait: bool = True) -> Iterator[None]:
+    """Hold ``.<name>.lock`` beside ``out_dir``: one command at a time writes the folder.
+
+    A second waits (``wait``) or gets :class:`FolderBusy`. The ``flock`` ends with the
+    process however it ends; the file, and the folders made for it, are removed on exit.
+    """
+    out_dir = Path(out_dir)
+    lock = out_dir.parent / f".{out_dir.name}.lock"
+    made = [p for p in (lock.parent, *lock.parent.parents) if not p.exists()]
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        fd = _take(lock, out_dir, wait)
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{who} pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)
+            yield
+        finally:
+            lock.unlink(missing_ok=True)
+            os.close(fd)
+    finally:
+        for folder in made:  # deepest first
+            try:
+                folder.rmdir()
+            except OSError:
+                break
 
 
 @contextmanager

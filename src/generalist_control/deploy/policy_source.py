@@ -6,6 +6,8 @@ no tracking client.
 
 from __future__ import annotations
 
+import atexit
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -19,7 +21,8 @@ def resolve(source: str | Path) -> Path:
     """A local policy file for a path or an MLflow URI (``runs:/...``, ``models:/...``).
 
     For an MLflow URI the run's ``policy/policy.ckpt`` artifact is downloaded (the plain
-    tensor file, never the pickled MLflow model), so loading stays ``weights_only``.
+    tensor file, never the pickled MLflow model), so loading stays ``weights_only``, into a
+    temporary folder removed when the process ends.
     """
     text = str(source)
     if "://" not in text and not text.startswith(("runs:/", "models:/")):
@@ -36,9 +39,9 @@ def resolve(source: str | Path) -> Path:
         text = f"runs:/{mv.run_id}/policy/{POLICY_FILE}"
     elif text.startswith("runs:/") and "/" not in text[len("runs:/") :].strip("/"):
         text = text.rstrip("/") + "/policy"  # a bare run: its policy folder
-    local = Path(
-        mlflow.artifacts.download_artifacts(artifact_uri=text, dst_path=tempfile.mkdtemp())
-    )
+    fetched = tempfile.mkdtemp(prefix="gc-policy-")
+    atexit.register(shutil.rmtree, fetched, True)  # removed when the process ends
+    local = Path(mlflow.artifacts.download_artifacts(artifact_uri=text, dst_path=fetched))
     if local.is_dir():
         found = sorted(local.rglob(POLICY_FILE))
         if not found:

@@ -3,18 +3,15 @@
 The folder (``paths.reports_dir``) is replaced as a whole
 (:func:`~generalist_control.common.atomic.publish_directory`), only if it holds nothing but
 an evaluation's own outputs (:data:`OWNED`), and by one evaluation at a time
-(:func:`folder_lock`). The MLflow run gets the files of the snapshot it publishes, logged
-before the swap. ``scores.json`` (the DVC metric) holds headline figures in units that read
-well at ``dvc metrics show``'s 5 decimals (:func:`headline_scores`).
+(:func:`~generalist_control.common.atomic.folder_lock`). The MLflow run gets the files of
+the snapshot it publishes, logged before the swap. ``scores.json`` (the DVC metric) holds
+headline figures in units that read well at ``dvc metrics show``'s 5 decimals
+(:func:`headline_scores`).
 """
 
 from __future__ import annotations
 
-import fcntl
 import json
-import logging
-import os
-import socket
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from functools import partial
@@ -40,14 +37,11 @@ __all__ = [
     "OWNED",
     "Record",
     "check_reports_dir",
-    "folder_lock",
     "headline_scores",
     "publish_snapshot",
     "write_json",
     "write_reports",
 ]
-
-log = logging.getLogger(__name__)
 
 #: What an evaluation folder holds: the only entries an evaluation may replace.
 OWNED: dict[str, str | None] = {
@@ -97,29 +91,6 @@ def headline_scores(summary: Mapping[str, Any]) -> dict[str, Any]:
 def check_reports_dir(out_dir: str | Path, owned: Mapping[str, str | None] = OWNED) -> None:
     """Refuse (before any work) a ``paths.reports_dir`` that holds other files."""
     check_replaceable(out_dir, owned, "paths.reports_dir")
-
-
-@contextmanager
-def folder_lock(out_dir: str | Path) -> Iterator[None]:
-    """Hold ``.<name>.lock`` beside ``out_dir``: an evaluation into the same folder waits.
-
-    The lock (``flock``) ends with the process, however it ends; the file stays.
-    """
-    out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(out_dir.parent / f".{out_dir.name}.lock", os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
-            log.warning("%s is being written by %s: waiting for it", out_dir, holder)
-            fcntl.flock(fd, fcntl.LOCK_EX)
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"evaluation pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)
-        yield
-    finally:
-        os.close(fd)  # the lock goes with the last descriptor
 
 
 def write_json(path: Path, content: Any) -> None:
