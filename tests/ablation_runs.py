@@ -52,14 +52,16 @@ def log_run(
     mse: Mapping[str, float],
     params: Mapping[str, Any] | None = None,
     parent: str | None = None,
+    tags: Mapping[str, str] | None = None,
 ) -> str:
     """One finished training-like run of (d, M); its id. A policy artifact when M = 5.
 
     ``loss`` is the final ``train/loss`` (the history ends with it), ``mse`` the
-    ``closed_loop/mse/<plant>`` scores, ``params`` further params (``seed``, ...).
+    ``closed_loop/mse/<plant>`` scores, ``params`` further params (``seed``, ...), ``tags``
+    further tags (``policy_dir``, ...).
     """
     policy = Policy(net_config(hidden=d, experts=m, heads=2))
-    tags = {"mlflow.parentRunId": parent} if parent else None
+    tags = {**(tags or {}), **({"mlflow.parentRunId": parent} if parent else {})}
     with mlflow.start_run(experiment_id=exp_id, run_name=f"d{d}-M{m}", tags=tags) as r:
         mlflow.log_params(
             {"model.hidden": d, "experts": m, "n_parameters": count_parameters(policy)}

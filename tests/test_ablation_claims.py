@@ -237,10 +237,12 @@ def test_report_answers_the_paper_with_every_seed_and_its_evaluation(tmp_path, m
     ids = {}
     for (d, m), runs in RUNS.items():
         for p in runs:
-            params = {"seed": p.seed, "model.window_scale": "False",
-                      "paths.models_dir": f"m/d{d}-M{m}-s{p.seed}"}  # fmt: skip
+            params = {"seed": p.seed, "model.window_scale": "False"}
+            tags = {"policy_dir": str(Path(f"m/d{d}-M{m}-s{p.seed}").resolve())}
             loss = p.train_loss or 1e-3
-            ids[(d, m, p.seed)] = log_run(exp_id, tmp_path, d, m, loss, p.mse, params, parent)
+            ids[(d, m, p.seed)] = log_run(
+                exp_id, tmp_path, d, m, loss, p.mse, params, parent, tags
+            )
     log_run(exp_id, tmp_path, 32, 3, 1.0, {}, {"seed": 42, "model.window_scale": "False"})
     ratios = {(32, 1, 42): 1.2, (32, 1, 43): 1.3}  # M=1 beyond the bar's 1.05 on the step
     for key, run_id in ids.items():

@@ -91,6 +91,8 @@ def test_short_training_imitates_the_expert_and_saves_the_best_checkpoint(
     cfg = compose_cfg(*tiny_train_overrides(tiny_data_dir, tmp_path, mlflow_uri, *EXTRA))
     assert cfg.monitor == "val/closed_loop" and "integral" in cfg.model.channels
     assert "table" not in cfg.model
+    mlflow.set_tracking_uri(mlflow_uri)
+    mlflow.set_experiment(f"{tmp_path.name}-another")  # set earlier in the process: no matter
     _, objs = train(cfg)
 
     # --- imitation, measured independently of the module's loss ---------------------------
