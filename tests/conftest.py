@@ -74,3 +74,32 @@ def postgres_url() -> Iterator[str]:
         yield url
     finally:
         server.__exit__(None, None, None)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Files with the most slow tests first, the rest in their order: the workers
+    (``--dist loadfile``) then end on small files, not with one waiting for a long one."""
+    slow: dict[str, int] = {}
+    for item in items:
+        slow[item.nodeid.split("::")[0]] = slow.get(item.nodeid.split("::")[0], 0) + (
+            item.get_closest_marker("slow") is not None
+        )
+    order = {f: i for i, f in enumerate(dict.fromkeys(i.nodeid.split("::")[0] for i in items))}
+    items.sort(key=lambda i: (-slow[i.nodeid.split("::")[0]], order[i.nodeid.split("::")[0]]))
+
+
+@pytest.fixture(autouse=True)
+def _mlflow_active_experiment_restored() -> Iterator[None]:
+    """A test that sets MLflow's active experiment (process-wide) does not set it for the
+    tests after it in the same worker."""
+    import os
+
+    from mlflow.tracking import fluent
+
+    saved, env = fluent._active_experiment_id, os.environ.get("MLFLOW_EXPERIMENT_ID")
+    yield
+    fluent._active_experiment_id = saved
+    if env is None:
+        os.environ.pop("MLFLOW_EXPERIMENT_ID", None)
+    else:
+        os.environ["MLFLOW_EXPERIMENT_ID"] = env

@@ -7,6 +7,8 @@ and the expert's controls read from the reloaded dataset, not through the module
 
 from __future__ import annotations
 
+import os
+
 import mlflow
 import numpy as np
 import pytest
@@ -92,8 +94,9 @@ def test_short_training_imitates_the_expert_and_saves_the_best_checkpoint(
     assert cfg.monitor == "val/closed_loop" and "integral" in cfg.model.channels
     assert "table" not in cfg.model
     mlflow.set_tracking_uri(mlflow_uri)
-    mlflow.set_experiment(f"{tmp_path.name}-another")  # set earlier in the process: no matter
+    another = mlflow.set_experiment(f"{tmp_path.name}-another")  # set earlier: no matter
     _, objs = train(cfg)
+    assert os.environ["MLFLOW_EXPERIMENT_ID"] == another.experiment_id  # and kept
 
     # --- imitation, measured independently of the module's loss ---------------------------
     demos, _ = load_demos(tiny_data_dir)

@@ -12,7 +12,8 @@ import json
 import logging
 import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, cast
 
@@ -26,6 +27,7 @@ from generalist_control.common.secrets import redact
 from generalist_control.tracking import mlflow_utils
 
 __all__ = [
+    "logger_run",
     "RunRecorder",
     "log_input_shared",
     "log_params_once",
@@ -225,3 +227,26 @@ def log_input_shared(
             log.info(
                 "dataset %s was logged by another run at the same time; linking it", dataset.name
             )
+
+
+@contextmanager
+def logger_run(logger: MLFlowLogger) -> Iterator[Any]:
+    """The fluent API on the Lightning logger's run within the block.
+
+    ``start_run(run_id=...)`` refuses a run of another experiment than the process's active
+    one (``set_experiment``): the run's own is made active for the block, then the process's
+    active experiment and ``MLFLOW_EXPERIMENT_ID`` are put back as they were.
+    """
+    from mlflow.tracking import fluent
+
+    saved, env = fluent._active_experiment_id, os.environ.get("MLFLOW_EXPERIMENT_ID")
+    mlflow.set_experiment(experiment_id=logger.experiment_id)
+    try:
+        with mlflow.start_run(run_id=logger.run_id) as run:
+            yield run
+    finally:
+        fluent._active_experiment_id = saved
+        if env is None:
+            os.environ.pop("MLFLOW_EXPERIMENT_ID", None)
+        else:
+            os.environ["MLFLOW_EXPERIMENT_ID"] = env

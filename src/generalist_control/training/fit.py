@@ -294,8 +294,7 @@ def train(settings: TrainingSettings) -> tuple[dict[str, Any], dict[str, Any]]:
     mlf = training_run.training_logger(settings.logger, resume_run_id=resume_id)
     trainer = _trainer(settings, callbacks, mlf)
     logger = settings.logger
-    mlflow.set_experiment(experiment_id=mlf.experiment_id)  # not one set earlier in-process
-    with mlflow.start_run(run_id=mlf.run_id) as run:  # the fluent API on the logger's run
+    with training_run.logger_run(mlf) as run:  # the fluent API on the logger's run
         run_id = run.info.run_id
         outputs.log_inputs(settings, dm, n_params)
         uri = mlflow.get_tracking_uri()
