@@ -14,7 +14,6 @@ import numpy as np
 from omegaconf import DictConfig
 
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
-from generalist_control.training.fit import train
 from generalist_control.training.settings import read_training
 
 __all__ = ["main", "run"]
@@ -22,7 +21,10 @@ __all__ = ["main", "run"]
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Train the policy ``cfg`` describes; return its metrics."""
-    metrics, _ = train(read_training(cfg))
+    settings = read_training(cfg)  # refused before Lightning's 4 s of imports
+    from generalist_control.training.fit import train
+
+    metrics, _ = train(settings)
     return metrics
 
 
