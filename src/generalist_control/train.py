@@ -14,6 +14,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
+from generalist_control.training.fit import train
 from generalist_control.training.settings import read_training
 
 __all__ = ["main", "run"]
@@ -21,10 +22,7 @@ __all__ = ["main", "run"]
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Train the policy ``cfg`` describes; return its metrics."""
-    settings = read_training(cfg)  # refused before Lightning's 4 s of imports
-    from generalist_control.training.fit import train
-
-    metrics, _ = train(settings)
+    metrics, _ = train(read_training(cfg))
     return metrics
 
 
