@@ -1,8 +1,4 @@
-"""The ablation report: ``python -m generalist_control.report`` (``ablation/dvc.yaml``).
-
-The paper's Section 7 redrawn from the finished training runs in MLflow
-(:mod:`generalist_control.reports.ablation`); settings in ``conf/report``, read here once.
-"""
+"""The ablation report: ``python -m generalist_control.report`` (``ablation/dvc.yaml``)."""
 
 from __future__ import annotations
 
@@ -22,8 +18,6 @@ __all__ = ["main", "read_job", "run"]
 
 def read_job(cfg: DictConfig) -> ReportJob:
     """The report's settings (``report``) and what it reads of other groups, checked.
-
-    ``report.parent_run`` may name one parent run or a list of them.
 
     Raises
     ------

@@ -1,9 +1,6 @@
 """The held-out protocol's last step: ``python -m generalist_control.unseen``.
 
-Run by the DVC stage ``unseen`` (``beyond/dvc.yaml``) after its two trainings without the
-plants of ``held_out`` (``conf/unseen.yaml``): per held-out plant, a row learned on the
-default (``adapt``), the tag-free policy zero-shot and the pipeline's policy trained with it,
-each on every scenario against the plant's LQI; ``reports/unseen/``. The work is
+Run by ``beyond/dvc.yaml:unseen`` after its trainings without ``held_out``; the work is
 :func:`generalist_control.reports.held_out.run_unseen` (``docs/pipeline.md``).
 """
 

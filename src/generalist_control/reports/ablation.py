@@ -1,9 +1,7 @@
 """The ablation report (paper, Section 7), redrawn from the finished MLflow training runs.
 
-Nothing is trained here: the report reads the runs of one experiment, picks the run of
-each sweep point, writes the tables (the run drawn per point, every seed's figures, the
-claims, the gate weights of the M = 5 model) and draws its figures from those tables
-(:mod:`.figures`, the path ``make results`` takes too); docs/pipeline.md lists the files.
+Nothing is trained here: the tables come from the runs and their evaluations, the figures from
+the tables (:mod:`.figures`, as ``make results`` draws them); docs/pipeline.md lists the files.
 """
 
 from __future__ import annotations
@@ -16,6 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import mlflow
+import numpy as np
 import pandas as pd
 import torch
 
@@ -25,16 +25,17 @@ from generalist_control.common.atomic import (
     staging_directory,
 )
 from generalist_control.common.jsonsafe import finite, strict
+from generalist_control.common.secrets import redact
 from generalist_control.reports import evaluations as evals
 from generalist_control.reports.claims import claims_records, judge_claims, verdict_counts
 from generalist_control.reports.comparison_markdown import comparison_markdown
 from generalist_control.reports.figures import draw_figures
 from generalist_control.reports.gates import gate_weights, policy_of_run
 from generalist_control.reports.points import infer_recipe, points_frame, run_label
-from generalist_control.reports.report_run import log_report
 from generalist_control.reports.report_settings import ReportJob, ReportSettings, Tolerance
 from generalist_control.reports.runs import (
     NO_RUN,
+    RUN_TYPE_TAG,
     SWEEP_COMMANDS,
     RunPoint,
     mlflow_client,
@@ -45,13 +46,7 @@ from generalist_control.reports.runs import (
 from generalist_control.reports.selection import select_runs
 from generalist_control.tracking import mlflow_utils
 
-__all__ = [
-    "OWNED",
-    "Inputs",
-    "build_report",
-    "runs_table",
-    "write_report",
-]
+__all__ = ["OWNED", "Inputs", "build_report", "runs_table", "write_report"]
 
 log = logging.getLogger(__name__)
 
@@ -85,8 +80,7 @@ def runs_table(sweeps: Sweeps) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=cols)
 
 
-#: The names a report writes (and, for a folder from before the outputs marker,
-#: :mod:`generalist_control.common.atomic`, the names older reports wrote).
+#: The names a report writes (the only entries of ``report.out_dir`` it may replace).
 OWNED: dict[str, str | None] = dict.fromkeys(
     [
         *(f"{kind}_{sweep}.{ext}" for kind in ("mse", "loss") for sweep in ("hidden", "experts")
@@ -165,8 +159,7 @@ def write_report(
     Parameters
     ----------
     out_dir : path
-        Replaced as a whole (staged in a temporary sibling directory, then swapped in), and
-        only if it holds nothing but a report's own outputs.
+        Replaced as a whole, and only if it holds nothing but a report's own outputs.
     sweeps : mapping
         From :func:`~generalist_control.reports.runs.select_sweeps`.
     plants : sequence of str
@@ -196,6 +189,43 @@ def write_report(
         (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
         publish_directory(staging, out_dir, OWNED, "report.out_dir")
     return summary
+
+
+def _report_metrics(summary: Mapping[str, Any]) -> dict[str, float]:
+    """``report/missing_points``, ``ablation/<figure>/d32_M3``, ``claims/<verdict>``."""
+    metrics = {"report/missing_points": float(len(summary["missing"]))}
+    for label, fig in summary["configs"].items():
+        key = label.replace("=", "").replace(",", "_")  # d32_M3
+        for name in ("final_train_loss", "n_parameters", "mse_mean"):
+            value = fig.get(name)
+            if value is not None and np.isfinite(value):
+                metrics[f"ablation/{name}/{key}"] = float(value)
+    for verdict, count in (summary.get("claims_verdicts") or {}).items():
+        metrics[f"claims/{verdict.replace(' ', '_')}"] = float(count)
+    return metrics
+
+
+def _log_report(job: ReportJob, experiment: str, summary: Mapping[str, Any]) -> str:
+    """Log the report as a run of kind ``report`` (left out of the run search); its run id."""
+    settings = job.report
+    exp_id = mlflow_utils.experiment_id(job.logger, kind="report")
+    with mlflow.start_run(experiment_id=exp_id, run_name=redact(settings.run_name)) as active:
+        mlflow.set_tags(
+            {
+                RUN_TYPE_TAG: "report",
+                "report.kind": "ablation",
+                "report.recipe": str(summary.get("recipe")),
+                "report.missing": ", ".join(summary["missing"]) or "none",
+                "report.source_experiment": experiment,
+                "report.mixed_params": json.dumps(summary.get("mixed") or {})[:5000],
+            }
+        )
+        params = {"report": dataclasses.asdict(settings)}
+        mlflow.log_params(mlflow_utils.flatten_params(params))
+        mlflow.log_dict(dict(summary), "ablation/summary.json")
+        mlflow.log_artifacts(settings.out_dir, "ablation")
+        mlflow.log_metrics(_report_metrics(summary))
+        return active.info.run_id
 
 
 def _gate_model(
@@ -239,9 +269,6 @@ def build_report(job: ReportJob) -> dict[str, Any]:
     if mixed:
         summary["mixed"] = mixed
     if settings.log_mlflow:
-        params = {"report": dataclasses.asdict(settings)}
-        run_id = log_report(job.logger, params, settings.run_name, experiment,
-                            Path(settings.out_dir), summary)  # fmt: skip
-        summary["report_run_id"] = run_id
+        summary["report_run_id"] = _log_report(job, experiment, summary)
     log.info("ablation report written to %s", settings.out_dir)
     return summary

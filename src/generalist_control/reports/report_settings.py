@@ -1,7 +1,6 @@
-"""The ablation report's config (``conf/report``), read once by ``report.py`` into these.
+"""The ablation report's config (``conf/report``), read once by ``report.py``.
 
-Every key is described in ``conf/report/default.yaml``, its one default; the fields here
-have none of their own.
+Every key is described in ``conf/report/default.yaml``, its one default.
 """
 
 from __future__ import annotations
@@ -63,12 +62,7 @@ class ReportSettings:
 
 @dataclass(frozen=True)
 class ReportJob:
-    """The report's settings and what it reads of other groups.
-
-    ``logger``: the ``logger`` group, as :mod:`generalist_control.tracking` reads it;
-    ``plants``: ``report.plants``, else ``closed_loop.systems``; ``bar``:
-    ``evaluation.quality_bar`` (the limits that separate scenarios); ``threads``.
-    """
+    """The report's settings; ``plants``: ``report.plants``, else ``closed_loop.systems``."""
 
     report: ReportSettings
     logger: Mapping[str, Any]
