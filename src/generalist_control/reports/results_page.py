@@ -1,10 +1,6 @@
-"""The results page, ``docs/results.md``, and its figures, generated from the committed reports.
+"""``make results``: ``docs/results.md`` and its figures from the committed reports.
 
-``make results`` (``python -m generalist_control.reports.results_page``) reads every recipe's
-reports (:data:`RECIPES`: which files, the command that writes them), draws the ablation's
-figures from its committed tables into ``docs/figures/`` and writes the page. Same reports,
-same bytes: nothing else (clock, host) goes in. A report it cannot read is named, with the
-fix; ``--check`` compares instead of writing.
+Same reports, same bytes (no clock, no host); a report it cannot read is named, with the fix.
 """
 
 from __future__ import annotations
@@ -12,18 +8,13 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import os
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from generalist_control.reports.figures import (
-    draw_figures,
-    figure_key,
-    figure_names,
-    read_tables,
-)
+from generalist_control.common.jsonsafe import write_text_atomic
+from generalist_control.reports.figures import draw_figures, figure_key, figure_names, read_tables
 from generalist_control.reports.results_sections import (
     FIGURES,
     MAX_ROWS,
@@ -46,7 +37,6 @@ __all__ = [
     "main",
     "read_reports",
     "render_page",
-    "write_page",
 ]
 
 
@@ -89,7 +79,6 @@ RECIPES: tuple[Recipe, ...] = (
 
 #: The page, relative to the repository root.
 PAGE = "docs/results.md"
-#: The repository root of this source tree (``src/generalist_control/reports/`` is 3 below).
 REPO_ROOT = Path(__file__).resolve().parents[3]
 MAX_LINES = 400
 NOTE = (
@@ -101,8 +90,6 @@ HISTORY = (
     "docs and config comments cite by name) is `docs/notes/2026-12-04-results-diary.md`."
 )
 
-# --- reading ---------------------------------------------------------------------------
-
 
 class ReportFileError(ValueError):
     """A report the page cannot read: the message names the file and the fix."""
@@ -113,6 +100,13 @@ def _fix(recipe: Recipe, paths: Sequence[str]) -> str:
     return (
         f"restore the committed version (git checkout -- {restore}) or write it again with "
         f"`{recipe.command}`"
+    )
+
+
+def _layout_error(recipe: Recipe, files: Sequence[str], exc: Exception) -> ReportFileError:
+    return ReportFileError(
+        f"{', '.join(files)}: not the layout the page reads ({type(exc).__name__}: {exc}); "
+        f"{_fix(recipe, files)}"
     )
 
 
@@ -145,10 +139,7 @@ def _figures(root: Path, recipe: Recipe) -> dict[str, Any]:
         return {"figures": figure_names(t), "figures_key": t.key}
     except (ValueError, KeyError, IndexError, TypeError) as exc:
         files = [str(folder / n) for n in ("runs.csv", "points.csv", "gate_weights.csv")]
-        raise ReportFileError(
-            f"{', '.join(files)}: not the layout the page reads ({type(exc).__name__}: {exc}); "
-            f"{_fix(recipe, files)}"
-        ) from None
+        raise _layout_error(recipe, files, exc) from None
 
 
 def read_reports(
@@ -167,9 +158,6 @@ def read_reports(
         data = {role: _read(root, p, r) for role, p in r.files.items() if (root / p).is_file()}
         out[r.key] = {**data, **(_figures(root, r) if "summary" in data else {})}
     return out
-
-
-# --- the page ------------------------------------------------------------------------------
 
 
 def _headline(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
@@ -199,7 +187,7 @@ def _headline(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
     if recipe.kind != "evaluation":
         return [recipe.key, "n/a", "n/a", "n/a", "n/a", "n/a"]
     s = data.get("scores") or {}
-    if not s:  # no scores.json: the same figures from summary.json
+    if not s:  # no scores.json: the same figures from summary.json, tolerant of gaps
         step = (summary.get("ratios") or {}).get("step") or {}
         rmse = [
             number(v.get("worst_RMSE_ratio")) for v in (summary.get("tracking") or {}).values()
@@ -244,11 +232,7 @@ def _checked(
     try:
         return render(recipe, data)
     except (AttributeError, TypeError, KeyError, ValueError, IndexError) as exc:
-        files = list(recipe.files.values())
-        raise ReportFileError(
-            f"{', '.join(files)}: not the layout the page reads ({type(exc).__name__}: {exc}); "
-            f"{_fix(recipe, files)}"
-        ) from None
+        raise _layout_error(recipe, list(recipe.files.values()), exc) from None
 
 
 def render_page(
@@ -278,17 +262,6 @@ def render_page(
 def build_page(root: str | Path = REPO_ROOT, recipes: Sequence[Recipe] = RECIPES) -> str:
     """Read the reports under ``root`` and render the page."""
     return render_page(read_reports(root, recipes), recipes)
-
-
-def write_page(text: str, path: str | Path) -> None:
-    """Write ``text`` to ``path`` atomically: a temporary sibling, then one rename."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")  # git-ignored: .*.tmp-*
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def _publish_figures(
@@ -350,7 +323,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{out}: {'up to date' if same else 'differs: run make results'}")
         print("".join(f"  stale: {p}\n" for p in stale), end="")
         return 0 if same else 1
-    write_page(text, out)
+    write_text_atomic(out, text)
     print(f"{out}: {text.count(chr(10))} lines")
     return 0
 

@@ -1,8 +1,4 @@
-"""The parts of the results page: figures, tables and one section per kind of recipe.
-
-Pure functions, parsed report files in, markdown lines out; no table holds more than
-:data:`MAX_ROWS` rows.
-"""
+"""The sections of the results page: parsed report files in, markdown lines out."""
 
 from __future__ import annotations
 
@@ -11,7 +7,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["FIGURES", "FIGURE_TITLES", "MAX_ROWS", "SECTIONS", "Recipe", "fmt", "number", "table"]
+__all__ = ["FIGURES", "MAX_ROWS", "SECTIONS", "Recipe", "fmt", "number", "policy_cell", "table"]
 
 MAX_ROWS = 20
 #: The figures' folder, relative to the page.
@@ -20,21 +16,13 @@ FIGURES = "figures"
 
 @dataclass(frozen=True)
 class Recipe:
-    """One recipe of the page: its reports and the command that writes them.
-
-    ``kind`` picks the section's renderer (``evaluation``, ``variants``, ``ablation``);
-    ``files`` maps a role (``summary`` is required, the others optional) to a path relative
-    to the repository root.
-    """
+    """One recipe of the page: ``kind`` picks its section, ``files`` maps a role to a path."""
 
     key: str
     title: str
     kind: str
     command: str
     files: Mapping[str, str]
-
-
-# --- formatting ------------------------------------------------------------------------
 
 
 def number(value: Any) -> float | None:
@@ -88,9 +76,6 @@ def table(header: Sequence[str], rows: Sequence[Sequence[str]], source: str) -> 
         rest = [""] * (len(header) - 1)
         lines.append("| " + " | ".join([f"{len(rows) - MAX_ROWS} more in `{source}`", *rest]))
     return lines
-
-
-# --- parts of a section ------------------------------------------------------------------
 
 
 def _head(recipe: Recipe, summary: Mapping[str, Any]) -> list[str]:
@@ -158,10 +143,10 @@ def _scenario_rows(summary: Mapping[str, Any]) -> list[list[str]]:
     def lost(scen: str) -> str:
         return fmt(sum(int((div.get(c) or {}).get(scen, 0)) for c in ("GC", "GC-AW")))
 
-    rows = []
-    for scen, f in (summary.get("ratios") or {}).items():
-        rows.append([f"`{scen}`", _worst(f, "ISE"), _worst(f, "ITAE"), "", _worst(f, "ess")])
-        rows[-1].append(lost(scen))
+    rows = [
+        [f"`{scen}`", _worst(f, "ISE"), _worst(f, "ITAE"), "", _worst(f, "ess"), lost(scen)]
+        for scen, f in (summary.get("ratios") or {}).items()
+    ]
     for scen, f in (summary.get("tracking") or {}).items():
         rows.append([f"`{scen}`", "", "", _worst(f, "RMSE"), "", lost(scen)])
     for scen, f in (summary.get("anti_windup") or {}).items():
@@ -193,8 +178,6 @@ def _tag_free_bar(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
         "",
     ]
 
-
-# --- sections ----------------------------------------------------------------------------
 
 _SCENARIO_HEADER = ("scenario", "worst ISE ratio", "worst ITAE ratio", "worst RMSE ratio",
                     "worst relative e_ss of GC", "GC runs diverged")  # fmt: skip
@@ -325,6 +308,15 @@ def _ablation_section(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
     return lines + _claims(recipe, summary)
 
 
+def policy_cell(figures: Mapping[str, Any] | None) -> str:
+    """``ISE / RMSE / diverged`` of one policy on one held-out plant."""
+    f = figures or {}
+    return (
+        f"{fmt(number(f.get('ISE_ratio')))} / {fmt(number(f.get('RMSE_ratio_worst')))}"
+        f" / {fmt(f.get('diverged_runs'))}"
+    )
+
+
 def _unseen_row(name: str, entry: Mapping[str, Any]) -> list[str]:
     """One held-out plant: its class, the adaptation, and per policy ISE / RMSE / diverged."""
     cls = entry.get("class") or {}
@@ -340,13 +332,7 @@ def _unseen_row(name: str, entry: Mapping[str, Any]) -> list[str]:
              "n/a" if wall is None else f"{wall:.0f}",
              f"{fmt(demos.get('windows'))} + {fmt(demos.get('dagger_windows'))}"]  # fmt: skip
     policies = entry.get("policies") or {}
-    for label in ("adapted", "zero_shot", "trained_with"):
-        f = policies.get(label) or {}
-        cells.append(
-            f"{fmt(number(f.get('ISE_ratio')))} / {fmt(number(f.get('RMSE_ratio_worst')))}"
-            f" / {fmt(f.get('diverged_runs'))}"
-        )
-    return cells
+    return cells + [policy_cell(policies.get(k)) for k in ("adapted", "zero_shot", "trained_with")]
 
 
 _UNSEEN_HEADER = ("held-out plant", "class", "adaptation s", "windows + DAgger",

@@ -5,27 +5,12 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from generalist_control.reports.results_sections import (
-    SECTIONS as BASE_SECTIONS,
-)
-from generalist_control.reports.results_sections import (
-    Recipe,
-    fmt,
-    number,
-    table,
-)
+from generalist_control.reports.results_sections import SECTIONS as BASE_SECTIONS
+from generalist_control.reports.results_sections import Recipe, fmt, number, policy_cell, table
 
 __all__ = ["SECTIONS", "routes_lines"]
 
 _HEADER = ("held-out plant", "model card: ISE / RMSE / diverged", "in context")
-
-
-def _cell(figures: Mapping[str, Any] | None) -> str:
-    f = figures or {}
-    return (
-        f"{fmt(number(f.get('ISE_ratio')))} / {fmt(number(f.get('RMSE_ratio_worst')))}"
-        f" / {fmt(f.get('diverged_runs'))}"
-    )
 
 
 def _draw_lines(draw: Mapping[str, Any], source: str) -> list[str]:
@@ -53,7 +38,7 @@ def routes_lines(summary: Mapping[str, Any], source: str) -> list[str]:
         return []
     held = summary.get("held_out") or {}
     rows = [
-        [f"`{name}`", _cell(e["policies"].get("card")), _cell(e["policies"].get("in_context"))]
+        [f"`{name}`", *(policy_cell(e["policies"].get(k)) for k in ("card", "in_context"))]
         for name, e in held.items()
         if isinstance(e, Mapping)
     ]
@@ -68,10 +53,8 @@ def routes_lines(summary: Mapping[str, Any], source: str) -> list[str]:
     draw = summary.get("family_draw")
     if isinstance(draw, Mapping):
         lines += _draw_lines(draw, source)
-    bars = routes.get("bars") or {}
-    cells = [f"`{k}` {'pass' if v else '**fail**'}" for k, v in bars.items()]
-    lines += [f"Issue 50's bars: {'; '.join(cells)}.", ""]
-    return lines
+    cells = [f"`{k}` {'pass' if v else '**fail**'}" for k, v in (routes.get("bars") or {}).items()]
+    return [*lines, f"Issue 50's bars: {'; '.join(cells)}.", ""]
 
 
 def _unseen(recipe: Recipe, data: Mapping[str, Any]) -> list[str]:
