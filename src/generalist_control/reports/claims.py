@@ -1,9 +1,6 @@
 """The paper's Section 7, claim by claim, beside our runs: ours, the paper's, and a verdict.
 
-Each :class:`Claim` is one figure or finding of the paper; :func:`judge_claims` measures it
-on every seed's run and gives a verdict by the rule in :data:`RULES` (``reproduces``, ``does
-not reproduce``, ``seed-dependent``, ``not comparable``, ``no run``, ``no score``;
-docs/pipeline.md explains them).
+The verdicts are explained in docs/pipeline.md.
 """
 
 from __future__ import annotations
@@ -60,36 +57,16 @@ _GATE_NOTE = "ours: mean gate weight over a closed-loop unit step; expert number
 
 @dataclass(frozen=True)
 class Claim:
-    """One claim of the paper's Section 7.
-
-    Attributes
-    ----------
-    key : str
-        Short identifier (``loss_d16``), a row of ``claims.csv``.
-    text : str
-        The claim as the table words it.
-    kind : str
-        A key of :data:`RULES`.
-    configs : tuple of (d, M)
-        The configurations it reads: one for a figure, (numerator, denominator) for a
-        ratio, (the claimed best, the others...) for an order.
-    paper : float or str
-        The paper's figure (a float) or finding (a str).
-    plant : str, optional
-        The plant of an MSE or a gate share.
-    default_reason : str, optional
-        Why the figure is not comparable for our default recipe (None: it is).
-    note : str
-        What the comparison assumes.
-    """
+    """One claim of the paper's Section 7: a figure (a float) or finding (a str) of the paper."""
 
     key: str
     text: str
-    kind: str
+    kind: str  #: a key of :data:`RULES`
+    #: one for a figure, (numerator, denominator) for a ratio, (best, others...) for an order
     configs: tuple[Config, ...]
     paper: float | str
     plant: str | None = None
-    default_reason: str | None = None
+    default_reason: str | None = None  #: why not comparable for the default recipe
     note: str = ""
 
 
@@ -223,7 +200,6 @@ def _judge_order(claim: Claim, by_config: Runs) -> tuple[str, str]:
     rivals = [v for group in others for v in group]
     if any(v is None for v in [*best, *rivals]):
         return NO_SCORE, "a run has no score"
-    # one verdict per run (seed) of the first configuration: below every rival run
     pairs = [all(b < r for r in rivals) for b in best]  # type: ignore[operator]
     ours = "; ".join(
         f"d={d}, M={m}: " + ", ".join(_fmt(p.mse[str(claim.plant)]) for p in by_config[(d, m)])
@@ -284,14 +260,12 @@ def judge_claims(
     Parameters
     ----------
     by_config : mapping
-        (d, M) -> the configuration's runs, one per seed
-        (:func:`~generalist_control.reports.points.seed_runs`).
+        (d, M) -> the configuration's runs, one per seed.
     gates : DataFrame or None
         The M = 5 model's mean gate weights (plants x ``expert_<i>``), or None without it.
     tolerance : Tolerance
-        ``report.claims``.
     recipe : {"default", "paper"}
-        The runs' recipe: some figures are comparable only for the paper's.
+        Some figures are comparable only for the paper's.
 
     Returns
     -------

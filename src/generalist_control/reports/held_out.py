@@ -1,9 +1,7 @@
 """The held-out protocol (``beyond/dvc.yaml:unseen``): plants the policy has never seen.
 
-Per held-out plant, three policies run every scenario against its LQI: the default trained
-without it plus its learned row (``adapted``), the tag-free one with only its scales fitted
-(``zero_shot``) and the default trained with it (``trained_with``); then a bar on the
-adapted ones (:func:`judge`). docs/pipeline.md describes the files.
+Per held-out plant, the :data:`POLICIES` run every scenario against its LQI; then a bar on the
+adapted ones (:func:`judge`). docs/pipeline.md describes them and the files.
 """
 
 from __future__ import annotations
@@ -15,7 +13,6 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import control
 import mlflow
 import numpy as np
 import pandas as pd
@@ -36,9 +33,11 @@ from generalist_control.evaluation.summary import summarise
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.definition import Plant
+from generalist_control.reports.explore import plant_properties
 from generalist_control.reports.held_out_routes import (
     family_draw,
     judge_routes,
+    ratio,
     route_paths,
     zero_shot,
 )
@@ -65,11 +64,7 @@ OWNED: dict[str, str | None] = {"metrics.csv": None, "summary.json": None}
 
 @dataclasses.dataclass(frozen=True)
 class UnseenSettings:
-    """What the stage reads of its config (``conf/unseen.yaml``), read once by the entry point.
-
-    ``models``, ``trained_with``, ``routes``, ``family_draw``, ``bar`` and ``routes_bar`` are
-    the ``unseen`` group's keys; the rest are the groups of the same names.
-    """
+    """What the stage reads of its config (``conf/unseen.yaml``), read once by the entry point."""
 
     reports_dir: Path
     models: Path
@@ -86,9 +81,7 @@ class UnseenSettings:
 #: The stage's trainings: ``<unseen.models>/<folder>/policy.ckpt``.
 TRAININGS = {"adapted": "default", "zero_shot": "tag_free"}
 
-#: The bar on the adapted policies (``unseen.bar`` overrides it): no diverged run, at most
-#: ``wall_s`` of adaptation per plant, unit-step ISE ratio <= ``ISE_ratio`` and worst tracking
-#: RMSE ratio <= ``RMSE_ratio`` on all plants but ``allowed_over``, both <= ``all_ratio`` on all.
+#: The bar on the adapted policies (``unseen.bar`` overrides it; docs/pipeline.md).
 DEFAULT_BAR = {
     "wall_s": 180.0,
     "ISE_ratio": 1.1,
@@ -102,14 +95,9 @@ STAGE = "dvc repro beyond/dvc.yaml:unseen (its first two commands train them)"
 
 
 def plant_class(plant: Plant) -> dict[str, Any]:
-    """What makes a plant hard, from its (linearised) model.
-
-    ``open_loop_unstable`` (a pole with a positive real part), ``non_minimum_phase`` (a zero
-    with one), ``nonlinear``, ``order`` and ``min_damping`` (the smallest damping ratio of
-    its complex poles; None without).
-    """
-    poles = np.linalg.eigvals(plant.A)
-    zeros = np.asarray(control.ss(plant.A, plant.B, plant.C, 0).zeros())
+    """What makes a plant hard: instability, non-minimum phase, order, the least damping."""
+    props = plant_properties(plant)
+    poles, zeros = props["poles"], props["zeros"]
     complex_poles = poles[np.abs(poles.imag) > 1e-9]
     damping = -complex_poles.real / np.abs(complex_poles)
     return {
@@ -121,20 +109,12 @@ def plant_class(plant: Plant) -> dict[str, Any]:
     }
 
 
-def _ratio(value: Any) -> float:
-    """A ratio of the summary; a missing one (every run diverged) counts as infinite."""
-    return float("inf") if value is None else float(value)
-
-
 def judge(entries: Mapping[str, Any], bar: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """The bar (:data:`DEFAULT_BAR`) on the ``adapted`` figures of every held-out plant.
-
-    Returns the bars, each with its figures and ``pass``, and ``pass`` of them all.
-    """
+    """The bars (:data:`DEFAULT_BAR`) on the ``adapted`` figures, each with ``pass``; ``pass``."""
     b = {**DEFAULT_BAR, **(bar or {})}
     figs = {name: e["policies"]["adapted"] for name, e in entries.items()}
-    ise = {n: _ratio(f["ISE_ratio"]) for n, f in figs.items()}
-    rmse = {n: _ratio(f["RMSE_ratio_worst"]) for n, f in figs.items()}
+    ise = {n: ratio(f["ISE_ratio"]) for n, f in figs.items()}
+    rmse = {n: ratio(f["RMSE_ratio_worst"]) for n, f in figs.items()}
     over = sorted(n for n in figs if ise[n] > b["ISE_ratio"] or rmse[n] > b["RMSE_ratio"])
     worst = max([*ise.values(), *rmse.values()], default=float("nan"))
     diverged = sum(int(f["diverged_runs"]) for f in figs.values())
@@ -154,7 +134,7 @@ def judge(entries: Mapping[str, Any], bar: Mapping[str, Any] | None = None) -> d
 
 
 def _paths(settings: UnseenSettings) -> dict[str, Path]:
-    """The three policies' files, each checked to exist (before any work)."""
+    """The three policies' files, each checked to exist."""
     paths = {k: settings.models / v / POLICY_FILE for k, v in TRAININGS.items()}
     paths["trained_with"] = settings.trained_with
     for key, path in paths.items():
@@ -227,23 +207,6 @@ def _plant(
     return df, entry
 
 
-def _family_draw(settings: UnseenSettings, card: Path, frames: list[pd.DataFrame]) -> dict | None:
-    """The card route on the held-out family draw (``unseen.family_draw``; None: off)."""
-    if settings.family_draw is None:
-        return None
-    scenarios = settings.evaluation.scenarios
-
-    def run(rt: PolicyRuntime, plants: list[Plant]) -> pd.DataFrame:
-        df, _ = evaluate(rt, plants, scenarios)
-        df.insert(0, "policy", "card")
-        return df
-
-    df, draw = family_draw(card, settings.family_draw, settings.data, run)
-    frames.append(df)
-    log.info("held-out family draw: median ISE ratio %.4g", draw["ISE_ratio"]["median"])
-    return draw
-
-
 def _write(out_dir: Path, df: pd.DataFrame, summary: Mapping[str, Any]) -> None:
     with staging_directory(out_dir) as staging:
         df.to_csv(staging / "metrics.csv", index=False)
@@ -252,7 +215,7 @@ def _write(out_dir: Path, df: pd.DataFrame, summary: Mapping[str, Any]) -> None:
 
 
 def _log(logger: Mapping[str, Any], summary: Mapping[str, Any], out_dir: Path) -> None:
-    """The stage's own run (experiment ``<prefix>/unseen``): the per-plant figures."""
+    """The stage's own run (experiment ``<prefix>/unseen``)."""
     flat = {}
     for name, entry in summary["held_out"].items():
         flat[f"unseen/{name}/adaptation_wall_s"] = entry["adaptation_wall_s"]
@@ -268,8 +231,6 @@ def _log(logger: Mapping[str, Any], summary: Mapping[str, Any], out_dir: Path) -
 
 def run_unseen(settings: UnseenSettings, requests: Mapping[str, AdaptRequest]) -> dict[str, Any]:
     """Adapt to, and evaluate on, every held-out plant; write ``paths.reports_dir``.
-
-    ``requests``: each held-out plant's adaptation, read by the entry point.
 
     Raises
     ------
@@ -293,8 +254,13 @@ def run_unseen(settings: UnseenSettings, requests: Mapping[str, AdaptRequest]) -
         "policies": {k: str(v) for k, v in {**paths, **routes}.items()},
     }
     if routes:
-        draw = _family_draw(settings, routes["card"], frames)
-        summary["routes"] = {**judge_routes(entries, draw, settings.routes_bar)}
+        draw = None
+        if settings.family_draw is not None:
+            spec, scenarios = settings.family_draw, settings.evaluation.scenarios
+            df, draw = family_draw(routes["card"], spec, settings.data, scenarios)
+            frames.append(df)
+            log.info("held-out family draw: median ISE ratio %.4g", draw["ISE_ratio"]["median"])
+        summary["routes"] = judge_routes(entries, draw, settings.routes_bar)
         summary["family_draw"] = draw
     _write(out_dir, pd.concat(frames, ignore_index=True), summary)
     _log(settings.logger, summary, out_dir)

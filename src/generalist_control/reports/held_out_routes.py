@@ -1,14 +1,13 @@
 """The held-out protocol's zero-shot routes and its held-out family draw (issue 50).
 
-Each held-out plant is met, nothing learned, by the model card route (its model) and the
-in-context route (a normaliser row of its demonstrations' RMS); the card route also meets a
-family draw no training saw. :func:`judge_routes` holds issue 50's bars (docs/pipeline.md).
+The model card route meets each held-out plant by its model, the in-context route by a
+normaliser row of its demonstrations' RMS; :func:`judge_routes` holds issue 50's bars.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, cast
 
@@ -20,23 +19,28 @@ from omegaconf import OmegaConf
 from generalist_control.common.paths import conf_dir
 from generalist_control.data.generation import generate_demos
 from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.evaluation.runner import evaluate
 from generalist_control.model.bank import add_scales, data_rows
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
 from generalist_control.plants.definition import Plant
 from generalist_control.simulation.family_draw import draw_family, read_families
 
-__all__ = ["ROUTES", "ROUTES_BAR", "family_draw", "judge_routes", "route_paths", "zero_shot"]
+__all__ = [
+    "ROUTES",
+    "ROUTES_BAR",
+    "family_draw",
+    "judge_routes",
+    "ratio",
+    "route_paths",
+    "zero_shot",
+]
 
 log = logging.getLogger(__name__)
 
 #: The zero-shot routes, each its training's folder under ``unseen.models``.
 ROUTES = {"card": "family_card", "in_context": "family_context"}
 
-#: Issue 50's bars (``unseen.routes_bar`` overrides): the card route on the held-out plants
-#: (no divergence; unit-step ISE and worst tracking RMSE ratios <= ``near`` on all but
-#: ``allowed_over`` and <= ``all`` on all) and on the family draw (no divergence, median ISE
-#: ratio <= ``median``, 95th percentile <= ``p95``); in context, on the held-out plants: no
-#: divergence, ISE ratio <= ``context`` on all but ``allowed_over``.
+#: Issue 50's bars (``unseen.routes_bar`` overrides them; docs/pipeline.md).
 ROUTES_BAR = {"near": 1.10, "all": 1.25, "allowed_over": 1, "median": 1.05, "p95": 1.25,
               "context": 1.25}  # fmt: skip
 
@@ -56,7 +60,7 @@ def route_paths(models: Path) -> dict[str, Path]:
 def _scales(
     policy: Policy, meta: Mapping[str, Any], plant: Plant, data: Mapping[str, Any]
 ) -> dict[str, torch.Tensor]:
-    """The plant's normaliser row: the RMS of its demonstrations' windows (the data recipe)."""
+    """The plant's normaliser row: the RMS of its demonstrations' windows."""
     demos = generate_demos([plant], data, progress=False)
     channels = policy.channels
     w = demos.windows(
@@ -102,12 +106,11 @@ def family_draw(
     path: Path,
     spec: Mapping[str, Any],
     data: Mapping[str, Any],
-    run: Callable[[PolicyRuntime, list[Plant]], pd.DataFrame],
+    scenarios: Mapping[str, Mapping[str, Any]],
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """The card route on ``spec.count`` plants of family ``spec.family`` drawn from ``spec.seed``.
 
-    ``spec.checks`` overrides the family's checks (null: none). ``run(runtime, plants)``
-    evaluates the plants (every scenario, long-form metrics).
+    Returns the long-form metrics of every scenario (``policy`` ``card``) and their summary.
 
     Raises
     ------
@@ -126,7 +129,8 @@ def family_draw(
     rt = PolicyRuntime(policy, meta)
     for p in draw.plants:
         rt.add_plant(p)
-    df = run(rt, draw.plants)
+    df, _ = evaluate(rt, draw.plants, scenarios)
+    df.insert(0, "policy", "card")
     return df, _draw_summary(df, draw.plants, spec)
 
 
@@ -157,7 +161,8 @@ def _quantile(values: pd.Series, q: float) -> float:
     return float(np.quantile(values.to_numpy(dtype=float), q, method="inverted_cdf"))
 
 
-def _ratio(value: Any) -> float:
+def ratio(value: Any) -> float:
+    """A ratio of a summary; a missing one (every run diverged) counts as infinite."""
     return float("inf") if value is None else float(value)
 
 
@@ -167,12 +172,10 @@ def judge_routes(
     """Issue 50's bars (:data:`ROUTES_BAR`) on the routes' figures; ``pass`` of each."""
     b = {**ROUTES_BAR, **bar}
     card = {n: e["policies"]["card"] for n, e in entries.items()}
-    worst = {
-        n: max(_ratio(f["ISE_ratio"]), _ratio(f["RMSE_ratio_worst"])) for n, f in card.items()
-    }
+    worst = {n: max(ratio(f["ISE_ratio"]), ratio(f["RMSE_ratio_worst"])) for n, f in card.items()}
     over = sorted(n for n, v in worst.items() if v > b["near"])
     ctx = {n: e["policies"]["in_context"] for n, e in entries.items()}
-    ctx_over = sorted(n for n, f in ctx.items() if _ratio(f["ISE_ratio"]) > b["context"])
+    ctx_over = sorted(n for n, f in ctx.items() if ratio(f["ISE_ratio"]) > b["context"])
     bars = {
         "card_no_divergence": sum(int(f["diverged_runs"]) for f in card.values()) == 0,
         "card_most_within": len(over) <= int(b["allowed_over"]),

@@ -1,8 +1,4 @@
-"""The ablation's training runs, read back from MLflow: one :class:`RunPoint` per run.
-
-The runs of one experiment (:func:`runs_from_mlflow`), the run drawn for each sweep point
-(:func:`select_sweeps`) and the per-plant MSE of the points (:func:`mse_frame`).
-"""
+"""The ablation's training runs, read back from MLflow: one :class:`RunPoint` per run."""
 
 from __future__ import annotations
 
@@ -13,6 +9,7 @@ from typing import Any
 
 import pandas as pd
 
+from generalist_control.evaluation.eval_run import RUN_TYPE_TAG
 from generalist_control.tracking.parents import ROLE_TAG
 
 __all__ = [
@@ -38,9 +35,7 @@ SWEEP_COMMANDS = (
     "python train.py -m model.hidden=16,32,64",
     "python train.py -m experts=1,3,5",
 )
-#: Tag that marks runs written by this module (left out of the run search).
-RUN_TYPE_TAG = "gc.run_type"
-#: Sweep name -> (run attribute, symbol used in labels).
+#: Sweep name (the run attribute) -> the symbol used in labels.
 SWEEPS = {"hidden": "d", "experts": "M"}
 NO_RUN = "no run"
 NOT_AVAILABLE = "no score"
@@ -52,50 +47,23 @@ class NoAblationRunsError(LookupError):
 
 @dataclass(frozen=True)
 class RunPoint:
-    """The figures of one finished training run that the report needs.
-
-    Attributes
-    ----------
-    run_id, run_name : str
-    hidden, experts : int
-        ``model.hidden`` (d) and ``experts`` (M).
-    n_parameters : int or None
-    train_loss : float or None
-        The last logged ``train/loss`` (the final training loss).
-    val_loss, best_val_loss : float or None
-        The last logged ``val/loss`` (the published checkpoint's, which training validates
-        last) and ``best/val/loss``.
-    seed : int or None
-        The training's ``seed``.
-    mse : dict
-        ``closed_loop/mse/<plant>`` by plant (only finite scores are logged by training).
-    diverged : int
-        ``closed_loop/diverged``: plants whose GC closed loop diverged (no score logged).
-    start_time : int
-        Milliseconds since the epoch.
-    params : dict
-        Every logged param (what :mod:`generalist_control.reports.selection` compares).
-    parent_id : str or None
-        The sweep's or study's parent run (tag ``mlflow.parentRunId``).
-    policy_dir : str or None
-        The absolute folder the run wrote its policy to (tag ``policy_dir``).
-    """
+    """The figures of one finished training run that the report needs (its last logged)."""
 
     run_id: str
     run_name: str
-    hidden: int
-    experts: int
+    hidden: int  #: ``model.hidden`` (d)
+    experts: int  #: ``experts`` (M)
     n_parameters: int | None
     train_loss: float | None
-    mse: dict[str, float] = field(default_factory=dict)
-    diverged: int = 0
-    start_time: int = 0
+    mse: dict[str, float] = field(default_factory=dict)  #: ``closed_loop/mse/<plant>``
+    diverged: int = 0  #: ``closed_loop/diverged``: plants whose GC loop diverged
+    start_time: int = 0  #: ms since the epoch
     params: Mapping[str, str] = field(default_factory=dict, compare=False, repr=False)
-    parent_id: str | None = None
+    parent_id: str | None = None  #: tag ``mlflow.parentRunId``
     val_loss: float | None = None
     best_val_loss: float | None = None
     seed: int | None = None
-    policy_dir: str | None = None
+    policy_dir: str | None = None  #: the absolute folder of its policy (tag ``policy_dir``)
 
     @property
     def label(self) -> str:
@@ -108,6 +76,10 @@ def _as_int(text: str | None) -> int | None:
         return int(float(text)) if text is not None else None
     except ValueError:
         return None
+
+
+def _float(value: Any) -> float | None:
+    return None if value is None else float(value)
 
 
 def _point(run: Any) -> RunPoint | None:
@@ -123,43 +95,35 @@ def _point(run: Any) -> RunPoint | None:
     n_params = _as_int(params.get("n_parameters"))
     if n_params is None and "n_parameters" in metrics:
         n_params = int(metrics["n_parameters"])
-    loss, val, best = (metrics.get(k) for k in ("train/loss", "val/loss", "best/val/loss"))
+    loss, val, best = (_float(metrics.get(k)) for k in ("train/loss", "val/loss", "best/val/loss"))
     return RunPoint(
         run_id=run.info.run_id,
         run_name=run.info.run_name or "",
         hidden=hidden,
         experts=experts,
         n_parameters=n_params,
-        train_loss=float(loss) if loss is not None else None,
+        train_loss=loss,
         mse=mse,
         diverged=int(metrics.get("closed_loop/diverged", 0) or 0),
         start_time=int(run.info.start_time or 0),
         params=dict(params),
         parent_id=tags.get("mlflow.parentRunId"),
-        val_loss=float(val) if val is not None else None,
-        best_val_loss=float(best) if best is not None else None,
+        val_loss=val,
+        best_val_loss=best,
         seed=_as_int(params.get("seed")),
         policy_dir=tags.get("policy_dir"),
     )
 
 
-class _ParentRoles:
-    """The ``gc.role`` tag of a run's parent run (None: no parent, or a deleted one)."""
-
-    def __init__(self, client: Any) -> None:
-        self.client = client
-        self.roles: dict[str, str | None] = {}  # parent run id -> its gc.role tag
-
-    def __call__(self, run: Any) -> str | None:
-        parent = run.data.tags.get("mlflow.parentRunId")
-        if not parent:
-            return None
-        if parent not in self.roles:
-            try:
-                self.roles[parent] = self.client.get_run(parent).data.tags.get(ROLE_TAG)
-            except Exception:  # noqa: BLE001 (a deleted parent: keep the run)
-                self.roles[parent] = None
-        return self.roles[parent]
+def _parent_role(client: Any, roles: dict[str, str | None], run: Any) -> str | None:
+    """The ``gc.role`` tag of a run's parent (None: no parent, or a deleted one), cached."""
+    parent = run.data.tags.get("mlflow.parentRunId")
+    if parent and parent not in roles:
+        try:
+            roles[parent] = client.get_run(parent).data.tags.get(ROLE_TAG)
+        except Exception:  # noqa: BLE001 (a deleted parent: keep the run)
+            roles[parent] = None
+    return roles.get(parent) if parent else None
 
 
 def mlflow_client(tracking_uri: str | None = None) -> Any:
@@ -190,17 +154,16 @@ def runs_from_mlflow(
     Returns
     -------
     list of RunPoint
-        Runs with ``model.hidden`` and ``experts`` params. Left out: report runs, the parent
-        runs of sweeps and studies (tag ``gc.role``) and, unless ``parents`` names their
-        study, the trials of Optuna studies (their hyperparameters are not the baseline's);
-        the jobs of a multirun sweep are kept. An unknown experiment gives an empty list.
+        Runs with ``model.hidden`` and ``experts`` params, less report runs, sweep and study
+        parents and (unless ``parents`` names their study) Optuna trials. An unknown
+        experiment gives an empty list.
     """
     client = client or mlflow_client()
     experiment = client.get_experiment_by_name(experiment_name)
     if experiment is None:
         return []
     points, token = [], None
-    parent_role = _ParentRoles(client)
+    roles: dict[str, str | None] = {}  # parent run id -> its gc.role tag
     while True:
         page = client.search_runs(
             [experiment.experiment_id],
@@ -215,7 +178,7 @@ def runs_from_mlflow(
             if parents is not None:
                 if run.data.tags.get("mlflow.parentRunId") not in parents:
                     continue
-            elif parent_role(run) == "study":
+            elif _parent_role(client, roles, run) == "study":
                 continue  # a trial of an Optuna study
             point = _point(run)
             if point is not None:
@@ -233,10 +196,6 @@ def select_sweeps(
     baseline: tuple[int, int],
 ) -> dict[str, dict[int, RunPoint | None]]:
     """The run of each sweep point: the newest matching run of its smallest seed, or None.
-
-    A point trained with several seeds (the DVC ablation's second seeds) is drawn with its
-    smallest seed's run, so that the figures do not depend on which seed ran last;
-    :func:`generalist_control.reports.points.seed_runs` gives every seed's run.
 
     Parameters
     ----------
@@ -288,8 +247,7 @@ def mse_frame(
     -------
     DataFrame
         Columns ``sweep, value, label, plant, mse, status, run_id``; ``status`` is ``ok``,
-        ``no run`` (no run for the point) or ``no score`` (the run has no score for the plant:
-        its closed loop diverged or it was not trained on the plant).
+        ``no run`` or ``no score`` (diverged, or not trained on the plant).
     """
     rows = []
     for sweep, by_value in sweeps.items():
