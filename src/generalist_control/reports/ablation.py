@@ -31,16 +31,17 @@ from generalist_control.reports.claims import claims_records, judge_claims, verd
 from generalist_control.reports.comparison_markdown import comparison_markdown
 from generalist_control.reports.figures import draw_figures
 from generalist_control.reports.gates import gate_weights, policy_of_run
-from generalist_control.reports.points import infer_recipe, points_frame, run_label
 from generalist_control.reports.report_settings import ReportJob, ReportSettings, Tolerance
 from generalist_control.reports.runs import (
     NO_RUN,
     RUN_TYPE_TAG,
     SWEEP_COMMANDS,
     RunPoint,
+    infer_recipe,
     mlflow_client,
     mse_frame,
     point_label,
+    run_label,
     unique_points,
 )
 from generalist_control.reports.selection import select_runs
@@ -104,7 +105,7 @@ def report_tables(
     return {
         "mse": mse_frame(sweeps, plants),
         "runs": runs_table(sweeps),
-        "points": points_frame(by_config, plants, inputs.evaluations),
+        "points": evals.points_frame(by_config, plants, inputs.evaluations),
         "claims": judge_claims(by_config, gates, inputs.tolerance, recipe),
         "scenarios": evals.scenario_scores(labels, inputs.evaluations),
         "worst": worst,

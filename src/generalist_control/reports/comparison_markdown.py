@@ -149,7 +149,7 @@ def comparison_markdown(
     ----------
     tables : mapping
         ``claims`` (:func:`~generalist_control.reports.claims.judge_claims`), ``points``
-        (:func:`~generalist_control.reports.points.points_frame`), ``worst``
+        (:func:`~generalist_control.reports.evaluations.points_frame`), ``worst``
         (:func:`~generalist_control.reports.evaluations.scenario_worst`), ``separating``
         (:func:`~generalist_control.reports.evaluations.separating`) and ``mse`` (the sweeps'
         per-plant MSE, :func:`~generalist_control.reports.runs.mse_frame`).

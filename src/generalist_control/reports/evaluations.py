@@ -1,8 +1,6 @@
 """The ablation points' evaluations: verdicts, per-scenario scores, what separates the points.
 
-Each point of the DVC ablation is evaluated on every scenario after its training; the report
-reads those folders (``summary.json``, ``metrics.csv``) and matches each to the run that
-trained its policy (:func:`match`), whatever the folders are called.
+Each evaluation folder is matched to the run that trained its policy (:func:`match`).
 """
 
 from __future__ import annotations
@@ -17,13 +15,15 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from generalist_control.reports.runs import RunPoint
+from generalist_control.common.jsonsafe import finite
+from generalist_control.reports.runs import RunPoint, run_label
 
 __all__ = [
     "Evaluation",
     "bar_of",
     "load_evaluations",
     "match",
+    "points_frame",
     "scenario_scores",
     "scenario_worst",
     "separating",
@@ -42,10 +42,7 @@ class Evaluation:
 
 
 def load_evaluations(directory: str | Path | None) -> list[Evaluation]:
-    """The evaluations under ``directory`` (``*/summary.json``), oldest first.
-
-    A missing directory (or None) gives none.
-    """
+    """The evaluations under ``directory`` (``*/summary.json``), oldest first; none if absent."""
     if directory is None or not Path(directory).is_dir():
         return []
     out = []
@@ -59,9 +56,8 @@ def load_evaluations(directory: str | Path | None) -> list[Evaluation]:
 def match(evaluations: Sequence[Evaluation], runs: Sequence[RunPoint]) -> dict[str, Evaluation]:
     """Each run's evaluation, by run id (the newest of several).
 
-    An evaluation is a run's when it names the run (``policy.mlflow_run_id``, older
-    summaries) or evaluated the policy the run wrote (``policy.source`` in the run's
-    ``policy_dir``, resolved from the working directory, as the stages run).
+    An evaluation is a run's when it names the run (``policy.mlflow_run_id``) or evaluated
+    the policy the run wrote (``policy.source`` in its ``policy_dir``, from the working folder).
     """
     out: dict[str, Evaluation] = {}
     for ev in evaluations:  # oldest first: the newest wins
@@ -93,24 +89,10 @@ def _kind(metrics: pd.Series) -> str:
 def scenario_scores(
     labels: Mapping[str, str], evaluations: Mapping[str, Evaluation]
 ) -> pd.DataFrame:
-    """Per run, scenario and plant: GC's mean score over LQI's, from ``metrics.csv``.
+    """Per run, scenario and plant: GC's mean ISE (step) or RMSE (tracking) over LQI's.
 
-    The score is the ISE in step scenarios (those with step metrics) and the tracking RMSE
-    in the others, each averaged over the scenario's runs that did not diverge, as the
-    evaluation's summary does.
-
-    Parameters
-    ----------
-    labels : mapping
-        Run id -> the run's label (:func:`~generalist_control.reports.points.run_label`),
-        in table order.
-    evaluations : mapping
-        From :func:`load_evaluations`.
-
-    Returns
-    -------
-    DataFrame
-        Columns ``run, run_id, scenario, kind, plant, metric, GC, LQI, ratio, GC_diverged``.
+    ``labels``: run id -> its label, in table order. Columns ``run, run_id, scenario, kind,
+    plant, metric, GC, LQI, ratio, GC_diverged``, from each run's ``metrics.csv``.
     """
     cols = ["run", "run_id", "scenario", "kind", "plant", "metric", "GC", "LQI", "ratio"]
     frames = []
@@ -147,12 +129,8 @@ def scenario_worst(
 ) -> pd.DataFrame:
     """Per run and scenario, from ``summary.json``: the worst plant's ratio, GC's divergences.
 
-    Returns
-    -------
-    DataFrame
-        Columns ``run, run_id, scenario, kind`` (``step`` or ``tracking``), ``worst_ratio``
-        (ISE for step scenarios, RMSE for tracking ones; inf when every plant diverged),
-        ``worst_plant``, ``GC_diverged`` (GC runs diverged in the scenario).
+    Columns ``run, run_id, scenario, kind, worst_ratio`` (ISE or RMSE; inf: all diverged),
+    ``worst_plant, GC_diverged``.
     """
     rows = []
     for run_id, label in labels.items():
@@ -177,19 +155,10 @@ def scenario_worst(
 
 
 def separating(worst: pd.DataFrame, bar: Mapping[str, Any]) -> dict[str, str]:
-    """The scenarios that separate the runs, each with the reason.
+    """Scenario -> why it separates the runs, in the order the scenarios first appear.
 
-    A scenario separates them when GC diverges in it for some runs and not for others, or
-    when its worst ratio is within the quality bar's limit for some runs and beyond it for
-    others (``bar``'s ``ISE_ratio`` for step scenarios, ``RMSE_ratio`` for tracking ones, on
-    every scenario, not only those the bar judges). Runs without the scenario are left
-    out of its judgement.
-
-    Returns
-    -------
-    dict
-        Scenario -> reason, e.g. ``"GC diverges for d16-M3-s42 only"``, in the order the
-        scenarios first appear.
+    GC diverges in it for some runs only, or its worst ratio is within ``bar``'s limit
+    (``ISE_ratio`` for step scenarios, ``RMSE_ratio`` for tracking ones) for some runs only.
     """
     out: dict[str, str] = {}
     for scen, part in worst.groupby("scenario", sort=False):
@@ -206,3 +175,43 @@ def separating(worst: pd.DataFrame, bar: Mapping[str, Any]) -> dict[str, str]:
             beyond = ", ".join(np.array(runs)[~within.to_numpy()])
             out[str(scen)] = f"worst ratio beyond {limit:g} for {beyond} only"
     return out
+
+
+def points_frame(
+    by_config: Mapping[tuple[int, int], Sequence[RunPoint]],
+    plants: Sequence[str],
+    evaluations: Mapping[str, Evaluation],
+) -> pd.DataFrame:
+    """One row per run (``points.csv``): its point, seed, figures and its evaluation's verdicts."""
+    rows = []
+    for (d, m), runs in sorted(by_config.items()):
+        for p in runs:
+            scores = [p.mse[k] for k in plants if k in p.mse]
+            row: dict[str, Any] = {
+                "run": run_label(p),
+                "d": d,
+                "M": m,
+                "seed": p.seed,
+                "run_id": p.run_id,
+                "n_parameters": p.n_parameters,
+                "final_train_loss": finite(p.train_loss),
+                "final_val_loss": finite(p.val_loss),
+                "best_val_loss": finite(p.best_val_loss),
+                "mse_mean": float(np.mean(scores)) if scores else None,
+                **{f"mse/{k}": p.mse.get(k) for k in plants},
+                "closed_loop_diverged": p.diverged,
+            }
+            ev = evaluations.get(p.run_id)
+            if ev is not None:
+                bar = bar_of(ev.summary)
+                diverged = (ev.summary.get("diverged") or {}).get("GC") or {}
+                row["evaluation"] = str(ev.path)
+                row["bar_passed"] = sum(bool(v) for v in bar.values() if v is not None)
+                row["bar_checked"] = sum(v is not None for v in bar.values())
+                row["gc_diverged"] = int(sum(diverged.values()))
+                row.update({f"bar/{k}": v for k, v in bar.items()})
+            rows.append(row)
+    cols = ["run", "d", "M", "seed", "run_id", "n_parameters", "final_train_loss",
+            "final_val_loss", "best_val_loss", "mse_mean", *(f"mse/{k}" for k in plants),
+            "closed_loop_diverged"]  # fmt: skip
+    return pd.DataFrame(rows, columns=list(dict.fromkeys([*cols, *(k for r in rows for k in r)])))

@@ -21,9 +21,12 @@ __all__ = [
     "NoAblationRunsError",
     "RunPoint",
     "mlflow_client",
+    "infer_recipe",
     "mse_frame",
     "point_label",
+    "run_label",
     "runs_from_mlflow",
+    "seed_runs",
     "select_sweeps",
     "unique_points",
 ]
@@ -262,3 +265,38 @@ def mse_frame(
     df = pd.DataFrame(rows, columns=cols)
     df["mse"] = df["mse"].astype(float)
     return df
+
+
+def run_label(p: RunPoint) -> str:
+    """``d32-M3-s42``: a run as the tables name it (its point and its seed)."""
+    return f"d{p.hidden}-M{p.experts}" + (f"-s{p.seed}" if p.seed is not None else "")
+
+
+def seed_runs(
+    points: Sequence[RunPoint], sweeps: Mapping[str, Mapping[int, RunPoint | None]]
+) -> dict[tuple[int, int], list[RunPoint]]:
+    """Per configuration (d, M) of the sweeps, its newest run of each seed, by seed.
+
+    A configuration drawn from a run that ``points`` lacks keeps that run.
+    """
+    out: dict[tuple[int, int], list[RunPoint]] = {}
+    for drawn in unique_points(sweeps):
+        config = (drawn.hidden, drawn.experts)
+        by_seed: dict[int | None, RunPoint] = {}
+        for p in sorted(points, key=lambda p: -p.start_time):
+            if (p.hidden, p.experts) == config:
+                by_seed.setdefault(p.seed, p)
+        by_seed.setdefault(drawn.seed, drawn)
+        out[config] = sorted(by_seed.values(), key=lambda p: (p.seed is None, p.seed or 0))
+    return out
+
+
+def infer_recipe(runs: Sequence[RunPoint]) -> str:
+    """The runs' recipe: ``paper`` if none scales windows or runs DAgger, else ``default``."""
+    if runs and all(
+        str(p.params.get("model.window_scale", "")).lower() == "false"
+        and not any(k.startswith("dagger.") for k in p.params)
+        for p in runs
+    ):
+        return "paper"
+    return "default"

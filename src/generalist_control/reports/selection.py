@@ -1,8 +1,6 @@
 """Which runs the ablation report compares, and the check that they are comparable.
 
-Runs that differ in more than d and M (and in keys that only name or place a run,
-``report.identity_keys``) say nothing about d or M: a 1-epoch M=1 beside a 60-epoch M=5.
-:func:`check_comparable` refuses them by name, or warns with ``report.allow_mixed=true``.
+Runs that differ in more than d and M (and ``report.identity_keys``) say nothing about d or M.
 """
 
 from __future__ import annotations
@@ -13,13 +11,13 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from generalist_control.common.secrets import redact
-from generalist_control.reports.points import seed_runs
 from generalist_control.reports.report_settings import ReportSettings
 from generalist_control.reports.runs import (
     SWEEP_COMMANDS,
     NoAblationRunsError,
     RunPoint,
     runs_from_mlflow,
+    seed_runs,
     select_sweeps,
 )
 from generalist_control.tracking.experiments import experiment_name
@@ -30,7 +28,6 @@ __all__ = [
     "MixedRunsError",
     "check_comparable",
     "differing_params",
-    "report_experiment",
     "parents_hint",
     "resolve_parents",
     "select_runs",
@@ -45,11 +42,6 @@ _ABSENT = "(not logged)"
 
 class MixedRunsError(ValueError):
     """The runs the report would compare differ in more than the swept keys."""
-
-
-def report_experiment(settings: ReportSettings, logger: Mapping[str, Any]) -> str:
-    """The experiment the report reads: ``report.experiment_name`` or the kind ``sweep``."""
-    return settings.experiment_name or experiment_name(logger, "sweep")
 
 
 def _parents_in(client: Any, exp_id: str, limit: int = 1000) -> list[Any]:
@@ -74,10 +66,7 @@ def parents_hint(client: Any, exp_id: str, limit: int = 5) -> str:
 def resolve_parents(
     client: Any, exp_id: str, parent_run: Sequence[str] | None
 ) -> list[str] | None:
-    """The parent run ids ``report.parent_run`` names (ids or names); None when unset.
-
-    A name matches the parent runs (tag ``gc.role``) of the experiment with that run name;
-    the newest one is taken.
+    """The parent run ids ``report.parent_run`` names (ids or names, the newest of a name).
 
     Raises
     ------
@@ -89,9 +78,7 @@ def resolve_parents(
     parents = _parents_in(client, exp_id)
     ids = []
     for item in parent_run:
-        match = next(
-            (r for r in parents if item in (r.info.run_id, r.info.run_name)), None
-        )  # newest first: the newest of a name
+        match = next((r for r in parents if item in (r.info.run_id, r.info.run_name)), None)
         if match is None:
             raise LookupError(
                 f"report.parent_run: {item!r} is no sweep or study parent run of the "
@@ -108,14 +95,7 @@ def _identity(key: str, patterns: Sequence[str]) -> bool:
 def differing_params(
     points: Sequence[RunPoint], identity: Sequence[str]
 ) -> dict[str, dict[str, list[RunPoint]]]:
-    """The params (other than swept and identity keys) on which the runs disagree.
-
-    Returns
-    -------
-    dict
-        ``{key: {value: [runs with it]}}`` for each key with more than one value among the
-        runs; a run that did not log the key has the value ``(not logged)``.
-    """
+    """``{key: {value: [runs]}}`` of the params (not swept or identity) the runs disagree on."""
     keys = sorted({k for p in points for k in p.params if not _identity(k, identity)})
     out: dict[str, dict[str, list[RunPoint]]] = {}
     for key in keys:
@@ -149,7 +129,6 @@ def check_comparable(
     Parameters
     ----------
     points : sequence of RunPoint
-        The runs the report is about to compare.
     identity : sequence of str
         ``report.identity_keys``: glob patterns of params that may differ.
     allow_mixed : bool
@@ -199,10 +178,6 @@ def select_runs(
 ]:
     """The report's experiment, its sweep points, the differences let through, every seed.
 
-    The last item holds, per configuration (d, M) of the sweeps, its newest run of each
-    seed (:func:`~generalist_control.reports.points.seed_runs`); all of them are checked to
-    be comparable.
-
     Raises
     ------
     NoAblationRunsError
@@ -212,7 +187,7 @@ def select_runs(
     MixedRunsError
         See :func:`check_comparable`.
     """
-    experiment = report_experiment(settings, logger)
+    experiment = settings.experiment_name or experiment_name(logger, "sweep")
     found = client.get_experiment_by_name(experiment)
     exp_id = found.experiment_id if found is not None else None
     parents = resolve_parents(client, exp_id, settings.parent_run) if exp_id else None
