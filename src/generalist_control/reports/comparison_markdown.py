@@ -1,8 +1,4 @@
-"""``comparison.md`` of the ablation report: the paper's Section 7 answered point by point.
-
-The claims, every run (each seed), each run's quality bar, the worst plant per scenario
-and the scenarios that separate the runs, the M = 5 model's dominant experts, the MSE tables.
-"""
+"""``comparison.md`` of the ablation report: the paper's Section 7 answered point by point."""
 
 from __future__ import annotations
 
@@ -143,20 +139,9 @@ def _mse_tables(mse: pd.DataFrame) -> list[str]:
 def comparison_markdown(
     tables: Mapping[str, Any], gates: pd.DataFrame | None, gate_run: RunPoint | None, recipe: str
 ) -> str:
-    """The report's markdown.
+    """The report's markdown from :func:`~generalist_control.reports.ablation.report_tables`.
 
-    Parameters
-    ----------
-    tables : mapping
-        ``claims`` (:func:`~generalist_control.reports.claims.judge_claims`), ``points``
-        (:func:`~generalist_control.reports.evaluations.points_frame`), ``worst``
-        (:func:`~generalist_control.reports.evaluations.scenario_worst`), ``separating``
-        (:func:`~generalist_control.reports.evaluations.separating`) and ``mse`` (the sweeps'
-        per-plant MSE, :func:`~generalist_control.reports.runs.mse_frame`).
-    gates, gate_run :
-        The M = 5 model's gate weights and its run (None without it).
-    recipe : str
-        The runs' recipe, named in the claims' heading.
+    ``gates``, ``gate_run``: the M = 5 model's gate weights and run (None without it).
     """
     lines = [
         "# Ablation study (Section 7): our runs beside the paper",

@@ -1,16 +1,7 @@
 """Tables and figures for exploring the plants and the dataset (``notebooks/01_*``).
 
-The notebooks only call these functions, so what they show is computed by tested code:
-
-* :func:`plant_table`: the catalogue with tag, order, linearity, open-loop stability and
-  minimum phase (of the model, or its linearisation at the operating point);
-* :func:`lqi_step_responses` and :func:`plot_step_responses`: the LQI experts' unit-step
-  responses, simulated as the data stage simulates them;
-* :func:`manifest_table` and :func:`plot_windows`: the demonstration dataset written by the
-  ``generate`` stage and the training windows the one window builder cuts from it.
-
-Figures are :class:`matplotlib.figure.Figure` objects drawn on the Agg canvas (no pyplot
-state); Jupyter displays them when they are the value of a cell.
+The notebook only calls these, so what it shows is computed by tested code; figures are
+drawn on the Agg canvas (no pyplot state).
 """
 
 from __future__ import annotations
@@ -44,15 +35,10 @@ _TOL = 1e-9
 
 
 def plant_properties(plant: Plant) -> dict[str, Any]:
-    """Open-loop poles and zeros, stability and minimum phase of a plant's (linear) model.
+    """Open-loop ``poles``, ``zeros``, ``stability``, ``min_phase`` of a plant's (linear) model.
 
-    Returns
-    -------
-    dict
-        ``poles``, ``zeros`` (arrays); ``stability``: ``"stable"`` (all poles in the open
-        left half plane), ``"marginal"`` (some on the imaginary axis, none right of it) or
-        ``"unstable"``; ``min_phase``: True when every transmission zero has a negative
-        real part (vacuously so without zeros).
+    ``stability`` is ``stable``, ``marginal`` (poles on the imaginary axis, none right of it)
+    or ``unstable``; ``min_phase``: every transmission zero in the open left half plane.
     """
     poles = np.linalg.eigvals(plant.A)
     zeros = np.asarray(control.ss(plant.A, plant.B, plant.C, 0).zeros())
@@ -71,19 +57,7 @@ def plant_properties(plant: Plant) -> dict[str, Any]:
 
 
 def plant_table(names: Iterable[str] | None = None) -> pd.DataFrame:
-    """The plant catalogue as a table, one row per plant in tag order.
-
-    Parameters
-    ----------
-    names : iterable of str, optional
-        Default: every plant in ``conf/plants``.
-
-    Returns
-    -------
-    DataFrame
-        Index ``plant``; columns ``tag, order, linear, stability, min_phase, poles, zeros,
-        amplitude_scale, description``.
-    """
+    """The catalogue (default: every plant in ``conf/plants``), one row per plant by tag."""
     plants = sorted((load_plant(n) for n in (names or available_plants())), key=lambda p: p.tag)
     rows = []
     for p in plants:
@@ -108,14 +82,7 @@ def plant_table(names: Iterable[str] | None = None) -> pd.DataFrame:
 def lqi_step_responses(
     names: Sequence[str], duration: float = 10.0, amplitude: float = 1.0
 ) -> pd.DataFrame:
-    """Closed-loop LQI responses to a step from rest (scaled by ``amplitude_scale``).
-
-    Returns
-    -------
-    DataFrame
-        Long form: ``plant, t, r, y, u`` (``u`` is the control over each sample interval;
-        the last sample has none).
-    """
+    """Closed-loop LQI responses to a step from rest, long form ``plant, t, r, y, u``."""
     spec = {"kind": "step", "amplitude": float(amplitude), "duration": float(duration)}
     frames = []
     for name in names:
@@ -165,26 +132,14 @@ def plot_step_responses(responses: pd.DataFrame, ncols: int = 3) -> Figure:
 
 
 def manifest_table(manifest: Mapping[str, Any]) -> pd.DataFrame:
-    """Per-plant facts of a dataset manifest (``data/demos/manifest.json``).
-
-    Returns
-    -------
-    DataFrame
-        Index ``plant``; the manifest's per-plant entries (window counts, order, tag, ...)
-        as columns.
-    """
+    """Per-plant facts of a dataset manifest (``data/demos/manifest.json``), by plant."""
     df = pd.DataFrame.from_dict(dict(manifest.get("plants") or {}), orient="index")
     df.index.name = "plant"
     return df.sort_values("tag") if "tag" in df else df
 
 
 def plot_windows(demos: DemoSet, history: int, horizon: int, n: int = 4, seed: int = 0) -> Figure:
-    """``n`` random training windows: state and reference history, and the LQI targets.
-
-    The windows come from :meth:`DemoSet.windows` (the one window builder); each panel shows
-    the masked state history (only the plant's real states), the reference history, and
-    the ``horizon`` expert controls the policy learns to predict, at the samples after.
-    """
+    """``n`` random training windows (:meth:`DemoSet.windows`): histories and LQI targets."""
     windows = demos.windows(history, horizon)
     rng = np.random.default_rng(seed)
     picks = np.sort(rng.choice(len(windows), size=min(n, len(windows)), replace=False))

@@ -68,20 +68,13 @@ def gate_weights(
 ) -> pd.DataFrame:
     """Mean gate weight per expert and plant over closed-loop unit-step runs.
 
-    Each plant runs the policy in closed loop (the deployment runtime,
-    :class:`~generalist_control.deploy.runtime.PolicyRuntime`) on a unit step from rest, scaled by
-    its ``amplitude_scale`` as in evaluation, for ``duration`` seconds. The states and
-    references the runtime saw are turned back into its input windows by the project's
-    window builder (:func:`~generalist_control.data.windows.history_windows`, which pads the
-    first sample exactly as the runtime fills its buffer), and the gate weights the policy
-    gives those windows are averaged over the run. The weights are therefore those of the
-    policy at work on the plant, not on the expert's demonstrations.
+    The runtime's inputs along each run are rebuilt by the window builder and the gates the
+    policy gives them averaged: the weights of the policy at work, not on the demonstrations.
 
     Parameters
     ----------
     policy : Policy
     meta : mapping
-        The policy's metadata (``tags``, ``orders``, ``history``, ``horizon``, ``dt``).
     plants : iterable of str, optional
         Default: every plant of the catalogue the policy was trained on, in tag order.
     duration : float
