@@ -12,9 +12,8 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 
-from generalist_control.plants.definition import Plant, PlantConfigError
+from generalist_control.plants.definition import Plant, PlantConfigError, rhp_roots
 from generalist_control.plants.variants import (
     VariantError,
     draw_factors,
@@ -72,19 +71,9 @@ class VariantDraw:
         }
 
 
-def _right_half_plane(plant: Plant) -> tuple[np.ndarray, np.ndarray]:
-    """The open-loop poles and zeros of ``plant`` (A, B, C) with a positive real part."""
-    A, B, C = plant.A, plant.B.reshape(-1, 1), plant.C.reshape(1, -1)
-    scale = max(1.0, float(np.abs(A).max()))
-    poles = np.linalg.eigvals(A)
-    n = A.shape[0]  # SISO zeros: the finite generalised eigenvalues of [[A, B], [C, 0]]
-    system = np.block([[A, B], [C, np.zeros((1, 1))]])
-    pencil = np.zeros_like(system)
-    pencil[:n, :n] = np.eye(n)
-    zeros = scipy.linalg.eigvals(system, pencil)
-    zeros = zeros[np.isfinite(zeros) & (np.abs(zeros) < 1e8 * scale)]
-    tol = 1e-6 * scale  # repeated poles at 0 (integrators) come out within ~1e-8
-    return poles[poles.real > tol], zeros[zeros.real > tol]
+def _rhp(plant: Plant) -> tuple[np.ndarray, np.ndarray]:
+    """Its RHP poles and zeros (integrators come out within ~1e-8 of 0)."""
+    return rhp_roots(plant.A, plant.B, plant.C, 1e-6)
 
 
 def check_class(variant: Plant, nominal: Plant) -> None:
@@ -99,7 +88,7 @@ def check_class(variant: Plant, nominal: Plant) -> None:
         With the counts and the rightmost pole or zero of each.
     """
     for kind, got, want in zip(
-        ("poles", "zeros"), _right_half_plane(variant), _right_half_plane(nominal), strict=True
+        ("poles", "zeros"), _rhp(variant), _rhp(nominal), strict=True
     ):
         if len(got) != len(want):
             where = f"rightmost at {max(got.real):+.4g}" if len(got) else "none"
