@@ -1,9 +1,7 @@
 """Sampling plant variants fit for LQI, with the reason for every one refused.
 
-A candidate is kept if it has an equilibrium at the operating point, keeps the nominal
-plant's class (:func:`check_class`), passes :func:`~generalist_control.simulation.lqi.design_lqi`
-and its LQI expert does not diverge on steps from rest; else another is drawn, up to
-``max_tries`` draws per variant wanted.
+Kept: an equilibrium at ``x_op``, the nominal's class, a valid LQI design that does not
+diverge on steps from rest.
 """
 
 from __future__ import annotations
@@ -77,19 +75,8 @@ def _rhp(plant: Plant) -> tuple[np.ndarray, np.ndarray]:
 
 
 def check_class(variant: Plant, nominal: Plant) -> None:
-    """Refuse a variant whose right-half-plane poles or zeros differ from the nominal's.
-
-    So a stable plant stays stable, a minimum-phase one minimum-phase, and the DC gain keeps
-    its sign (docs/notes/plant-variants.md).
-
-    Raises
-    ------
-    VariantError
-        With the counts and the rightmost pole or zero of each.
-    """
-    for kind, got, want in zip(
-        ("poles", "zeros"), _rhp(variant), _rhp(nominal), strict=True
-    ):
+    """Refuse (:class:`VariantError`) a variant with other RHP pole or zero counts than nominal."""
+    for kind, got, want in zip(("poles", "zeros"), _rhp(variant), _rhp(nominal), strict=True):
         if len(got) != len(want):
             where = f"rightmost at {max(got.real):+.4g}" if len(got) else "none"
             raise VariantError(
@@ -101,12 +88,7 @@ def check_class(variant: Plant, nominal: Plant) -> None:
 def check_variant(
     variant: Plant, amplitudes: Sequence[float], steps: int, nominal: Plant | None = None
 ) -> None:
-    """Refuse a variant unfit for LQI (see the module docstring); ``nominal`` None: no class check.
-
-    Raises
-    ------
-    VariantError
-    """
+    """Refuse (:class:`VariantError`) a variant unfit for LQI; ``nominal`` None: no class check."""
     if nominal is not None:
         check_class(variant, nominal)
     try:
@@ -140,16 +122,8 @@ def sample_variants(
 ) -> VariantDraw:
     """``count`` variants of ``plant`` fit for LQI, drawn from ``seed`` (and the plant's tag).
 
-    Parameters
-    ----------
-    plant : Plant
-        The nominal plant (its ``variants`` block sets the ranges, :func:`parameter_ranges`).
-    default_range : float
-        The range of parameters the plant file does not set.
-    amplitudes, steps
-        The LQI expert of each candidate must not diverge on these steps over ``steps`` samples.
-    max_tries : int
-        Draws allowed per variant wanted.
+    ``default_range`` is the range of parameters the plant file does not set; each
+    candidate's LQI must not diverge on steps of ``amplitudes`` over ``steps`` samples.
 
     Raises
     ------
