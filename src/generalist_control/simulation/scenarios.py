@@ -38,12 +38,6 @@ class ScenarioError(ValueError):
     """An evaluation scenario is misconfigured; the message names the field."""
 
 
-def _x0_for_output(plant: Plant, y0: float, batch: int) -> np.ndarray:
-    """The smallest state (deviation) whose output is ``y0``."""
-    c = plant.C[0]
-    return np.repeat((y0 * c / (c @ c))[None, :], batch, axis=0)
-
-
 def references(
     name: str, spec: Mapping[str, Any], plant: Plant
 ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -73,7 +67,8 @@ def references(
         r = np.repeat(amps[:, None], steps, axis=1)
     elif kind == "sine":
         r = amp * np.sin(float(spec["omega"]) * t)[None, :]
-        x0 = _x0_for_output(plant, float(spec["y0"]) * scale, 1)
+        c = plant.C[0]  # the smallest state whose output is y0
+        x0 = (float(spec["y0"]) * scale * c / (c @ c))[None, :]
     elif kind == "ramp":
         r = (float(spec["slope"]) * scale * t)[None, :]
     else:  # composite
