@@ -1,8 +1,4 @@
-"""The ``generate`` stage: plants + LQI experts -> versioned demonstrations in ``data/demos``.
-
-Run ``python -m generalist_control.generate`` (Hydra; e.g. ``systems=paper``), ``gc-generate``
-or ``dvc repro generate``. Every input is validated before anything is simulated or written.
-"""
+"""The ``generate`` stage: plants + LQI experts -> versioned demonstrations in ``data/demos``."""
 
 from __future__ import annotations
 
@@ -25,11 +21,7 @@ log = logging.getLogger(__name__)
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    """Validate the config, generate the demonstrations and write them; return the manifest.
-
-    Every plant's tag must be one the policy takes, ``0..model.plant.n_tags-1``: a dataset
-    with another would only fail at training time.
-    """
+    """Validate the config (tags the policy takes too), generate and write; the manifest."""
     plants = plants_from_config(cfg.systems)
     check_tags(plants, cfg.model.plant.n_tags)
     if "OPENBLAS_CORETYPE" not in os.environ:

@@ -1,10 +1,6 @@
 """The ``generate_families`` stage: a plant family -> LQI experts -> demonstrations.
 
-Run ``python -m generalist_control.generate_families`` (Hydra, ``families=<name>``) or
-``dvc repro generate_families``. It draws ``families.count`` plants, each fit for its LQI
-expert (the refused with their reasons), and writes their demonstrations where the family
-says (``families.data_dir``), in the catalogue's data format: a stage of its own, so that the
-catalogue's ``data/demos`` and the default policy do not change with a family.
+A stage of its own, so that the catalogue's ``data/demos`` does not change with a family.
 """
 
 from __future__ import annotations
@@ -28,11 +24,7 @@ log = logging.getLogger(__name__)
 
 
 def _data(cfg: DictConfig, demos: Any) -> dict[str, Any]:
-    """The data config of the family's demonstrations.
-
-    The windows' sizes and a trajectory's duration come from ``data``, the references from
-    ``families.demos``.
-    """
+    """The data config: sizes and duration from ``data``, references from ``families.demos``."""
     if not isinstance(demos, dict) or "amplitudes" not in demos:
         raise ValueError("families.demos must give amplitudes (and optionally families)")
     unknown = sorted(set(demos) - {"amplitudes", "families"})
@@ -47,11 +39,7 @@ def _data(cfg: DictConfig, demos: Any) -> dict[str, Any]:
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    """Validate the config, draw the family, generate and write its demonstrations.
-
-    Returns the manifest (its ``plant_family`` block: every kept plant's parameters and every
-    refused candidate with its reason).
-    """
+    """Validate the config, draw the family, generate and write; the manifest."""
     families = cast(dict[str, Any], OmegaConf.to_container(cfg.families, resolve=True))
     family, settings = read_families(families)
     data = _data(cfg, settings.demos)

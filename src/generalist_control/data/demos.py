@@ -1,9 +1,7 @@
 """The demonstration dataset on disk: ``trajectories.parquet`` plus ``manifest.json``.
 
-One row per sample; windows are cut at load time by the one window builder. Writes are
-atomic (:mod:`generalist_control.common.atomic`). Loading checks the manifest against its own
-digest, then the file's SHA-256, the table's shape and the content hash recomputed from the
-arrays (data and data config only: the same seed gives the same hash).
+Written atomically; loading checks the manifest's digest, the file's SHA-256, the table's shape
+and the content hash recomputed from the arrays.
 """
 
 from __future__ import annotations
@@ -64,20 +62,8 @@ class CorruptDataError(ValueError):
 class DemoSet:
     """``B`` trajectories of ``N`` samples each, in deviation coordinates.
 
-    Attributes
-    ----------
-    x : ndarray, shape (B, N, MAX_ORDER)
-        Zero-padded states at each sample.
-    r, u, y : ndarray, shape (B, N)
-    tag, order : ndarray of int, shape (B,)
-    plant : ndarray of str, shape (B,)
-    amplitude : ndarray, shape (B,)
-        The reference's final value (a step's amplitude, after the plant's amplitude scale).
-    dt : float
-    family : ndarray of str, shape (B,)
-        The demonstration family of each trajectory (``steps``, ``staircase``, ...).
-    variant : ndarray of int, shape (B,), optional
-        With ``data.variants``: 0 for the nominal plant, ``i`` for its ``i``-th variant.
+    ``x`` (B, N, MAX_ORDER) zero-padded; ``amplitude`` the reference's final value; ``variant``
+    (with ``data.variants``) 0 for the nominal plant, ``i`` for its ``i``-th variant.
     """
 
     x: np.ndarray
@@ -125,6 +111,7 @@ def manifest_digest(manifest: Mapping[str, Any]) -> str:
 
 
 def _to_table(demos: DemoSet) -> pa.Table:
+    """One row per sample."""
     B, N = demos.r.shape
     rep = lambda a: np.repeat(a, N)  # noqa: E731
     cols: dict[str, Any] = {
@@ -169,6 +156,7 @@ def write_demos(out_dir: str | Path, demos: DemoSet, manifest: dict[str, Any]) -
 
 
 def _corrupt(data_dir: Path, what: str) -> CorruptDataError:
+    """The error for a dataset that differs from its manifest in ``what``."""
     return CorruptDataError(
         f"the dataset at '{data_dir}' does not match its manifest: {what}. It was changed "
         f"after it was written; regenerate it with: {GENERATE_COMMAND}"

@@ -1,13 +1,7 @@
 """The demonstrations: every plant's LQI expert on the step grid and on richer families.
 
-The paper's demonstrations are steps from rest on a non-uniform amplitude grid (family
-``steps``). Ours add the families of ``data.families`` (each a switch): staircases between
-non-zero levels, sines and frequency sweeps, ramps, and constant references from random
-initial states (:mod:`generalist_control.simulation.references`); ``experiment=paper``
-turns them off.
-
-The ``generate`` stage (:mod:`generalist_control.generate`) calls :func:`generate_demos`
-and :func:`build_manifest`; every input is validated before anything is simulated.
+The paper's are steps from rest on the amplitude grid (family ``steps``); ``data.families``
+adds reference families (:mod:`generalist_control.simulation.references`).
 """
 
 from __future__ import annotations
@@ -52,21 +46,15 @@ class DataConfigError(ValueError):
 
 
 def amplitude_grid(cfg: Mapping[str, Any]) -> np.ndarray:
-    """The sorted step-amplitude grid described by ``data.amplitudes``.
+    """The sorted step-amplitude grid of ``data.amplitudes``, without zero.
 
-    Each segment ``{start, stop, step}`` contributes ``start, start + step, ..., stop``;
-    ``symmetric`` adds the negatives. Zero (no step) is never included.
+    Each segment ``{start, stop, step}`` gives ``start, start + step, ..., stop``;
+    ``symmetric`` adds the negatives.
 
     Raises
     ------
     DataConfigError
         If a segment is malformed or reaches outside ``+-limit``.
-
-    Examples
-    --------
-    >>> amplitude_grid({"limit": 20, "symmetric": True,
-    ...                 "segments": [{"start": 5, "stop": 20, "step": 5}]}).tolist()
-    [-20.0, -15.0, -10.0, -5.0, 5.0, 10.0, 15.0, 20.0]
     """
     limit = float(cfg["limit"])
     values: list[np.ndarray] = []
@@ -99,6 +87,7 @@ def amplitude_grid(cfg: Mapping[str, Any]) -> np.ndarray:
 
 
 def _steps(data: Mapping[str, Any], plants: Sequence[Plant]) -> tuple[float, int]:
+    """The plants' common sample time and the samples per trajectory."""
     dts = {p.dt for p in plants}
     if len(dts) != 1:
         raise DataConfigError(
@@ -183,19 +172,10 @@ def _run(
 def generate_demos(
     plants: Sequence[Plant], data: Mapping[str, Any], progress: bool | None = None
 ) -> DemoSet:
-    """Simulate every plant's LQI expert on the amplitude grid and on every family.
-
-    Parameters
-    ----------
-    plants : sequence of Plant
-    data : mapping
-        The ``data`` config (``duration``, ``history``, ``horizon``, ``amplitudes``,
-        ``families``).
-    progress : bool, optional
-        Show a progress bar; by default only on a terminal.
+    """Simulate every plant's LQI expert on the amplitude grid and on every family of ``data``.
 
     With ``data.variants`` enabled, trajectories are dealt to the plant and its variants
-    (:mod:`generalist_control.data.variant_data`) and the set has a ``variant`` column.
+    (:mod:`generalist_control.data.variant_data`). ``progress`` None: a bar on a terminal.
     """
     grid = amplitude_grid(data["amplitudes"])
     families = enabled_families(data)
@@ -246,8 +226,7 @@ def build_manifest(
 ) -> dict[str, Any]:
     """The manifest: window counts, per-plant facts, the resolved config and content hash.
 
-    With ``data.variants`` enabled it also records each plant's variants (parameters,
-    factors, rejected candidates with their reasons; drawn again, deterministically).
+    With ``data.variants`` enabled, also each plant's variants (drawn again) and rejections.
     """
     config = hashed_config(config)
     history, horizon = int(data["history"]), int(data["horizon"])

@@ -1,18 +1,7 @@
-"""Plant variants in the data stage (``data.variants``, a switch, off by default).
+"""Plant variants in the data stage (``data.variants``, off by default).
 
-With ``data.variants.enabled``, every plant gets ``count`` variants fit for LQI
-(:func:`generalist_control.simulation.variant_sampling.sample_variants`, seeded by ``seed`` and the
-plant's tag; ranges from ``range`` and the plant file's ``variants`` block), each tracked by
-its own LQI expert designed with the plant's ``Q`` and ``R``. The data size stays that of the
-nominal set: the plant's trajectories, in the order they are generated (the step grid, then
-each family), are dealt round-robin to the nominal plant (slot 0) and its variants (slots
-1..count): trajectory ``j`` runs on slot ``j mod (count + 1)``. The references and initial
-states are those of the nominal data. Each trajectory's slot is the dataset's ``variant``
-column; the tag stays the nominal plant's. The manifest records every kept variant's
-parameters and factors and every rejected candidate with its reason.
-
-Off, nothing changes: neither the ``variant`` column nor the disabled keys (``data.variants``,
-the plant files' ``variants`` blocks) reach the data or its content hash.
+A plant's trajectories are dealt round-robin to the nominal plant (slot 0) and its ``count``
+variants, each with its own LQI expert; off, nothing reaches the data or its hash.
 """
 
 from __future__ import annotations
@@ -31,7 +20,6 @@ from generalist_control.simulation.simulate import Trajectory, simulate
 from generalist_control.simulation.variant_sampling import VariantDraw, sample_variants
 
 __all__ = [
-    "assign_slots",
     "hashed_config",
     "simulate_assigned",
     "training_variants",
@@ -45,7 +33,7 @@ def variants_config(data: Mapping[str, Any]) -> dict[str, Any] | None:
     Raises
     ------
     ValueError
-        A count below 1, a range outside (0, 1), a non-integer seed or max_tries.
+        Naming the bad key.
     """
     block = dict(data.get("variants") or {})
     if not block or not block["enabled"]:
@@ -88,11 +76,6 @@ def training_variants(
     }
 
 
-def assign_slots(n: int, count: int, start: int) -> np.ndarray:
-    """Slots (0: nominal, 1..count: variants) of trajectories ``start .. start + n - 1``."""
-    return (start + np.arange(n)) % (count + 1)
-
-
 def simulate_assigned(
     draw: VariantDraw,
     ctrl: LQIController,
@@ -100,11 +83,8 @@ def simulate_assigned(
     x0: np.ndarray | None,
     start: int,
 ) -> tuple[Trajectory, np.ndarray]:
-    """Run each row of ``r`` on its slot's plant with that plant's LQI; rows keep their order.
-
-    Returns the trajectories (stacked as one) and each row's slot.
-    """
-    slots = assign_slots(len(r), len(draw.kept), start)
+    """Row ``j`` of ``r`` run on slot ``(start + j) mod (count + 1)``; trajectories and slots."""
+    slots = (start + np.arange(len(r))) % (len(draw.kept) + 1)
     plants = [(draw.nominal, ctrl)] + [(v.plant, LQIController(v.plant)) for v in draw.kept]
     n, steps = draw.nominal.order, r.shape[1]
     x = np.zeros((len(r), steps + 1, n))

@@ -1,9 +1,7 @@
 """The one window builder shared by training, evaluation and deployment.
 
-A window at sample ``k`` holds samples ``k - history + 1 .. k`` of the zero-padded, masked
-state and of the reference, and for training the next ``horizon`` expert controls. Optional
-channels after the state: the error integral (the LQI expert's own integrator, so the window
-holds its ``[x; z]``) and the previous control. The first sample is repeated before a start.
+A window at sample ``k`` holds samples ``k - history + 1 .. k`` (the first repeated before a
+start) of the masked state, optional error integral and previous control, and reference.
 """
 
 from __future__ import annotations
@@ -31,17 +29,9 @@ __all__ = [
 class Windows:
     """Policy inputs (and targets) for ``W`` windows.
 
-    Attributes
-    ----------
-    state, mask : ndarray, float32, shape (W, history, width)
-        Masked, zero-padded state history and its validity mask; ``width`` is
-        ``MAX_ORDER``, plus one with the error integral (channel ``MAX_ORDER``), plus one
-        with the previous control (the last channel).
-    ref : ndarray, float32, shape (W, history)
-    tag : ndarray, int64, shape (W,)
-    target : ndarray, float32, shape (W, horizon), or None at deployment
-    traj : ndarray, int64, shape (W,)
-        Index of the trajectory each window comes from (for splits by trajectory).
+    ``state``, ``mask`` (W, history, width): ``MAX_ORDER`` channels, then the error integral
+    and the previous control if kept; ``target`` (W, horizon) is None at deployment; ``traj``
+    is each window's trajectory (for splits by trajectory).
     """
 
     state: np.ndarray
@@ -61,11 +51,7 @@ def windows_per_trajectory(n_samples: int, horizon: int) -> int:
 
 
 def integral_of_error(r: np.ndarray, y: np.ndarray, dt: float) -> np.ndarray:
-    """The LQI expert's forward-Euler error integrator (B, N) before each sample's control.
-
-    ``z[:, 0] = 0``, ``z[:, k] = z[:, k - 1] + dt (r[:, k - 1] - y[:, k - 1])`` in float64,
-    in :class:`~generalist_control.simulation.lqi.LQIController`'s order; ``r``, ``y`` (B, N).
-    """
+    """The LQI expert's forward-Euler error integral (B, N, float64) before each control."""
     r = np.asarray(r, dtype=np.float64)
     inc = float(dt) * (r - np.asarray(y, dtype=np.float64))
     z = np.zeros_like(r)
@@ -90,25 +76,10 @@ def history_windows(
     z: np.ndarray | None = None,
     u_prev: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """State, mask and reference histories ending at every sample.
+    """State, mask (B, N, history, width) and reference histories ending at every sample.
 
-    Parameters
-    ----------
-    x : ndarray, shape (B, N, MAX_ORDER)
-        Zero-padded states of ``B`` trajectories.
-    r : ndarray, shape (B, N)
-    order : ndarray of int, shape (B,)
-        Number of real state entries of each trajectory.
-    z : ndarray, shape (B, N), optional
-        Error integral (:func:`integral_of_error`), appended as a state channel.
-    u_prev : ndarray, shape (B, N), optional
-        Previous controls (:func:`previous_controls`), appended as the last channel.
-
-    Returns
-    -------
-    state, mask : ndarray, float32, shape (B, N, history, width)
-        ``width`` is ``MAX_ORDER``, plus one for each of ``z`` and ``u_prev`` given.
-    ref : ndarray, float32, shape (B, N, history)
+    ``x`` (B, N, MAX_ORDER) are zero-padded states with ``order`` real entries; ``z`` and
+    ``u_prev`` (B, N), if given, are appended as channels.
     """
     extra = [np.asarray(c)[..., None] for c in (z, u_prev) if c is not None]
     if extra:
@@ -137,11 +108,9 @@ def validity_mask(order: np.ndarray, integral: bool = False, controls: bool = Fa
 class HistoryBuffer:
     """The newest ``history`` samples of ``B`` running trajectories, for online stepping.
 
-    At every sample, exactly the last window :func:`history_windows` would build from the
-    trajectory so far: the deployment path of the one window builder. :meth:`stage` builds
-    the window :meth:`push` would give and :meth:`commit` keeps it, so a caller can drop a
-    window on failure; both write into preallocated arrays, swapped on commit. ``integral``
-    and ``controls`` keep those channels (``push(x, r, z, u_prev)``).
+    Exactly the last window :func:`history_windows` would build so far. :meth:`stage` builds
+    the next window into preallocated arrays and :meth:`commit` keeps it (a caller can drop
+    a failed one).
     """
 
     def __init__(
@@ -156,7 +125,6 @@ class HistoryBuffer:
         self.ref = np.zeros((len(order), history), np.float32)
         self._next_state, self._next_ref = np.zeros_like(self.state), np.zeros_like(self.ref)
         self._empty, self._staged = True, False
-        # stage_one's views of the two sets of arrays (_one_views)
         self._views: tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]] | None = None
 
     def stage(
@@ -166,11 +134,7 @@ class HistoryBuffer:
         z: np.ndarray | None = None,
         u_prev: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The window :meth:`push` would return, leaving the buffer as it is.
-
-        Valid until the next :meth:`stage` or :meth:`push`; :meth:`commit` makes it the
-        buffer's newest window.
-        """
+        """The window :meth:`push` would return (valid until the next), the buffer unchanged."""
         if self.integral and z is None:
             raise ValueError("this buffer keeps the error integral: push(x, r, z)")
         if self.controls and u_prev is None:
@@ -196,10 +160,7 @@ class HistoryBuffer:
     def stage_one(
         self, x: np.ndarray, r: float, z: float = 0.0, u_prev: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`stage` for a buffer of one trajectory from plain numbers, unchecked.
-
-        ``x`` (n,): the real states only (the padding stays zero). Returns ``(state, ref)``.
-        """
+        """:meth:`stage` for one trajectory from its real states ``x`` (n,), unchecked."""
         (shift, older, row_x, row, ref_shift, ref_older, ref_row), _ = (
             self._views or self._one_views()
         )
@@ -252,10 +213,7 @@ class HistoryBuffer:
         z: np.ndarray | None = None,
         u_prev: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Append states ``x`` (B, MAX_ORDER), references ``r``, integrals ``z``, ``u_prev`` (B,).
-
-        Returns the newest window ``(state, mask, ref)``, float32, the state masked.
-        """
+        """Append one sample of states ``x`` (B, MAX_ORDER) and ``r``, ``z``, ``u_prev`` (B,)."""
         self.stage(x, r, z, u_prev)
         self.commit()
         return self.state, self.mask, self.ref
@@ -281,23 +239,10 @@ def build_windows(
     z: np.ndarray | None = None,
     controls: bool = False,
 ) -> Windows:
-    """Training windows from ``B`` trajectories of ``N`` samples.
+    """``B * (N - horizon + 1)`` training windows, trajectory-major, of ``B`` trajectories.
 
-    Parameters
-    ----------
-    x : ndarray, shape (B, N, MAX_ORDER)
-        Zero-padded states at each sample.
-    r, u : ndarray, shape (B, N)
-        Reference and expert control at each sample.
-    z : ndarray, shape (B, N), optional
-        Error integral (:func:`integral_of_error`), a state channel when given.
-    controls : bool
-        The previous control (:func:`previous_controls` of ``u``) is the last channel.
-
-    Returns
-    -------
-    Windows
-        ``B * (N - horizon + 1)`` windows, trajectory-major.
+    ``u`` (B, N) are the expert's controls; ``z`` the error integral and ``controls`` the
+    previous control as channels (:func:`history_windows`).
     """
     B, N = r.shape
     keep = windows_per_trajectory(N, horizon)

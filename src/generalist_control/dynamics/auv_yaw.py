@@ -1,9 +1,7 @@
-"""REMUS AUV sway-yaw dynamics at constant surge speed ``u0``, with heading.
+"""REMUS AUV sway-yaw dynamics at constant surge speed ``u0``, with heading (Prestero 2001).
 
-The sway and yaw equations of Prestero's REMUS model (MSc thesis, MIT/WHOI, 2001), roll,
-pitch and heave neglected, ``x_g = 0``; equations and units in docs/notes/plant-dynamics.md.
-Computed in SI units and radians; the state ``[v (cm/s), r (deg/s), psi (deg)]`` and the
-rudder ``u`` (deg) are scaled so that the data's +-20 steps are heading steps in degrees.
+Computed in SI units; state ``[v (cm/s), r (deg/s), psi (deg)]``, rudder in degrees
+(docs/notes/plant-dynamics.md).
 """
 
 from __future__ import annotations
@@ -38,12 +36,9 @@ def f(
     Nvv: float,
     Nrr: float,
 ) -> np.ndarray:
-    """State derivative ``[dv/dt, dr/dt, dpsi/dt]`` (cm/s^2, deg/s^2, deg/s), batched.
+    """``[dv/dt, dr/dt, dpsi/dt]`` (batch, 3) for ``x = [v, r, psi]`` and rudder ``u`` (deg).
 
-    ``x`` (batch, 3) is ``[v, r, psi]``, ``u`` (batch,) the rudder angle in degrees; the
-    coefficients (SI, rad) are the plant file's: surge speed ``u0``, mass ``m``, inertia
-    ``Izz``, added mass ``Yvdot .. Nrdot``, lift ``Yuv .. Nur``, rudder ``Yuudr, Nuudr``,
-    cross-flow drag ``Yvv .. Nrr``.
+    The coefficients (SI, rad) are the plant file's ``dynamics.params``.
     """
     x = np.asarray(x, dtype=float)
     v = x[:, 0] * _CM

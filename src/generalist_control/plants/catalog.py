@@ -1,9 +1,4 @@
-"""The plant catalogue: plant configs under ``conf/plants`` and the sets in ``conf/systems``.
-
-A set (``systems=all|paper|ablation``) is a Hydra config whose defaults list places each
-plant file at ``systems.plants.<name>``; :func:`plants_from_config` turns that mapping into
-validated :class:`~generalist_control.plants.Plant` objects.
-"""
+"""The plant catalogue: plant files under ``conf/plants``, the sets in ``conf/systems``."""
 
 from __future__ import annotations
 
@@ -27,9 +22,6 @@ __all__ = [
     "tag_count",
 ]
 
-#: The resolver ``${gc.tag_count:}`` (conf/model/plant/*.yaml) registered below.
-TAG_COUNT_RESOLVER = "gc.tag_count"
-
 
 class UnknownPlantError(KeyError):
     """A plant name that is not in the catalogue."""
@@ -51,13 +43,7 @@ def _unknown(name: str, known: Iterable[str]) -> UnknownPlantError:
 
 
 def load_plant(name: str) -> Plant:
-    """Load and validate one plant from ``conf/plants/<name>.yaml``.
-
-    Examples
-    --------
-    >>> load_plant("cstr").order
-    2
-    """
+    """Load and validate one plant from ``conf/plants/<name>.yaml``."""
     path = conf_dir() / "plants" / f"{name}.yaml"
     if not path.is_file():
         raise _unknown(name, available_plants())
@@ -113,9 +99,7 @@ def check_tags(plants: Iterable[Plant], n_tags: Any) -> None:
     Raises
     ------
     PlantConfigError
-        Naming every such plant, its tag, the allowed range and the fixes, e.g. "plant
-        'cstr' (tag 10) is outside the policy's tags 0..9 (model.plant.n_tags=10); raise
-        model.plant.n_tags to at least 11 (...) or give it a free tag in 0..9 (...)".
+        Naming every such plant, its tag, the allowed range and the fixes.
     ValueError
         If ``n_tags`` is not a positive integer.
     """
@@ -152,9 +136,7 @@ def catalogue_tags() -> dict[str, int]:
 def tag_count(n_tags: Any = None) -> int:
     """The policy's tag rows: ``n_tags`` as given, or (None) one per catalogue plant.
 
-    ``model.plant.n_tags`` is ``${gc.tag_count:}`` by default, this function: the rows are the
-    catalogue's tags, which must be ``0 .. N - 1`` for N plant files, so a plant added is a
-    file and its line in a set. A config that names a number keeps it.
+    The catalogue's tags must then be ``0 .. N - 1`` for N plant files.
 
     Raises
     ------
@@ -188,4 +170,5 @@ def tag_count(n_tags: Any = None) -> int:
     return len(tags)
 
 
-OmegaConf.register_new_resolver(TAG_COUNT_RESOLVER, tag_count, replace=True)
+# ``${gc.tag_count:}`` in conf/model/plant/*.yaml
+OmegaConf.register_new_resolver("gc.tag_count", tag_count, replace=True)

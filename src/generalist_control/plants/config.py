@@ -1,9 +1,6 @@
-"""Building a :class:`~generalist_control.plants.definition.Plant` from its configuration.
+"""A :class:`~generalist_control.plants.definition.Plant` from its file: every field checked once.
 
-Every field of ``conf/plants/<name>.yaml`` is checked here, once (``conf/plants/README.md``
-has the schema): the name, the tag, every number finite and within +-:data:`MAX_ENTRY`;
-fitness for LQI (stabilisability, no zero at s = 0) is checked by
-:func:`generalist_control.simulation.lqi.design_lqi`.
+Fitness for LQI is checked by :func:`generalist_control.simulation.lqi.design_lqi`.
 """
 
 from __future__ import annotations
@@ -29,11 +26,10 @@ from generalist_control.plants.variants import register_spec
 
 __all__ = ["MAX_ENTRY", "plant_from_config"]
 
-#: The largest magnitude of a number in a plant file: beyond it the LQI design's Riccati
-#: solver fails in its own words (1e300 squared overflows); no catalogue plant comes near.
+#: The largest magnitude of a number in a plant file (the Riccati solver overflows beyond).
 MAX_ENTRY = 1e12
 
-#: A plant's name, the key Hydra reaches it by (``systems.plants.<name>``): no dots.
+#: A plant's name, the key Hydra reaches it by: no dots.
 _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
@@ -129,7 +125,6 @@ def _nonlinear_model(name: str, cfg: Mapping[str, Any], n: int) -> dict[str, Any
     h = _import(str(dyn["h"]), name, "dynamics.h") if dyn.get("h") is not None else None
     f0 = f(x_op[None, :], np.array([u_op]), **params)[0]
     A, B, C_lin = linearise(f, h, x_op, u_op, params)
-    # relative to the size of the terms that cancel at the equilibrium (unit-free)
     scale = np.abs(A) @ np.abs(x_op) + np.abs(B[:, 0]) * abs(u_op)
     if np.any(np.abs(f0) > 1e-6 * scale + 1e-12):
         raise PlantConfigError(
@@ -211,27 +206,17 @@ def _identity(name: str, cfg: Any) -> int:
 
 
 def plant_from_config(name: str, cfg: Any, source: str | Path | None = None) -> Plant:
-    """Build and validate a :class:`Plant` from its configuration mapping.
+    """Build and validate a :class:`Plant` named ``name`` from its configuration mapping.
 
-    Parameters
-    ----------
-    name : str
-        Catalogue name (the file stem of ``conf/plants/<name>.yaml``).
-    cfg : mapping
-        The plant's configuration (see ``conf/plants/README.md`` for the schema); anything
-        else is refused.
-    source : str or Path, optional
-        The file it was read from, named first in every refusal.
+    ``cfg`` follows ``conf/plants/README.md``; ``source``, the file it was read from, is
+    named first in every refusal.
 
     Raises
     ------
     PlantConfigError
-        If the file is not a mapping, the name has characters other than letters, digits
-        and underscores, the tag is not a non-negative integer, a field is missing, has
-        the wrong shape, a number that is not finite or beyond +-:data:`MAX_ENTRY`, the
-        weights are not (semi)definite, or the ``variants`` block is malformed
-        (:func:`~.variants.register_spec`). Fitness for LQI (stabilisability, zero at
-        s = 0) is checked by :func:`generalist_control.simulation.lqi.design_lqi`.
+        Naming the field: not a mapping, a bad name or tag, a field missing, of the wrong
+        shape, not finite or beyond +-:data:`MAX_ENTRY`, weights not (semi)definite, or a
+        malformed ``variants`` block.
     """
     try:
         return _plant(name, cfg)
@@ -267,5 +252,5 @@ def _plant(name: str, cfg: Any) -> Plant:
         **settings,
         **model,
     )
-    register_spec(plant, cfg.get("variants"))  # the optional 'variants' block, validated
+    register_spec(plant, cfg.get("variants"))
     return plant

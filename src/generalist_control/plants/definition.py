@@ -1,14 +1,6 @@
-"""Plant definitions: a validated, immutable description of one SISO plant.
+"""One SISO plant, linear or nonlinear about an operating point, immutable.
 
-A plant is either linear, ``dx/dt = A x + B u``, ``y = C x``, or nonlinear,
-``dx/dt = f(x, u)``, ``y = h(x)`` with an operating point ``(x_op, u_op)`` at which
-``f(x_op, u_op) = 0``. Everything outside this module works in *deviation coordinates*
-about the operating point (zero for linear plants): states, outputs, references and
-controls in the dataset, the LQI law and the learned policy are all deviations.
-
-Plants are built from configuration (``conf/plants/<name>.yaml``) by
-:func:`generalist_control.plants.config.plant_from_config`, which checks every field
-before anything is simulated.
+Everything outside this module works in deviation coordinates about the operating point.
 """
 
 from __future__ import annotations
@@ -17,6 +9,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 
 __all__ = [
     "MAX_ORDER",
@@ -25,6 +18,7 @@ __all__ = [
     "Signal",
     "linearise",
     "pad_states",
+    "rhp_roots",
 ]
 
 #: Largest plant order the policy handles (states are zero-padded to this length).
@@ -47,23 +41,11 @@ class Signal:
 
 @dataclass(frozen=True, eq=False)
 class Plant:
-    """One SISO plant with its LQI weights.
+    """One SISO plant with its LQI weights ``Q`` (on ``[x; z]``) and ``R``.
 
-    Attributes
-    ----------
-    name, tag : str, int
-        Catalogue name and the stable integer system tag fed to the policy.
-    A, B, C : ndarray
-        The model (linear plants) or its linearisation at the operating point.
-    Q, R : ndarray
-        LQI weights on the augmented state ``[x; z]`` (size ``n + 1``) and on the input.
-    f, h : callable or None
-        Nonlinear dynamics ``f(x, u, **params)`` and output ``h(x, **params)`` in absolute
-        coordinates, batched over the leading axis; ``None`` for linear plants.
-    x_op, u_op, y_op : ndarray, float, float
-        Operating point; zero for linear plants.
-    amplitude_scale : float
-        Factor applied to the data stage's step-amplitude grid for this plant.
+    ``A, B, C`` are the model or its linearisation at the operating point; ``f(x, u,
+    **params)`` and ``h(x, **params)`` (None for linear plants) work in absolute
+    coordinates, batched; ``amplitude_scale`` scales the data's step amplitudes.
     """
 
     name: str
@@ -99,15 +81,7 @@ class Plant:
         return self.f is None
 
     def deriv(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """State derivative in deviation coordinates, batched.
-
-        Parameters
-        ----------
-        x : ndarray, shape (batch, n)
-            State deviation from the operating point.
-        u : ndarray, shape (batch,)
-            Input deviation.
-        """
+        """State derivative for state deviations ``x`` (batch, n) and inputs ``u`` (batch,)."""
         if self.f is None:
             return x @ self.A.T + u[:, None] * self.B[:, 0]
         return self.f(x + self.x_op, u + self.u_op, **self.params)
@@ -127,6 +101,25 @@ def pad_states(x: np.ndarray) -> np.ndarray:
     out = np.zeros((*x.shape[:-1], MAX_ORDER), dtype=x.dtype)
     out[..., :n] = x
     return out
+
+
+def rhp_roots(
+    A: np.ndarray, B: np.ndarray, C: np.ndarray, rel_tol: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Poles and zeros with a real part above ``rel_tol * max(1, max |A|)``.
+
+    Zeros are the finite generalised eigenvalues of ``[[A, B], [C, 0]]`` (square systems).
+    """
+    n = A.shape[0]
+    scale = max(1.0, float(np.abs(A).max()))
+    poles = np.linalg.eigvals(A)
+    system = np.block([[A, B], [C, np.zeros((C.shape[0], B.shape[1]))]])
+    pencil = np.zeros_like(system)
+    pencil[:n, :n] = np.eye(n)
+    zeros = scipy.linalg.eigvals(system, pencil)
+    zeros = zeros[np.isfinite(zeros) & (np.abs(zeros) < 1e8 * scale)]
+    tol = rel_tol * scale
+    return poles[poles.real > tol], zeros[zeros.real > tol]
 
 
 def linearise(

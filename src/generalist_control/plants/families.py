@@ -1,12 +1,7 @@
 """Plant families: SISO linear plants drawn from a seeded distribution over plant classes.
 
-A family (``conf/families/<name>.yaml``, built with ``hydra.utils.instantiate``) draws a
-transfer function in time-constant form, ``K * prod(1 - s/z) / (s^m * prod(1 - s/p))``
-(gain, time constants, damping, zeros: what an engineer reads off a plant), realises it in
-drawn state coordinates and units, and weighs it for LQI by a stated rule
-(:mod:`.lqi_weights`). Candidate ``i`` of seed ``s`` depends on ``(s, i)`` alone. Which
-candidates are kept is decided one layer up (:mod:`generalist_control.simulation.family_draw`).
-The design and its reasons: ``docs/notes/plant-families.md``.
+Candidate ``i`` of seed ``s`` depends on ``(s, i)`` alone; which are kept is decided in
+:mod:`generalist_control.simulation.family_draw`. Design: ``docs/notes/plant-families.md``.
 """
 
 from __future__ import annotations
@@ -59,10 +54,7 @@ class Candidate:
     reason: str | None = None
 
     def record(self, matrices: bool = True) -> dict[str, Any]:
-        """JSON-ready parameters; with ``matrices``, the plant's ``A``, ``B``, ``C``.
-
-        Its ``Q`` and ``R`` follow from ``C`` and the weights (:meth:`.Weights.matrices`).
-        """
+        """JSON-ready parameters; with ``matrices``, the plant's ``A``, ``B``, ``C``."""
         out: dict[str, Any] = {"index": self.index, **self.model.record(), "form": self.form}
         if self.weights is not None:
             out.update(self.weights.record())
@@ -123,20 +115,9 @@ def _weights(name: str, value: Mapping[Any, Any], known: Sequence[str]) -> dict[
 
 @dataclass(frozen=True)
 class LinearFamily:
-    """SISO linear plants of order 1 to 4 across :data:`CLASSES` (every field from config).
+    """SISO linear plants of order 1 to 4 across :data:`CLASSES`.
 
-    Parameters (``conf/families/default.yaml`` says what each one means)
-    ----------
-    name, seed : str, int
-        Together with the candidate's index they name a drawn plant.
-    dt, inputs, outputs : float, int, int
-        Sample time; inputs and outputs (1 and 1: MIMO families are refused for now).
-    orders, classes, forms : weights over orders 1-4, :data:`CLASSES` and :data:`FORMS`
-    extra_class, complex_share, lhp_zero_share, double_integrator : probabilities
-    time_constant, frequency, damping, light_damping, unstable_pole, rhp_zero, slow_zero,
-    lhp_zero, gain, state_scale : [low, high] ranges (log-uniform but damping's)
-    weights : BrysonRule
-        The LQI weights' rule (:mod:`.lqi_weights`).
+    Every field comes from config; ``conf/families/default.yaml`` says what each one means.
     """
 
     name: str
@@ -202,7 +183,6 @@ class LinearFamily:
         )
 
     def _plant(self, index: int, model: TransferModel, form: str, *mats: np.ndarray) -> Plant:
-        # a kept plant gets its place in the draw as its tag (simulation.family_draw)
         return _drawn_plant(self.name, self.seed, index, -1, model.classes, form, self.dt, *mats)
 
     def _model(self, rng: np.random.Generator) -> TransferModel:
@@ -268,10 +248,7 @@ def _drawn_plant(
 
 
 def plant_from_record(family: Mapping[str, Any], name: str, dt: float) -> Plant:
-    """A kept plant rebuilt, bit for bit, from a data manifest's ``plant_family`` block.
-
-    ``family`` is that block (``name``, ``seed``, ``plants``), ``name`` the plant's.
-    """
+    """Plant ``name`` rebuilt, bit for bit, from a data manifest's ``plant_family`` block."""
     r = family["plants"][name]
     A, B, C = (np.array(r[k], dtype=float) for k in ("A", "B", "C"))
     weights = Weights(r["bandwidth"], r["integral_ratio"], r["q_y"], r["q_z"])

@@ -1,15 +1,6 @@
-"""A plant given at run time: a plant YAML anywhere, or a model as a dict.
+"""A plant given at run time (the model card route): a plant YAML anywhere, or a model dict.
 
-The model card route (``PolicyRuntime.reset``) serves a plant it never saw from its model.
-A user gives it as a plant file of the catalogue's schema (``conf/plants/README.md``; its
-``tag``, ``description`` and ``source`` may be left out) or as a dict of the model alone::
-
-    {"A": [[0, 1], [-2, -3]], "B": [[0], [1]], "C": [[1, 0]], "dt": 0.05,
-     "Q": [1, 1, 10], "R": 1.0, "name": "my_plant"}   # name optional
-
-Both are checked field by field as a catalogue plant is
-(:func:`~generalist_control.plants.config.plant_from_config`): shapes, NaN or inf, ``Q``
-positive semidefinite and ``R`` positive, the order within ``MAX_ORDER``.
+Both are checked as a catalogue plant is; ``tag``, ``description`` and ``source`` may be left out.
 """
 
 from __future__ import annotations
@@ -32,18 +23,11 @@ MODEL_KEYS = ("A", "B", "C", "dt", "Q", "R")
 _DEFAULTS = {"tag": 0, "description": "a plant given at run time", "source": "given"}
 
 
-def _order(A: Any, where: str) -> int:
-    try:
-        rows = len(A)
-    except TypeError:
-        raise PlantConfigError(
-            f"{where}: field 'A' must be a square matrix (a list of rows)"
-        ) from None
-    return rows
-
-
 def plant_from_model(model: Mapping[str, Any], name: str | None = None) -> Plant:
-    """A :class:`Plant` from a model dict (module docstring).
+    """A :class:`Plant` from a model dict (keys :data:`MODEL_KEYS`, ``name`` optional).
+
+    E.g. ``{"A": [[0, 1], [-2, -3]], "B": [[0], [1]], "C": [[1, 0]], "dt": 0.05,
+    "Q": [1, 1, 10], "R": 1.0}``.
 
     Raises
     ------
@@ -60,7 +44,12 @@ def plant_from_model(model: Mapping[str, Any], name: str | None = None) -> Plant
             f"{where}: needs the keys {list(MODEL_KEYS)} (and optionally 'name'); "
             + (f"missing {missing}" if missing else f"unknown {unknown}")
         )
-    n = _order(model["A"], where)
+    try:
+        n = len(model["A"])
+    except TypeError:
+        raise PlantConfigError(
+            f"{where}: field 'A' must be a square matrix (a list of rows)"
+        ) from None
     cfg = {
         **_DEFAULTS,
         "dt": model["dt"],

@@ -1,27 +1,19 @@
-r"""The LQI weights of a drawn plant: Bryson's rule at a drawn loop bandwidth.
+"""The LQI weights of a drawn plant: Bryson's rule at a drawn loop bandwidth ``w_c``.
 
-Bryson's rule weighs each signal by the inverse square of its acceptable size: an output
-error ``y_max``; the input that moves the output by ``y_max`` at the loop's bandwidth
-``w_c``, ``u_max = y_max / |G(j w_c)|``; the integral of an error ``y_max`` held for
-``1 / w_i`` seconds, ``w_i = ratio * w_c``. Divided by the input's weight,
-
-.. math:: R = I, \quad Q = q_y C^T C \oplus q_z I, \quad
-   q_y = 1 / \|G(j w_c)\|^2, \quad q_z = w_i^2 q_y,
-
-so the LQ loop crosses over near ``w_c`` (the symmetric root locus) whatever the plant's gain
-and time scale, and the design does not depend on the state coordinates. ``w_c`` and the
-ratio are drawn log-uniform (a user's weights are their own), ``w_c`` within the limits a
-right-half-plane pole ``p`` and zero ``z`` set: ``margin * p <= w_c <= z / margin``.
+``R = I``, ``Q = q_y C^T C + q_z I`` with ``q_y = 1 / |G(j w_c)|^2``, ``q_z = (ratio w_c)^2 q_y``:
+the loop crosses over near ``w_c`` in any coordinates (docs/notes/plant-families.md).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.linalg
+
+from generalist_control.plants.definition import rhp_roots
 
 __all__ = ["BrysonRule", "NoBandwidthError", "Weights", "right_half_plane"]
 
@@ -31,23 +23,10 @@ class NoBandwidthError(ValueError):
 
 
 def right_half_plane(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> tuple[float, float]:
-    """The largest real part of an unstable pole (0: none) and the smallest RHP zero (inf).
-
-    Zeros are the finite generalised eigenvalues of ``[[A, B], [C, 0]]`` (square systems).
-    """
-    n = A.shape[0]
-    scale = max(1.0, float(np.abs(A).max()))
-    tol = 1e-8 * scale  # integrators come out within ~1e-12 of 0 in any coordinates
-    poles = np.linalg.eigvals(A)
-    system = np.block([[A, B], [C, np.zeros((C.shape[0], B.shape[1]))]])
-    pencil = np.zeros_like(system)
-    pencil[:n, :n] = np.eye(n)
-    zeros = scipy.linalg.eigvals(system, pencil)
-    zeros = zeros[np.isfinite(zeros) & (np.abs(zeros) < 1e8 * scale)]
-    unstable = poles.real[poles.real > tol]
-    rhp = np.abs(zeros[zeros.real > tol])
-    return (float(unstable.max()) if unstable.size else 0.0), (
-        float(rhp.min()) if rhp.size else math.inf
+    """The largest real part of an unstable pole (0: none) and the smallest RHP zero (inf)."""
+    poles, zeros = rhp_roots(A, B, C, 1e-8)  # integrators come out within ~1e-12 of 0
+    return (float(poles.real.max()) if poles.size else 0.0), (
+        float(np.abs(zeros).min()) if zeros.size else math.inf
     )
 
 
@@ -70,26 +49,15 @@ class Weights:
 
     def record(self) -> dict[str, Any]:
         """JSON-ready."""
-        return {
-            "bandwidth": self.bandwidth,
-            "integral_ratio": self.integral_ratio,
-            "q_y": self.q_y,
-            "q_z": self.q_z,
-        }
+        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True)
 class BrysonRule:
-    """Bryson's rule at a drawn bandwidth (module docstring); every field from config.
+    """Bryson's rule at a bandwidth drawn log-uniform in ``bandwidth`` (rad/s).
 
-    Parameters
-    ----------
-    bandwidth : [low, high]
-        Range of ``w_c`` in rad/s (log-uniform).
-    integral_ratio : [low, high]
-        Range of ``w_i / w_c`` (log-uniform).
-    margin : float
-        ``w_c`` at least ``margin`` times an unstable pole, at most an RHP zero over it.
+    The ratio ``w_i / w_c`` is drawn log-uniform in ``integral_ratio``; ``w_c`` lies at least
+    ``margin`` times an unstable pole and at most an RHP zero over ``margin``.
     """
 
     bandwidth: tuple[float, float]

@@ -1,11 +1,4 @@
-"""A drawn transfer function in state coordinates, its states in drawn units.
-
-The coordinates: the chain of its stages (each a lag, an integrator, an unstable pole or a
-resonance with the zeros it holds, of DC gain 1, so that its states read as physical
-signals), the companion form of the whole, or the chain rotated. The catalogue's plants come
-in coordinates of their own, which the forms and units stand in for
-(docs/notes/plant-families.md).
-"""
+"""A drawn transfer function in drawn state coordinates (:data:`FORMS`) and units."""
 
 from __future__ import annotations
 
@@ -17,18 +10,13 @@ import numpy as np
 
 __all__ = ["FORMS", "TransferModel", "realise", "scaled"]
 
-#: State coordinates: a chain of first/second-order stages, the phase-variable (controllable
-#: canonical) form of the whole transfer function, or the chain seen through a rotation.
+#: A chain of first/second-order stages of DC gain 1, the companion form, the chain rotated.
 FORMS = ("cascade", "companion", "rotated")
 
 
 @dataclass(frozen=True)
 class TransferModel:
-    """A drawn SISO transfer function in time-constant form.
-
-    ``gain`` is ``G(0)``, or ``s^m G(s)`` at ``s = 0`` for ``m`` integrators; ``poles``
-    lists each complex pair once (positive imaginary part); ``zeros`` are real.
-    """
+    """``gain`` (``s^m G(s)`` at 0), poles (a complex pair once), real zeros, classes."""
 
     gain: float
     poles: tuple[complex, ...]

@@ -1,23 +1,8 @@
-"""Plant variants: a plant with its physical parameters (or matrix entries) perturbed.
+"""Plant variants: each perturbable parameter scaled by a factor uniform in ``[1 - r, 1 + r]``.
 
-A variant multiplies each *perturbable* parameter of a plant by a factor drawn uniformly in
-``[1 - range, 1 + range]`` (default +-25 %). The perturbable parameters are
-
-- nonlinear plants: every entry of ``dynamics.params``;
-- linear plants (no physics given): every non-zero entry of ``A`` and ``B``, except the
-  off-diagonal entries of ``A`` equal to exactly 1 (kinematic links ``dx_i/dt = x_j``).
-  Zeros are structural and never perturbed; ``C`` (what is measured) is kept.
-
-A plant file may narrow, widen or fix this with a ``variants`` block
-(``conf/plants/README.md``): ``range`` (all of the plant's parameters) and ``ranges``
-(per parameter, by name, ``0`` fixes one; a linear entry is named ``A[i,j]`` or ``B[i]``)
-and ``include`` (linear entries perturbed at the plant's range although the rule fixes
-them: a physical off-diagonal 1).
-
-A nonlinear variant keeps the nominal operating state ``x_op``: its ``u_op`` is re-solved
-(:func:`make_variant`), and a variant with no equilibrium at ``x_op`` is refused
-(:class:`VariantError`). Fitness for LQI is checked one layer up
-(:mod:`generalist_control.simulation.variant_sampling`).
+Perturbable: a nonlinear plant's ``dynamics.params``; a linear plant's non-zero ``A``, ``B``
+entries but off-diagonal 1s. A plant file's ``variants`` block changes this
+(``conf/plants/README.md``); rules and reasons: docs/notes/plant-variants.md.
 """
 
 from __future__ import annotations
@@ -41,7 +26,6 @@ __all__ = [
     "nominal_parameters",
     "parameter_ranges",
     "register_spec",
-    "spec_of",
     "variant_range",
 ]
 
@@ -52,14 +36,12 @@ DEFAULT_RANGE = 0.25
 def variant_range(value: Any, key: str, zero: bool = False, default: bool = True) -> float:
     """The config's ``key`` as a variant range: a number in (0, 1); None: :data:`DEFAULT_RANGE`.
 
-    With ``zero``, 0 is allowed too (a plant file's ``ranges``: 0 fixes a parameter); without
-    ``default``, None is refused (a plant file's key given without a value).
+    With ``zero``, 0 is allowed too (it fixes a parameter); without ``default``, None is refused.
 
     Raises
     ------
     ValueError
-        If it is not a number, or not in (0, 1) (1 or more would flip a parameter's sign, 0
-        draw no variant), naming ``key``.
+        If it is not a number in (0, 1), naming ``key``.
     """
     if value is None and default:
         return DEFAULT_RANGE
@@ -79,11 +61,7 @@ class VariantError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class VariantSpec:
-    """A plant file's ``variants`` block.
-
-    ``range`` (None: the config's), per-name ``ranges``, and ``include``: linear entries
-    perturbed at that range although the default rule fixes them.
-    """
+    """A plant file's ``variants`` block (``range`` None: the config's)."""
 
     range: float | None = None
     ranges: Mapping[str, float] = dataclasses.field(default_factory=dict)
@@ -94,7 +72,7 @@ _SPECS: weakref.WeakKeyDictionary[Plant, VariantSpec] = weakref.WeakKeyDictionar
 
 
 def _check_range(value: Any, field: str, name: str) -> float:
-    """A plant file's range (0 allowed): :func:`variant_range`, as a :class:`PlantConfigError`."""
+    """A plant file's range (0 allowed), refused as a :class:`PlantConfigError`."""
     try:
         return variant_range(value, f"plant '{name}': field '{field}'", zero=True, default=False)
     except ValueError as e:
@@ -135,12 +113,8 @@ def register_spec(plant: Plant, block: Mapping[str, Any] | None) -> VariantSpec:
     return spec
 
 
-def spec_of(plant: Plant) -> VariantSpec:
-    """The ``variants`` block registered for ``plant`` (empty when none was)."""
-    return _SPECS.get(plant, VariantSpec())
-
-
 def _entry_names(plant: Plant) -> dict[str, tuple[str, int, int]]:
+    """The non-zero ``A``, ``B`` entries by name: ``A[i,j]``, ``B[i]``."""
     out = {}
     for i, j in zip(*np.nonzero(plant.A), strict=True):
         out[f"A[{i},{j}]"] = ("A", int(i), int(j))
@@ -159,11 +133,9 @@ def nominal_parameters(plant: Plant) -> dict[str, float]:
 def parameter_ranges(plant: Plant, default: float = DEFAULT_RANGE) -> dict[str, float]:
     """The relative range of every perturbable parameter (range > 0), by name, sorted.
 
-    The plant file's ``variants.range`` replaces ``default``; ``variants.ranges`` sets
-    single parameters (0 fixes one). Linear off-diagonal ``A`` entries equal to 1 are fixed
-    unless ``variants.include`` (at the plant's range) or ``variants.ranges`` names them.
+    The plant file's ``variants`` block overrides ``default`` (module docstring).
     """
-    spec = spec_of(plant)
+    spec = _SPECS.get(plant, VariantSpec())
     base = default if spec.range is None else spec.range
     out = {}
     for key, value in nominal_parameters(plant).items():
@@ -204,6 +176,7 @@ def _solve_u_op(plant: Plant, params: Mapping[str, float]) -> float:
 
 
 def _nonlinear_variant(plant: Plant, params: dict[str, float]) -> Plant:
+    """The plant with ``params``, ``u_op`` re-solved to hold the nominal ``x_op``."""
     assert plant.f is not None and plant.x_op is not None
     u_op = _solve_u_op(plant, params)
     f0 = plant.f(plant.x_op[None, :], np.array([u_op]), **params)[0]

@@ -1,8 +1,4 @@
-"""Closed-loop scores of any batch controller against the LQI experts, on steps from rest.
-
-Training's closed-loop validation, the ablation's score and the evaluation use them; the
-controller is anything with the simulator's batch protocol (e.g. the runtime's adapter).
-"""
+"""Closed-loop scores of any batch controller against the LQI experts, on steps from rest."""
 
 from __future__ import annotations
 
@@ -27,10 +23,7 @@ __all__ = ["ClosedLoopScore", "closed_loop_score", "output_mse"]
 def output_mse(
     controller: BatchController, plants: Sequence[Plant], duration: float = 15.0
 ) -> dict[str, float]:
-    """Per plant, the mean ``(y - y_LQI)**2`` on a unit step from rest (``inf`` if diverged).
-
-    The ablation's closed-loop score; the step is scaled by the plant's ``amplitude_scale``.
-    """
+    """Per plant, mean ``(y - y_LQI)**2`` on a scaled unit step from rest (inf: diverged)."""
     spec = {"kind": "step", "amplitude": 1.0, "duration": float(duration)}
     runs = [Run(p, *references("step", spec, p), None) for p in plants]
     ours = simulate_many(runs, controller)
@@ -42,13 +35,7 @@ def output_mse(
 
 
 class ClosedLoopScore:
-    """:func:`closed_loop_score` for one set of plants and steps, LQI's responses simulated once.
-
-    Raises
-    ------
-    ValueError
-        ``labels`` does not name each plant once.
-    """
+    """:func:`closed_loop_score` for one set of plants and steps; LQI simulated once."""
 
     def __init__(
         self,

@@ -1,18 +1,17 @@
 """A nonlinear Crazyflie 2.1 altitude stand-in for the paper's hardware test (sim-to-real).
 
-Controllers designed on the linear ``crazyflie_altitude`` fly a model that differs the way
-the vehicle does: motor lag, thrust limits, quadratic drag, more mass, noisy estimates. The
-loop runs at 100 Hz; a controller of ``dt = 0.05 s`` is sampled every fifth tick (ZOH).
+Motor lag, thrust limits, quadratic drag, more mass and noisy estimates, at 100 Hz.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
-from generalist_control.simulation.simulate import DIVERGENCE_BOUND, Controller, Trajectory
+from generalist_control.simulation.simulate import DIVERGENCE_BOUND, Controller, Trajectory, rk4
 
 __all__ = ["CrazyflieParams", "fly", "fly_many"]
 
@@ -53,16 +52,10 @@ def fly(
     params: CrazyflieParams | None = None,
     seed: int = 0,
 ) -> Trajectory:
-    """Fly ``controller`` on the stand-in from hover for references ``r`` (B, N) at 100 Hz.
+    """Fly ``controller`` from hover for references ``r`` (B, N), sampled every ``control_dt``.
 
-    The controller commands the thrust deviation from the *nominal* hover thrust
-    ``nominal_mass * g``; the vehicle is heavier, so integral action must find the real one.
-
-    Returns
-    -------
-    Trajectory
-        At the loop rate: true ``[z, w]`` states, the delivered thrust deviation from the
-        nominal hover thrust as ``u``, the altitude as ``y``.
+    It commands the thrust deviation from the *nominal* hover thrust; the vehicle is heavier.
+    The trajectory, at the loop rate: true ``[z, w]``, delivered thrust deviation, altitude.
     """
     return fly_many([controller], r, control_dt, params, seed)[0]
 
@@ -102,7 +95,8 @@ def fly_many(
                 noise = rng.normal(size=(batch, 2)) * [p.noise_altitude, p.noise_velocity]
                 for c, sl in zip(controllers, rows, strict=True):
                     u_cmd[sl] = np.asarray(c.step(s[sl, :2] + noise, r[:, k]), dtype=float)
-            s = _rk4(s, np.clip(hover + u_cmd, p.thrust_min, p.thrust_max), dt, p)
+            cmd = np.clip(hover + u_cmd, p.thrust_min, p.thrust_max)
+            s = rk4(partial(_deriv, t_cmd=cmd, p=p), s, dt / p.substeps, p.substeps)
             diverged |= ~np.all(np.isfinite(s) & (np.abs(s) < DIVERGENCE_BOUND), axis=1)
             u[:, k] = s[:, 2] - hover
             xs[:, k + 1] = np.where(diverged[:, None], xs[:, k], s[:, :2])
@@ -111,15 +105,3 @@ def fly_many(
         Trajectory(t=t, x=xs[sl], u=u[sl], r=r, y=xs[sl, :, 0], diverged=diverged[sl])
         for sl in rows
     ]
-
-
-def _rk4(s: np.ndarray, t_cmd: np.ndarray, dt: float, p: CrazyflieParams) -> np.ndarray:
-    """One loop period: ``p.substeps`` RK4 steps of the vehicle under thrust command ``t_cmd``."""
-    h = dt / p.substeps
-    for _ in range(p.substeps):
-        k1 = _deriv(s, t_cmd, p)
-        k2 = _deriv(s + 0.5 * h * k1, t_cmd, p)
-        k3 = _deriv(s + 0.5 * h * k2, t_cmd, p)
-        k4 = _deriv(s + h * k3, t_cmd, p)
-        s = s + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-    return s

@@ -1,18 +1,7 @@
-"""Drawing a family's plants that are fit for their LQI experts, each refusal with its reason.
+"""Drawing a family's plants fit for their LQI experts, each refusal with its reason.
 
-A candidate (:meth:`~generalist_control.plants.families.PlantFamily.candidate`) is kept
-when, in this order (the first that fails is its reason, :data:`REASONS`):
-
-1. the weight rule finds a bandwidth (``no_bandwidth``: an unstable pole too near an RHP zero);
-2. :func:`~.lqi.design_lqi` accepts it: no zero at s = 0 (``zero_at_origin``), a stabilisable
-   augmented pair (``not_stabilisable``), a Riccati solution with a stable loop
-   (``design_failed``), a stable loop sampled at dt (``sampled_unstable``);
-3. the sample resolves its fastest closed-loop pole, ``|s| dt <= max_pole_dt`` (``too_fast``);
-4. its unit step from rest settles (2 %) within ``settle_fraction`` of a trajectory
-   (``too_slow``), simulated for all candidates of a chunk at once.
-
-The kept plants are the first ``count`` candidates that pass, in index order, tagged
-``0 .. count - 1``; a candidate's verdict depends on it alone, so chunks change nothing.
+The checks run in the order of :data:`REASONS` (docs/notes/plant-families.md); the kept plants
+are the first ``count`` candidates that pass, tagged ``0 .. count - 1``.
 """
 
 from __future__ import annotations
@@ -46,7 +35,8 @@ __all__ = [
     "settling_times",
 ]
 
-#: Why a candidate is refused, in the order the checks run.
+#: Why a candidate is refused, in the order the checks run: a bandwidth for the weights, the
+#: LQI design, ``|s| dt <= max_pole_dt`` of the fastest pole, settling within the fraction.
 REASONS = (
     "no_bandwidth",
     "zero_at_origin",
@@ -72,10 +62,10 @@ class Rejected(ValueError):
 class FamilyChecks:
     """``families.checks``: what a drawn plant's LQI loop must do (every field from config)."""
 
-    max_pole_dt: float  #: |s| dt of the fastest continuous closed-loop pole, at most
-    settle_fraction: float  #: the unit step settles within this share of ``duration``
-    duration: float  #: seconds of a trajectory (the data's)
-    max_tries: int  #: candidates drawn per plant wanted, at most
+    max_pole_dt: float
+    settle_fraction: float
+    duration: float
+    max_tries: int
 
     def __post_init__(self) -> None:
         if not (0 < self.max_pole_dt < math.inf and 0 < self.settle_fraction <= 1):
@@ -89,15 +79,15 @@ class FamilySettings:
     """A ``families`` config group (``conf/families/<name>.yaml``) but its generator."""
 
     checks: FamilyChecks
-    count: int  #: plants kept
-    data_dir: str  #: where the stage writes their demonstrations
-    demos: Any  #: each plant's demonstrations: ``conf/data``'s amplitudes and families
+    count: int
+    data_dir: str
+    demos: Any
 
 
 def read_families(node: Mapping[str, Any]) -> tuple[PlantFamily, FamilySettings]:
     """The family its ``generator`` block builds (``_target_``) and the group's settings.
 
-    ``node`` is the group as plain types (``OmegaConf.to_container(cfg.families, resolve=True)``).
+    ``node`` is the group as plain types.
 
     Raises
     ------
@@ -144,12 +134,7 @@ _MESSAGES = (
 
 
 def check_design(plant: Plant, max_pole_dt: float) -> LQIGains:
-    """``design_lqi(plant)`` and the pole check (items 2 and 3 of the module docstring).
-
-    Raises
-    ------
-    Rejected
-    """
+    """``design_lqi(plant)`` and the fastest pole's check, or :class:`Rejected`."""
     try:
         gains = design_lqi(plant)
     except PlantConfigError as exc:
@@ -170,8 +155,7 @@ def check_design(plant: Plant, max_pole_dt: float) -> LQIGains:
 def settling_times(plants: Sequence[Plant], gains: Sequence[LQIGains], steps: int) -> np.ndarray:
     """2 % settling time of each sampled LQI loop's unit step from rest (inf: not settled).
 
-    The loops (:func:`~.lqi.sampled_closed_loop`) are stacked, zero-padded to the largest
-    augmented order, and stepped together for ``steps`` samples.
+    The loops are stacked, zero-padded to the largest augmented order, and stepped together.
     """
     size = max(p.order + p.C.shape[0] for p in plants)
     M = np.zeros((len(plants), size, size))
@@ -195,6 +179,7 @@ def settling_times(plants: Sequence[Plant], gains: Sequence[LQIGains], steps: in
 
 
 def _rejection(candidate: Candidate, reason: str, message: str) -> dict[str, Any]:
+    """The manifest's record of a refused candidate."""
     return {"reason": reason, "message": message, **candidate.record(matrices=False)}
 
 
@@ -232,7 +217,7 @@ def _check_chunk(
 
 @dataclass(frozen=True)
 class FamilyDraw:
-    """The kept plants of a draw, in tag order, and every rejected candidate before the last."""
+    """The kept plants of a draw, in tag order, and every candidate rejected before the last."""
 
     family: PlantFamily
     kept: tuple[DrawnPlant, ...]
@@ -286,6 +271,7 @@ def draw_family(
 def _draw(
     family: PlantFamily, count: int, checks: FamilyChecks, chunk: int
 ) -> tuple[list[DrawnPlant], list[dict[str, Any]], int]:
+    """Candidates checked in chunks until ``count`` are kept or the tries run out."""
     kept: list[DrawnPlant] = []
     rejected: list[dict[str, Any]] = []
     index, limit = 0, checks.max_tries * count

@@ -1,9 +1,7 @@
-r"""LQI expert design and its sampled controller.
+"""LQI expert design (``dz/dt = r - C x``, ``u = -K [x; z]``) and its sampled controller.
 
-The plant is augmented with the error integral ``dz/dt = r - C x`` and ``u = -K [x; z]``
-minimises the LQR cost with weights ``Q`` (size n+1) and ``R``; python-control's
-``lqr(..., integral_action=C)`` integrates ``+C x``, so its ``Ki`` has the other sign. The
-controller integrates with forward Euler at the plant's sample time.
+python-control's ``lqr(..., integral_action=C)`` integrates ``+C x``: its ``Ki`` has the
+other sign.
 """
 
 from __future__ import annotations
@@ -15,7 +13,6 @@ import numpy as np
 from scipy.linalg import solve_continuous_are
 
 from generalist_control.plants.definition import Plant, PlantConfigError
-from generalist_control.simulation.antiwindup import conditional_increment
 from generalist_control.simulation.simulate import Perturbation, discretise
 
 __all__ = [
@@ -23,12 +20,13 @@ __all__ = [
     "LQIController",
     "LQIGains",
     "augment",
+    "conditional_increment",
     "design_lqi",
     "sampled_closed_loop",
 ]
 
 
-#: Designs per plant object (plants are immutable; the design is deterministic).
+#: Designs per (immutable) plant object.
 _DESIGNS: weakref.WeakKeyDictionary[Plant, LQIGains] = weakref.WeakKeyDictionary()
 
 
@@ -65,7 +63,21 @@ def _equilibrate(M: np.ndarray, iterations: int = 30) -> np.ndarray:
     return M
 
 
+def conditional_increment(
+    dz: np.ndarray, u_cmd: np.ndarray, u_act: np.ndarray, direction: float | np.ndarray
+) -> np.ndarray:
+    """The integrator increment ``dz``, zeroed where it would wind up the clipped actuator.
+
+    ``u_cmd`` is the commanded control, ``u_act`` the delivered one, ``direction`` the sign
+    (or any positive multiple of it) of ``du/dz`` per row.
+    """
+    excess = u_cmd - u_act
+    winding = (np.abs(excess) > 1e-12) & (np.sign(direction * dz) == np.sign(excess))
+    return np.where(winding, 0.0, dz)
+
+
 def _check_fit(plant: Plant, Aa: np.ndarray, Ba: np.ndarray) -> None:
+    """Refuse a plant with a zero at s = 0 or a non-stabilisable augmented pair."""
     n = plant.order
     system = np.block([[plant.A, plant.B], [plant.C, np.zeros((1, 1))]])
     # A zero at s = 0 makes the Rosenbrock matrix singular. Units rescale its rows and
@@ -98,10 +110,7 @@ def sampled_closed_loop(plant: Plant, gains: LQIGains) -> np.ndarray:
 def _lqr(
     A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(K, P, poles)`` of the continuous LQR, python-control's ``lqr`` bit for bit.
-
-    Its Riccati solver and two lines, without the second that importing python-control costs.
-    """
+    """``(K, P, poles)`` of the continuous LQR: python-control's ``lqr``, bit for bit."""
     A, B, Q, R = (np.array(M, ndmin=2, dtype=float) for M in (A, B, Q, R))
     P = solve_continuous_are(A, B, Q, R)
     K = np.linalg.solve(R, B.T @ P)
@@ -117,13 +126,6 @@ def design_lqi(plant: Plant) -> LQIGains:
     PlantConfigError
         If the plant is unfit for LQI: a zero at s = 0, a non-stabilisable augmented pair,
         or a closed loop (continuous or sampled at ``plant.dt``) that is not stable.
-
-    Examples
-    --------
-    >>> from generalist_control.plants.catalog import load_plant
-    >>> gains = design_lqi(load_plant("unstable"))
-    >>> bool(np.all(gains.poles.real < 0))
-    True
     """
     cached = _DESIGNS.get(plant)
     if cached is not None:
@@ -145,11 +147,7 @@ def design_lqi(plant: Plant) -> LQIGains:
 
 
 class LQIController:
-    """The LQI law ``u = -Kx x - Ki z`` with a forward-Euler error integrator.
-
-    Implements the simulator's controller protocol: ``reset(batch)`` then ``step(x, r)``
-    once per sample, on batches of state deviations ``x`` (batch, n) and references ``r``.
-    """
+    """The LQI law ``u = -Kx x - Ki z`` with a forward-Euler error integrator, batched."""
 
     def __init__(self, plant: Plant, gains: LQIGains | None = None) -> None:
         self.plant = plant
@@ -168,11 +166,7 @@ class LQIController:
 
 
 class AntiWindupLQIController(LQIController):
-    """LQI with conditional integration against the known actuator ``limits``.
-
-    It predicts the delivered control and freezes the integrator where integrating would push
-    a clipped command further into the limit; without limits it is :class:`LQIController`.
-    """
+    """LQI with conditional integration (:func:`conditional_increment`) against ``limits``."""
 
     def __init__(self, plant: Plant, limits: Perturbation, gains: LQIGains | None = None) -> None:
         super().__init__(plant, gains)

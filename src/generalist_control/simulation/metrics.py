@@ -1,9 +1,7 @@
 """Step-response and tracking metrics from sampled responses, vectorised over runs.
 
-The target is the reference's final value ``r_f``: rise time 10-90 % (as python-control's
-``step_info``), overshoot in % of ``|r_f|``, 2 % settling time, ``|r_f - y[-1]|``, ISE and
-ITAE by the trapezoidal rule, ``max |u|``. An undefined metric (never reached, never
-settled) is NaN.
+Relative to the reference's final value ``r_f``, as python-control's ``step_info``; an
+undefined metric (never reached, never settled) is NaN.
 """
 
 from __future__ import annotations
@@ -38,24 +36,11 @@ def step_metrics(
     settling_threshold: float = 0.02,
     rise_limits: tuple[float, float] = (0.1, 0.9),
 ) -> dict[str, np.ndarray]:
-    """Metrics of step responses.
+    """Metrics of step responses ``y`` (..., N) at times ``t`` (N,), controls ``u`` (..., M).
 
-    Parameters
-    ----------
-    t : ndarray, shape (N,)
-        Sample times.
-    y : ndarray, shape (..., N)
-        Output responses.
-    u : ndarray, shape (..., M)
-        Control signals (any length).
-    r : ndarray, shape (..., N) or (...,)
-        Reference signal, or only its final value for a step applied at t = 0.
-
-    Returns
-    -------
-    dict of str to ndarray
-        ``rise_time``, ``overshoot``, ``settling_time``, ``steady_state_error``,
-        ``relative_steady_state_error``, ``ISE``, ``ITAE``, ``u_max``; each ``y.shape[:-1]``.
+    ``r`` is the reference (..., N) or its final value (...,). Returns ``rise_time``,
+    ``overshoot`` (% of ``|r_f|``), ``settling_time``, ``steady_state_error``,
+    ``relative_steady_state_error``, ``ISE``, ``ITAE``, ``u_max``; each ``y.shape[:-1]``.
     """
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
@@ -67,7 +52,7 @@ def step_metrics(
     sgn = np.sign(rf)[..., None]
     lo, hi = rise_limits
     _, t_lo = _first_true(sgn * (y - lo * rf[..., None]) >= 0, t)
-    i_hi, t_hi = _first_true(sgn * (y - hi * rf[..., None]) >= 0, t)
+    _, t_hi = _first_true(sgn * (y - hi * rf[..., None]) >= 0, t)
     with np.errstate(divide="ignore", invalid="ignore"):
         peak = (sgn * y).max(axis=-1)
         overshoot = np.maximum(0.0, 100.0 * (peak - np.abs(rf)) / np.abs(rf))

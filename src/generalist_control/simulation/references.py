@@ -1,9 +1,7 @@
 """Randomised reference families and random initial states, for data, DAgger and evaluation.
 
-One implementation for the data stage's families, DAgger's rollouts and the evaluation's
-scenarios. Draws come from ``default_rng(seed + 1000 * plant.tag)``; amplitudes, levels and
-slopes are scaled by ``plant.amplitude_scale``. A random initial state lies within the
-plant's :func:`state_envelope`: a state it visits in operation, never an arbitrary one.
+Draws come from ``default_rng(seed + 1000 * plant.tag)``; a random initial state lies within
+the plant's :func:`state_envelope`, a state it visits in operation.
 """
 
 from __future__ import annotations
@@ -23,7 +21,6 @@ __all__ = [
     "FAMILIES",
     "family_references",
     "family_spec",
-    "random_initial_states",
     "state_envelope",
     "state_envelopes",
 ]
@@ -96,9 +93,7 @@ FAMILIES: dict[str, Family] = {
 }
 
 
-#: Each family's parameters and their defaults: the one place a family's default lives. Every
-#: family also takes ``seed`` (0), ``x0_amplitude`` (3: the envelope's steps), ``x0_scale`` (1)
-#: and ``x0_fraction`` (the share of runs from a random state; 1 for ``hold``, else 0).
+#: Each family's parameters and their defaults, the one place they live (and :data:`_COMMON`).
 FAMILY_PARAMETERS: dict[str, dict[str, Any]] = {
     "staircase": {"count": 8, "limit": 10.0, "levels": [2, 4]},
     "sines": {"count": 8, "offset": 2.0, "amplitude": [0.2, 3.0], "omega": [0.2, 3.0]},
@@ -129,17 +124,13 @@ def family_spec(spec: Mapping[str, Any], extra: tuple[str, ...] = ()) -> dict[st
     return {**defaults, **spec}
 
 
-#: Envelopes per plant (plants are immutable; a dropped plant drops its entries).
 _ENVELOPES: weakref.WeakKeyDictionary[Plant, dict[tuple[float, float], np.ndarray]] = (
     weakref.WeakKeyDictionary()
 )
 
 
 def state_envelope(plant: Plant, amplitude: float = 3.0, duration: float = 10.0) -> np.ndarray:
-    """Largest ``|x_i|`` (n,) along the LQI expert's responses to steps of ``+-amplitude``.
-
-    ``amplitude`` is scaled by the plant's ``amplitude_scale``; cached per plant.
-    """
+    """Largest ``|x_i|`` (n,) along the LQI expert's responses to scaled steps of +-amplitude."""
     return state_envelopes([(plant, amplitude)], duration)[0]
 
 
@@ -165,25 +156,12 @@ def state_envelopes(
     return [_ENVELOPES[p][float(a), float(duration)].copy() for p, a in requests]
 
 
-def random_initial_states(
-    plant: Plant, spec: Mapping[str, Any], count: int, rng: np.random.Generator
-) -> np.ndarray:
-    """Initial states (count, n): a share ``x0_fraction`` random within the envelope.
-
-    ``spec``: a family's, complete (:func:`family_spec`).
-    """
-    fraction = float(spec["x0_fraction"])
-    env = state_envelope(plant, float(spec["x0_amplitude"]))
-    x0 = rng.uniform(-1.0, 1.0, size=(count, plant.order)) * float(spec["x0_scale"])
-    x0 *= env
-    x0[int(round(fraction * count)) :] = 0.0
-    return x0
-
-
 def family_references(
     plant: Plant, spec: Mapping[str, Any], steps: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """References (B, steps) and initial states (B, n) of one family for ``plant``.
+
+    A share ``x0_fraction`` of the initial states is random within the state envelope.
 
     Raises
     ------
@@ -194,4 +172,8 @@ def family_references(
     rng = np.random.default_rng(int(spec["seed"]) + 1000 * plant.tag)
     t = np.arange(steps) * plant.dt
     r = FAMILIES[spec["kind"]](spec, t, rng) * plant.amplitude_scale
-    return r, random_initial_states(plant, spec, r.shape[0], rng)
+    env = state_envelope(plant, float(spec["x0_amplitude"]))
+    x0 = rng.uniform(-1.0, 1.0, size=(r.shape[0], plant.order)) * float(spec["x0_scale"])
+    x0 *= env
+    x0[int(round(float(spec["x0_fraction"]) * r.shape[0])) :] = 0.0
+    return r, x0

@@ -1,8 +1,5 @@
 """Evaluation scenarios (``conf/evaluation/*.yaml``): references, initial states, perturbations.
 
-A scenario names its ``kind`` (:data:`KINDS`), ``duration``, optional ``plants`` and
-``perturbation`` (fields of :class:`~generalist_control.simulation.simulate.Perturbation`,
-plus ``noise_rel``: noise relative to the plant's state envelope), and its kind's parameters.
 Amplitudes are scaled by each plant's ``amplitude_scale``.
 """
 
@@ -24,8 +21,7 @@ from generalist_control.simulation.simulate import Perturbation
 
 __all__ = ["KINDS", "ScenarioError", "envelope_amplitudes", "perturbation", "references"]
 
-#: Each scenario kind's parameters and their defaults, the one place they live (a family's:
-#: :data:`~generalist_control.simulation.references.FAMILY_PARAMETERS`).
+#: Each scenario kind's parameters and their defaults, the one place they live.
 PARAMETERS: dict[str, dict[str, Any]] = {
     "step": {"amplitude": 1.0},
     "random_steps": {"count": 8, "limit": 20.0, "seed": 0},
@@ -42,28 +38,14 @@ class ScenarioError(ValueError):
     """An evaluation scenario is misconfigured; the message names the field."""
 
 
-def _x0_for_output(plant: Plant, y0: float, batch: int) -> np.ndarray:
-    """The smallest state (deviation) whose output is ``y0``."""
-    c = plant.C[0]
-    return np.repeat((y0 * c / (c @ c))[None, :], batch, axis=0)
-
-
 def references(
     name: str, spec: Mapping[str, Any], plant: Plant
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Reference signals ``(B, N)`` and initial states ``(B, n)`` (or None: rest).
 
-    Kinds and their parameters:
-
-    - ``step``: ``amplitude`` (default 1), a step at t = 0 from rest;
-    - ``random_steps``: ``count`` steps from rest with amplitudes uniform in ``+-limit``
-      (drawn with ``seed``; a continuous draw lies off the training grid almost surely);
-    - ``sine``: ``amplitude * sin(omega t)`` from an initial state with output ``y0``;
-    - ``ramp``: ``slope * t`` from rest;
-    - ``composite``: a step to ``amplitude`` for the first third, a ramp to
-      ``3 * amplitude`` over the second, then a sine of amplitude ``amplitude`` about it;
-    - a family of :mod:`~generalist_control.simulation.references` (random references and
-      initial states).
+    ``composite``: a step to ``amplitude`` for the first third, a ramp to ``3 * amplitude``
+    over the second, then a sine of amplitude ``amplitude`` about it. ``sine`` starts from a
+    state with output ``y0``; the other kinds but the families start from rest.
     """
     spec = scenario_spec(name, spec)
     kind, duration = spec["kind"], float(spec["duration"])
@@ -85,7 +67,8 @@ def references(
         r = np.repeat(amps[:, None], steps, axis=1)
     elif kind == "sine":
         r = amp * np.sin(float(spec["omega"]) * t)[None, :]
-        x0 = _x0_for_output(plant, float(spec["y0"]) * scale, 1)
+        c = plant.C[0]  # the smallest state whose output is y0
+        x0 = (float(spec["y0"]) * scale * c / (c @ c))[None, :]
     elif kind == "ramp":
         r = (float(spec["slope"]) * scale * t)[None, :]
     else:  # composite
@@ -122,12 +105,7 @@ def scenario_spec(name: str, spec: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def envelope_amplitudes(name: str, spec: Mapping[str, Any]) -> list[float]:
-    """The step amplitudes of the state envelopes the scenario's runs ask for.
-
-    A family's random initial states (``x0_amplitude``) and ``noise_rel`` (unit steps);
-    :func:`~generalist_control.simulation.references.state_envelopes` computes them for
-    many plants at once beforehand.
-    """
+    """The step amplitudes of the state envelopes the scenario's runs ask for."""
     spec = scenario_spec(name, spec)
     out = [float(spec["x0_amplitude"])] if spec["kind"] in FAMILIES else []
     if (spec["perturbation"] or {}).get("noise_rel") is not None:
@@ -140,8 +118,7 @@ def perturbation(
 ) -> Perturbation | None:
     """The scenario's :class:`~generalist_control.simulation.simulate.Perturbation`, if any.
 
-    ``noise_rel`` (with ``plant``) sets ``noise_std`` to that fraction of the plant's state
-    envelope for unit steps, so one scenario means the same on plants of any scale.
+    ``noise_rel`` (with ``plant``): ``noise_std`` as that fraction of the unit-step envelope.
     """
     fields = dict(spec.get("perturbation") or {})
     if not fields:

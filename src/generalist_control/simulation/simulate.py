@@ -1,8 +1,6 @@
 """Closed-loop simulation of a plant under any controller, vectorised over runs.
 
-Linear plants advance by the exact zero-order hold, nonlinear ones by RK4 with
-``plant.substeps`` sub-steps. At sample ``k`` the controller sees ``x[k]`` and ``r[k]`` and
-returns ``u[k]``, held until ``k + 1``.
+Linear plants advance by the exact zero-order hold, nonlinear ones by RK4; ``u[k]`` is held.
 """
 
 from __future__ import annotations
@@ -26,6 +24,7 @@ __all__ = [
     "Trajectory",
     "discretise",
     "plant_stepper",
+    "rk4",
     "row_slices",
     "simulate",
     "simulate_many",
@@ -49,22 +48,9 @@ class Controller(Protocol):
 class Perturbation:
     """Conditions the controller was not trained for, applied inside the loop.
 
-    Attributes
-    ----------
-    u_limit : float, optional
-        Actuator amplitude saturation ``|u| <= u_limit``.
-    rate_limit : float, optional
-        Actuator rate saturation ``|du/dt| <= rate_limit`` (per second).
-    noise_std : float or sequence of float, optional
-        Standard deviation of white noise added to the measured state (per state entry),
-        from ``noise_start`` seconds on.
-    disturbance : float
-        Constant input disturbance added to the applied control from ``disturbance_start``.
-    actuator_gain : float
-        The plant receives ``actuator_gain`` times the delivered control (an actuator whose
-        gain is off, e.g. 0.8 or 1.2); the recorded ``u`` is the delivered control.
-    seed : int
-        Seed of the noise generator (same seed, same noise).
+    Amplitude and rate (per second) limits; white state noise (per entry, from
+    ``noise_start``, seeded); an input disturbance from ``disturbance_start``; the plant
+    receives ``actuator_gain`` times the delivered (recorded) control.
     """
 
     u_limit: float | None = None
@@ -89,19 +75,10 @@ class Perturbation:
 
 @dataclass(frozen=True)
 class Trajectory:
-    """A batch of closed-loop runs, in deviation coordinates.
+    """A batch of closed-loop runs in deviation coordinates: ``x`` (batch, N + 1, n), ``y``.
 
-    Attributes
-    ----------
-    t : ndarray, shape (N + 1,)
-    x : ndarray, shape (batch, N + 1, n)
-    u, r : ndarray, shape (batch, N)
-        Control delivered by the actuator (after any saturation, before any input
-        disturbance) and reference, over each sample interval.
-    y : ndarray, shape (batch, N + 1)
-    diverged : ndarray of bool, shape (batch,)
-        Runs whose state became non-finite or exceeded ``DIVERGENCE_BOUND``; their
-        trajectories are frozen at the last finite state.
+    ``u`` (batch, N) is the delivered control (before any disturbance); a ``diverged`` run
+    (non-finite or beyond ``DIVERGENCE_BOUND``) is frozen at its last finite state.
     """
 
     t: np.ndarray
@@ -131,18 +108,27 @@ def _discretise(
     return E[:n, :n], E[:n, n:]
 
 
+def rk4(
+    deriv: Callable[[np.ndarray], np.ndarray], x: np.ndarray, h: float, substeps: int
+) -> np.ndarray:
+    """``substeps`` classic Runge-Kutta steps of length ``h`` of ``dx/dt = deriv(x)``."""
+    for _ in range(substeps):
+        k1 = deriv(x)
+        k2 = deriv(x + 0.5 * h * k1)
+        k3 = deriv(x + 0.5 * h * k2)
+        k4 = deriv(x + h * k3)
+        x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
+
+
 class _Group:
     """The state of a batch of runs on one plant while the loop advances."""
 
     def __init__(
-        self,
-        plant: Plant,
-        r: np.ndarray,
-        x0: np.ndarray | None,
-        perturbation: Perturbation | None,
+        self, plant: Plant, r: np.ndarray, x0: np.ndarray | None, pert: Perturbation | None
     ) -> None:
         r = np.atleast_2d(np.asarray(r, dtype=float))
-        self.plant, self.r, self.pert = plant, r, perturbation
+        self.plant, self.r, self.pert = plant, r, pert
         self.batch, self.steps = r.shape
         n = plant.order
         self.x = np.zeros((self.batch, self.steps + 1, n))
@@ -156,22 +142,16 @@ class _Group:
         self.u = np.zeros((self.batch, self.steps))
         self.u_prev = np.zeros(self.batch)
         self.diverged = np.zeros(self.batch, dtype=bool)
-        self.rng = np.random.default_rng(perturbation.seed) if perturbation is not None else None
+        self.rng = np.random.default_rng(pert.seed) if pert is not None else None
         if plant.is_linear:
             self.Ad, self.Bd = discretise(plant.A, plant.B, plant.dt)
 
     def _advance(self, xk: np.ndarray, uk: np.ndarray) -> np.ndarray:
+        """One sample of the unperturbed plant."""
         p = self.plant
         if p.is_linear:
             return xk @ self.Ad.T + uk[:, None] * self.Bd[:, 0]
-        h = p.dt / p.substeps
-        for _ in range(p.substeps):
-            k1 = p.deriv(xk, uk)
-            k2 = p.deriv(xk + 0.5 * h * k1, uk)
-            k3 = p.deriv(xk + 0.5 * h * k2, uk)
-            k4 = p.deriv(xk + h * k3, uk)
-            xk = xk + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-        return xk
+        return rk4(lambda x: p.deriv(x, uk), xk, p.dt / p.substeps, p.substeps)
 
     def measure(self, k: int) -> np.ndarray:
         """The state the controller sees at sample ``k`` (with noise, if any)."""
@@ -204,6 +184,7 @@ class _Group:
         self.x[:, k + 1] = np.where(self.diverged[:, None], self.x[:, k], nxt)
 
     def result(self) -> Trajectory:
+        """The runs as a :class:`Trajectory`."""
         n = self.plant.order
         y = self.plant.output(self.x.reshape(-1, n)).reshape(self.batch, self.steps + 1)
         t = np.arange(self.steps + 1) * self.plant.dt
@@ -222,17 +203,7 @@ def simulate(
     x0: np.ndarray | None = None,
     perturbation: Perturbation | None = None,
 ) -> Trajectory:
-    """Simulate ``controller`` on ``plant`` for references ``r``.
-
-    Parameters
-    ----------
-    r : ndarray, shape (batch, N)
-        Reference deviation at each sample.
-    x0 : ndarray, shape (batch, n), optional
-        Initial state deviation; rest (zeros) by default.
-    perturbation : Perturbation, optional
-        Actuator limits, measurement noise and input disturbance.
-    """
+    """Simulate ``controller`` on ``plant`` for references ``r`` (batch, N) from ``x0`` or rest."""
     g = _Group(plant, r, x0, perturbation)
     controller.reset(g.batch)
     with np.errstate(all="ignore"):
@@ -289,14 +260,7 @@ def row_slices(counts: Sequence[int]) -> list[slice]:
 
 
 class PerPlantController:
-    """A :class:`BatchController` made of one single-plant controller per group of rows.
-
-    Parameters
-    ----------
-    make : callable
-        ``make(plant) -> Controller``, e.g. ``LQIController`` or
-        ``lambda p: AntiWindupLQIController(p, limits)``.
-    """
+    """A :class:`BatchController` of one ``make(plant)`` controller per group of rows."""
 
     def __init__(self, make: Callable[[Plant], Controller]) -> None:
         self.make = make

@@ -1,9 +1,7 @@
 """Many batches of runs, on many plants and under several controllers, in one sampled loop.
 
-An evaluation has dozens of scenario x controller loops; :func:`simulate_stacked` steps them
-all at once, each row with :func:`~generalist_control.simulation.simulate.simulate_many`'s
-arithmetic, so a run's trajectory is the one it gives (bit for bit, tests/test_stacked.py,
-but for BLAS's last bit when a plant's row count in a segment differs from the batch's).
+Each row gets :func:`~generalist_control.simulation.simulate.simulate_many`'s arithmetic, so
+a run's trajectory is the one it gives (bit for bit, tests/test_stacked.py).
 """
 
 from __future__ import annotations
@@ -27,11 +25,9 @@ __all__ = ["Segment", "controller_rows", "simulate_stacked"]
 
 @dataclass(frozen=True)
 class Segment:
-    """Runs one batch controller drives (see :func:`simulate_stacked`).
+    """Runs one batch controller drives, reset with the segment's distinct plants' rows.
 
-    The controller is reset with the segment's distinct plants and each one's rows (runs in
-    order). Rows of ended runs are commanded NaN; an optional ``finish(rows)`` method is told
-    which rows of its batch ended, so a controller that pays per row can drop them.
+    Ended runs' rows are commanded NaN; an optional ``finish(rows)`` is told which rows ended.
     """
 
     controller: BatchController
@@ -42,15 +38,12 @@ class _Layout:
     """Where every run's rows lie: grouped by plant, then segment, then run."""
 
     def __init__(self, segments: Sequence[Segment]) -> None:
-        # plants are told apart by identity (a variant is another plant of the same name)
+        # by identity (a variant is another plant of the same name)
         plants = list({id(run.plant): run.plant for seg in segments for run in seg.runs}.values())
         self.plants = plants
-        #: per (segment, run): its global rows (a slice); per segment: its rows, own order
-        self.rows: dict[tuple[int, int], slice] = {}
-        self.local: dict[tuple[int, int], slice] = {}
-        #: the rows each plant update takes: a plant's in every segment where it is nonlinear
-        #: (RK4, elementwise), per segment where it is linear (a matrix product: BLAS's path
-        #: depends on the number of rows, and a segment's are a simulate_many batch's)
+        self.rows: dict[tuple[int, int], slice] = {}  # per (segment, run): global rows
+        self.local: dict[tuple[int, int], slice] = {}  # and its rows in its segment's batch
+        # a linear plant's update per segment: BLAS's path depends on the number of rows
         self.blocks: list[tuple[Plant, slice]] = []
         order: list[list[int]] = [[] for _ in segments]
         start = 0
@@ -159,11 +152,7 @@ def _stack(parts: list[tuple[np.ndarray, float]]) -> tuple[np.ndarray, np.ndarra
 
 
 def _noise(rows: slice, run: Run, k0: int) -> tuple[slice, np.ndarray, int]:
-    """The run's measurement noise for every sample from ``k0`` on, drawn as the simulator does.
-
-    One draw of ``(samples, batch, n)`` gives the same numbers as a draw of ``(batch, n)`` per
-    sample from the same generator.
-    """
+    """The run's noise from sample ``k0`` on: one draw, the numbers of one draw per sample."""
     pert, plant = run.perturbation, run.plant
     assert pert is not None and pert.noise_std is not None
     b, steps = np.atleast_2d(run.r).shape
@@ -173,6 +162,7 @@ def _noise(rows: slice, run: Run, k0: int) -> tuple[slice, np.ndarray, int]:
 
 
 def _initial(layout: _Layout, segments: Sequence[Segment]) -> np.ndarray:
+    """Every row's initial state, zero-padded."""
     x = np.zeros((layout.size, MAX_ORDER))
     for (s, i), rows in layout.rows.items():
         run = segments[s].runs[i]
@@ -258,6 +248,7 @@ class _Loop:
         self.xs[k + 1] = self.x
 
     def result(self, s: int, i: int) -> Trajectory:
+        """Run ``i`` of segment ``s`` as a :class:`Trajectory`."""
         run, rows, n = self.segments[s].runs[i], self.layout.rows[s, i], self.length[s, i]
         order = run.plant.order
         x = np.ascontiguousarray(self.xs[: n + 1, rows, :order].transpose(1, 0, 2))
@@ -279,20 +270,10 @@ def simulate_stacked(
     segments: Sequence[Segment],
     on_end: Callable[[int, list[tuple[int, int]]], None] | None = None,
 ) -> list[list[Trajectory]]:
-    """Simulate every segment's runs in one loop, one call per controller and sample.
+    """Simulate every segment's runs (one sample time, any lengths) in one loop.
 
-    Parameters
-    ----------
-    segments : sequence of Segment
-        Controllers and their runs; all runs share one sample time, their lengths may differ.
-    on_end : callable, optional
-        ``on_end(k, [(segment, run), ...])`` after the runs of length ``k`` ended.
-
-    Returns
-    -------
-    list of list of Trajectory
-        Per segment, per run, as :func:`~generalist_control.simulation.simulate.simulate_many`
-        returns them (states unpadded, ``diverged`` as of the run's last sample).
+    ``on_end(k, [(segment, run), ...])`` is called after the runs of length ``k`` ended.
+    Returns per segment, per run, what ``simulate_many`` returns.
     """
     if not any(seg.runs for seg in segments):
         return [[] for _ in segments]

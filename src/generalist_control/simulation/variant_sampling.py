@@ -1,9 +1,7 @@
 """Sampling plant variants fit for LQI, with the reason for every one refused.
 
-A candidate is kept if it has an equilibrium at the operating point, keeps the nominal
-plant's class (:func:`check_class`), passes :func:`~generalist_control.simulation.lqi.design_lqi`
-and its LQI expert does not diverge on steps from rest; else another is drawn, up to
-``max_tries`` draws per variant wanted.
+Kept: an equilibrium at ``x_op``, the nominal's class, a valid LQI design that does not
+diverge on steps from rest.
 """
 
 from __future__ import annotations
@@ -12,9 +10,8 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 
-from generalist_control.plants.definition import Plant, PlantConfigError
+from generalist_control.plants.definition import Plant, PlantConfigError, rhp_roots
 from generalist_control.plants.variants import (
     VariantError,
     draw_factors,
@@ -72,35 +69,14 @@ class VariantDraw:
         }
 
 
-def _right_half_plane(plant: Plant) -> tuple[np.ndarray, np.ndarray]:
-    """The open-loop poles and zeros of ``plant`` (A, B, C) with a positive real part."""
-    A, B, C = plant.A, plant.B.reshape(-1, 1), plant.C.reshape(1, -1)
-    scale = max(1.0, float(np.abs(A).max()))
-    poles = np.linalg.eigvals(A)
-    n = A.shape[0]  # SISO zeros: the finite generalised eigenvalues of [[A, B], [C, 0]]
-    system = np.block([[A, B], [C, np.zeros((1, 1))]])
-    pencil = np.zeros_like(system)
-    pencil[:n, :n] = np.eye(n)
-    zeros = scipy.linalg.eigvals(system, pencil)
-    zeros = zeros[np.isfinite(zeros) & (np.abs(zeros) < 1e8 * scale)]
-    tol = 1e-6 * scale  # repeated poles at 0 (integrators) come out within ~1e-8
-    return poles[poles.real > tol], zeros[zeros.real > tol]
+def _rhp(plant: Plant) -> tuple[np.ndarray, np.ndarray]:
+    """Its RHP poles and zeros (integrators come out within ~1e-8 of 0)."""
+    return rhp_roots(plant.A, plant.B, plant.C, 1e-6)
 
 
 def check_class(variant: Plant, nominal: Plant) -> None:
-    """Refuse a variant whose right-half-plane poles or zeros differ from the nominal's.
-
-    So a stable plant stays stable, a minimum-phase one minimum-phase, and the DC gain keeps
-    its sign (docs/notes/plant-variants.md).
-
-    Raises
-    ------
-    VariantError
-        With the counts and the rightmost pole or zero of each.
-    """
-    for kind, got, want in zip(
-        ("poles", "zeros"), _right_half_plane(variant), _right_half_plane(nominal), strict=True
-    ):
+    """Refuse (:class:`VariantError`) a variant with other RHP pole or zero counts than nominal."""
+    for kind, got, want in zip(("poles", "zeros"), _rhp(variant), _rhp(nominal), strict=True):
         if len(got) != len(want):
             where = f"rightmost at {max(got.real):+.4g}" if len(got) else "none"
             raise VariantError(
@@ -112,12 +88,7 @@ def check_class(variant: Plant, nominal: Plant) -> None:
 def check_variant(
     variant: Plant, amplitudes: Sequence[float], steps: int, nominal: Plant | None = None
 ) -> None:
-    """Refuse a variant unfit for LQI (see the module docstring); ``nominal`` None: no class check.
-
-    Raises
-    ------
-    VariantError
-    """
+    """Refuse (:class:`VariantError`) a variant unfit for LQI; ``nominal`` None: no class check."""
     if nominal is not None:
         check_class(variant, nominal)
     try:
@@ -151,16 +122,8 @@ def sample_variants(
 ) -> VariantDraw:
     """``count`` variants of ``plant`` fit for LQI, drawn from ``seed`` (and the plant's tag).
 
-    Parameters
-    ----------
-    plant : Plant
-        The nominal plant (its ``variants`` block sets the ranges, :func:`parameter_ranges`).
-    default_range : float
-        The range of parameters the plant file does not set.
-    amplitudes, steps
-        The LQI expert of each candidate must not diverge on these steps over ``steps`` samples.
-    max_tries : int
-        Draws allowed per variant wanted.
+    ``default_range`` is the range of parameters the plant file does not set; each
+    candidate's LQI must not diverge on steps of ``amplitudes`` over ``steps`` samples.
 
     Raises
     ------
