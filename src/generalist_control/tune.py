@@ -26,8 +26,7 @@ from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.common.sections import read_section
 from generalist_control.sweeps.fixed_config import fixed_config
-from generalist_control.sweeps.search_settings import SearchSettings
-from generalist_control.sweeps.search_space import parse_space
+from generalist_control.sweeps.search_settings import SearchSettings, parse_space
 from generalist_control.sweeps.stop_signals import Stopped
 from generalist_control.sweeps.study import run_study, tune_logger
 from generalist_control.sweeps.trial_callbacks import trial_pruning, trial_run_link

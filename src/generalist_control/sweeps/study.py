@@ -1,18 +1,18 @@
 """The Optuna study of ``tune.py``: created or resumed in RDB storage, its trials under one parent.
 
-Re-running the command (on any machine that reaches the storage) adds trials to the same
-study; the study's MLflow parent run in the experiment of kind ``tune`` groups every
-worker's trials; dead workers' trials are failed; SIGTERM or SIGINT fails the running trial,
-ends the parent ``KILLED`` and stops (docs/sweeps.md).
+Re-running the command (on any machine that reaches the storage) adds trials to the same study;
+the study's MLflow parent run groups every worker's trials (docs/sweeps.md).
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import random
-import time
-from collections.abc import Mapping
+import math
+import os
+import socket
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,21 +24,80 @@ from optuna.trial import TrialState
 from generalist_control.common.secrets import redact
 from generalist_control.sweeps import stop_signals
 from generalist_control.sweeps.fixed_config import check_fixed_config
-from generalist_control.sweeps.objective import Objective, TrainPoint
-from generalist_control.sweeps.search_settings import SearchSettings
-from generalist_control.sweeps.search_space import Param
-from generalist_control.sweeps.storage import StaleTrialHandler, fail_stale_trials, open_storage
+from generalist_control.sweeps.search_settings import Param, SearchSettings
+from generalist_control.sweeps.storage import (
+    StaleTrialHandler,
+    end_trial_run,
+    fail_stale_trials,
+    open_storage,
+)
+from generalist_control.sweeps.trial_callbacks import active_trial
 from generalist_control.tracking import mlflow_utils
 from generalist_control.tracking.experiments import experiment_name
-from generalist_control.tracking.parents import ROLE_TAG, create_parent_run
+from generalist_control.tracking.parents import ROLE_TAG, create_parent_run, parent_run
 
-__all__ = ["PARENT_ATTR", "TrialProgress", "run_study", "tune_logger"]
+__all__ = ["PARENT_ATTR", "Objective", "TrainPoint", "TrialProgress", "run_study", "tune_logger"]
 
 log = logging.getLogger(__name__)
 
 #: Study user attribute holding the id of the study's MLflow parent run.
 PARENT_ATTR = "mlflow_parent_run_id"
 _FINISHED = (TrialState.COMPLETE, TrialState.PRUNED)
+
+#: Train the config with ``values`` set, outputs in ``trial_dir``; return its metrics.
+TrainPoint = Callable[[Mapping[str, Any], Path], Mapping[str, Any]]
+
+
+@dataclass(frozen=True)
+class Objective:
+    """Train one trial's values as one MLflow training run; return its metric.
+
+    ``train_point(values, trial_dir)`` runs inside :func:`active_trial` (so the trial's
+    callbacks find the trial) and :func:`parent_run`, in ``<trials_dir>/trial_<number>``;
+    ``metric`` is the key of the metrics it returns.
+    """
+
+    train_point: TrainPoint
+    space: list[Param]
+    metric: str
+    trials_dir: Path
+    parent_id: str
+
+    def __call__(self, trial: optuna.Trial) -> float:
+        """Train the trial's values; return its metric."""
+        values = {p.key: p.suggest(trial) for p in self.space}
+        trial_dir = self.trials_dir / f"trial_{trial.number:04d}"
+        trial.set_user_attr("trial_dir", str(trial_dir))
+        trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
+        try:
+            with (
+                active_trial(trial),
+                parent_run(self.parent_id, f"study:{trial.study.study_name}"),
+            ):
+                metrics = self.train_point(values, trial_dir)
+        except optuna.TrialPruned:
+            steps = trial.storage.get_trial(trial._trial_id).intermediate_values
+            trial.set_user_attr("pruned_at_epoch", max(steps) if steps else None)
+            end_trial_run(trial, "PRUNED", "KILLED")
+            raise
+        except BaseException as exc:
+            end_trial_run(trial, "FAIL", None)  # its run ended already (FAILED, or KILLED)
+            signum = stop_signals.received()
+            if signum is not None and not isinstance(exc, stop_signals.Stopped):
+                # Lightning turns the interrupt into SystemExit, which Optuna would not
+                # catch (the trial would stay RUNNING): stop as the signal said
+                raise stop_signals.Stopped(signum) from exc
+            raise
+        if self.metric not in metrics:
+            raise KeyError(
+                f"train() returned no metric {self.metric!r} (hparams_search.metric); "
+                f"it has {sorted(metrics)}"
+            )
+        value = float(metrics[self.metric])
+        numbers = {k: float(v) for k, v in metrics.items() if isinstance(v, int | float)}
+        trial.set_user_attr("metrics", {k: v for k, v in numbers.items() if math.isfinite(v)})
+        end_trial_run(trial, "COMPLETE" if math.isfinite(value) else "FAIL", None)
+        return value
 
 
 def _sampler(search: SearchSettings, n_existing: int) -> optuna.samplers.BaseSampler | None:
@@ -57,15 +116,13 @@ def _sampler(search: SearchSettings, n_existing: int) -> optuna.samplers.BaseSam
 
 
 def _pruner(search: SearchSettings) -> optuna.pruners.BasePruner:
+    """The pruner (null: none)."""
     node = search.pruner
     return optuna.pruners.NopPruner() if node is None else hydra.utils.instantiate(node)
 
 
 def tune_logger(logger: Mapping[str, Any]) -> dict[str, Any]:
-    """The ``logger`` config with the experiment of kind ``tune`` named explicitly.
-
-    The study's parent run and its trials' training runs all go there.
-    """
+    """The ``logger`` config naming the experiment of kind ``tune`` (the study's, its trials')."""
     return {**logger, "experiment_name": experiment_name(logger, "tune")}
 
 
@@ -95,10 +152,9 @@ class TrialProgress:
 def _study_parent(study: optuna.Study, logger: Mapping[str, Any], storage: str) -> str:
     """The study's MLflow parent run, reopened as ``RUNNING``; created on first use.
 
-    The parent is the oldest active run of the experiment tagged as this study's
-    (``gc.role=study``, ``optuna.study``, ``optuna.storage``): workers that start together
-    and both create one agree on the older, and the other is deleted. Its id is also kept
-    in the study's user attribute ``mlflow_parent_run_id``.
+    It is the oldest run tagged as this study's (``gc.role=study``, ``optuna.study``,
+    ``optuna.storage``): workers that both create one keep the older. Its id is kept in the
+    study's user attribute ``mlflow_parent_run_id``.
     """
     exp_id = mlflow_utils.experiment_id(logger, kind="tune")
     client = mlflow.MlflowClient()
@@ -122,31 +178,11 @@ def _study_parent(study: optuna.Study, logger: Mapping[str, Any], storage: str) 
     return run_id
 
 
-def _shared_write(call: Any, *args: Any, attempts: int = 6) -> Any:
-    """``call(*args)`` on the run that every worker of a study writes to, retried on a clash.
-
-    MLflow's SQL store writes a tag or a latest metric as a read followed by an insert, so
-    two workers that end at the same moment can both try the insert, and one of them fails
-    with a unique-key violation (seen on PostgreSQL). The retry, after a short random wait,
-    finds the row and updates it.
-    """
-    for attempt in range(attempts):
-        try:
-            return call(*args)
-        except mlflow.exceptions.MlflowException as exc:
-            text = str(exc).lower()
-            clash = "unique" in text or "duplicate key" in text or "integrity" in text
-            if not clash or attempt == attempts - 1:
-                raise
-            time.sleep(random.uniform(0.05, 0.3) * (attempt + 1))
-    return None
-
-
 def _summarise(study: optuna.Study, parent_id: str, status: str) -> dict[str, Any]:
     """Log the study's state to its parent run and end that run with ``status``.
 
-    Every worker does this when it stops (the last one leaves the final state), so each
-    write goes through :func:`_shared_write`.
+    Every worker does this when it stops (the last one leaves the final state): the writes
+    may clash (:func:`~generalist_control.tracking.mlflow_utils.retry_on_clash`).
     """
     trials = study.get_trials(deepcopy=False)
     counts = {s.name.lower(): sum(t.state == s for t in trials) for s in TrialState}
@@ -165,10 +201,10 @@ def _summarise(study: optuna.Study, parent_id: str, status: str) -> dict[str, An
         if best.user_attrs.get("mlflow_run_id"):
             tags["study.best_run_id"] = best.user_attrs["mlflow_run_id"]
         for key, text in tags.items():
-            _shared_write(client.set_tag, parent_id, key, text)
+            mlflow_utils.retry_on_clash(client.set_tag, parent_id, key, text)
     for key, number in metrics.items():
-        _shared_write(client.log_metric, parent_id, key, number)
-    _shared_write(client.set_terminated, parent_id, status)
+        mlflow_utils.retry_on_clash(client.log_metric, parent_id, key, number)
+    mlflow_utils.retry_on_clash(client.set_terminated, parent_id, status)
     return summary
 
 
@@ -257,7 +293,7 @@ def run_study(
     logger : mapping
         The ``logger`` config naming the study's experiment (:func:`tune_logger`).
     train_point : callable
-        ``(values, trial_dir) -> metrics``: one trial's training.
+        One trial's training (:data:`TrainPoint`).
     trials_dir : Path
         Where the trials write (``<trials_dir>/trial_<n>``).
 
