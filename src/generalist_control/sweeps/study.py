@@ -6,6 +6,7 @@ the study's MLflow parent run groups every worker's trials (docs/sweeps.md).
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import math
@@ -19,7 +20,7 @@ from typing import Any
 import hydra
 import mlflow
 import optuna
-from optuna.trial import TrialState
+from optuna.trial import FrozenTrial, TrialState
 
 from generalist_control.common.secrets import redact
 from generalist_control.sweeps import stop_signals
@@ -36,7 +37,7 @@ from generalist_control.tracking import mlflow_utils
 from generalist_control.tracking.experiments import experiment_name
 from generalist_control.tracking.parents import ROLE_TAG, create_parent_run, parent_run
 
-__all__ = ["PARENT_ATTR", "Objective", "TrainPoint", "TrialProgress", "run_study", "tune_logger"]
+__all__ = ["PARENT_ATTR", "Objective", "TrainPoint", "run_study", "tune_logger"]
 
 log = logging.getLogger(__name__)
 
@@ -69,11 +70,9 @@ class Objective:
         trial_dir = self.trials_dir / f"trial_{trial.number:04d}"
         trial.set_user_attr("trial_dir", str(trial_dir))
         trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
+        parent = f"study:{trial.study.study_name}"
         try:
-            with (
-                active_trial(trial),
-                parent_run(self.parent_id, f"study:{trial.study.study_name}"),
-            ):
+            with active_trial(trial), parent_run(self.parent_id, parent):
                 metrics = self.train_point(values, trial_dir)
         except optuna.TrialPruned:
             steps = trial.storage.get_trial(trial._trial_id).intermediate_values
@@ -115,38 +114,27 @@ def _sampler(search: SearchSettings, n_existing: int) -> optuna.samplers.BaseSam
     return hydra.utils.instantiate(node, **kwargs)
 
 
-def _pruner(search: SearchSettings) -> optuna.pruners.BasePruner:
-    """The pruner (null: none)."""
-    node = search.pruner
-    return optuna.pruners.NopPruner() if node is None else hydra.utils.instantiate(node)
-
-
 def tune_logger(logger: Mapping[str, Any]) -> dict[str, Any]:
     """The ``logger`` config naming the experiment of kind ``tune`` (the study's, its trials')."""
     return {**logger, "experiment_name": experiment_name(logger, "tune")}
 
 
-class TrialProgress:
+def _progress(n_trials: int) -> Callable[[optuna.Study, FrozenTrial], None]:
     """Optuna callback: one log line per finished trial, with the best value so far."""
+    done = itertools.count(1)
 
-    def __init__(self, n_trials: int) -> None:
-        self.n_trials = n_trials
-        self.done = 0
-
-    def __call__(self, study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
-        """Log ``trial <n> (<k>/<n_trials> of this run) <state> value=...; best ...``."""
-        self.done += 1
+    def report(study: optuna.Study, trial: FrozenTrial) -> None:
         value = "" if trial.value is None else f" value={trial.value:.6g}"
-        complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
         best = "none yet"
-        if complete:
+        if study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
             top = study.best_trial
             best = f"{top.value:.6g} (trial {top.number}, {top.params})"
         log.info(
             "study %r: trial %d (%d/%d of this run) %s%s; best so far: %s",
-            study.study_name, trial.number, self.done, self.n_trials,
-            trial.state.name, value, best,
+            study.study_name, trial.number, next(done), n_trials, trial.state.name, value, best,
         )  # fmt: skip
+
+    return report
 
 
 def _study_parent(study: optuna.Study, logger: Mapping[str, Any], storage: str) -> str:
@@ -210,7 +198,9 @@ def _summarise(study: optuna.Study, parent_id: str, status: str) -> dict[str, An
 
 def _open_study(search: SearchSettings, logger: Mapping[str, Any]) -> optuna.Study:
     """Create or load the study, fail dead workers' trials, set its sampler and pruner."""
-    pruner = _pruner(search)  # a bad sampler or pruner fails before the storage is touched
+    pruner = optuna.pruners.NopPruner()
+    if search.pruner is not None:  # a bad pruner or sampler fails before the storage is opened
+        pruner = hydra.utils.instantiate(search.pruner)
     _sampler(search, 0)
     handler = StaleTrialHandler(logger, search.heartbeat.max_retry)
     storage = open_storage(search.storage, search.heartbeat, handler)
@@ -231,24 +221,15 @@ def _open_study(search: SearchSettings, logger: Mapping[str, Any]) -> optuna.Stu
     return study
 
 
-def _trials_to_add(study: optuna.Study, search: SearchSettings) -> int:
-    """``n_trials``, capped so the study ends with at most ``max_trials`` finished trials."""
-    if search.max_trials is None:
-        return search.n_trials
-    done = len(study.get_trials(deepcopy=False, states=_FINISHED))
-    return max(0, min(search.n_trials, search.max_trials - done))
-
-
 def _optimize(
     study: optuna.Study,
     objective: Objective,
     search: SearchSettings,
     n_trials: int,
-    parent_id: str,
     logger: Mapping[str, Any],
 ) -> None:
     """Add ``n_trials`` trials (stopping at a signal); log the outcome to the parent run."""
-    callbacks: list[Any] = [TrialProgress(n_trials)]
+    callbacks: list[Any] = [_progress(n_trials)]
     if search.max_trials is not None:
         callbacks.append(optuna.study.MaxTrialsCallback(search.max_trials, states=_FINISHED))
     status = "FAILED"
@@ -268,7 +249,7 @@ def _optimize(
         if stop_signals.received() is not None:
             status = "KILLED"
         mlflow_utils.set_tracking(logger)
-        summary = _summarise(study, parent_id, status)
+        summary = _summarise(study, objective.parent_id, status)
         log.info("study %r: %s", study.study_name, summary)
 
 
@@ -282,20 +263,10 @@ def run_study(
 ) -> optuna.Study:
     """Run (or continue) the study; return it, loaded with every worker's trials.
 
-    Parameters
-    ----------
-    search : SearchSettings
-        ``hparams_search``.
-    space : list of Param
-        The search space, checked against the config.
-    fixed : mapping
-        The study's fixed config (:func:`~generalist_control.sweeps.fixed_config.fixed_config`).
-    logger : mapping
-        The ``logger`` config naming the study's experiment (:func:`tune_logger`).
-    train_point : callable
-        One trial's training (:data:`TrainPoint`).
-    trials_dir : Path
-        Where the trials write (``<trials_dir>/trial_<n>``).
+    ``fixed`` is the study's fixed config
+    (:func:`~generalist_control.sweeps.fixed_config.fixed_config`), ``logger`` names its
+    experiment (:func:`tune_logger`), ``train_point`` trains one trial in
+    ``<trials_dir>/trial_<n>``.
 
     Raises
     ------
@@ -307,7 +278,10 @@ def run_study(
     """
     study = _open_study(search, logger)
     check_fixed_config(study, fixed, search.allow_config_change)
-    n_trials = _trials_to_add(study, search)
+    n_trials = search.n_trials  # capped: at most max_trials finished trials in the study
+    if search.max_trials is not None:
+        done = len(study.get_trials(deepcopy=False, states=_FINISHED))
+        n_trials = max(0, min(n_trials, search.max_trials - done))
     url = redact(search.storage)
     log.info(
         "study %r in %s: %d trials so far, adding up to %d",
@@ -315,5 +289,5 @@ def run_study(
     )  # fmt: skip
     parent_id = _study_parent(study, logger, url)
     objective = Objective(train_point, space, search.metric, trials_dir, parent_id)
-    _optimize(study, objective, search, n_trials, parent_id, logger)
+    _optimize(study, objective, search, n_trials, logger)
     return study
