@@ -7,7 +7,6 @@ every log record (masked when made, so no handler set up later escapes) are reda
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +16,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
+from generalist_control.common.jsonsafe import write_text_atomic
 from generalist_control.common.secrets import redact, redact_exception
 
 __all__ = ["RedactSecrets", "redact_log_records", "redact_record", "scrub_hydra_files"]
@@ -27,9 +27,7 @@ def _scrub(*paths: Path) -> None:
     for path in paths:
         text = path.read_text() if path.is_file() else ""
         if redact(text) != text:
-            tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-            tmp.write_text(redact(text))
-            os.replace(tmp, path)
+            write_text_atomic(path, redact(text))
 
 
 def scrub_hydra_files() -> None:

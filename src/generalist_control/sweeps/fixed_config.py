@@ -42,17 +42,9 @@ def fixed_config(
 ) -> dict[str, str]:
     """What shapes a trial apart from the searched keys, as ``{dotted key: text}``.
 
-    Parameters
-    ----------
-    tree : mapping
-        The resolved config of the trials (``tune.py``'s, less ``hparams_search``).
-    metric : str
-        The score, kept as ``hparams_search.metric`` (the rest of the search section may
-        change between runs of a study).
-    searched : iterable of str
-        The searched keys: left out.
-    identity : sequence of str
-        :mod:`fnmatch` patterns of keys that name or place a run (``logger.*``): left out.
+    ``tree`` is the trials' resolved config less ``hparams_search``, of which only the
+    ``metric`` is kept; the ``searched`` keys and those matching an ``identity`` pattern
+    (:mod:`fnmatch`, keys that name or place a run: ``logger.*``) are left out.
     """
     flat = mlflow_utils.flatten_params(tree, exclude=("hydra",))
     flat["hparams_search.metric"] = metric

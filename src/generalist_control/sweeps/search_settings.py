@@ -121,13 +121,9 @@ class Param:
 def parse_space(params: Mapping[str, Any], tree: Mapping[str, Any]) -> list[Param]:
     """Validate ``hparams_search.params`` against the config; return the search space.
 
-    Parameters
-    ----------
-    params : mapping
-        The config's tree down to the searched keys, each ending in a distribution (a
-        mapping with a ``type``): ``{model: {hidden: {type: categorical, choices: [...]}}}``.
-    tree : mapping
-        The composed config the trials modify: every key must name a value in it.
+    ``params`` is the config's tree down to the searched keys, each ending in a distribution
+    (``{model: {hidden: {type: categorical, choices: [...]}}}``); each must name a value of
+    ``tree``, the composed config.
 
     Raises
     ------

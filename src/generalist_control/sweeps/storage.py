@@ -54,15 +54,9 @@ def open_storage(
 ) -> optuna.storages.RDBStorage:
     """Open (and create the tables of) the Optuna RDB storage at ``url``.
 
-    Parameters
-    ----------
-    url : str
-        SQLAlchemy URL of SQLite, PostgreSQL or MySQL (``sqlite:///optuna.db``: relative to
-        the working directory).
-    heartbeat : HeartbeatSettings, optional
-        None, or ``interval`` None: no heartbeat (dead workers' trials are never failed).
-    on_stale_trial : callable, optional
-        Called with ``(study, trial)`` for each trial the heartbeat check sets to ``FAIL``.
+    ``url``: SQLite, PostgreSQL or MySQL. ``heartbeat`` None, or its ``interval`` None: dead
+    workers' trials are never failed; else ``on_stale_trial(study, trial)`` is called for
+    each trial the heartbeat check sets to ``FAIL``.
 
     Raises
     ------

@@ -25,9 +25,7 @@ KIND_TAG = ("mlflow.experimentKind", "custom_model_development")
 
 
 def experiment_name(logger: Mapping[str, Any], kind: str) -> str:
-    """The MLflow experiment of a run of ``kind`` (one of :data:`KINDS`).
-
-    ``logger.experiment_name`` if set, else ``<logger.experiment_prefix>/<kind>``.
+    """``logger.experiment_name`` if set, else ``<logger.experiment_prefix>/<kind>``.
 
     Raises
     ------

@@ -170,18 +170,8 @@ def dvc_data_version(data_dir: str | Path, lock: str | Path = "dvc.lock") -> str
 
 @contextmanager
 def mlflow_run(logger: Mapping[str, Any], kind: str = "train") -> Iterator[mlflow.ActiveRun]:
-    """A new fluent run for work other than training (a report, an adaptation).
+    """A new fluent run for work other than training, in the experiment of ``kind``.
 
-    Parameters
-    ----------
-    logger : mapping
-        The ``logger`` config: ``tracking_uri``, ``experiment_name`` or
-        ``experiment_prefix``, ``artifact_location``, ``run_name``.
-    kind : str
-        The kind of work, which names the experiment (:func:`experiment_name`).
-
-    Notes
-    -----
     The run is nested under the parent run the environment names (:func:`parent_run_tags`)
     and tagged with this process; stale runs of this host are ended first.
     """
@@ -236,8 +226,7 @@ def check_store(logger: Mapping[str, Any]) -> str:
 def experiment_id(logger: Mapping[str, Any], kind: str = "train") -> str:
     """Point MLflow at ``logger``'s store; the id of the experiment of ``kind``, made if missing.
 
-    Lookup and creation hold :func:`store_lock`; the experiment is tagged with ``KIND_TAG``
-    (also one made without it).
+    Lookup and creation hold :func:`store_lock`; the experiment gets ``KIND_TAG``.
 
     Raises
     ------

@@ -37,16 +37,8 @@ def create_parent_run(
 ) -> str:
     """Create a ``RUNNING`` parent run in ``logger``'s experiment; return its id.
 
-    Parameters
-    ----------
-    logger : mapping
-        The ``logger`` config (tracking URI, experiment name, artifact location).
-    name : str
-        Run name, shown in the MLflow UI; also the children's ``sweep`` tag.
-    role : str
-        What the parent groups: ``"sweep"`` (a multirun) or ``"study"`` (Optuna).
-    tags : mapping, optional
-        Further tags of the parent run.
+    ``name`` is also the children's ``sweep`` tag; ``role`` (``sweep``, ``study``) its
+    :data:`ROLE_TAG`.
     """
     import mlflow
 

@@ -29,7 +29,6 @@ __all__ = [
     "RunRecorder",
     "log_params_once",
     "run_id_from_checkpoint",
-    "training_experiment",
     "training_logger",
     "training_params",
 ]
@@ -80,26 +79,14 @@ def training_params(cfg: Mapping[str, Any], keys: Sequence[str]) -> dict[str, st
     return out
 
 
-def training_experiment(logger: Mapping[str, Any]) -> str:
-    """The experiment of a new training run in ``logger``'s store: its parent's, else ``train``."""
-    mlflow_utils.set_tracking(logger)
-    parent = os.environ.get(mlflow_utils.PARENT_RUN_ENV)
-    if parent:
-        try:
-            return mlflow.MlflowClient().get_run(parent).info.experiment_id
-        except MlflowException:
-            log.warning("parent run %s is not in this MLflow store; not nesting", parent)
-    return mlflow_utils.experiment_id(logger, kind="train")
-
-
-def _existing_run(run_id: str | None) -> str | None:
-    """``run_id`` if the current store holds it (a checkpoint may come from another store)."""
+def _stored_run(run_id: str | None, missing: str) -> Any:
+    """The run ``run_id`` if the current store holds it, else None (``missing`` is logged)."""
     if not run_id:
         return None
     try:
-        return mlflow.MlflowClient().get_run(run_id).info.run_id
+        return mlflow.MlflowClient().get_run(run_id)
     except MlflowException:
-        log.warning("MLflow run %s of the checkpoint is not in this store: a new run", run_id)
+        log.warning(missing, run_id)
         return None
 
 
@@ -107,12 +94,16 @@ def training_logger(logger: Mapping[str, Any], resume_run_id: str | None = None)
     """Lightning's MLflow logger on the training's run, which exists when this returns.
 
     ``resume_run_id``: the run to continue (:func:`run_id_from_checkpoint`), if this store
-    holds it.
+    holds it. A new run goes to its parent's experiment, else to that of kind ``train``.
     """
-    exp_id = training_experiment(logger)
+    mlflow_utils.set_tracking(logger)
+    parent_id = os.environ.get(mlflow_utils.PARENT_RUN_ENV)
+    parent = _stored_run(parent_id, "parent run %s is not in this MLflow store; not nesting")
+    exp_id = parent.info.experiment_id if parent else mlflow_utils.experiment_id(logger)
     client = mlflow.MlflowClient()
     mlflow_utils.end_stale_runs(exp_id)
-    run_id = _existing_run(resume_run_id)
+    resumed = _stored_run(resume_run_id, "MLflow run %s of the checkpoint is not in this store")
+    run_id = resumed.info.run_id if resumed else None
     tags = None if run_id else {**mlflow_utils.parent_run_tags(), **mlflow_utils.process_tags()}
     run_name = redact(logger.get("run_name"))
     mlf = MLFlowLogger(
