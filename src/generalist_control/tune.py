@@ -27,7 +27,7 @@ from generalist_control.sweeps.fixed_config import fixed_config
 from generalist_control.sweeps.search_settings import SearchSettings, parse_space
 from generalist_control.sweeps.stop_signals import Stopped
 from generalist_control.sweeps.study import run_study, tune_logger
-from generalist_control.sweeps.trial_callbacks import trial_pruning, trial_run_link
+from generalist_control.sweeps.trial_callbacks import TrialRunLink, trial_pruning
 from generalist_control.training.fit import train
 from generalist_control.training.settings import read_training
 
@@ -59,7 +59,7 @@ def trial_config(
             "monitor": monitor,
         }
         tcfg.callbacks.optuna_run_link = {
-            "_target_": f"{trial_run_link.__module__}.{trial_run_link.__name__}",
+            "_target_": f"{TrialRunLink.__module__}.{TrialRunLink.__name__}",
         }
     return tcfg
 

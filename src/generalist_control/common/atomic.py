@@ -322,7 +322,7 @@ def publish_directory(
     Raises
     ------
     ForeignDirectoryError
-        If ``out_dir`` now holds anything but the stage's outputs; ``staging`` is removed.
+        If ``out_dir`` now holds anything but the stage's outputs (``staging`` is removed).
     """
     staging, out_dir = Path(staging), Path(out_dir)
     try:

@@ -102,8 +102,7 @@ class Objective:
 def _sampler(search: SearchSettings, n_existing: int) -> optuna.samplers.BaseSampler | None:
     """The sampler, its seed offset by the study's trial count and the worker number.
 
-    A fresh single-worker study with seed ``s`` is reproducible; a resumed study and a
-    second worker draw new values instead of repeating the first ones.
+    A fresh study is reproducible; a resumed one and a second worker draw new values.
     """
     node = search.sampler
     if node is None:
