@@ -183,7 +183,9 @@ def test_a_dataset_logged_by_another_run_at_the_same_time_is_linked(tmp_path, mo
         assert not racing
         dataset = _numpy_dataset("f" * 36)
         racing.append(dataset)
-        training_run.log_input_shared(dataset, context="training", tags={"content_hash": "x"})
+        mlflow_utils.retry_on_clash(
+            mlflow.log_input, dataset, context="training", tags={"content_hash": "x"}
+        )
     assert not racing  # the race happened on the shared path too, and it recovered
     (linked,) = client.get_run(run.info.run_id).inputs.dataset_inputs
     assert linked.dataset.digest == "f" * 36
@@ -202,7 +204,9 @@ def test_other_mlflow_errors_of_log_input_are_raised_at_once(monkeypatch):
 
     monkeypatch.setattr(mlflow, "log_input", fail)
     with pytest.raises(mlflow.exceptions.MlflowException, match="run not found"):
-        training_run.log_input_shared(_numpy_dataset("e" * 36), context="training", tags={})
+        mlflow_utils.retry_on_clash(
+            mlflow.log_input, _numpy_dataset("e" * 36), context="training", tags={}
+        )
     assert calls == [1]
 
 

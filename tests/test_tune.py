@@ -24,7 +24,7 @@ from generalist_control.sweeps.fixed_config import (
     FIXED_ATTR,
     StudyConfigChangedError,
 )
-from generalist_control.sweeps.search_space import parse_space
+from generalist_control.sweeps.search_settings import parse_space
 from generalist_control.sweeps.storage import open_storage
 from generalist_control.sweeps.study import PARENT_ATTR
 from generalist_control.tracking import mlflow_utils
@@ -324,7 +324,7 @@ def test_writes_to_the_shared_parent_run_retry_a_clash_between_workers():
     """Two workers ending at once clash on MLflow's read-then-insert of a tag: retried."""
     from mlflow.exceptions import MlflowException
 
-    from generalist_control.sweeps.study import _shared_write
+    from generalist_control.tracking.mlflow_utils import retry_on_clash
 
     calls = []
 
@@ -334,7 +334,7 @@ def test_writes_to_the_shared_parent_run_retry_a_clash_between_workers():
             raise MlflowException('duplicate key value violates unique constraint "tag_pk"')
         return "ok"
 
-    assert _shared_write(flaky, "study.best_params", "{}") == "ok"
+    assert retry_on_clash(flaky, "study.best_params", "{}") == "ok"
     assert calls == [("study.best_params", "{}")] * 2
 
     def broken(*_):
@@ -343,7 +343,7 @@ def test_writes_to_the_shared_parent_run_retry_a_clash_between_workers():
 
     calls.clear()
     with pytest.raises(MlflowException, match="run not found"):
-        _shared_write(broken, "x")
+        retry_on_clash(broken, "x")
     assert calls == ["broken"]  # anything but a clash is raised at once
 
 

@@ -1,8 +1,6 @@
-"""Optuna search of the training's hyper-parameters: ``python tune.py [overrides]``.
+"""Optuna search of the training's hyper-parameters: ``python tune.py [overrides]`` (``gc-tune``).
 
-Also ``gc-tune`` and ``python -m generalist_control.tune``. The config is read here, once:
-the search into :class:`~generalist_control.sweeps.search_settings.SearchSettings`, the rest
-kept for the trials' trainings; the study is :mod:`generalist_control.sweeps.study`.
+The search section is read here, once; the rest of the config is each trial's training's.
 """
 
 from __future__ import annotations
@@ -26,11 +24,10 @@ from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.common.sections import read_section
 from generalist_control.sweeps.fixed_config import fixed_config
-from generalist_control.sweeps.search_settings import SearchSettings
-from generalist_control.sweeps.search_space import parse_space
+from generalist_control.sweeps.search_settings import SearchSettings, parse_space
 from generalist_control.sweeps.stop_signals import Stopped
 from generalist_control.sweeps.study import run_study, tune_logger
-from generalist_control.sweeps.trial_callbacks import trial_pruning, trial_run_link
+from generalist_control.sweeps.trial_callbacks import TrialRunLink, trial_pruning
 from generalist_control.training.fit import train
 from generalist_control.training.settings import read_training
 
@@ -44,9 +41,8 @@ def trial_config(
 ) -> DictConfig:
     """The training config of one trial: ``cfg`` with ``values`` set, outputs in ``trial_dir``.
 
-    The search's own section is dropped, the checkpoints go to ``<trial_dir>/run``, the model
-    to ``<trial_dir>/models``, the run to the study's ``experiment``, and the callbacks get
-    the trial's pruning (on ``monitor``) and its link to the run.
+    The run goes to the study's ``experiment``; the callbacks get the trial's pruning (on
+    ``monitor``) and its link to the run.
     """
     tcfg = copy.deepcopy(cfg)
     with open_dict(tcfg):
@@ -63,7 +59,7 @@ def trial_config(
             "monitor": monitor,
         }
         tcfg.callbacks.optuna_run_link = {
-            "_target_": f"{trial_run_link.__module__}.{trial_run_link.__name__}",
+            "_target_": f"{TrialRunLink.__module__}.{TrialRunLink.__name__}",
         }
     return tcfg
 
@@ -82,8 +78,7 @@ def _trials_dir(search: SearchSettings) -> Path:
 def run(cfg: DictConfig) -> optuna.Study:
     """Run (or continue) the study that ``cfg.hparams_search`` configures; return it.
 
-    Everything is checked (the search settings, the search space against the config) before
-    the storage or MLflow is touched. See :func:`generalist_control.sweeps.study.run_study`.
+    The settings and the search space are checked before the storage or MLflow is touched.
     """
     if cfg.get("hparams_search") is None:
         raise ValueError("no search configured: choose one, e.g. hparams_search=default")

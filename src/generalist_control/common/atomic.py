@@ -1,9 +1,7 @@
 """Publish an output folder atomically; never replace or delete a folder the project did not write.
 
-A stage writes into a staging sibling (:func:`staging_directory`) and swaps it into place
-(:func:`publish_directory`, ``renameat2(RENAME_EXCHANGE)`` on Linux, two renames and
-:func:`recover` elsewhere). A folder is replaced only if its :data:`MARKER` lists all it holds
-(or, without one, it holds only the stage's exact names). docs/guarantees.md: the rules, tested.
+A stage writes into a staging sibling and swaps it into place; a folder is replaced only if its
+:data:`MARKER` lists all it holds (or it holds only the stage's exact names): docs/guarantees.md.
 """
 
 from __future__ import annotations
@@ -29,6 +27,8 @@ __all__ = [
     "ForeignDirectoryError",
     "check_replaceable",
     "folder_lock",
+    "pid_alive",
+    "process_start",
     "publish_directory",
     "recover",
     "staging_directory",
@@ -38,11 +38,9 @@ __all__ = [
 MARKER = ".gc-outputs.json"
 _WRITER = "generalist_control"
 
-#: ``renameat2`` flags and the "current directory" file descriptor (Linux ABI).
-_AT_FDCWD = -100
-_RENAME_EXCHANGE = 2
+#: ``renameat2``'s "current directory" descriptor and exchange flag (Linux ABI).
+_AT_FDCWD, _RENAME_EXCHANGE = -100, 2
 _UNSUPPORTED = {errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.EXDEV, errno.EPERM}
-
 
 log = logging.getLogger(__name__)
 
@@ -55,8 +53,7 @@ class FolderBusy(RuntimeError):
     """Another process holds the lock of the output folder (:func:`folder_lock`)."""
 
 
-#: Exact top-level names a stage wrote before markers: ``None`` for a file, or the pattern
-#: every file inside that sub-folder matches (e.g. ``{"plots": "*.png"}``).
+#: Exact names a stage wrote before markers: ``None`` (a file) or its sub-folder's file pattern.
 Owned = Mapping[str, str | None]
 
 
@@ -107,8 +104,7 @@ def _unlisted(path: Path, marker: Mapping[str, Any]) -> list[str]:
 def _foreign_legacy(path: Path, owned: Owned) -> list[str]:
     """Entries of a folder without a marker that are not the stage's exact names.
 
-    Files accepted by a sub-folder's pattern count only beside an exact-named file of the
-    stage: an extension alone never makes a folder the stage's.
+    Files a sub-folder's pattern accepts count only beside an exact-named file of the stage.
     """
     bad, by_pattern, exact_file = [], [], False
     for entry in sorted(path.iterdir()):
@@ -146,8 +142,7 @@ def check_replaceable(
 ) -> None:
     """Raise :class:`ForeignDirectoryError` unless ``out_dir`` may be replaced.
 
-    Call it before any work, so a refused run writes nothing. ``owned``: the exact names a
-    stage wrote before markers (``None`` for a file, else the pattern of a sub-folder's files).
+    Call it before any work, so a refused run writes nothing. ``owned``: see :data:`Owned`.
     """
     if any(c in key for key in owned for c in "*?["):
         raise ValueError(f"owned names must be exact names, not patterns: {sorted(owned)}")
@@ -171,20 +166,38 @@ def check_replaceable(
         )
 
 
-def _alive(pid: int) -> bool:
+def _stat(pid: int) -> list[str] | None:
+    """Fields 3.. of ``/proc/<pid>/stat`` (state, ..., start time at [19]); None if absent."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+
+
+def process_start(pid: int) -> str | None:
+    """The kernel's start time of process ``pid``, None where unknown."""
+    stat = _stat(pid)
+    return None if stat is None else stat[19]
+
+
+def pid_alive(pid: int, start: str | None = None) -> bool:
+    """Whether process ``pid`` (started at ``start``, if given) runs on this host, not a zombie."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
-        return True
-    return True
+        pass  # it exists, under another user
+    stat = _stat(pid)
+    if stat is None:
+        return True  # no /proc: trust the signal
+    return stat[0] != "Z" and (not start or stat[19] == start)  # a zombie, a reused pid
 
 
 def _leftovers(out_dir: Path, kind: str) -> Iterator[tuple[Path, int]]:
     """The project's leftovers ``.<name>.<kind>-<pid>-...`` beside ``out_dir``, with the pid.
 
-    Only folders whose marker names them as staging or lists all they hold; not the user's.
+    Only folders whose marker names them as staging or lists all they hold.
     """
     prefix = f".{out_dir.name}.{kind}-"
     for p in out_dir.parent.glob(f"{prefix}*"):
@@ -206,14 +219,14 @@ def recover(out_dir: str | Path) -> None:
         return
     olds = sorted(_leftovers(out_dir, "old"), key=lambda item: item[0].stat().st_mtime)
     for path, pid in olds:
-        if _alive(pid) and pid != os.getpid():
+        if pid_alive(pid) and pid != os.getpid():
             continue
         if not out_dir.exists():
             os.replace(path, out_dir)  # the old outputs go back where they were
         else:
             shutil.rmtree(path, ignore_errors=True)
     for path, pid in _leftovers(out_dir, "tmp"):
-        if not _alive(pid):
+        if not pid_alive(pid):
             shutil.rmtree(path, ignore_errors=True)
 
 
@@ -246,8 +259,8 @@ def _take(lock: Path, out_dir: Path, wait: bool) -> int:
 def folder_lock(out_dir: str | Path, who: str, wait: bool = True) -> Iterator[None]:
     """Hold ``.<name>.lock`` beside ``out_dir``: one command at a time writes the folder.
 
-    A second waits (``wait``) or gets :class:`FolderBusy`. The ``flock`` ends with the
-    process however it ends; the file, and the folders made for it, are removed on exit.
+    A second waits (``wait``) or gets :class:`FolderBusy`. The ``flock`` ends with the process
+    however it ends; the file and the folders made for it are removed on exit.
     """
     out_dir = Path(out_dir)
     lock = out_dir.parent / f".{out_dir.name}.lock"
@@ -304,13 +317,12 @@ def _exchange(a: Path, b: Path) -> bool:
 def publish_directory(
     staging: str | Path, out_dir: str | Path, owned: Owned, setting: str = "the output folder"
 ) -> Path:
-    """Put the finished ``staging`` folder (its marker lists what it holds) in ``out_dir``'s place.
+    """Put the finished ``staging`` folder in ``out_dir``'s place; return ``out_dir``.
 
     Raises
     ------
     ForeignDirectoryError
-        If ``out_dir`` holds anything but the stage's own outputs (checked again here, in
-        case something appeared while the stage ran); ``staging`` is then removed.
+        If ``out_dir`` now holds anything but the stage's outputs (``staging`` is removed).
     """
     staging, out_dir = Path(staging), Path(out_dir)
     try:

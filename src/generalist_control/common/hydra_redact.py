@@ -1,16 +1,12 @@
 """No credential in what Hydra prints or saves: one callback for every entry point.
 
-Hydra saves a job's overrides and config (``.hydra/*.yaml``, ``multirun.yaml``), logs the
-jobs of a multirun (``#0 : <overrides>``, reconfiguring logging on the way) and prints a
-failed job's overrides and error. :class:`RedactSecrets` (``conf/hydra_settings.yaml``)
-passes all of it through :func:`~generalist_control.common.secrets.redact`; log records are
-masked when they are made (a record factory), so no handler set up later escapes it.
+Saved configs (``.hydra/*.yaml``, ``multirun.yaml``), a failed job's overrides and error, and
+every log record (masked when made, so no handler set up later escapes) are redacted.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 from typing import Any
 
@@ -20,38 +16,29 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
+from generalist_control.common.jsonsafe import write_text_atomic
 from generalist_control.common.secrets import redact, redact_exception
 
 __all__ = ["RedactSecrets", "redact_log_records", "redact_record", "scrub_hydra_files"]
 
 
-def _hydra_files() -> list[Path]:
-    """The config files Hydra saved for this job (and its multirun), if it runs under Hydra."""
-    if not HydraConfig.initialized():
-        return []
-    hc = HydraConfig.get()
-    files = []
-    if hc.output_subdir is not None:
-        files += sorted((Path(hc.runtime.output_dir) / hc.output_subdir).glob("*.yaml"))
-    if hc.mode == RunMode.MULTIRUN:
-        files.append(Path(hc.sweep.dir) / "multirun.yaml")
-    return [f for f in files if f.is_file()]
-
-
-def _scrub(path: Path) -> None:
-    """Rewrite ``path`` masked, through a temporary file (never half-written)."""
-    text = path.read_text()
-    clean = redact(text)
-    if clean != text:
-        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        tmp.write_text(clean)
-        os.replace(tmp, path)
+def _scrub(*paths: Path) -> None:
+    """Rewrite each existing file of ``paths`` masked, through a temporary file."""
+    for path in paths:
+        text = path.read_text() if path.is_file() else ""
+        if redact(text) != text:
+            write_text_atomic(path, redact(text))
 
 
 def scrub_hydra_files() -> None:
-    """Rewrite Hydra's saved configs with credentials in URLs masked (``.hydra/*.yaml``)."""
-    for path in _hydra_files():
-        _scrub(path)
+    """Rewrite the configs Hydra saved for this job (and its multirun), if any, masked."""
+    if not HydraConfig.initialized():
+        return
+    hc = HydraConfig.get()
+    if hc.output_subdir is not None:
+        _scrub(*sorted((Path(hc.runtime.output_dir) / hc.output_subdir).glob("*.yaml")))
+    if hc.mode == RunMode.MULTIRUN:
+        _scrub(Path(hc.sweep.dir) / "multirun.yaml")
 
 
 def redact_record(record: logging.LogRecord) -> logging.LogRecord:
@@ -92,9 +79,7 @@ class RedactSecrets(Callback):
         """Mask every log record of the run."""
         redact_log_records()
 
-    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        """Mask every log record of the launching process (the launcher's ``#0 : ...``)."""
-        redact_log_records()
+    on_multirun_start = on_run_start  # the launcher's "#0 : <overrides>" lines
 
     def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
         """Mask the configs Hydra has just saved; mask every log record (a launcher's worker)."""
@@ -113,6 +98,4 @@ class RedactSecrets(Callback):
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """Mask ``multirun.yaml`` (saved after the sweep started)."""
-        path = Path(str(config.hydra.sweep.dir)) / "multirun.yaml"
-        if path.is_file():
-            _scrub(path)
+        _scrub(Path(str(config.hydra.sweep.dir)) / "multirun.yaml")

@@ -1,17 +1,8 @@
 """Config sections read once into typed, frozen dataclasses (:func:`read_section`).
 
-Hydra composes ``conf/`` untyped; reading is strict: an ``int`` takes integers only (``32.0``,
-``true``, ``"32"`` refused), ``float`` any real but a boolean, ``bool`` a boolean; unknown keys
-are refused; a dataclass checks its ranges in ``__post_init__`` with :class:`SettingError`.
-
->>> from dataclasses import dataclass
->>> @dataclass(frozen=True)
-... class Loader:
-...     batch_size: int = 512
->>> read_section(Loader, {"batch_size": 10.5}, "loader")
-Traceback (most recent call last):
-...
-ValueError: loader.batch_size must be an integer, got 10.5 (float)
+Reading is strict: an ``int`` takes integers only (``32.0``, ``true``, ``"32"`` refused), a
+``float`` any real but a boolean; unknown keys are refused; a dataclass checks its ranges in
+``__post_init__`` with :class:`SettingError`.
 """
 
 from __future__ import annotations
@@ -53,7 +44,17 @@ def positive(name: str, value: float, strict: bool = True) -> None:
 
 
 def _kind(value: Any) -> str:
+    """``value`` and its type, for an error message."""
     return f"{value!r} ({type(value).__name__})"
+
+
+#: What a scalar setting must be, and the test of a value.
+_SCALARS: dict[Any, tuple[str, Any]] = {
+    bool: ("true or false", lambda v: isinstance(v, bool)),
+    int: ("an integer", lambda v: not isinstance(v, bool) and isinstance(v, numbers.Integral)),
+    float: ("a number", lambda v: not isinstance(v, bool) and isinstance(v, numbers.Real)),
+    str: ("a string", lambda v: isinstance(v, str)),
+}
 
 
 def _convert(kind: Any, value: Any, key: str) -> Any:
@@ -74,22 +75,11 @@ def _convert(kind: Any, value: Any, key: str) -> Any:
         return tuple(_convert(args[0], v, f"{key}[{i}]") for i, v in enumerate(value))
     if dataclasses.is_dataclass(kind):
         return read_section(kind, value, key)  # type: ignore[arg-type]
-    if kind is bool:
-        if not isinstance(value, bool):
-            raise ValueError(f"{key} must be true or false, got {_kind(value)}")
-        return value
-    if kind is int:
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-            raise ValueError(f"{key} must be an integer, got {_kind(value)}")
-        return int(value)
-    if kind is float:
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
-            raise ValueError(f"{key} must be a number, got {_kind(value)}")
-        return float(value)
-    if kind is str:
-        if not isinstance(value, str):
-            raise ValueError(f"{key} must be a string, got {_kind(value)}")
-        return value
+    if kind in _SCALARS:
+        what, ok = _SCALARS[kind]
+        if not ok(value):
+            raise ValueError(f"{key} must be {what}, got {_kind(value)}")
+        return kind(value)
     if kind is Any:
         return value
     raise TypeError(f"{key}: unsupported setting type {kind!r}")

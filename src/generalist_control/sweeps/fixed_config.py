@@ -1,8 +1,7 @@
 """The fixed part of a study's config: recorded when the study is created, checked on resume.
 
-A study ranks its trials by one score, which means something only while everything that
-shapes a trial apart from the searched keys stays the same (a 1-epoch study resumed with 60
-epochs would rank unlike trials); a resume under another fixed config is refused.
+A study's score ranks trials only while everything but the searched keys stays the same (a
+1-epoch study resumed with 60 epochs would rank unlike trials): another fixed config is refused.
 """
 
 from __future__ import annotations
@@ -10,7 +9,6 @@ from __future__ import annotations
 import fnmatch
 import logging
 from collections.abc import Iterable, Mapping, Sequence
-from datetime import datetime, timezone
 from typing import Any
 
 import optuna
@@ -44,19 +42,9 @@ def fixed_config(
 ) -> dict[str, str]:
     """What shapes a trial apart from the searched keys, as ``{dotted key: text}``.
 
-    Parameters
-    ----------
-    tree : mapping
-        The resolved config of the trials (``tune.py``'s, less ``hparams_search``).
-    metric : str
-        The score (``hparams_search.metric``), kept as ``hparams_search.metric``: of the
-        search section only the score is fixed (sampler, pruner, trial counts and storage may
-        change between runs of a study).
-    searched : iterable of str
-        The searched keys (``model.hidden``, ...): left out.
-    identity : sequence of str
-        Glob patterns (:mod:`fnmatch`) of keys that name or place a run or do not shape it
-        (``logger.*``, ``paths.*``, ...): left out.
+    ``tree`` is the trials' resolved config less ``hparams_search``, of which only the
+    ``metric`` is kept; the ``searched`` keys and those matching an ``identity`` pattern
+    (:mod:`fnmatch`, keys that name or place a run: ``logger.*``) are left out.
     """
     flat = mlflow_utils.flatten_params(tree, exclude=("hydra",))
     flat["hparams_search.metric"] = metric
@@ -89,21 +77,9 @@ def check_fixed_config(
 ) -> dict[str, tuple[str, str]]:
     """Record ``fixed`` on a new study; on a resumed one, compare it with the recorded one.
 
-    Parameters
-    ----------
-    study : optuna.Study
-        Just created or loaded.
-    fixed : mapping
-        From :func:`fixed_config`.
-    allow_change : bool
-        Continue under a changed fixed config (``hparams_search.allow_config_change``):
-        warn, append the change to the user attribute ``fixed_config_changes`` and record
-        the new fixed config.
-
-    Returns
-    -------
-    dict
-        The differences ``{key: (old, new)}`` accepted (empty when none).
+    With ``allow_change`` (``hparams_search.allow_config_change``) a change is warned of,
+    appended to the user attribute ``fixed_config_changes`` and the new config recorded.
+    Returns the differences accepted, ``{key: (old, new)}``.
 
     Raises
     ------
@@ -137,21 +113,11 @@ def check_fixed_config(
             "this one anyway with hparams_search.allow_config_change=true."
         )
     log.warning("%sContinuing (hparams_search.allow_config_change=true).", head)
-    _record_change(study, fixed, diff, n_trials)
-    return diff
-
-
-def _record_change(
-    study: optuna.Study, fixed: Mapping[str, str], diff: Mapping[str, Any], n_trials: int
-) -> None:
-    """Append an accepted change to ``fixed_config_changes``; record the new fixed config."""
-    changes = list(study.user_attrs.get(CHANGES_ATTR) or [])
-    changes.append(
-        {
-            "at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "n_trials_before": n_trials,
-            "changed": {k: list(v) for k, v in diff.items()},
-        }
-    )
-    study.set_user_attr(CHANGES_ATTR, changes)
+    change = {
+        "at": mlflow_utils.now(),
+        "n_trials_before": n_trials,
+        "changed": {k: list(v) for k, v in diff.items()},
+    }
+    study.set_user_attr(CHANGES_ATTR, [*(study.user_attrs.get(CHANGES_ATTR) or []), change])
     study.set_user_attr(FIXED_ATTR, dict(fixed))
+    return diff

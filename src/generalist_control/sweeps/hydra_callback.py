@@ -1,10 +1,7 @@
 """One MLflow parent run per Hydra multirun of the training, every job's run nested under it.
 
-The callback runs in the launching process and, pickled by Hydra, in every job's process
-(joblib's workers, submitit's jobs), where it sets the parent's id before the training
-starts. A single run with ``group`` set is filed under a parent found or made by name (the
-DVC ablation's separate commands). SIGTERM or SIGINT stops the sweep: no further job, a
-non-zero exit, the killed jobs' runs and the parent ``KILLED`` (docs/sweeps.md).
+The callback also runs, pickled, in each job's process (joblib, submitit), where it exports
+the parent before the training starts. SIGTERM or SIGINT stops the sweep (docs/sweeps.md).
 """
 
 from __future__ import annotations
@@ -27,9 +24,8 @@ from generalist_control.tracking import mlflow_utils
 from generalist_control.tracking.experiments import experiment_name
 from generalist_control.tracking.parents import (
     create_parent_run,
-    export_parent,
     named_parent,
-    restore_parent,
+    parent_env,
     summarise_children,
 )
 
@@ -53,17 +49,16 @@ def sweep_overrides(overrides: Sequence[str]) -> list[str]:
 class MLflowSweepCallback(Callback):
     """Hydra callback: one MLflow parent run per multirun of the training.
 
-    Parameters (``hydra.callbacks.mlflow_sweep`` in ``conf/hydra_settings.yaml``)
+    Parameters
     ----------
     jobs : sequence of str
-        Hydra job names (``hydra.job.name``) whose multiruns are grouped; other entry points
-        (``generate``, ``evaluate``) log no training runs and get no parent.
+        Hydra job names (``hydra.job.name``) whose multiruns are grouped.
     name : str or None
         The parent run's name and the children's ``sweep`` tag; None: ``sweep:`` followed by
         the sweeping overrides, e.g. ``sweep:model.hidden=16,32,64``.
     group : str or None
-        A single run (no ``-m``) is filed under the parent run of this name in its
-        experiment, made if missing (e.g. ``ablation:default``); a multirun ignores it.
+        A single run (no ``-m``) is filed under the parent run of this name, made if missing
+        (:func:`~generalist_control.tracking.parents.named_parent`); a multirun ignores it.
     """
 
     def __init__(self, *, jobs: Sequence[str], name: str | None, group: str | None) -> None:
@@ -102,7 +97,7 @@ class MLflowSweepCallback(Callback):
         self._parent_name = name
         self._tracking_uri = mlflow.get_tracking_uri()
         self._failed = 0
-        self._saved_env = export_parent(self.run_id, name)
+        self._saved_env = mlflow_utils.swap_env(parent_env(self.run_id, name))
         # A failed job or a signal makes Hydra raise before on_multirun_end: end it at exit.
         atexit.register(self._end_at_exit)
         self._stops = stop_signals.install()
@@ -120,12 +115,12 @@ class MLflowSweepCallback(Callback):
     def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
         """Export the parent to this job, in whichever process the launcher runs it."""
         if self.run_id and self._parent_name and self._active(config):
-            self._job_env = export_parent(self.run_id, self._parent_name)
+            self._job_env = mlflow_utils.swap_env(parent_env(self.run_id, self._parent_name))
 
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
         """Count the failed jobs (the parent then ends ``FAILED``); restore the environment."""
         if self._job_env is not None:
-            restore_parent(self._job_env)
+            mlflow_utils.swap_env(self._job_env)
             self._job_env = None
         if self.run_id and job_return.status == JobStatus.FAILED:
             self._failed += 1
@@ -162,7 +157,7 @@ class MLflowSweepCallback(Callback):
         atexit.unregister(self._end_at_exit)
         if self._stops:
             stop_signals.restore()
-        restore_parent(self._saved_env)
+        mlflow_utils.swap_env(self._saved_env)
         self._parent_name = None
         if self._tracking_uri:
             mlflow.set_tracking_uri(self._tracking_uri)

@@ -1,20 +1,31 @@
-"""The Optuna search's settings (``conf/hparams_search/``), read once by ``tune.py``.
+"""The Optuna search's settings (``conf/hparams_search/``) and its space, read once by ``tune.py``.
 
 Every default lives in the YAML; a search file of one's own must set every field.
 """
 
 from __future__ import annotations
 
+import difflib
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from generalist_control.common.sections import SettingError, positive
+import optuna
 
-__all__ = ["HeartbeatSettings", "PLAIN_NAME", "SearchSettings"]
+from generalist_control.common.sections import SettingError, positive
+from generalist_control.tracking import mlflow_utils
+
+__all__ = ["HeartbeatSettings", "PLAIN_NAME", "Param", "SearchSettings", "parse_space"]
 
 #: A study name: also a folder name (no separator, no ``..``) and an MLflow filter value.
 PLAIN_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+
+_SPEC_KEYS = {
+    "categorical": {"type", "choices"},
+    "int": {"type", "low", "high", "step", "log"},
+    "float": {"type", "low", "high", "step", "log"},
+}
 
 
 @dataclass(frozen=True)
@@ -40,9 +51,8 @@ class HeartbeatSettings:
 class SearchSettings:
     """``hparams_search``: the study, its trial budget, sampler, pruner and search space.
 
-    ``sampler`` and ``pruner`` are ``_target_`` mappings of ``optuna.samplers`` and
-    ``optuna.pruners`` classes (null: Optuna's default sampler, no pruning); ``params`` is
-    the search space's tree (:func:`~generalist_control.sweeps.search_space.parse_space`).
+    ``sampler`` and ``pruner`` are ``_target_`` mappings of Optuna classes (null: Optuna's
+    default sampler, no pruning); ``params`` is the search space's tree (:func:`parse_space`).
     """
 
     study_name: str
@@ -79,3 +89,103 @@ class SearchSettings:
             positive("max_trials", self.max_trials, strict=False)
         if self.timeout is not None:
             positive("timeout", self.timeout)
+
+
+@dataclass(frozen=True)
+class Param:
+    """One dimension of the search space: a dotted config key (also the Optuna name) and its law.
+
+    ``type`` is ``categorical`` (``choices``), ``int`` or ``float`` (``low`` and ``high``
+    included, an optional grid ``step``, ``log`` scale).
+    """
+
+    key: str
+    type: str
+    choices: tuple[Any, ...] | None = None
+    low: float | None = None
+    high: float | None = None
+    step: float | None = None
+    log: bool = False
+
+    def suggest(self, trial: optuna.Trial) -> Any:
+        """Draw this parameter's value for ``trial``."""
+        if self.type == "categorical":
+            return trial.suggest_categorical(self.key, list(self.choices or ()))
+        low, high = float(self.low or 0), float(self.high or 0)  # set for int and float
+        if self.type == "int":
+            step = int(self.step) if self.step else 1
+            return trial.suggest_int(self.key, int(low), int(high), step=step, log=self.log)
+        return trial.suggest_float(self.key, low, high, step=self.step, log=self.log)
+
+
+def parse_space(params: Mapping[str, Any], tree: Mapping[str, Any]) -> list[Param]:
+    """Validate ``hparams_search.params`` against the config; return the search space.
+
+    ``params`` is the config's tree down to the searched keys, each ending in a distribution
+    (``{model: {hidden: {type: categorical, choices: [...]}}}``); each must name a value of
+    ``tree``, the composed config.
+
+    Raises
+    ------
+    KeyError
+        A key that the config does not have (with the closest existing keys).
+    ValueError
+        An empty space, a key naming a config section, or a malformed distribution.
+    """
+    specs = _specs(params, "")
+    if not specs:
+        raise ValueError("hparams_search.params is empty: nothing to search")
+    space = []
+    for key, spec in specs.items():
+        node: Any = tree
+        for part in key.split("."):
+            node = node.get(part, KeyError) if isinstance(node, Mapping) else KeyError
+        if node is KeyError:
+            leaves = list(mlflow_utils.flatten_params(tree, exclude=()))
+            close = difflib.get_close_matches(key, leaves, n=3)
+            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            raise KeyError(f"unknown search-space key {key!r}: the config has no such key{hint}")
+        if isinstance(node, Mapping):
+            raise ValueError(f"search-space key {key!r} names a config section, not a value")
+        space.append(_param(key, spec))
+    return space
+
+
+def _specs(node: Any, prefix: str) -> dict[str, Any]:
+    """``{dotted key: distribution}`` from the nested ``params`` tree."""
+    if node is None:
+        return {}
+    if not isinstance(node, Mapping):
+        raise ValueError(
+            f"hparams_search.params.{prefix} must be a distribution (a mapping with a "
+            f"'type') or a mapping of them, not {node!r}"
+        )
+    if "type" in node:
+        return {prefix: node}
+    out: dict[str, Any] = {}
+    for key, value in node.items():
+        out.update(_specs(value, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def _param(key: str, spec: Mapping[str, Any]) -> Param:
+    """The :class:`Param` of one distribution, checked."""
+    where = f"hparams_search.params.{key}"
+    kind = spec.get("type")
+    if kind not in _SPEC_KEYS:
+        raise ValueError(f"{where}.type must be one of {sorted(_SPEC_KEYS)}, not {kind!r}")
+    extra = set(spec) - _SPEC_KEYS[kind]
+    if extra:
+        raise ValueError(f"{where}: unknown field(s) {sorted(extra)} for type {kind!r}")
+    if kind == "categorical":
+        choices = spec.get("choices")
+        if not choices or isinstance(choices, str):
+            raise ValueError(f"{where}.choices must be a non-empty list")
+        return Param(key, kind, choices=tuple(choices))
+    low, high = spec.get("low"), spec.get("high")
+    if low is None or high is None or not low < high:
+        raise ValueError(f"{where} needs low < high, got low={low!r}, high={high!r}")
+    log_scale = bool(spec.get("log"))
+    if log_scale and low <= 0:
+        raise ValueError(f"{where}: a log-scale range needs low > 0, got {low!r}")
+    return Param(key, kind, low=low, high=high, step=spec.get("step"), log=log_scale)

@@ -1,8 +1,7 @@
 """SIGTERM and SIGINT stop a sweep or a study: non-zero exit, no further job, parent ``KILLED``.
 
-The first signal becomes :class:`Stopped` in the main thread. It is a ``KeyboardInterrupt``,
-so joblib kills its workers, Optuna fails the running trial and Lightning ends the training
-run; nothing catches it as a job's ordinary failure and goes on with the next point.
+The first signal becomes :class:`Stopped`, a ``KeyboardInterrupt``: joblib kills its workers,
+Optuna fails the running trial, and nothing takes it for a job's ordinary failure.
 """
 
 from __future__ import annotations
@@ -33,6 +32,7 @@ class Stopped(KeyboardInterrupt):
 
 
 def _handle(signum: int, frame: FrameType | None) -> None:
+    """Note the signal; raise :class:`Stopped` at the first."""
     _received.append(signum)
     if len(_received) == 1:  # later signals: the command is stopping already
         log.warning("%s received: stopping", signal.Signals(signum).name)

@@ -20,14 +20,12 @@ from generalist_control.common.secrets import redact
 from generalist_control.sweeps.search_settings import HeartbeatSettings
 from generalist_control.tracking import mlflow_utils
 
-__all__ = ["fail_stale_trials", "open_storage", "StaleTrialHandler"]
+__all__ = ["end_trial_run", "fail_stale_trials", "open_storage", "StaleTrialHandler"]
 
 log = logging.getLogger(__name__)
 
 _CREATE_ATTEMPTS = 5
 _BACKENDS = ("sqlite", "postgresql", "mysql")
-
-
 _EXAMPLE = "e.g. sqlite:///optuna.db or postgresql+psycopg2://user:password@host:5432/optuna"
 
 
@@ -56,15 +54,9 @@ def open_storage(
 ) -> optuna.storages.RDBStorage:
     """Open (and create the tables of) the Optuna RDB storage at ``url``.
 
-    Parameters
-    ----------
-    url : str
-        SQLAlchemy URL: ``sqlite:///optuna.db`` (relative to the working directory),
-        ``postgresql+psycopg2://user:password@host:5432/db``, or a MySQL URL.
-    heartbeat : HeartbeatSettings, optional
-        None, or ``interval`` None: no heartbeat (dead workers' trials are never failed).
-    on_stale_trial : callable, optional
-        Called with ``(study, trial)`` for each trial the heartbeat check sets to ``FAIL``.
+    ``url``: SQLite, PostgreSQL or MySQL. ``heartbeat`` None, or its ``interval`` None: dead
+    workers' trials are never failed; else ``on_stale_trial(study, trial)`` is called for
+    each trial the heartbeat check sets to ``FAIL``.
 
     Raises
     ------
@@ -92,8 +84,7 @@ def open_storage(
                 warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
                 return optuna.storages.RDBStorage(str(url), engine_kwargs=engine_kwargs, **kwargs)
         except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError) as e:
-            # workers that start together on an empty database race to create the tables:
-            # the loser sees "already exists" and tries again
+            # workers racing to create the tables: the loser tries again
             if attempt == _CREATE_ATTEMPTS:
                 raise ConnectionError(f"cannot create the Optuna tables in {where}: {e}") from e
             time.sleep(0.5 * attempt + random.random())
@@ -117,15 +108,7 @@ class StaleTrialHandler:
             trial.number,
             study.study_name,
         )
-        run_id = trial.user_attrs.get("mlflow_run_id")
-        if run_id:
-            try:
-                mlflow_utils.set_tracking(self.logger)
-                client = mlflow.MlflowClient()
-                client.set_tag(run_id, "optuna.state", "FAIL")
-                client.set_terminated(run_id, "FAILED")
-            except MlflowException as e:  # the run lives in another store
-                log.warning("could not end MLflow run %s of trial %d: %s", run_id, trial.number, e)
+        end_trial_run(trial, "FAIL", "FAILED", self.logger)
         if self.max_retry > 0:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
@@ -138,3 +121,28 @@ def fail_stale_trials(study: optuna.Study) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         optuna.storages.fail_stale_trials(study)
+
+
+def end_trial_run(
+    trial: optuna.Trial | FrozenTrial,
+    state: str,
+    status: str | None,
+    logger: Mapping[str, Any] | None = None,
+) -> None:
+    """Tag the trial's MLflow run with the trial's ``state``; set its ``status`` if given.
+
+    ``logger``: the store to point MLflow at first. An MLflow error is only logged: it
+    never hides the trial's own outcome (the run may live in another store).
+    """
+    run_id = trial.user_attrs.get("mlflow_run_id")
+    if not run_id:
+        return
+    try:
+        if logger is not None:
+            mlflow_utils.set_tracking(logger)
+        client = mlflow.MlflowClient()
+        client.set_tag(run_id, "optuna.state", state)
+        if status:
+            client.set_terminated(run_id, status)
+    except MlflowException as e:
+        log.warning("could not update MLflow run %s of trial %d: %s", run_id, trial.number, e)

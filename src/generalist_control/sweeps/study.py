@@ -1,38 +1,43 @@
 """The Optuna study of ``tune.py``: created or resumed in RDB storage, its trials under one parent.
 
-Re-running the command (on any machine that reaches the storage) adds trials to the same
-study; the study's MLflow parent run in the experiment of kind ``tune`` groups every
-worker's trials; dead workers' trials are failed; SIGTERM or SIGINT fails the running trial,
-ends the parent ``KILLED`` and stops (docs/sweeps.md).
+Re-running the command (on any machine that reaches the storage) adds trials to the same study;
+the study's MLflow parent run groups every worker's trials (docs/sweeps.md).
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
-import random
-import time
-from collections.abc import Mapping
+import math
+import os
+import socket
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import hydra
 import mlflow
 import optuna
-from optuna.trial import TrialState
+from optuna.trial import FrozenTrial, TrialState
 
 from generalist_control.common.secrets import redact
 from generalist_control.sweeps import stop_signals
 from generalist_control.sweeps.fixed_config import check_fixed_config
-from generalist_control.sweeps.objective import Objective, TrainPoint
-from generalist_control.sweeps.search_settings import SearchSettings
-from generalist_control.sweeps.search_space import Param
-from generalist_control.sweeps.storage import StaleTrialHandler, fail_stale_trials, open_storage
+from generalist_control.sweeps.search_settings import Param, SearchSettings
+from generalist_control.sweeps.storage import (
+    StaleTrialHandler,
+    end_trial_run,
+    fail_stale_trials,
+    open_storage,
+)
+from generalist_control.sweeps.trial_callbacks import active_trial
 from generalist_control.tracking import mlflow_utils
 from generalist_control.tracking.experiments import experiment_name
-from generalist_control.tracking.parents import ROLE_TAG, create_parent_run
+from generalist_control.tracking.parents import ROLE_TAG, create_parent_run, parent_run
 
-__all__ = ["PARENT_ATTR", "TrialProgress", "run_study", "tune_logger"]
+__all__ = ["PARENT_ATTR", "Objective", "TrainPoint", "run_study", "tune_logger"]
 
 log = logging.getLogger(__name__)
 
@@ -40,12 +45,64 @@ log = logging.getLogger(__name__)
 PARENT_ATTR = "mlflow_parent_run_id"
 _FINISHED = (TrialState.COMPLETE, TrialState.PRUNED)
 
+#: Train the config with ``values`` set, outputs in ``trial_dir``; return its metrics.
+TrainPoint = Callable[[Mapping[str, Any], Path], Mapping[str, Any]]
+
+
+@dataclass(frozen=True)
+class Objective:
+    """Train one trial's values as one MLflow training run; return its metric.
+
+    ``train_point(values, trial_dir)`` runs inside :func:`active_trial` (so the trial's
+    callbacks find the trial) and :func:`parent_run`, in ``<trials_dir>/trial_<number>``;
+    ``metric`` is the key of the metrics it returns.
+    """
+
+    train_point: TrainPoint
+    space: list[Param]
+    metric: str
+    trials_dir: Path
+    parent_id: str
+
+    def __call__(self, trial: optuna.Trial) -> float:
+        """Train the trial's values; return its metric."""
+        values = {p.key: p.suggest(trial) for p in self.space}
+        trial_dir = self.trials_dir / f"trial_{trial.number:04d}"
+        trial.set_user_attr("trial_dir", str(trial_dir))
+        trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
+        parent = f"study:{trial.study.study_name}"
+        try:
+            with active_trial(trial), parent_run(self.parent_id, parent):
+                metrics = self.train_point(values, trial_dir)
+        except optuna.TrialPruned:
+            steps = trial.storage.get_trial(trial._trial_id).intermediate_values
+            trial.set_user_attr("pruned_at_epoch", max(steps) if steps else None)
+            end_trial_run(trial, "PRUNED", "KILLED")
+            raise
+        except BaseException as exc:
+            end_trial_run(trial, "FAIL", None)  # its run ended already (FAILED, or KILLED)
+            signum = stop_signals.received()
+            if signum is not None and not isinstance(exc, stop_signals.Stopped):
+                # Lightning turns the interrupt into SystemExit, which Optuna would not
+                # catch (the trial would stay RUNNING): stop as the signal said
+                raise stop_signals.Stopped(signum) from exc
+            raise
+        if self.metric not in metrics:
+            raise KeyError(
+                f"train() returned no metric {self.metric!r} (hparams_search.metric); "
+                f"it has {sorted(metrics)}"
+            )
+        value = float(metrics[self.metric])
+        numbers = {k: float(v) for k, v in metrics.items() if isinstance(v, int | float)}
+        trial.set_user_attr("metrics", {k: v for k, v in numbers.items() if math.isfinite(v)})
+        end_trial_run(trial, "COMPLETE" if math.isfinite(value) else "FAIL", None)
+        return value
+
 
 def _sampler(search: SearchSettings, n_existing: int) -> optuna.samplers.BaseSampler | None:
     """The sampler, its seed offset by the study's trial count and the worker number.
 
-    A fresh single-worker study with seed ``s`` is reproducible; a resumed study and a
-    second worker draw new values instead of repeating the first ones.
+    A fresh study is reproducible; a resumed one and a second worker draw new values.
     """
     node = search.sampler
     if node is None:
@@ -56,49 +113,35 @@ def _sampler(search: SearchSettings, n_existing: int) -> optuna.samplers.BaseSam
     return hydra.utils.instantiate(node, **kwargs)
 
 
-def _pruner(search: SearchSettings) -> optuna.pruners.BasePruner:
-    node = search.pruner
-    return optuna.pruners.NopPruner() if node is None else hydra.utils.instantiate(node)
-
-
 def tune_logger(logger: Mapping[str, Any]) -> dict[str, Any]:
-    """The ``logger`` config with the experiment of kind ``tune`` named explicitly.
-
-    The study's parent run and its trials' training runs all go there.
-    """
+    """The ``logger`` config naming the experiment of kind ``tune`` (the study's, its trials')."""
     return {**logger, "experiment_name": experiment_name(logger, "tune")}
 
 
-class TrialProgress:
+def _progress(n_trials: int) -> Callable[[optuna.Study, FrozenTrial], None]:
     """Optuna callback: one log line per finished trial, with the best value so far."""
+    done = itertools.count(1)
 
-    def __init__(self, n_trials: int) -> None:
-        self.n_trials = n_trials
-        self.done = 0
-
-    def __call__(self, study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
-        """Log ``trial <n> (<k>/<n_trials> of this run) <state> value=...; best ...``."""
-        self.done += 1
+    def report(study: optuna.Study, trial: FrozenTrial) -> None:
         value = "" if trial.value is None else f" value={trial.value:.6g}"
-        complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
         best = "none yet"
-        if complete:
+        if study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
             top = study.best_trial
             best = f"{top.value:.6g} (trial {top.number}, {top.params})"
         log.info(
             "study %r: trial %d (%d/%d of this run) %s%s; best so far: %s",
-            study.study_name, trial.number, self.done, self.n_trials,
-            trial.state.name, value, best,
+            study.study_name, trial.number, next(done), n_trials, trial.state.name, value, best,
         )  # fmt: skip
+
+    return report
 
 
 def _study_parent(study: optuna.Study, logger: Mapping[str, Any], storage: str) -> str:
     """The study's MLflow parent run, reopened as ``RUNNING``; created on first use.
 
-    The parent is the oldest active run of the experiment tagged as this study's
-    (``gc.role=study``, ``optuna.study``, ``optuna.storage``): workers that start together
-    and both create one agree on the older, and the other is deleted. Its id is also kept
-    in the study's user attribute ``mlflow_parent_run_id``.
+    It is the oldest run tagged as this study's (``gc.role=study``, ``optuna.study``,
+    ``optuna.storage``): workers that both create one keep the older. Its id is kept in the
+    study's user attribute ``mlflow_parent_run_id``.
     """
     exp_id = mlflow_utils.experiment_id(logger, kind="tune")
     client = mlflow.MlflowClient()
@@ -122,31 +165,11 @@ def _study_parent(study: optuna.Study, logger: Mapping[str, Any], storage: str) 
     return run_id
 
 
-def _shared_write(call: Any, *args: Any, attempts: int = 6) -> Any:
-    """``call(*args)`` on the run that every worker of a study writes to, retried on a clash.
-
-    MLflow's SQL store writes a tag or a latest metric as a read followed by an insert, so
-    two workers that end at the same moment can both try the insert, and one of them fails
-    with a unique-key violation (seen on PostgreSQL). The retry, after a short random wait,
-    finds the row and updates it.
-    """
-    for attempt in range(attempts):
-        try:
-            return call(*args)
-        except mlflow.exceptions.MlflowException as exc:
-            text = str(exc).lower()
-            clash = "unique" in text or "duplicate key" in text or "integrity" in text
-            if not clash or attempt == attempts - 1:
-                raise
-            time.sleep(random.uniform(0.05, 0.3) * (attempt + 1))
-    return None
-
-
 def _summarise(study: optuna.Study, parent_id: str, status: str) -> dict[str, Any]:
     """Log the study's state to its parent run and end that run with ``status``.
 
-    Every worker does this when it stops (the last one leaves the final state), so each
-    write goes through :func:`_shared_write`.
+    Every worker does this when it stops (the last one leaves the final state): the writes
+    may clash (:func:`~generalist_control.tracking.mlflow_utils.retry_on_clash`).
     """
     trials = study.get_trials(deepcopy=False)
     counts = {s.name.lower(): sum(t.state == s for t in trials) for s in TrialState}
@@ -165,16 +188,18 @@ def _summarise(study: optuna.Study, parent_id: str, status: str) -> dict[str, An
         if best.user_attrs.get("mlflow_run_id"):
             tags["study.best_run_id"] = best.user_attrs["mlflow_run_id"]
         for key, text in tags.items():
-            _shared_write(client.set_tag, parent_id, key, text)
+            mlflow_utils.retry_on_clash(client.set_tag, parent_id, key, text)
     for key, number in metrics.items():
-        _shared_write(client.log_metric, parent_id, key, number)
-    _shared_write(client.set_terminated, parent_id, status)
+        mlflow_utils.retry_on_clash(client.log_metric, parent_id, key, number)
+    mlflow_utils.retry_on_clash(client.set_terminated, parent_id, status)
     return summary
 
 
 def _open_study(search: SearchSettings, logger: Mapping[str, Any]) -> optuna.Study:
     """Create or load the study, fail dead workers' trials, set its sampler and pruner."""
-    pruner = _pruner(search)  # a bad sampler or pruner fails before the storage is touched
+    pruner = optuna.pruners.NopPruner()
+    if search.pruner is not None:  # a bad pruner or sampler fails before the storage is opened
+        pruner = hydra.utils.instantiate(search.pruner)
     _sampler(search, 0)
     handler = StaleTrialHandler(logger, search.heartbeat.max_retry)
     storage = open_storage(search.storage, search.heartbeat, handler)
@@ -195,24 +220,15 @@ def _open_study(search: SearchSettings, logger: Mapping[str, Any]) -> optuna.Stu
     return study
 
 
-def _trials_to_add(study: optuna.Study, search: SearchSettings) -> int:
-    """``n_trials``, capped so the study ends with at most ``max_trials`` finished trials."""
-    if search.max_trials is None:
-        return search.n_trials
-    done = len(study.get_trials(deepcopy=False, states=_FINISHED))
-    return max(0, min(search.n_trials, search.max_trials - done))
-
-
 def _optimize(
     study: optuna.Study,
     objective: Objective,
     search: SearchSettings,
     n_trials: int,
-    parent_id: str,
     logger: Mapping[str, Any],
 ) -> None:
     """Add ``n_trials`` trials (stopping at a signal); log the outcome to the parent run."""
-    callbacks: list[Any] = [TrialProgress(n_trials)]
+    callbacks: list[Any] = [_progress(n_trials)]
     if search.max_trials is not None:
         callbacks.append(optuna.study.MaxTrialsCallback(search.max_trials, states=_FINISHED))
     status = "FAILED"
@@ -232,7 +248,7 @@ def _optimize(
         if stop_signals.received() is not None:
             status = "KILLED"
         mlflow_utils.set_tracking(logger)
-        summary = _summarise(study, parent_id, status)
+        summary = _summarise(study, objective.parent_id, status)
         log.info("study %r: %s", study.study_name, summary)
 
 
@@ -246,20 +262,10 @@ def run_study(
 ) -> optuna.Study:
     """Run (or continue) the study; return it, loaded with every worker's trials.
 
-    Parameters
-    ----------
-    search : SearchSettings
-        ``hparams_search``.
-    space : list of Param
-        The search space, checked against the config.
-    fixed : mapping
-        The study's fixed config (:func:`~generalist_control.sweeps.fixed_config.fixed_config`).
-    logger : mapping
-        The ``logger`` config naming the study's experiment (:func:`tune_logger`).
-    train_point : callable
-        ``(values, trial_dir) -> metrics``: one trial's training.
-    trials_dir : Path
-        Where the trials write (``<trials_dir>/trial_<n>``).
+    ``fixed`` is the study's fixed config
+    (:func:`~generalist_control.sweeps.fixed_config.fixed_config`), ``logger`` names its
+    experiment (:func:`tune_logger`), ``train_point`` trains one trial in
+    ``<trials_dir>/trial_<n>``.
 
     Raises
     ------
@@ -271,7 +277,10 @@ def run_study(
     """
     study = _open_study(search, logger)
     check_fixed_config(study, fixed, search.allow_config_change)
-    n_trials = _trials_to_add(study, search)
+    n_trials = search.n_trials  # capped: at most max_trials finished trials in the study
+    if search.max_trials is not None:
+        done = len(study.get_trials(deepcopy=False, states=_FINISHED))
+        n_trials = max(0, min(n_trials, search.max_trials - done))
     url = redact(search.storage)
     log.info(
         "study %r in %s: %d trials so far, adding up to %d",
@@ -279,5 +288,5 @@ def run_study(
     )  # fmt: skip
     parent_id = _study_parent(study, logger, url)
     objective = Objective(train_point, space, search.metric, trials_dir, parent_id)
-    _optimize(study, objective, search, n_trials, parent_id, logger)
+    _optimize(study, objective, search, n_trials, logger)
     return study

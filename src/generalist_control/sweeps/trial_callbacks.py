@@ -1,8 +1,6 @@
 """A trial's Lightning callbacks: pruning from inside the fit, and the trial-run link.
 
-``train`` builds its callbacks from the config, which cannot carry the live trial, so the
-trial's config names the factories :func:`trial_pruning` and :func:`trial_run_link`, which
-take the trial that :func:`active_trial` set.
+The config cannot carry the live trial: they take the one :func:`active_trial` set.
 """
 
 from __future__ import annotations
@@ -24,7 +22,6 @@ __all__ = [
     "active_trial",
     "current_trial",
     "trial_pruning",
-    "trial_run_link",
 ]
 
 #: The trial being evaluated (set around ``train(cfg)``).
@@ -33,7 +30,7 @@ _ACTIVE_TRIAL: list[optuna.Trial] = []
 
 @contextmanager
 def active_trial(trial: optuna.Trial) -> Iterator[None]:
-    """Within the block, :func:`trial_pruning` and :func:`trial_run_link` use ``trial``."""
+    """Within the block, the trial callbacks use ``trial``."""
     _ACTIVE_TRIAL.append(trial)
     try:
         yield
@@ -51,10 +48,8 @@ def current_trial() -> optuna.Trial:
 class FitPruning(PyTorchLightningPruningCallback):
     """optuna-integration's pruning callback, limited to the validations of ``trainer.fit``.
 
-    Own code, because the library's callback (optuna-integration 5.0) also reports during a
-    later ``trainer.validate`` (``train`` validates the best checkpoint after the fit), which
-    would report the epoch twice and could prune a trial that has finished; and it only
-    warns when ``monitor`` is never logged, which silently turns pruning off.
+    The library's (5.0) also reports during the ``trainer.validate`` after the fit (the epoch
+    twice; a finished trial pruned), and only warns when ``monitor`` is never logged.
     """
 
     def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -85,15 +80,14 @@ def _training_run(trainer: L.Trainer) -> tuple[Any, str | None]:
 
 
 class TrialRunLink(L.Callback):
-    """Link the trial and its MLflow training run both ways, at the start of the fit.
+    """Link the trial (``mlflow_run_id``) and its run (tags ``optuna.study``, ``optuna.trial``).
 
-    The trial gets the user attribute ``mlflow_run_id``; the run the tags ``optuna.study``
-    and ``optuna.trial``. Own code: optuna-integration's ``MLflowCallback`` opens a run of
-    its own per trial after the trial ends, while each trial here *is* a training run.
+    Takes the active trial (the config cannot name it). optuna-integration's
+    ``MLflowCallback`` would open a run of its own per trial instead.
     """
 
-    def __init__(self, trial: optuna.Trial) -> None:
-        self.trial = trial
+    def __init__(self) -> None:
+        self.trial = current_trial()
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Set the trial's ``mlflow_run_id`` and the run's Optuna tags."""
@@ -103,8 +97,3 @@ class TrialRunLink(L.Callback):
         self.trial.set_user_attr("mlflow_run_id", run_id)
         client.set_tag(run_id, "optuna.study", self.trial.study.study_name)
         client.set_tag(run_id, "optuna.trial", str(self.trial.number))
-
-
-def trial_run_link() -> TrialRunLink:
-    """The run-linking callback of the active trial."""
-    return TrialRunLink(current_trial())

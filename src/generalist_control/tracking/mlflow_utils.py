@@ -1,9 +1,7 @@
 """MLflow: the store, its experiments, runs of work other than training, and safety.
 
-The default store is SQLite in the working directory (``mlflow.db``, artifacts in
-``mlruns/``); ``logger.tracking_uri`` points at a server instead. A fresh SQLite store is
-initialised under a file lock (:func:`store_lock`), params are redacted, and a run tagged
-with its process is ended by the next run when that process is gone (:func:`end_stale_runs`).
+The default store is SQLite (``mlflow.db``); a fresh one is initialised under a file lock,
+params are redacted, and a run whose process is gone is ended by the next run.
 """
 
 from __future__ import annotations
@@ -12,15 +10,18 @@ import fcntl
 import json
 import logging
 import os
+import random
 import socket
+import time
 from collections.abc import Iterator, Mapping
-from contextlib import AbstractContextManager, contextmanager, nullcontext
+from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import yaml
 
+from generalist_control.common.atomic import pid_alive, process_start
 from generalist_control.common.secrets import redact
 from generalist_control.tracking.experiments import KIND_TAG, experiment_name
 
@@ -40,26 +41,40 @@ __all__ = [
     "now",
     "parent_run_tags",
     "process_tags",
+    "retry_on_clash",
     "set_tracking",
     "store_lock",
+    "swap_env",
     "tag_kind",
     "tracking_uri",
 ]
 
 log = logging.getLogger(__name__)
 
-#: Config subtrees left out of the params: the plant models (fixed by the data hash, and in
-#: the logged manifest) and Hydra's own settings.
+#: Config subtrees left out of the params: the plant models (fixed by the data hash) and Hydra's.
 EXCLUDED = ("systems.plants", "hydra")
 MAX_VALUE = 6000  # MLflow's limit on a param value
 
-#: Environment variables through which a sweep (``python train.py -m``) or a study
-#: (:mod:`generalist_control.tune`) hands its parent run to the training runs it starts.
+#: How a sweep or a study hands its parent run to the training runs it starts.
 PARENT_RUN_ENV = "GC_PARENT_RUN_ID"
 SWEEP_ENV = "GC_SWEEP_NAME"
 
 #: Run tags naming the process that runs a training, and its last sign of life.
 HOST_TAG, PID_TAG, START_TAG, HEARTBEAT_TAG = "gc.host", "gc.pid", "gc.pid_start", "gc.heartbeat"
+
+#: What a database says when a row another process inserted first is inserted again.
+_CLASH = ("unique", "duplicate key", "duplicate entry", "integrity")
+
+
+def swap_env(values: Mapping[str, str | None]) -> dict[str, str | None]:
+    """Set environment variables (``None``: unset them); return their previous values."""
+    saved = {key: os.environ.get(key) for key in values}
+    for key, value in values.items():
+        if value is None:
+            os.environ.pop(key, None)
+        else:
+            os.environ[key] = value
+    return saved
 
 
 def tracking_uri(logger: Mapping[str, Any]) -> str:
@@ -85,37 +100,27 @@ def _sqlite_file(uri: str) -> Path | None:
     return Path(path) if path and path != ":memory:" and not path.startswith("file:") else None
 
 
-def store_lock(uri: str) -> AbstractContextManager[None]:
+@contextmanager
+def store_lock(uri: str) -> Iterator[None]:
     """An exclusive lock on an SQLite store (``<db>.lock`` beside it); a no-op for others.
 
-    Held while a store is first initialised (MLflow creates or migrates the schema of a new
-    database on first use, which two processes must not do at once) and while the
-    experiment is looked up or created.
+    Held while a new database's schema is made (two processes must not do it at once) and
+    while an experiment is looked up or created.
     """
     db = _sqlite_file(uri)
     if db is None or not db.parent.is_dir():
-        return nullcontext()
-    return _flock(db.with_name(db.name + ".lock"))
-
-
-@contextmanager
-def _flock(path: Path) -> Iterator[None]:
-    with open(path, "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+        yield
+        return
+    with open(db.with_name(db.name + ".lock"), "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)  # released when the file closes
+        yield
 
 
 _INITIALISED: set[str] = set()
 
 
 def init_store(uri: str) -> None:
-    """Create (or migrate) the schema of a local SQLite store once, under :func:`store_lock`.
-
-    Other stores are left to their server; a store is initialised once per process.
-    """
+    """Create (or migrate) a local SQLite store's schema once per process, under the lock."""
     import mlflow
 
     if uri in _INITIALISED or _sqlite_file(uri) is None:
@@ -125,14 +130,8 @@ def init_store(uri: str) -> None:
     _INITIALISED.add(uri)
 
 
-def _is_local(uri: str) -> bool:
-    return uri.startswith(("sqlite:", "file:")) or "://" not in uri
-
-
 def flatten_params(cfg: Mapping[str, Any], exclude: tuple[str, ...] = EXCLUDED) -> dict[str, str]:
-    """Flatten a (resolved) config into ``{"a.b.c": "value"}``; lists become JSON.
-
-    Passwords in URLs are masked (:func:`generalist_control.common.secrets.redact`).
+    """Flatten a (resolved) config into ``{"a.b.c": "value"}``; lists become JSON; redacted.
 
     Examples
     --------
@@ -171,25 +170,10 @@ def dvc_data_version(data_dir: str | Path, lock: str | Path = "dvc.lock") -> str
 
 @contextmanager
 def mlflow_run(logger: Mapping[str, Any], kind: str = "train") -> Iterator[mlflow.ActiveRun]:
-    """A new run with the fluent API, for work other than training: a report, an adaptation.
+    """A new fluent run for work other than training, in the experiment of ``kind``.
 
-    (A training's run is Lightning's, :mod:`~generalist_control.tracking.training_run`.)
-
-    Parameters
-    ----------
-    logger : mapping
-        The ``logger`` config: ``tracking_uri``, ``experiment_name``, ``artifact_location``
-        (used when creating the experiment in a local store), ``run_name``.
-    kind : str
-        The kind of work, which names the experiment
-        (:func:`~generalist_control.tracking.experiments.experiment_name`).
-
-    Notes
-    -----
-    Inside a sweep or an Optuna study, the run is nested under the parent run given by the
-    environment (:func:`parent_run_tags`). Before it opens, runs of this host whose process
-    is gone are ended (:func:`end_stale_runs`). The run is tagged with this process
-    (:func:`process_tags`).
+    The run is nested under the parent run the environment names (:func:`parent_run_tags`)
+    and tagged with this process; stale runs of this host are ended first.
     """
     import mlflow
 
@@ -201,26 +185,13 @@ def mlflow_run(logger: Mapping[str, Any], kind: str = "train") -> Iterator[mlflo
         yield run
 
 
-def _lookup(uri: str, name: str) -> Any:
-    """The experiment ``name`` (None if missing); a store that fails is named, redacted.
-
-    Raises
-    ------
-    ConnectionError
-        If the store does not answer (or refuses); message and error carry no credential.
-    """
-    import mlflow
-    from mlflow.exceptions import MlflowException
-
-    try:
-        return mlflow.get_experiment_by_name(name)
-    except MlflowException as e:
-        raise ConnectionError(
-            f"the MLflow tracking store {redact(uri)} (logger.tracking_uri) failed: "
-            f"{redact(e.message)}. Check that it runs and the URI is right, or point "
-            "logger.tracking_uri (or MLFLOW_TRACKING_URI) at another store, e.g. "
-            "sqlite:///mlflow.db"
-        ) from None
+def _store_error(uri: str, what: str, detail: str) -> ConnectionError:
+    """The error for a store that fails, naming the setting, carrying no credential."""
+    return ConnectionError(
+        f"the MLflow tracking store {redact(uri)} (logger.tracking_uri) {what}: "
+        f"{redact(detail)[:500]}. Check that it runs and the URI is right, or point "
+        "logger.tracking_uri (or MLFLOW_TRACKING_URI) at another store, e.g. sqlite:///mlflow.db"
+    )
 
 
 #: MLflow's settings of a request to a tracking server, set for :func:`check_store`'s one try.
@@ -230,46 +201,37 @@ _ONE_TRY = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT
 def check_store(logger: Mapping[str, Any]) -> str:
     """Point MLflow at ``logger``'s store and refuse one that does not answer; its URI.
 
-    One request, without MLflow's retries (minutes of back-off for a server that refuses
-    connections): call it before any work, so that nothing is written for a run that could
-    not be logged.
+    One request, without MLflow's minutes of retries: call it before any work, so that
+    nothing is written for a run that could not be logged.
 
     Raises
     ------
     ConnectionError
-        If the store does not answer or refuses; the message names ``logger.tracking_uri``
-        and carries no credential.
+        If the store does not answer or refuses (naming ``logger.tracking_uri``, masked).
     """
     import mlflow
 
     uri = tracking_uri(logger)
-    saved = {k: os.environ.get(k) for k in _ONE_TRY}
-    os.environ.update(_ONE_TRY)
+    saved = swap_env(_ONE_TRY)
     try:
         set_tracking(logger)
         mlflow.MlflowClient(uri).search_experiments(max_results=1)
     except Exception as e:  # noqa: BLE001 - whatever the store raised, named and masked
-        raise ConnectionError(
-            f"the MLflow tracking store {redact(uri)} (logger.tracking_uri) does not answer: "
-            f"{redact(str(e))[:500]}. Start it, or point logger.tracking_uri (or "
-            "MLFLOW_TRACKING_URI) at one that answers, e.g. sqlite:///mlflow.db"
-        ) from None
+        raise _store_error(uri, "does not answer", str(e)) from None
     finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
+        swap_env(saved)
     return uri
 
 
 def experiment_id(logger: Mapping[str, Any], kind: str = "train") -> str:
     """Point MLflow at ``logger``'s store; the id of the experiment of ``kind``, made if missing.
 
-    The name comes from :func:`~generalist_control.tracking.experiments.experiment_name`
-    (``<logger.experiment_prefix>/<kind>``, or ``logger.experiment_name`` when set). Lookup
-    and creation hold :func:`store_lock`. The experiment is tagged as model development
-    (:data:`~generalist_control.tracking.experiments.KIND_TAG`), also one made without it.
+    Lookup and creation hold :func:`store_lock`; the experiment gets ``KIND_TAG``.
+
+    Raises
+    ------
+    ConnectionError
+        If the store fails (the message carries no credential).
     """
     import mlflow
     from mlflow.exceptions import MlflowException
@@ -277,10 +239,14 @@ def experiment_id(logger: Mapping[str, Any], kind: str = "train") -> str:
     uri = set_tracking(logger)
     name = experiment_name(logger, kind)
     with store_lock(uri):
-        experiment = _lookup(uri, name)
+        try:
+            experiment = mlflow.get_experiment_by_name(name)
+        except MlflowException as e:
+            raise _store_error(uri, "failed", e.message) from None
         if experiment is None:
             location = logger.get("artifact_location")
-            if location and _is_local(uri) and "://" not in str(location):
+            local = uri.startswith(("sqlite:", "file:")) or "://" not in uri
+            if location and local and "://" not in str(location):
                 location = Path(location).resolve().as_uri()
             try:
                 return mlflow.create_experiment(
@@ -302,15 +268,6 @@ def tag_kind(experiment: Any) -> None:
         mlflow.MlflowClient().set_experiment_tag(experiment.experiment_id, *KIND_TAG)
 
 
-def _proc_stat(pid: int) -> list[str] | None:
-    """Fields 3.. of ``/proc/<pid>/stat`` (state, ..., start time at [19]); None if absent."""
-    try:
-        text = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return None
-    return text.rsplit(")", 1)[1].split()
-
-
 def now() -> str:
     """The current UTC time, ISO 8601 to the second."""
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -318,33 +275,17 @@ def now() -> str:
 
 def process_tags() -> dict[str, str]:
     """``gc.host``, ``gc.pid``, ``gc.pid_start`` (the kernel's start time) and a heartbeat."""
-    stat = _proc_stat(os.getpid())
+    start = process_start(os.getpid())
     tags = {HOST_TAG: socket.gethostname(), PID_TAG: str(os.getpid()), HEARTBEAT_TAG: now()}
-    if stat is not None:
-        tags[START_TAG] = stat[19]
-    return tags
-
-
-def _alive(pid: int, start: str | None) -> bool:
-    """Whether process ``pid`` (started at ``start``, if known) still runs on this host."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        pass  # it exists, under another user
-    stat = _proc_stat(pid)
-    if stat is None:
-        return True  # no /proc: trust the signal
-    return stat[0] != "Z" and (not start or stat[19] == start)  # a zombie, a reused pid
+    return tags if start is None else {**tags, START_TAG: start}
 
 
 def end_stale_runs(exp_id: str) -> list[str]:
     """Set ``KILLED`` the ``RUNNING`` runs of ``exp_id`` whose process on this host is gone.
 
     A training killed outright (SIGKILL, out of memory) cannot end its run; its ``gc.host``
-    and ``gc.pid`` tags say which process ran it (runs of this host only). Each ended run
-    gets the tag ``gc.killed_reason``. Returns their ids.
+    and ``gc.pid`` tags name its process. Each ended run gets the tag ``gc.killed_reason``.
+    Returns their ids.
     """
     import mlflow
 
@@ -361,7 +302,7 @@ def end_stale_runs(exp_id: str) -> list[str]:
             run = client.get_run(found.info.run_id)  # again: it may have been reopened since
             tags = run.data.tags
             pid = int(tags.get(PID_TAG, "0") or 0)
-            if run.info.status != "RUNNING" or pid <= 0 or _alive(pid, tags.get(START_TAG)):
+            if run.info.status != "RUNNING" or pid <= 0 or pid_alive(pid, tags.get(START_TAG)):
                 continue
             beat, me = tags.get(HEARTBEAT_TAG, "?"), f"{host}:{os.getpid()}"
             reason = (
@@ -375,10 +316,9 @@ def end_stale_runs(exp_id: str) -> list[str]:
 
 
 def parent_run_tags() -> dict[str, str]:
-    """Tags that file a new run under the parent run named by ``GC_PARENT_RUN_ID``, if set.
+    """Tags that nest a new run under the parent run named by ``GC_PARENT_RUN_ID``, if set.
 
-    ``mlflow.parentRunId`` nests the run under its sweep (or study) in the MLflow UI;
-    ``sweep`` carries the sweep's name (``GC_SWEEP_NAME``).
+    ``mlflow.parentRunId`` nests it in the MLflow UI; ``sweep`` is ``GC_SWEEP_NAME``.
     """
     parent = os.environ.get(PARENT_RUN_ENV)
     if not parent:
@@ -387,3 +327,25 @@ def parent_run_tags() -> dict[str, str]:
     if os.environ.get(SWEEP_ENV):
         tags["sweep"] = os.environ[SWEEP_ENV]
     return tags
+
+
+def retry_on_clash(call: Any, *args: Any, attempts: int = 6, **kwargs: Any) -> Any:
+    """``call(*args, **kwargs)``, again after a short random wait when a row insert clashed.
+
+    MLflow's SQL store inserts a missing row (a dataset, a tag, a latest metric) after a read,
+    without a lock: two processes that write together can both insert, and one fails on the
+    unique key. Once more finds the row. Any other error, or a clash ``attempts`` times, is
+    raised.
+    """
+    from mlflow.exceptions import MlflowException
+
+    for attempt in range(1, attempts + 1):
+        try:
+            return call(*args, **kwargs)
+        except MlflowException as exc:
+            text = str(exc).lower()
+            if attempt == attempts or not any(s in text for s in _CLASH):
+                raise
+            log.info("a row another process wrote at the same time: trying again")
+            time.sleep(random.uniform(0.05, 0.3) * attempt)
+    return None

@@ -1,16 +1,12 @@
-"""Parent runs: one MLflow run that groups the training runs of a sweep or a study.
+"""Parent runs: one MLflow run that groups the training runs of a sweep, a study or a group.
 
-A parent is created with :func:`create_parent_run` (a multirun's, a study's) or found by
-name with :func:`named_parent` (a group of separate commands, e.g. the DVC ablation's
-trainings); inside :func:`parent_run` (or with ``GC_PARENT_RUN_ID`` set) every training run
-is filed under it (:func:`generalist_control.tracking.mlflow_utils.parent_run_tags`), and
-:func:`summarise_children` logs the best child to the parent.
+Inside :func:`parent_run` (or with ``GC_PARENT_RUN_ID`` set) every new training run is filed
+under the parent; :func:`summarise_children` logs the best child to it.
 """
 
 from __future__ import annotations
 
 import math
-import os
 import re
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
@@ -23,10 +19,9 @@ __all__ = [
     "GROUP_ROLE",
     "ROLE_TAG",
     "create_parent_run",
-    "export_parent",
     "named_parent",
+    "parent_env",
     "parent_run",
-    "restore_parent",
     "summarise_children",
 ]
 
@@ -38,23 +33,12 @@ _NAME = re.compile(r"[A-Za-z0-9_.:=,/+@ -]+")
 
 
 def create_parent_run(
-    logger: Mapping[str, Any],
-    name: str,
-    role: str,
-    tags: Mapping[str, str] | None = None,
+    logger: Mapping[str, Any], name: str, role: str, tags: Mapping[str, str] | None = None
 ) -> str:
     """Create a ``RUNNING`` parent run in ``logger``'s experiment; return its id.
 
-    Parameters
-    ----------
-    logger : mapping
-        The ``logger`` config (tracking URI, experiment name, artifact location).
-    name : str
-        Run name, shown in the MLflow UI; also the children's ``sweep`` tag.
-    role : str
-        What the parent groups: ``"sweep"`` (a multirun) or ``"study"`` (Optuna).
-    tags : mapping, optional
-        Further tags of the parent run.
+    ``name`` is also the children's ``sweep`` tag; ``role`` (``sweep``, ``study``) its
+    :data:`ROLE_TAG`.
     """
     import mlflow
 
@@ -80,25 +64,15 @@ def _named(client: Any, exp_id: str, name: str) -> list[Any]:
 def named_parent(logger: Mapping[str, Any], name: str, kind: str = "train") -> str:
     """The id of the parent run called ``name`` in the experiment of ``kind``, made if missing.
 
-    Separate commands that give the same name (the DVC ablation's trainings, two at a time)
-    share one parent: on an SQLite store the lookup and the creation hold the store's lock;
-    on a server two commands may both create one, and then both keep the older and the other
-    is deleted. The parent is ``FINISHED`` at once (a row that groups, with no work of its
-    own) and tagged ``gc.role = group``.
-
-    Parameters
-    ----------
-    logger : mapping
-        The ``logger`` config (tracking URI, experiment name or prefix).
-    name : str
-        Letters, digits, spaces and ``_.:=,/+@-`` (it goes into a search filter).
-    kind : str
-        The kind of work whose experiment holds the parent (that of the runs it groups).
+    Separate commands that give the same name (the DVC ablation's trainings) share one
+    parent, ``FINISHED`` at once and tagged ``gc.role = group``. On an SQLite store the
+    lookup and creation hold the store's lock; on a server two commands may both create one,
+    and both then keep the older.
 
     Raises
     ------
     ValueError
-        For a name with other characters.
+        For a name with characters other than letters, digits, spaces and ``_.:=,/+@-``.
     """
     import mlflow
 
@@ -122,54 +96,28 @@ def named_parent(logger: Mapping[str, Any], name: str, kind: str = "train") -> s
     return oldest
 
 
-def export_parent(run_id: str, name: str) -> dict[str, str | None]:
-    """New training runs are children of ``run_id`` (tag ``sweep=name``) from now on.
-
-    Returns the previous values of ``GC_PARENT_RUN_ID`` and ``GC_SWEEP_NAME``, for
-    :func:`restore_parent`.
-    """
-    keys = (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV)
-    saved = {k: os.environ.get(k) for k in keys}
-    os.environ.update(dict(zip(keys, (run_id, name), strict=True)))
-    return saved
-
-
-def restore_parent(saved: Mapping[str, str | None]) -> None:
-    """The parent variables as :func:`export_parent` found them."""
-    for key, value in saved.items():
-        if value is None:
-            os.environ.pop(key, None)
-        else:
-            os.environ[key] = value
+def parent_env(run_id: str | None, name: str | None) -> dict[str, str | None]:
+    """Environment that makes new training runs children of ``run_id`` (tag ``sweep=name``)."""
+    return {mlflow_utils.PARENT_RUN_ENV: run_id, mlflow_utils.SWEEP_ENV: name}
 
 
 @contextmanager
 def parent_run(run_id: str, name: str) -> Iterator[None]:
     """Within the block, new training runs are children of ``run_id`` (tag ``sweep=name``)."""
-    saved = export_parent(run_id, name)
+    saved = mlflow_utils.swap_env(parent_env(run_id, name))
     try:
         yield
     finally:
-        restore_parent(saved)
+        mlflow_utils.swap_env(saved)
 
 
 def summarise_children(parent_id: str, metric: str) -> dict:
     """Log a summary of the parent's child runs to the parent; return it.
 
-    Parameters
-    ----------
-    parent_id : str
-        The parent run (its experiment is searched for runs tagged with it).
-    metric : str
-        The children's score (lower is better): their ``best/<metric>`` if logged, else
-        ``<metric>``.
-
-    Returns
-    -------
-    dict
-        ``n_runs``, ``n_finished`` and, when a child has the metric, ``best_value`` and
-        ``best_run_id``; logged as ``sweep/n_runs``, ``sweep/n_finished``,
-        ``sweep/best/<metric>`` and the tag ``sweep.best_run_id``.
+    ``n_runs``, ``n_finished`` and, when a child has the score (its ``best/<metric>``, else
+    ``<metric>``; lower is better), ``best_value`` and ``best_run_id``; logged as
+    ``sweep/n_runs``, ``sweep/n_finished``, ``sweep/best/<metric>`` and the tag
+    ``sweep.best_run_id``.
     """
     import mlflow
 

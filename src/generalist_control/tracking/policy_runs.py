@@ -13,10 +13,7 @@ POLICY_HASH_TAG = "policy.sha256"
 
 
 def find_training_run(sha256: str) -> str | None:
-    """The newest finished run that wrote the policy ``sha256`` (tag :data:`POLICY_HASH_TAG`).
-
-    The policy file holds no run id: its bytes must reproduce.
-    """
+    """The newest finished run that wrote the policy ``sha256`` (tag :data:`POLICY_HASH_TAG`)."""
     import mlflow
 
     runs = mlflow.search_runs(

@@ -1,9 +1,7 @@
 """The MLflow run of a training: Lightning's ``MLFlowLogger``, plus what it cannot do.
 
-The experiment is made beforehand under :func:`~.mlflow_utils.store_lock` (trainings started
-together on a fresh SQLite store would race); stale runs are ended; the run is nested under
-its sweep's parent; :class:`RunRecorder` logs each epoch's metrics with the epoch as the step
-and keeps the run id in the checkpoint, so a resume continues the same run.
+The experiment is made beforehand under the store's lock, stale runs are ended, the run is
+nested under its sweep; :class:`RunRecorder` logs per epoch and keeps the run id for a resume.
 """
 
 from __future__ import annotations
@@ -29,10 +27,8 @@ from generalist_control.tracking import mlflow_utils
 __all__ = [
     "logger_run",
     "RunRecorder",
-    "log_input_shared",
     "log_params_once",
     "run_id_from_checkpoint",
-    "training_experiment",
     "training_logger",
     "training_params",
 ]
@@ -56,8 +52,7 @@ def _select(cfg: Mapping[str, Any], key: str) -> tuple[bool, Any]:
 def training_params(cfg: Mapping[str, Any], keys: Sequence[str]) -> dict[str, str]:
     """The params of a training run: the config ``keys`` (each with its subtree), flattened.
 
-    A part (a node with ``_target_``) is logged as its class name, then its settings; null
-    settings and ``_partial_`` are left out, a null key itself is ``None``; values redacted.
+    A part (a node with ``_target_``) is logged as its class name, then its non-null settings.
 
     Examples
     --------
@@ -84,48 +79,39 @@ def training_params(cfg: Mapping[str, Any], keys: Sequence[str]) -> dict[str, st
     return out
 
 
-def training_experiment(logger: Mapping[str, Any]) -> str:
-    """The experiment of a new training run in ``logger``'s store: its parent's, else ``train``."""
-    mlflow_utils.set_tracking(logger)
-    parent = os.environ.get(mlflow_utils.PARENT_RUN_ENV)
-    if parent:
-        try:
-            return mlflow.MlflowClient().get_run(parent).info.experiment_id
-        except MlflowException:
-            log.warning("parent run %s is not in this MLflow store; not nesting", parent)
-    return mlflow_utils.experiment_id(logger, kind="train")
-
-
-def _existing_run(run_id: str | None) -> str | None:
-    """``run_id`` if the current store holds it (a checkpoint may come from another store)."""
+def _stored_run(run_id: str | None, missing: str) -> Any:
+    """The run ``run_id`` if the current store holds it, else None (``missing`` is logged)."""
     if not run_id:
         return None
     try:
-        return mlflow.MlflowClient().get_run(run_id).info.run_id
+        return mlflow.MlflowClient().get_run(run_id)
     except MlflowException:
-        log.warning("MLflow run %s of the checkpoint is not in this store: a new run", run_id)
+        log.warning(missing, run_id)
         return None
 
 
 def training_logger(logger: Mapping[str, Any], resume_run_id: str | None = None) -> MLFlowLogger:
     """Lightning's MLflow logger on the training's run, which exists when this returns.
 
-    ``logger`` is the ``logger`` config; ``resume_run_id`` the run to continue (from
-    :func:`run_id_from_checkpoint`) if this store holds it. ``log_model=False``: the project
-    logs its own policy and checkpoint.
+    ``resume_run_id``: the run to continue (:func:`run_id_from_checkpoint`), if this store
+    holds it. A new run goes to its parent's experiment, else to that of kind ``train``.
     """
-    exp_id = training_experiment(logger)
+    mlflow_utils.set_tracking(logger)
+    parent_id = os.environ.get(mlflow_utils.PARENT_RUN_ENV)
+    parent = _stored_run(parent_id, "parent run %s is not in this MLflow store; not nesting")
+    exp_id = parent.info.experiment_id if parent else mlflow_utils.experiment_id(logger)
     client = mlflow.MlflowClient()
     mlflow_utils.end_stale_runs(exp_id)
-    run_id = _existing_run(resume_run_id)
+    resumed = _stored_run(resume_run_id, "MLflow run %s of the checkpoint is not in this store")
+    run_id = resumed.info.run_id if resumed else None
     tags = None if run_id else {**mlflow_utils.parent_run_tags(), **mlflow_utils.process_tags()}
-    run_name = redact(logger.get("run_name"))  # a run name is shown everywhere
+    run_name = redact(logger.get("run_name"))
     mlf = MLFlowLogger(
         experiment_name=client.get_experiment(exp_id).name,
         run_name=None if run_id or not run_name else str(run_name),
         tracking_uri=mlflow.get_tracking_uri(),
         tags=tags,
-        log_model=False,
+        log_model=False,  # the project logs its own policy
         run_id=run_id,
     )
     if mlf.run_id is None:  # creates the run now
@@ -189,9 +175,9 @@ def run_id_from_checkpoint(ckpt_path: str | Path) -> str | None:
 
 
 def log_params_once(params: Mapping[str, str]) -> dict[str, tuple[str, str]]:
-    """Log params to the active run, skipping those it has (a resume); return the changed ones.
+    """Log params to the active run but those it has (a resume); return ``{key: (old, new)}``.
 
-    ``{key: (old, new)}``, also written to the tag ``resume.changed_params``.
+    The changed ones are also written to the tag ``resume.changed_params``.
     """
     run = mlflow.active_run()
     old = mlflow.get_run(run.info.run_id).data.params if run else {}
@@ -202,51 +188,21 @@ def log_params_once(params: Mapping[str, str]) -> dict[str, tuple[str, str]]:
     return changed
 
 
-#: What a database says when a row another process inserted first is inserted again
-#: (PostgreSQL, SQLite, MySQL), lower-cased.
-_DUPLICATE_ROW = ("duplicate key", "unique constraint", "duplicate entry")
-
-
-def log_input_shared(
-    dataset: Any, context: str, tags: Mapping[str, str], attempts: int = 3
-) -> None:
-    """:func:`mlflow.log_input`, again when another process logged the same dataset first.
-
-    MLflow inserts a missing dataset without a lock, so two trainings starting together can
-    both insert it and the second fails on the unique key; logging again links the row the
-    other wrote. Any other error, or the same one ``attempts`` times, is raised.
-    """
-    for attempt in range(1, attempts + 1):
-        try:
-            mlflow.log_input(dataset, context=context, tags=dict(tags))
-            return
-        except MlflowException as err:
-            text = str(err).lower()
-            if attempt == attempts or not any(s in text for s in _DUPLICATE_ROW):
-                raise
-            log.info(
-                "dataset %s was logged by another run at the same time; linking it", dataset.name
-            )
-
-
 @contextmanager
 def logger_run(logger: MLFlowLogger) -> Iterator[Any]:
     """The fluent API on the Lightning logger's run within the block.
 
-    ``start_run(run_id=...)`` refuses a run of another experiment than the process's active
-    one (``set_experiment``): the run's own is made active for the block, then the process's
-    active experiment and ``MLFLOW_EXPERIMENT_ID`` are put back as they were.
+    ``start_run(run_id=...)`` refuses a run of another experiment than the active one: the
+    run's own is made active for the block, then the active one is put back.
     """
     from mlflow.tracking import fluent
 
-    saved, env = fluent._active_experiment_id, os.environ.get("MLFLOW_EXPERIMENT_ID")
+    saved = fluent._active_experiment_id
+    env = {"MLFLOW_EXPERIMENT_ID": os.environ.get("MLFLOW_EXPERIMENT_ID")}
     mlflow.set_experiment(experiment_id=logger.experiment_id)
     try:
         with mlflow.start_run(run_id=logger.run_id) as run:
             yield run
     finally:
         fluent._active_experiment_id = saved
-        if env is None:
-            os.environ.pop("MLFLOW_EXPERIMENT_ID", None)
-        else:
-            os.environ["MLFLOW_EXPERIMENT_ID"] = env
+        mlflow_utils.swap_env(env)

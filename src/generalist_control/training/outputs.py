@@ -210,9 +210,8 @@ def log_dataset(dm: DemoDataModule) -> None:
         dataset = from_numpy(
             features, source=source, targets=t["target"].numpy(), name="demos", digest=digest
         )
-    training_run.log_input_shared(
-        dataset, context="training", tags={"content_hash": meta["content_hash"]}
-    )
+    tags = {"content_hash": meta["content_hash"]}
+    mlflow_utils.retry_on_clash(mlflow.log_input, dataset, context="training", tags=tags)
 
 
 def dvc_metrics(metrics: Mapping[str, float]) -> dict[str, float]:
