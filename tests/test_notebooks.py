@@ -18,7 +18,7 @@ from ablation_runs import PLANTS, log_runs
 
 ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
-MISSING = "the notebooks extra is not installed: pip install -e '.[notebooks]'"
+MISSING = "the notebook runner is not installed: pip install -e '.[dev]'"
 
 
 def _execute(path: Path) -> None:
