@@ -27,8 +27,8 @@ from generalist_control.deploy.onnx_graph import (
     fold_constants,
     freeze,
     prune,
+    tidy_reshapes,
 )
-from generalist_control.deploy.onnx_layout import tidy_reshapes
 from generalist_control.model.policy import Policy
 
 __all__ = ["Backend", "backend", "export_onnx", "export_torchscript", "onnx_bytes", "session"]
