@@ -18,8 +18,8 @@ from functools import partial
 import numpy as np
 from tqdm.auto import tqdm
 
+from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.finishing_adapter import FinishingAdapter
 from generalist_control.simulation.lqi import AntiWindupLQIController, LQIController
 from generalist_control.simulation.simulate import PerPlantController, Perturbation, Run
 from generalist_control.simulation.stacked import Segment
@@ -72,7 +72,7 @@ class Plan:
 def plan(runtime: PolicyRuntime, todo: Mapping[str, list[Run]], held: list[Run]) -> Plan:
     """The segments of ``todo``'s runs and the set-point holds ``held`` (see :class:`Plan`)."""
     out = Plan()
-    gc, lqi = FinishingAdapter(runtime), 1
+    gc, lqi = RuntimeAdapter(runtime), 1
     out.segments += [Segment(gc, []), Segment(PerPlantController(LQIController), [])]
     for name, runs in todo.items():
         out.where[name, "GC"] = [out.add(0, r) for r in runs]
@@ -85,7 +85,7 @@ def plan(runtime: PolicyRuntime, todo: Mapping[str, list[Run]], held: list[Run])
         out.where[name, "LQI-AW"] = [out.add(len(out.segments) - 1, r) for r in runs]
         if runtime.integral:
             twin = copy.copy(runtime)  # its own rows and limits, the same network
-            out.segments.append(Segment(FinishingAdapter(twin, limited), []))
+            out.segments.append(Segment(RuntimeAdapter(twin, limited), []))
             out.where[name, GC_ANTI_WINDUP] = [out.add(len(out.segments) - 1, r) for r in runs]
     out.held = {c: [out.add(s, r) for r in held] for c, s in (("GC", 0), ("LQI", lqi))}
     return out

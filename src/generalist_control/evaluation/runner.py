@@ -26,10 +26,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from generalist_control.deploy.adapter import SinglePlantAdapter
+from generalist_control.deploy.adapter import RuntimeAdapter, SinglePlantAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.eval_config import CrazyflieSettings, SetpointSettings
-from generalist_control.evaluation.finishing_adapter import FinishingAdapter
 from generalist_control.evaluation.forked_shares import balanced, fork_map
 from generalist_control.evaluation.loop_layout import GC_ANTI_WINDUP, Key, Progress, plan
 from generalist_control.evaluation.setpoint import hold_runs, rest_radii, tail_table
@@ -203,7 +202,7 @@ class _Suite:
             reference, tail = self.setpoint.reference, self.setpoint.tail
             local = controller_rows(layout.segments)
             gc = layout.segments[0].controller
-            assert isinstance(gc, FinishingAdapter)
+            assert isinstance(gc, RuntimeAdapter)
             z = np.array([gc.z_end[local[s][i].start] for s, i in layout.held["GC"]])
             trajs = {c: [results[s][i] for s, i in layout.held[c]] for c in ("GC", "LQI")}
             out.held = tail_table(plants, trajs, z, reference, tail)

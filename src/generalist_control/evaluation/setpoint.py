@@ -32,8 +32,8 @@ import pandas as pd
 import torch
 from scipy.optimize import brentq
 
+from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.finishing_adapter import FinishingAdapter
 from generalist_control.model.rest_loop import closed_loop_matrix, equilibrium, rest_window
 from generalist_control.plants.definition import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi, sampled_closed_loop
@@ -167,7 +167,7 @@ def hold_tail(
     """
     check_hold(hold, tail)
     runs = hold_runs(plants, reference, hold)
-    gc = FinishingAdapter(runtime)
+    gc = RuntimeAdapter(runtime)
     segments = [Segment(gc, runs), Segment(PerPlantController(LQIController), runs)]
     gc_trajs, lqi_trajs = simulate_stacked(segments)
     rows = [sl.start for sl in controller_rows(segments)[0]]
