@@ -1,12 +1,7 @@
 """The evaluation's MLflow run: a run of its own, nested under the policy's training run.
 
-An evaluation never reopens its training run, so that run's Duration stays the training's
-own. Its run sits in the training run's experiment, nested under it (``mlflow.parentRunId``,
-tag ``gc.source_run_id``); its figures are metrics linked to the training's logged model
-(MLflow 3's ``model_id``: the model is the run's input and shows them beside its params). A
-policy whose training run this store does not hold gets a run in the ``evaluate``
-experiment. The store is asked first (:func:`~generalist_control.tracking.mlflow_utils.
-check_store`), so one that does not answer stops the evaluation before anything is written.
+Its figures are linked to the training's logged model; a policy whose training run this
+store does not hold gets a run in the ``evaluate`` experiment.
 """
 
 from __future__ import annotations
@@ -32,12 +27,7 @@ RUN_TYPE_TAG = "gc.run_type"
 
 
 def flat_metrics(summary: Mapping[str, Any], prefix: str) -> dict[str, float]:
-    """The summary's figures as MLflow metrics, names starting with ``prefix``.
-
-    ``<prefix>/<scenario>/<figure>``, ``<prefix>/diverged/<controller>``, each verdict of the
-    quality bar as ``<prefix>/bar/<verdict>`` (1 met, 0 not; one not measured is left out)
-    with ``<prefix>/bar_passed`` and ``<prefix>/bar_checked``, and the set-point check's.
-    """
+    """The summary's figures as MLflow metrics ``<prefix>/...`` (a verdict: 1 met, 0 not)."""
     flat: dict[str, float] = {}
     for scen, vals in summary.get("ratios", {}).items():
         for k, v in vals.items():
@@ -98,8 +88,7 @@ def evaluation_run(
 ) -> Iterator[EvalRun]:
     """An evaluation run (module docstring): FINISHED, FAILED on an error, KILLED by a signal.
 
-    ``logger``: the ``logger`` config (the store already checked); ``source_run_id``: the
-    policy's training run (found by its file's hash); ``tags``: the run's own.
+    ``logger``: the ``logger`` config; ``source_run_id``: the policy's training run.
     """
     training = _training_run(source_run_id)
     nest: dict[str, str] = {}

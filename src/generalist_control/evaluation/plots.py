@@ -1,17 +1,7 @@
-"""Plots of the closed-loop evaluation: step and sine responses, perturbation runs.
+"""Plots of the closed-loop evaluation (PNG, 80 dpi, under ``plots/``).
 
-Figures (PNG, 80 dpi) under ``plots/``:
-
-- ``<system>_step_sine.png``: per plant, the step and sine responses of GC and LQI with
-  their controls;
-- ``<system>_<scenario>.png``: per plant of a scenario that runs on at most
-  :data:`PER_PLANT` plants (actuator limits, noise and disturbance, the Crazyflie stand-in),
-  every controller's output and control;
-- ``<scenario>.png``: a scenario on more plants (the unseen families, the perturbations of
-  every plant): one panel per plant, every controller's output against the reference.
-
-The step and sine sheets share one figure, drawn again with each plant's data: building a
-figure costs more than drawing it (the evaluation's 25 sheets take a third of the time).
+Per plant its step and sine sheet; per plant of a scenario on at most :data:`PER_PLANT`
+plants, a figure of every controller; a scenario on more plants, one grid.
 """
 
 from __future__ import annotations

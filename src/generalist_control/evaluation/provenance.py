@@ -1,9 +1,6 @@
-"""Where an evaluation came from: the policy it evaluated, and when, where and how.
+"""Where an evaluation came from: what reproduces (``summary.json``) and what does not.
 
-What reproduces goes into ``summary.json`` (committed: the same policy evaluated again gives
-the same file): the policy's source as given and :func:`weights_digest`, and the command.
-What does not (the date, the machine, MLflow's run ids, the file's own hash) goes into the
-git-ignored ``provenance.json`` beside it and into the evaluation's MLflow run.
+The date, the machine and MLflow's ids go into the git-ignored ``provenance.json``.
 """
 
 from __future__ import annotations
@@ -25,11 +22,7 @@ __all__ = ["command", "machine", "provenance", "weights_digest"]
 
 
 def weights_digest(policy: torch.nn.Module, config: Any) -> str:
-    """SHA-256 of a network's config and weights (names, dtypes, shapes, bytes).
-
-    Unlike the policy file's hash it does not change with what the file says of the run
-    that wrote it (its MLflow run id, its folders).
-    """
+    """SHA-256 of a network's config and weights (unlike the file's, blind to its run)."""
     digest = hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode())
     for name, tensor in sorted(policy.state_dict().items()):
         t = tensor.detach().cpu().contiguous()
@@ -39,7 +32,7 @@ def weights_digest(policy: torch.nn.Module, config: Any) -> str:
 
 
 def machine() -> str:
-    """The machine in a few words: processor, cores, system, Python (``AMD EPYC, 2 cores``)."""
+    """The machine in a few words: processor, cores, system, Python."""
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as fh:  # Linux: the model name, as lscpu prints it

@@ -1,15 +1,7 @@
 """The bars of the variants evaluation (issue 13) and its figures.
 
-On the unit step (the first scenario of ``evaluation.variants.scenarios``), per plant and
-variant, the ISE of GC, of the variant's own LQI (the oracle) and of the nominal LQI
-applied to the variant. A diverged run's ISE counts as infinite. The bars:
-
-- ``no_divergence``: GC diverges in no run of any scenario on any variant;
-- ``variants_per_plant``: at least 5 variants per plant;
-- ``median_ISE_ratio``: median over all variants of ISE(GC) / ISE(oracle) <= 1.1;
-- ``worst_ISE_ratio``: its maximum <= 1.5;
-- ``beats_nominal``: on the variants where ISE(LQI-nominal) > 1.2 ISE(oracle), the median
-  of ISE(GC) / ISE(LQI-nominal) < 1 (no such variant: verdict ``null``, nothing to judge).
+On the unit step, GC's ISE against each variant's own LQI (the oracle) and the nominal LQI;
+a diverged run's ISE counts as infinite. docs/evaluation.md lists the bars.
 """
 
 from __future__ import annotations
