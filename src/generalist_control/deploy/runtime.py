@@ -73,11 +73,11 @@ def _one_thread(method: _F) -> _F:
 class PolicyRuntime:
     """A trained policy stepping one or many plants in a sampled loop.
 
-    Refused (:class:`RejectedStep`, the runtime unchanged), per row with ``s`` the policy
-    normaliser's per-tag RMS scales and ``L = input_limit``: a state entry (padding included)
-    ``|x_i| > L s_x[i]``, a reference or measured output ``|r|, |y| > L s_r``, the error
-    integral after the sample ``|z| > L s_x[z]``, a predicted control ``|u| > L s_u``; NaN
-    and inf always. Inputs are real numbers (else ``TypeError``). One thread at a time (a
+    Refused (:class:`RejectedStep`, the runtime unchanged), per row with ``s`` the per-tag
+    training RMS of the policy's normaliser and ``L = input_limit``: a state entry (padding
+    included) ``|x_i| > L s_x[i]``, a reference or measured output ``|r|, |y| > L s_r``, the
+    error integral after the sample ``|z| > L s_x[z]``, a predicted control ``|u| > L s_u``;
+    NaN and inf always. Inputs are real numbers (else ``TypeError``). One thread at a time (a
     runtime is one loop's state): a call entering while another thread is inside raises
     ``RuntimeError`` and changes nothing.
 
@@ -303,7 +303,8 @@ class PolicyRuntime:
     def step(self, x: Any, r: Any, y: Any = None) -> float | np.ndarray:
         """Control for the current sample (the first of the predicted sequence).
 
-        A step out of range (class docstring) is refused whole, nothing changed.
+        A step with a value beyond ``input_limit`` times its training RMS (class docstring)
+        is refused whole, nothing changed.
 
         Parameters
         ----------
