@@ -30,8 +30,12 @@ from generalist_control.data.variant_data import variants_config
 from generalist_control.deploy.policy_source import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.eval_config import EvaluationSettings, read_evaluation
-from generalist_control.evaluation.eval_run import evaluation_run
-from generalist_control.evaluation.provenance import command, provenance, weights_digest
+from generalist_control.evaluation.eval_run import (
+    command,
+    evaluation_run,
+    provenance,
+    weights_digest,
+)
 from generalist_control.evaluation.runner import run_suite
 from generalist_control.evaluation.variant_eval import OWNED as VARIANTS_OWNED
 from generalist_control.evaluation.variant_eval import TrainingDraws, run_variants
