@@ -6,6 +6,7 @@ plants, a figure of every controller; a scenario on more plants, one grid.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -52,18 +53,6 @@ def _light(ax: Any) -> None:
 
 def _label(ctrl: str, tr: Trajectory) -> str:
     return ctrl + (" (diverged)" if tr.diverged[0] else "")
-
-
-def _panel(ax_y: Any, ax_u: Any, by_ctrl: Mapping[str, Trajectory]) -> None:
-    """Reference, outputs and (``ax_u`` not None) controls of the first run of each."""
-    ref = next(iter(by_ctrl.values()))
-    n = ref.u.shape[1]
-    ax_y.plot(ref.t[:n], ref.r[0], color="0.4", lw=1, label="reference")
-    for ctrl in (c for c in _ORDER if c in by_ctrl):
-        tr, (color, ls) = by_ctrl[ctrl], _STYLE[ctrl]
-        ax_y.plot(tr.t[:n], tr.y[0, :n], color=color, ls=ls, label=_label(ctrl, tr))
-        if ax_u is not None:
-            ax_u.plot(tr.t[:n], tr.u[0], color=color, ls=ls)
 
 
 class _StepSine:
@@ -125,7 +114,14 @@ def _run_figure(
     """One plant's run of a scenario on few plants: every controller, output and control."""
     plt = pyplot()
     fig, (ax_y, ax_u) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
-    _panel(ax_y, ax_u, {c: runs[c][s] for c in runs})
+    by_ctrl = {c: runs[c][s] for c in runs}
+    ref = next(iter(by_ctrl.values()))
+    n = ref.u.shape[1]
+    ax_y.plot(ref.t[:n], ref.r[0], color="0.4", lw=1, label="reference")
+    for ctrl in (c for c in _ORDER if c in by_ctrl):
+        tr, (color, ls) = by_ctrl[ctrl], _STYLE[ctrl]
+        ax_y.plot(tr.t[:n], tr.y[0, :n], color=color, ls=ls, label=_label(ctrl, tr))
+        ax_u.plot(tr.t[:n], tr.u[0], color=color, ls=ls)
     ax_y.set_title(f"{s}: {scen}")
     ax_y.set_ylabel("y")
     ax_u.set_ylabel("u")
@@ -188,16 +184,10 @@ def _grid(runs: Runs, scen: str, out: Path) -> Path:
     return path
 
 
-#: The step and sine sheet of this process (:func:`_sheet`).
-_SHEET: _StepSine | None = None
-
-
+@functools.cache
 def _sheet() -> _StepSine:
     """The step and sine sheet of this process, built on first use."""
-    global _SHEET
-    if _SHEET is None:
-        _SHEET = _StepSine()
-    return _SHEET
+    return _StepSine()
 
 
 def plot_all(trajs: Trajs, out: Path, share: tuple[int, int] = (0, 1)) -> list[Path]:
