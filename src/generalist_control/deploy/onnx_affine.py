@@ -267,13 +267,8 @@ class _Emitter:
         g, out, new = self.graph, self.graph.shape(f.end) or (), []
         self._new = {}
         rowwise = _row_map(g, f)
-        square = f.M.shape[0] == f.M.shape[1]
-        if (
-            len(f.sources) == 1
-            and square
-            and not np.any(f.c)
-            and np.array_equal(f.M, np.eye(len(f.M)))
-        ):
+        identity = not np.any(f.c) and np.array_equal(f.M, np.eye(len(f.M)))  # y = x
+        if len(f.sources) == 1 and identity:
             self.graph.consts[f.end + "/shape"] = np.array(out, np.int64)
             new.append(helper.make_node("Reshape", [f.sources[0], f.end + "/shape"], [f.end]))
         elif rowwise is not None:
