@@ -137,10 +137,7 @@ def plant_model(batch_one: onnx.ModelProto, fixed: dict[str, np.ndarray]) -> byt
 
 
 class _BoundRun:
-    """A plant's batch-1 session with its inputs and output bound to the window's arrays.
-
-    The window builder alternates between two sets of arrays: two bindings are kept.
-    """
+    """A plant's batch-1 session bound to the window's arrays (two sets, so two bindings)."""
 
     def __init__(self, sess: Any, horizon: int) -> None:
         import onnxruntime as ort  # optional and heavy: only for the ONNX backend

@@ -209,10 +209,7 @@ def _measure_group(graph: Graph, folds: list[_Fold], wide: dict[str, np.ndarray]
 
 
 def _row_map(graph: Graph, f: _Fold) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(W, C)`` if the chain maps row ``r`` of every source to row ``r`` of its end alike.
-
-    ``W`` (sum of the sources' widths, end width) is one row's map; ``C`` the offsets.
-    """
+    """One row's map ``W`` and the offsets ``C``, if the chain maps every row alike."""
     assert f.M is not None and f.c is not None
     out = graph.shape(f.end) or ()
     rows = int(np.prod(out[:-1]))

@@ -161,8 +161,7 @@ class PolicyRuntime:
     def reset(self, system: Any) -> None:
         """Start a new run on ``system`` (a plant) or a batch of runs (a list of plants).
 
-        A plant is a name the policy knows, or one never trained on given by its model: a
-        plant YAML's path or a model dict (:mod:`~generalist_control.plants.given`).
+        A plant is a name the policy knows, or a plant YAML's path or a model dict.
 
         Raises
         ------

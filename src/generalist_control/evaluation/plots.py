@@ -156,11 +156,7 @@ def _cell(ax: Any, by_ctrl: Mapping[str, Trajectory], at: tuple[int, int], name:
 
 
 def _grid(runs: Runs, scen: str, out: Path) -> Path:
-    """One cell per plant on one axes: the first run's outputs against the reference.
-
-    Each cell is scaled to the range its curves span (printed beside the plant's name), so
-    the figure is one axes without ticks: a twentieth of the drawing a grid of axes takes.
-    """
+    """One cell per plant, each scaled to its curves' range, on one axes without ticks."""
     systems, plt = list(runs.get("GC", {})), pyplot()
     cols = math.ceil(math.sqrt(len(systems)))
     rows = math.ceil(len(systems) / cols)

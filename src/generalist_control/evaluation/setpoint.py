@@ -59,11 +59,7 @@ def _integral_at(
     z0: float,
     points: int = 401,
 ) -> tuple[float, float]:
-    """``(z*, residual)``: the integral nearest ``z0`` where the control is ``u_star``.
-
-    A grid of ``points`` within ``+-max(1, |z0|)``, its sign change nearest ``z0`` refined by
-    Brent's method (the network need not be monotone); none: ``(nan, smallest residual)``.
-    """
+    """``(z*, residual)`` nearest ``z0`` on a grid refined by Brent's method (none: NaN)."""
     width = max(1.0, abs(z0))
     grid = z0 + np.linspace(-width, width, points)
     state, mask, ref, tag = window
