@@ -12,8 +12,7 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from generalist_control.deploy.onnx_affine import fold_affine
-from generalist_control.deploy.onnx_graph import Graph, einsum_to_matmul
-from generalist_control.deploy.onnx_layout import tidy_reshapes
+from generalist_control.deploy.onnx_graph import Graph, einsum_to_matmul, tidy_reshapes
 
 
 def _graph(nodes, inputs, output, consts) -> Graph:

@@ -1,11 +1,7 @@
 """The ``evaluate`` stage: ``python -m generalist_control.evaluate`` or ``dvc repro evaluate``.
 
-Every scenario of ``conf/evaluation`` runs the trained policy (GC), LQI and LQI with
-anti-windup on each plant (:mod:`~generalist_control.evaluation.runner`); the reports go to
-``paths.reports_dir`` (default ``reports/eval``; docs/evaluation.md) and to an MLflow run of
-the evaluation's own (:mod:`~generalist_control.evaluation.eval_run`). What can refuse (the
-config, the folder, the MLflow store, the policy) refuses before any output changes; SIGTERM
-and SIGINT end the command non-zero and its run KILLED, with nothing published.
+What can refuse (the config, the folder, the MLflow store, the policy) refuses before any
+output changes; SIGTERM and SIGINT end it non-zero, its run KILLED, nothing published.
 """
 
 from __future__ import annotations
@@ -30,8 +26,12 @@ from generalist_control.data.variant_data import variants_config
 from generalist_control.deploy.policy_source import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.eval_config import EvaluationSettings, read_evaluation
-from generalist_control.evaluation.eval_run import evaluation_run
-from generalist_control.evaluation.provenance import command, provenance, weights_digest
+from generalist_control.evaluation.eval_run import (
+    command,
+    evaluation_run,
+    provenance,
+    weights_digest,
+)
 from generalist_control.evaluation.runner import run_suite
 from generalist_control.evaluation.variant_eval import OWNED as VARIANTS_OWNED
 from generalist_control.evaluation.variant_eval import TrainingDraws, run_variants

@@ -1,14 +1,7 @@
-"""Adapters: the policy runtime as the simulator's controllers.
+"""The policy runtime as the simulators' batch and single-plant controllers.
 
-:class:`RuntimeAdapter` drives a :class:`~generalist_control.deploy.runtime.PolicyRuntime`
-as a batch controller (:func:`~generalist_control.simulation.simulate.simulate_many`);
-:class:`SinglePlantAdapter` as a single-plant controller (e.g. the Crazyflie loop).
-
-The runtime refuses a step whose inputs, error integral or controls leave the policy's range
-(:class:`~generalist_control.deploy.runtime.RejectedStep`). In a simulated loop that means the
-run has diverged as far as the policy is concerned: both adapters drop such a run from the
-runtime for the rest of the loop (:func:`step_live`) and command NaN for it, which the
-simulators record as diverged, while the other runs go on unchanged.
+A run the runtime refuses has diverged as far as the policy is concerned: it leaves the
+runtime and is commanded NaN (recorded as diverged), while the other runs go on unchanged.
 """
 
 from __future__ import annotations
@@ -30,8 +23,7 @@ def stacked_output(
 ) -> Callable[[np.ndarray], np.ndarray]:
     """``y(x)`` for zero-padded states of ``counts[i]`` stacked runs of ``plants[i]``.
 
-    Each group of rows goes through its plant's own output map (``plant.output``, nonlinear
-    where the plant's is), as the LQI expert measures it.
+    Each group of rows goes through its plant's own output map, as the LQI expert measures it.
     """
     parts = list(zip(plants, row_slices(counts), strict=True))
 
@@ -54,11 +46,9 @@ def step_live(
 ) -> np.ndarray:
     """Controls (B,) for the rows still ``live`` (bool (B,), updated in place), NaN elsewhere.
 
-    ``runtime`` holds exactly the live rows of a batch reset, in order. A row it refuses
-    (:class:`RejectedStep`) is marked not live, dropped from the runtime
-    (:meth:`PolicyRuntime.select`) and the step made again without it, which is the same
-    step for the others: a refused step changes nothing. ``refused`` collects, per row,
-    the runtime's message.
+    ``runtime`` holds exactly the live rows, in order. A row it refuses is marked not live,
+    dropped from the runtime and the step made again without it (a refused step changes
+    nothing); ``refused`` collects, per row, the runtime's message.
     """
     u = np.full(live.shape, np.nan)
     while live.any():
@@ -82,27 +72,26 @@ def step_live(
 
 
 class RuntimeAdapter:
-    """Adapter: a :class:`PolicyRuntime` as the simulator's batch controller.
+    """A :class:`PolicyRuntime` as the simulators' batch controller.
+
+    Rows the runtime refuses are commanded NaN from then on (:func:`step_live`), their
+    messages in :attr:`refused`. In ``simulate_stacked`` the rows of an ended run leave the
+    runtime (:meth:`finish`), and :attr:`z_end` keeps each row's error integral at its run's
+    end (NaN: refused, not ended yet, or no ``integral`` channel).
 
     Parameters
     ----------
     runtime : PolicyRuntime
     limits : Perturbation, optional
-        Actuator limits the runtime's anti-windup knows (see
-        :meth:`PolicyRuntime.set_actuator_limits`); None: it knows none.
-
-    Attributes
-    ----------
-    refused : dict
-        Per row of the current run that the runtime refused (commanded NaN from then on,
-        see :func:`step_live`), the runtime's message.
+        Actuator limits the runtime's anti-windup knows; None: none.
     """
 
     def __init__(self, runtime: PolicyRuntime, limits: Perturbation | None = None) -> None:
         self.runtime, self.limits = runtime, limits
         self._output: Callable[[np.ndarray], np.ndarray] | None = None
-        self._live = np.zeros(0, bool)
+        self._rows = np.zeros(0, np.int64)  # the batch rows the runtime holds, in its order
         self.refused: dict[int, str] = {}
+        self.z_end = np.zeros(0)
 
     def reset(self, plants: Sequence[Any], counts: Sequence[int]) -> None:
         """One batch row per run, plant names repeated by their counts."""
@@ -110,28 +99,41 @@ class RuntimeAdapter:
         self.runtime.set_actuator_limits(lim.u_limit, lim.rate_limit)
         self.runtime.reset([p.name for p, c in zip(plants, counts, strict=True) for _ in range(c)])
         self._output = stacked_output(plants, counts) if self.runtime.integral else None
-        self._live, self.refused = np.ones(sum(counts), bool), {}
+        self._rows = np.arange(sum(counts), dtype=np.int64)
+        self.refused, self.z_end = {}, np.full(sum(counts), np.nan)
 
     def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
-        """Controls for zero-padded states (and their plants' outputs, if integrating)."""
-        y = None if self._output is None else self._output(x)
-        return step_live(self.runtime, self._live, x, r, y, self.refused)
+        """Controls (B,) for zero-padded states: NaN for the rows refused or ended."""
+        u = np.full(x.shape[0], np.nan)
+        rows = self._rows
+        if not rows.size:
+            return u
+        y = None if self._output is None else self._output(x)[rows]
+        live, refused = np.ones(rows.size, bool), dict[int, str]()
+        u[rows] = step_live(self.runtime, live, x[rows], r[rows], y, refused)
+        self.refused.update({int(rows[i]): msg for i, msg in refused.items()})
+        self._rows = rows[live]
+        return u
 
     def record_applied(self, u: np.ndarray) -> None:
-        """Record the controls (B,) the plants received instead of the last step's.
+        """Record the controls (B,) the plants received (:meth:`PolicyRuntime.record_applied`)."""
+        if self._rows.size:
+            self.runtime.record_applied(np.asarray(u, dtype=np.float64)[self._rows])
 
-        See :meth:`PolicyRuntime.record_applied`; rows the runtime refused are skipped.
-        """
-        if self._live.any():
-            self.runtime.record_applied(np.asarray(u, dtype=np.float64)[self._live])
+    def finish(self, rows: np.ndarray) -> None:
+        """The runs of ``rows`` ended: keep their error integrals, drop them from the runtime."""
+        gone = np.isin(self._rows, rows)
+        if not gone.any():
+            return
+        if self.runtime.integral:
+            self.z_end[self._rows[gone]] = self.runtime.z[gone]
+        if not gone.all():
+            self.runtime.select(np.flatnonzero(~gone))
+        self._rows = self._rows[~gone]
 
 
 class SinglePlantAdapter:
-    """The runtime as a single-plant controller (unpadded states of one plant).
-
-    Runs the runtime refuses are commanded NaN from then on (:func:`step_live`); the
-    runtime's messages are in :attr:`refused` (per run).
-    """
+    """The runtime as a single-plant controller (unpadded states); refusals as above."""
 
     def __init__(self, runtime: PolicyRuntime, plant: str) -> None:
         self.runtime, self.plant = runtime, plant

@@ -1,12 +1,7 @@
-"""Backends of a trained policy: eager PyTorch, TorchScript and ONNX Runtime.
+"""Backends of a trained policy (eager PyTorch, TorchScript, ONNX Runtime) and its exports.
 
-A backend maps raw float32 windows (the window builder's arrays) to the ``horizon`` controls
-in plant units, for any batch, ``backend(state, mask, ref, tag)``, and for one plant stepped
-alone, ``backend.plant(tag, mask)(state, ref)``. With ONNX Runtime the latter runs the
-policy's own batch-1 export with the plant's tag and mask made constants and the graph
-shrunk (:func:`plant_model`): the batch session's controls, bit for bit, in a third of its
-time. Exports are traced from the :class:`~generalist_control.model.policy.Policy`
-(normaliser included) in memory; :func:`export_onnx` and :func:`export_torchscript` write files.
+A backend maps raw float32 windows to the ``horizon`` controls in plant units; with ONNX
+Runtime one plant stepped alone runs a shrunk batch-1 graph of its own (:func:`plant_model`).
 """
 
 from __future__ import annotations
@@ -27,8 +22,8 @@ from generalist_control.deploy.onnx_graph import (
     fold_constants,
     freeze,
     prune,
+    tidy_reshapes,
 )
-from generalist_control.deploy.onnx_layout import tidy_reshapes
 from generalist_control.model.policy import Policy
 
 __all__ = ["Backend", "backend", "export_onnx", "export_torchscript", "onnx_bytes", "session"]
@@ -80,10 +75,7 @@ def export_torchscript(policy: Policy, path: str | Path) -> Path:
 
 
 def onnx_bytes(policy: Policy, batch: int | None = None) -> bytes:
-    """``policy`` as an ONNX model (inputs state, mask, ref, tag; outputs controls, gates).
-
-    ``batch``: None for a dynamic batch axis, or a fixed batch size (all shapes static).
-    """
+    """``policy`` as an ONNX model; ``batch``: None for a dynamic batch axis, else fixed."""
     dyn = None if batch else {k: {0: "batch"} for k in (*_INPUTS, "controls", "gates")}
     buffer = io.BytesIO()
     with torch.no_grad():
@@ -114,11 +106,9 @@ _UNFUSED = ("MatMulAddFusion", "MatMulScaleFusion")
 
 
 def session(model: bytes, arena: bool = True, disabled: Sequence[str] = ()) -> Any:
-    """An ONNX Runtime session for one real-time thread, every graph optimisation on.
+    """An ONNX Runtime session for one thread, every graph optimisation on but ``disabled``.
 
-    ``arena``: ONNX Runtime's memory arena, of use where shapes change from call to call
-    (a static graph's buffers are planned once, and a call is faster without it);
-    ``disabled``: rewrites left out.
+    ``arena``: the memory arena, of use only where shapes change from call to call.
     """
     import onnxruntime as ort  # optional and heavy: only for the ONNX backend
 
@@ -134,12 +124,10 @@ def session(model: bytes, arena: bool = True, disabled: Sequence[str] = ()) -> A
 
 
 def plant_model(batch_one: onnx.ModelProto, fixed: dict[str, np.ndarray]) -> bytes:
-    """The batch-1 model with inputs ``fixed`` made constants, shrunk; ``controls`` out.
+    """The batch-1 model with inputs ``fixed`` made constants and shrunk; ``controls`` out.
 
-    What depends on constants alone is computed once, the way the batch session computes
-    it, and the rest rewritten into fewer nodes computing the same floats
-    (:mod:`~generalist_control.deploy.onnx_graph`, :mod:`~generalist_control.deploy.onnx_affine`,
-    :mod:`~generalist_control.deploy.onnx_layout`): ONNX Runtime's cost is mostly per node.
+    The rewrites (:mod:`~generalist_control.deploy.onnx_graph`,
+    :mod:`~generalist_control.deploy.onnx_affine`) compute the batch session's floats.
     """
     graph = freeze(Graph.from_model(batch_one), fixed)
     graph.outputs = [o for o in graph.outputs if o.name == "controls"]
@@ -149,12 +137,7 @@ def plant_model(batch_one: onnx.ModelProto, fixed: dict[str, np.ndarray]) -> byt
 
 
 class _BoundRun:
-    """A plant's batch-1 session run on the window arrays it was last given, in place.
-
-    Inputs and output are bound to the arrays once (no conversion or dictionary per call);
-    the window builder alternates between two sets of arrays, so two bindings are kept. The
-    controls are written to one array, returned by every call.
-    """
+    """A plant's batch-1 session bound to the window's arrays (two sets, so two bindings)."""
 
     def __init__(self, sess: Any, horizon: int) -> None:
         import onnxruntime as ort  # optional and heavy: only for the ONNX backend
@@ -201,7 +184,7 @@ class OnnxBackend(Backend):
         return self._sess.run(["controls"], dict(zip(_INPUTS, arrays, strict=True)))[0]
 
     def plant(self, tag: int, mask: np.ndarray) -> PlantRun:
-        """Plant ``tag``'s batch-1 session (module docstring), made at its first use."""
+        """Plant ``tag``'s batch-1 session (:func:`plant_model`), made at its first use."""
         mask = np.ascontiguousarray(mask, np.float32)
         key = (int(tag), mask.tobytes())
         if key not in self._plants:
@@ -215,24 +198,19 @@ class OnnxBackend(Backend):
 
 def backend(policy: Policy, name: str) -> Backend:
     """Backend ``name`` (torch, torchscript or onnx) of ``policy``."""
-    if name == "torch":
+    if name in ("torch", "torchscript"):
+        module: Any = policy
+        if name == "torchscript":
+            buffer = io.BytesIO()
+            torch.jit.save(_traced(policy), buffer)
+            buffer.seek(0)
+            module = torch.jit.load(buffer)
 
         @torch.inference_mode()
         def run(*arrays: np.ndarray) -> np.ndarray:
-            return policy(*(torch.from_numpy(a) for a in arrays))[0].numpy()
-
-        return Backend(run)
-    if name == "torchscript":
-        buffer = io.BytesIO()
-        torch.jit.save(_traced(policy), buffer)
-        buffer.seek(0)
-        module = torch.jit.load(buffer)
-
-        @torch.inference_mode()
-        def run_script(*arrays: np.ndarray) -> np.ndarray:
             return module(*(torch.from_numpy(a) for a in arrays))[0].numpy()
 
-        return Backend(run_script)
+        return Backend(run)
     if name == "onnx":
         return OnnxBackend(policy)
     raise ValueError(f"unknown backend '{name}'; choose torch, torchscript or onnx")

@@ -1,8 +1,4 @@
-"""Plants a runtime is given by their model (the model card route), not by name.
-
-A card policy grows a row computed from the plant's card; any other refuses it here, saying
-what to do instead.
-"""
+"""Plants a runtime is given by their model (the model card route), not by name."""
 
 from __future__ import annotations
 

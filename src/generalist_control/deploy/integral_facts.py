@@ -1,8 +1,7 @@
 """What an integrating policy's runtime needs of each plant beyond the policy itself.
 
-It integrates ``r - C x`` from the state alone, so it needs each plant's output row ``C``,
-and under actuator limits which way the integral moves the command (anti-windup). Training
-stores both in the policy's meta; plants the meta lacks are looked up in the catalogue.
+Its output row ``C`` and which way its integral moves the command (anti-windup): the
+policy's meta, else the catalogue.
 """
 
 from __future__ import annotations
@@ -20,10 +19,9 @@ __all__ = ["IntegralFacts", "integral_facts"]
 
 
 def integral_facts(names: Sequence[str]) -> dict[str, dict[str, Any]]:
-    """Per catalogue plant in ``names``, its output row ``C`` and the sign of its expert's -Ki.
+    """Per catalogue plant in ``names``, its ``outputs`` row ``C`` and ``integral_directions``.
 
-    ``C`` of the linearisation for a nonlinear plant; as the policy's meta stores them
-    (``outputs``, ``integral_directions``); names the catalogue does not know are left out.
+    The sign of its expert's ``-Ki``, as the policy's meta stores them; unknown names left out.
     """
     known = set(available_plants())
     plants = [load_plant(n) for n in sorted(names) if n in known]
@@ -39,7 +37,6 @@ class IntegralFacts:
     def __init__(self, meta: Mapping[str, Any]) -> None:
         outputs, directions = meta.get("outputs", {}), meta.get("integral_directions", {})
         self.outputs = {str(k): np.asarray(v, np.float64) for k, v in outputs.items()}
-        #: per plant, the sign of d u / d z of the expert the policy imitates (``-Ki``)
         self.directions = {str(k): float(v) for k, v in directions.items()}
         self._unknown: set[str] = set()  # plants neither the meta nor the catalogue knows
 

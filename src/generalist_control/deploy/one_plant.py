@@ -1,10 +1,7 @@
 """The runtime's per-sample path for one plant stepped alone, on plain Python numbers.
 
-A sample of one plant is a handful of numbers, and each small NumPy operation on them costs
-about as much as a layer of the network. :class:`OnePlantStep` makes the general path's
-checks and arithmetic on Python floats, with the limits read once at ``reset``. Anything out
-of the ordinary (another type or shape, a value out of range, known actuator limits) returns
-None before anything changed, and the general path takes the step or refuses it in full.
+Each small NumPy operation costs about a network layer; anything unusual returns None before
+anything changed, and the general path takes the step or refuses it.
 """
 
 from __future__ import annotations
@@ -38,14 +35,7 @@ def _number(value: Any) -> float | None:
 
 
 class OnePlantStep:
-    """:meth:`PolicyRuntime.step` of a runtime reset to one plant (module docstring).
-
-    Parameters
-    ----------
-    rt : PolicyRuntime
-        Reset to one plant by name; rebuilt at each such reset. (Typed ``Any`` here: the
-        runtime's module imports this one.)
-    """
+    """:meth:`PolicyRuntime.step` of runtime ``rt`` (``Any``: its module imports this one)."""
 
     def __init__(self, rt: Any) -> None:
         self.rt, self.buffer, self.dt, self.integral = rt, rt._buffer, rt.dt, rt.integral

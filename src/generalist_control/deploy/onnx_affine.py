@@ -1,10 +1,7 @@
 """Fold chains of linear nodes of a static-shape ONNX graph into single ``Gemm`` nodes.
 
-A chain of data movement, products with constants, sums and offsets ends where a nonlinear
-node reads it; :func:`fold_affine` measures its ``y = M x + c`` (float64 probes) and
-replaces it by one ``Gemm`` where that means fewer nodes. The same floats: each output
-element stays at most one rounded product sum of moved source elements (a chain that would
-round twice is cut there), so the folded graph computes the chain's numbers to the bit.
+A chain that rounds at most once per output element (one product sum of moved source
+elements; a chain that would round twice is cut there) folds into the same floats.
 """
 
 from __future__ import annotations
@@ -37,7 +34,7 @@ SEL, SELC, PROD, DONE = 0, 1, 2, 3
 
 @dataclass
 class _Chains:
-    """The affine tensors of a graph: state, sources, the inputs to follow, the cuts."""
+    """The affine tensors of a graph: their state, sources, inputs to follow, and cuts."""
 
     state: dict[str, int]
     sources: dict[str, frozenset[str]]
@@ -84,7 +81,7 @@ _RULES = {"move": (DONE, None), "scale": (DONE, None), "product": (SEL, PROD),
 
 
 def _chains(graph: Graph) -> _Chains:
-    """Classify the graph's tensors (see the module docstring)."""
+    """Classify the graph's tensors by how rounded they are (``SEL`` to ``DONE``)."""
     ch = _Chains({}, {}, {}, {}, set())
     readers = graph.consumers()
     for n in graph.nodes:
@@ -168,11 +165,7 @@ def _candidates(graph: Graph, ch: _Chains) -> list[_Fold]:
 
 
 def _measure(graph: Graph, folds: list[_Fold]) -> None:
-    """Set each fold's ``M`` and ``c`` by evaluating the chains in float64.
-
-    Folds are evaluated together in groups where no fold's source is computed by another
-    fold's chain.
-    """
+    """Set each fold's ``M`` and ``c`` by running the chains in float64 on unit probes."""
     groups: list[list[_Fold]] = []
     for f in folds:
         g = groups[-1] if groups else None
@@ -216,12 +209,7 @@ def _measure_group(graph: Graph, folds: list[_Fold], wide: dict[str, np.ndarray]
 
 
 def _row_map(graph: Graph, f: _Fold) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(W, C)`` if the chain maps row ``r`` of every source to row ``r`` of its end alike.
-
-    The end's rows: all its axes but the last; a source's: its elements in order, in as
-    many rows of equal width. ``W`` (sum of the sources' widths, end width) is one row's
-    map; ``C`` the offsets (rows, end width).
-    """
+    """One row's map ``W`` and the offsets ``C``, if the chain maps every row alike."""
     assert f.M is not None and f.c is not None
     out = graph.shape(f.end) or ()
     rows = int(np.prod(out[:-1]))
@@ -241,17 +229,8 @@ def _row_map(graph: Graph, f: _Fold) -> tuple[np.ndarray, np.ndarray] | None:
     return np.concatenate(blocks), f.c.reshape(rows, out[-1])
 
 
-def _identity(M: np.ndarray, c: np.ndarray) -> bool:
-    """Whether ``y = M x + c`` is ``y = x`` (the same elements in the same order)."""
-    return M.shape[0] == M.shape[1] and not np.any(c) and np.array_equal(M, np.eye(len(M)))
-
-
 class _Emitter:
-    """New nodes and constants for folded chains; shared source layouts are built once.
-
-    :meth:`plan` proposes the nodes of one fold; :meth:`accept` keeps them (and the layouts
-    they built for later folds to share).
-    """
+    """New nodes for folded chains (:meth:`plan`, :meth:`accept`); shared layouts made once."""
 
     def __init__(self, graph: Graph) -> None:
         self.graph = graph
@@ -285,7 +264,8 @@ class _Emitter:
         g, out, new = self.graph, self.graph.shape(f.end) or (), []
         self._new = {}
         rowwise = _row_map(g, f)
-        if len(f.sources) == 1 and f.M.shape[0] == f.M.shape[1] and _identity(f.M, f.c):
+        identity = not np.any(f.c) and np.array_equal(f.M, np.eye(len(f.M)))  # y = x
+        if len(f.sources) == 1 and identity:
             self.graph.consts[f.end + "/shape"] = np.array(out, np.int64)
             new.append(helper.make_node("Reshape", [f.sources[0], f.end + "/shape"], [f.end]))
         elif rowwise is not None:
@@ -333,17 +313,13 @@ class _Emitter:
 
 
 def _cost(graph: Graph, nodes: list[onnx.NodeProto]) -> int:
-    """How many nodes ONNX Runtime runs for ``nodes``.
-
-    A MatMul of a 3-d or wider tensor counts as three: it runs it as a reshape, a 2-d
-    product and a reshape back.
-    """
+    """How many nodes ONNX Runtime runs for ``nodes`` (a MatMul of a 3-d tensor is three)."""
     wide = [n for n in nodes if n.op_type == "MatMul" and len(graph.shape(n.input[0]) or ()) > 2]
     return len(nodes) + 2 * len(wide)
 
 
 def fold_affine(graph: Graph) -> Graph:
-    """Fold the graph's affine chains where that leaves fewer nodes (module docstring)."""
+    """Fold the graph's affine chains into ``Gemm`` nodes where that leaves fewer nodes."""
     graph.infer()
     folds = _candidates(graph, _chains(graph))
     _measure(graph, folds)

@@ -1,15 +1,12 @@
-"""Rewrites of a static-shape ONNX graph for one plant at batch 1, and the graph they use.
+"""A mutable view of a static-shape ONNX graph and the rewrites that shrink it.
 
-A plant's batch-1 graph is mostly ONNX Runtime's per-node overhead: a few hundred kFLOP
-over a hundred small nodes. :func:`freeze` makes known inputs (tag, mask) constants,
-:func:`fold_constants` computes what depends on them alone with ONNX Runtime's unoptimised
-kernels (as the batch session does), :func:`einsum_to_matmul` and :func:`prune` follow.
+A plant's batch-1 graph costs mostly ONNX Runtime's per-node overhead, so each rewrite
+leaves fewer nodes computing the same floats (docs/notes/deploy-speed.md).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import onnx
@@ -22,23 +19,20 @@ __all__ = [
     "freeze",
     "prune",
     "run_subgraph",
+    "tidy_reshapes",
 ]
+
+#: Elementwise functions of one tensor (no attribute changes what "elementwise" means).
+_ELEMENTWISE = {
+    "Relu", "Sigmoid", "Tanh", "Neg", "Abs", "Exp", "Log", "Sqrt", "Reciprocal", "Softplus",
+    "Softsign", "Elu", "Selu", "LeakyRelu", "HardSigmoid", "Erf", "Floor", "Ceil", "Sign",
+}  # fmt: skip
+_SHAPES = {"Reshape", "Squeeze", "Unsqueeze", "Flatten"}
 
 
 @dataclass
 class Graph:
-    """A mutable view of an ONNX model: its nodes, constants, inputs and outputs.
-
-    Attributes
-    ----------
-    nodes : list of NodeProto
-        In topological order (``Constant`` nodes are moved into :attr:`consts`).
-    consts : dict
-        Name -> value of every initializer and constant.
-    inputs, outputs : list of ValueInfoProto
-    opset : list of OperatorSetIdProto
-    ir_version : int
-    """
+    """An ONNX model's nodes (in topological order), constants, inputs and outputs."""
 
     nodes: list[onnx.NodeProto]
     consts: dict[str, np.ndarray]
@@ -130,18 +124,20 @@ def run_subgraph(
     consts: dict[str, np.ndarray] | None = None,
     out_type: int | None = None,
 ) -> list[list[np.ndarray]]:
-    """Evaluate ``nodes`` of ``graph`` with ONNX Runtime on each of ``feeds``.
+    """Per feed, the values of ``outputs`` of ``nodes`` run by ONNX Runtime (unoptimised).
 
-    Returns, per feed, the values of ``outputs``. ``consts`` replaces the graph's constants
-    of the same names (e.g. in float64), and ``out_type`` (an ONNX element type) the
-    outputs' types.
+    ``consts`` replaces the graph's constants of the same names (e.g. in float64), and
+    ``out_type`` (an ONNX element type) the outputs' types.
     """
     import onnxruntime as ort  # optional and heavy: only for the ONNX backend
 
     values = {**graph.consts, **(consts or {})}
     first = feeds[0]
     names = {i for n in nodes for i in n.input if i in values and i not in first}
-    ins = [helper.make_tensor_value_info(k, _dtype(v), v.shape) for k, v in first.items()]
+    ins = [
+        helper.make_tensor_value_info(k, helper.np_dtype_to_tensor_dtype(v.dtype), v.shape)
+        for k, v in first.items()
+    ]
     outs = [helper.make_tensor_value_info(k, out_type or graph.info(k)[1], None) for k in outputs]
     inits = [numpy_helper.from_array(values[k], k) for k in names]
     model = helper.make_model(
@@ -157,10 +153,6 @@ def run_subgraph(
     return [[np.asarray(v) for v in sess.run(outputs, feed)] for feed in feeds]
 
 
-def _dtype(v: np.ndarray) -> int:
-    return helper.np_dtype_to_tensor_dtype(v.dtype)
-
-
 def freeze(graph: Graph, values: dict[str, np.ndarray]) -> Graph:
     """Make the graph inputs named in ``values`` constants of those values."""
     for name, v in values.items():
@@ -170,7 +162,7 @@ def freeze(graph: Graph, values: dict[str, np.ndarray]) -> Graph:
 
 
 def fold_constants(graph: Graph) -> Graph:
-    """Evaluate each node whose inputs are all constant (see the module docstring)."""
+    """Compute once each node whose inputs are all constant, as the batch session does."""
     graph.infer()
     known = set(graph.consts)
     todo, rest = [], []
@@ -191,13 +183,6 @@ def fold_constants(graph: Graph) -> Graph:
     return graph
 
 
-def _attr(node: onnx.NodeProto, name: str, default: Any) -> Any:
-    for a in node.attribute:
-        if a.name == name:
-            return helper.get_attribute_value(a)
-    return default
-
-
 def _split_equation(eq: str) -> tuple[str, str, str] | None:
     eq = eq.replace(" ", "")
     if "." in eq or "->" not in eq:
@@ -213,19 +198,18 @@ def _split_equation(eq: str) -> tuple[str, str, str] | None:
 
 
 def einsum_to_matmul(graph: Graph) -> Graph:
-    """Rewrite two-operand ``Einsum`` nodes of static shapes as ``MatMul`` (see module doc).
+    """Rewrite two-operand ``Einsum`` nodes of static shapes as ``MatMul``.
 
-    ``a, b -> out``: batch letters (in all three), contracted ones (in ``a`` and ``b``) and
-    free ones; each operand is transposed to ``(batch, free, contracted)`` order and
-    reshaped to three axes (two where the batch letters' size is one), multiplied, and
-    brought back to ``out``'s axes.
+    Each operand is transposed to ``(batch, free, contracted)`` order and reshaped to three
+    axes (two where the batch is one), multiplied, and brought back to the output's axes.
     """
     graph.infer()
     nodes: list[onnx.NodeProto] = []
     for n in graph.nodes:
         parts = None
         if n.op_type == "Einsum":
-            parts = _split_equation(_attr(n, "equation", b"").decode())
+            eq = [helper.get_attribute_value(a) for a in n.attribute if a.name == "equation"]
+            parts = _split_equation(eq[0].decode() if eq else "")
         shapes = [graph.shape(i) for i in n.input]
         if parts is None or len(n.input) != 2 or shapes[0] is None or shapes[1] is None:
             nodes.append(n)
@@ -253,12 +237,24 @@ def _einsum_nodes(
     def size(cs: list[str]) -> int:
         return int(np.prod([dim[c] for c in cs]))
 
+    def arrange(name: str, letters: str, order: list[str], shape: tuple, pre: str) -> str:
+        """Transpose ``name`` (axes ``letters``) to ``order`` and reshape it to ``shape``."""
+        perm = [letters.index(c) for c in order]
+        if perm != sorted(perm):
+            nodes.append(helper.make_node("Transpose", [name], [pre + "/t"], perm=perm))
+            name = pre + "/t"
+        if tuple(dim[c] for c in order) != shape:
+            graph.consts[pre + "/shape"] = np.array(shape, np.int64)
+            nodes.append(helper.make_node("Reshape", [name, pre + "/shape"], [pre + "/r"]))
+            name = pre + "/r"
+        return name
+
     p = n.output[0] + "/mm"
     lead = (size(batch),) if size(batch) > 1 else ()  # one product at batch 1: 2-d
     sa = (*lead, size(free_a), size(summed))
     sb = (*lead, size(summed), size(free_b))
-    x = _arrange(graph, nodes, n.input[0], a, batch + free_a + summed, sa, dim, p + "a")
-    y = _arrange(graph, nodes, n.input[1], b, batch + summed + free_b, sb, dim, p + "b")
+    x = arrange(n.input[0], a, batch + free_a + summed, sa, p + "a")
+    y = arrange(n.input[1], b, batch + summed + free_b, sb, p + "b")
     nodes.append(helper.make_node("MatMul", [x, y], [p]))
     order = batch + free_a + free_b
     graph.consts[p + "/shape"] = np.array([dim[c] for c in order], np.int64)
@@ -267,28 +263,6 @@ def _einsum_nodes(
     nodes.append(helper.make_node("Reshape", [p, p + "/shape"], [last]))
     if last != n.output[0]:
         nodes.append(helper.make_node("Transpose", [last], [n.output[0]], perm=perm))
-
-
-def _arrange(
-    graph: Graph,
-    nodes: list[onnx.NodeProto],
-    name: str,
-    letters: str,
-    order: list[str],
-    shape: tuple[int, ...],
-    dim: dict[str, int],
-    prefix: str,
-) -> str:
-    """Transpose ``name`` (axes ``letters``) to ``order`` and reshape it to ``shape``."""
-    perm = [letters.index(c) for c in order]
-    if perm != sorted(perm):
-        nodes.append(helper.make_node("Transpose", [name], [prefix + "/t"], perm=perm))
-        name = prefix + "/t"
-    if tuple(dim[c] for c in order) != shape:
-        graph.consts[prefix + "/shape"] = np.array(shape, np.int64)
-        nodes.append(helper.make_node("Reshape", [name, prefix + "/shape"], [prefix + "/r"]))
-        name = prefix + "/r"
-    return name
 
 
 def prune(graph: Graph) -> Graph:
@@ -302,3 +276,90 @@ def prune(graph: Graph) -> Graph:
     graph.nodes = kept[::-1]
     graph.consts = {k: v for k, v in graph.consts.items() if k in need}
     return graph
+
+
+def _static_reshape(graph: Graph, node: onnx.NodeProto) -> bool:
+    """Rewrite a reshape-like node as ``Reshape`` to its static output shape (if it is one)."""
+    if not node.input or not node.output:
+        return False
+    src, out = graph.shape(node.input[0]), graph.shape(node.output[0])
+    if src is None or out is None:
+        return False
+    if node.op_type == "Transpose":
+        perm = [a.ints for a in node.attribute if a.name == "perm"]
+        order = list(perm[0]) if perm else list(range(len(src)))[::-1]
+        moved = [a for a in order if src[a] != 1]
+        if moved != sorted(moved):
+            return False
+    elif node.op_type not in _SHAPES:
+        return False
+    name = node.output[0] + "/static_shape"
+    graph.consts[name] = np.array(out, np.int64)
+    node.op_type = "Reshape"
+    node.input[:] = [node.input[0], name]
+    del node.attribute[:]
+    return True
+
+
+def _collapse(graph: Graph) -> bool:
+    """Reshape-like nodes as static reshapes; chains of them as one; identities dropped."""
+    changed = False
+    producer = {o: n for n in graph.nodes for o in n.output}
+    outputs = {o.name for o in graph.outputs}
+    alias: dict[str, str] = {}
+    kept = []
+    for n in graph.nodes:
+        n.input[:] = [alias.get(i, i) for i in n.input]
+        was = n.op_type
+        static = was in _SHAPES | {"Transpose"} and _static_reshape(graph, n)
+        changed |= static and was != "Reshape"
+        if static:
+            inner = producer.get(n.input[0])
+            if inner is not None and inner.op_type == "Reshape":
+                n.input[0] = inner.input[0]  # its shape is static: the input's does not matter
+                changed = True
+            if graph.shape(n.input[0]) == graph.shape(n.output[0]) and n.output[0] not in outputs:
+                alias[n.output[0]] = n.input[0]
+                changed = True
+                continue
+        kept.append(n)
+    graph.nodes = kept
+    return changed
+
+
+def _sink(graph: Graph) -> bool:
+    """``f(Reshape(x))`` as ``Reshape(f(x))`` for elementwise ``f`` (the reshape read once)."""
+    readers = graph.consumers()
+    producer = {o: n for n in graph.nodes for o in n.output}
+    outputs = {o.name for o in graph.outputs}
+    changed = False
+    for n in list(graph.nodes):
+        r = producer.get(n.input[0]) if n.op_type in _ELEMENTWISE and n.input else None
+        if r is None or r.op_type != "Reshape" or len(readers.get(r.output[0], ())) != 1:
+            continue
+        shape = graph.shape(n.output[0])
+        if r.output[0] in outputs or shape is None:
+            continue
+        inner, out = n.output[0] + "/before_reshape", n.output[0]
+        n.input[0], n.output[0] = r.input[0], inner
+        r.input[:] = [inner, out + "/static_shape"]
+        r.output[0] = out
+        graph.consts[out + "/static_shape"] = np.array(shape, np.int64)
+        changed = True
+    if changed:
+        graph.sort()
+    return changed
+
+
+def tidy_reshapes(graph: Graph) -> Graph:
+    """Rewrite reshapes until none applies, so fewer of them run; drop what is unused.
+
+    Reshape-like nodes become static ``Reshape``, chains of them one, those to their input's
+    own shape go, and they move past elementwise nodes to meet and cancel.
+    """
+    for _ in range(50):
+        graph.infer()
+        if not (_collapse(graph) | _sink(graph)):
+            break
+        prune(graph)
+    return prune(graph)

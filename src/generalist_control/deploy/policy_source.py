@@ -1,8 +1,4 @@
-"""Where a policy comes from: a local file, or an MLflow run or registered model.
-
-MLflow is imported only for an MLflow URI: a deployed runtime loading a local file needs
-no tracking client.
-"""
+"""Where a policy comes from: a local file, or an MLflow run or registered model."""
 
 from __future__ import annotations
 
@@ -20,9 +16,8 @@ __all__ = ["resolve"]
 def resolve(source: str | Path) -> Path:
     """A local policy file for a path or an MLflow URI (``runs:/...``, ``models:/...``).
 
-    For an MLflow URI the run's ``policy/policy.ckpt`` artifact is downloaded (the plain
-    tensor file, never the pickled MLflow model), so loading stays ``weights_only``, into a
-    temporary folder removed when the process ends.
+    An MLflow URI's plain ``policy.ckpt`` (never the pickled model: loading stays
+    ``weights_only``) is downloaded into a temporary folder removed at exit.
     """
     text = str(source)
     if "://" not in text and not text.startswith(("runs:/", "models:/")):

@@ -1,9 +1,7 @@
 """What the runtime refuses, and how it says so.
 
-Inputs are real numbers of the expected shapes (:func:`real_array`, :func:`shaped_inputs`);
-NumPy would otherwise turn a complex value, a string or a bool into a float without a word.
-A step whose values leave the policy's range is refused with :class:`RejectedStep`, worded
-by :func:`rejection`: which rows and plants, which input, its value, the range, what to do.
+Inputs are real numbers of the expected shapes (NumPy would turn a complex value, a string
+or a bool into a float without a word); a step out of range is a :class:`RejectedStep`.
 """
 
 from __future__ import annotations
@@ -56,10 +54,7 @@ def rejection(
 ) -> RejectedStep:
     """The error for the entries of ``values`` (B,) or (B, n) that are not ``ok``.
 
-    ``kind`` names the input (``state``, ``reference``, ``output``, ``error integral``,
-    ``network output``), ``limit`` its allowed magnitudes, ``systems`` and ``order`` the
-    rows' plants, ``single`` whether the runtime steps one plant (rows go unnamed) and
-    ``input_limit`` how many training RMS a signal may reach.
+    ``kind``: a key of ``_LABELS``; ``single``: one plant (rows go unnamed).
     """
     B = len(values)
     v, lim = values.reshape(B, -1), np.broadcast_to(limit, values.shape).reshape(B, -1)
@@ -140,8 +135,8 @@ def shaped_inputs(
 ) -> tuple[np.ndarray, np.ndarray]:
     """A step's state and reference as float64 arrays (B, n) and (B,), their shapes checked.
 
-    ``single``: one plant, ``x`` of its order ``n`` and a scalar ``r``; otherwise a batch of
-    ``len(systems)`` zero-padded states (B, MAX_ORDER) or (B, highest order) and ``r`` (B,).
+    ``single``: ``x`` of the plant's order and a scalar ``r``; else zero-padded states (B,
+    MAX_ORDER) or (B, highest order) and ``r`` (B,).
 
     Raises
     ------

@@ -1,10 +1,7 @@
 """The real-time policy runtime: a trained policy in a sampled control loop.
 
-:class:`PolicyRuntime` keeps each run's history window (the project's one window builder,
-:class:`~generalist_control.data.windows.HistoryBuffer`), its error integral and its last
-control, checks every input and output against the policy's range, and applies the first of
-the ``horizon`` predicted controls. One plant reset by name steps through a lean path
-(:mod:`~generalist_control.deploy.one_plant`) and the backend's batch-1 run of that plant.
+It keeps each run's window, error integral and last control, and refuses inputs and outputs
+outside the policy's range; one plant reset by name steps through a lean path.
 """
 
 from __future__ import annotations
@@ -76,21 +73,13 @@ def _one_thread(method: _F) -> _F:
 class PolicyRuntime:
     """A trained policy stepping one or many plants in a sampled loop.
 
-    Inputs outside the documented range are refused (:class:`RejectedStep`, the runtime
-    unchanged). For the plant of each row, with ``s`` the policy normaliser's per-tag RMS
-    scales and ``L = input_limit``:
-
-    * state entry ``i`` (padding beyond the plant's order included): ``|x_i| <= L s_x[i]``;
-    * reference and measured output: ``|r|, |y| <= L s_r``;
-    * error integral after the sample (the ``integral`` channel): ``|z| <= L s_x[z]``;
-    * every predicted control (the network's output): ``|u| <= L s_u``; NaN and inf never.
-
-    Inputs are real numbers (a complex value, a bool or a string is refused with a
-    ``TypeError``). One thread at a time: a runtime is the state of one control loop, so two
-    threads stepping it at once would mix two loops' samples in one history and one error
-    integral, and a lock would only hide that. A call that enters while another thread is
-    inside (:meth:`reset`, :meth:`step`, :meth:`select`, :meth:`record_applied`,
-    :meth:`set_actuator_limits`) raises ``RuntimeError`` and changes nothing.
+    Refused (:class:`RejectedStep`, the runtime unchanged), per row with ``s`` the per-tag
+    training RMS of the policy's normaliser and ``L = input_limit``: a state entry (padding
+    included) ``|x_i| > L s_x[i]``, a reference or measured output ``|r|, |y| > L s_r``, the
+    error integral after the sample ``|z| > L s_x[z]``, a predicted control ``|u| > L s_u``;
+    NaN and inf always. Inputs are real numbers (else ``TypeError``). One thread at a time (a
+    runtime is one loop's state): a call entering while another thread is inside raises
+    ``RuntimeError`` and changes nothing.
 
     Parameters
     ----------
@@ -146,7 +135,7 @@ class PolicyRuntime:
         return sorted(self.tags)
 
     def _plants(self, system: Any) -> tuple[list[str], bool]:
-        """``(names, single)`` of ``reset``: names, or models (:mod:`.given_plants`)."""
+        """``(names, single)`` of ``reset``'s argument (names, or plants by their model)."""
         single = not isinstance(system, list | tuple | np.ndarray)
         items = [system] if single else list(system)
         if not items or not all(isinstance(s, GIVEN_TYPES) for s in items):
@@ -172,8 +161,7 @@ class PolicyRuntime:
     def reset(self, system: Any) -> None:
         """Start a new run on ``system`` (a plant) or a batch of runs (a list of plants).
 
-        A plant is a name the policy knows, or one never trained on given by its model: a
-        plant YAML's path or a model dict (:mod:`~generalist_control.plants.given`).
+        A plant is a name the policy knows, or a plant YAML's path or a model dict.
 
         Raises
         ------
@@ -204,7 +192,7 @@ class PolicyRuntime:
         self._one = OnePlantStep(self) if single else None
 
     def _set_limits(self) -> None:
-        """Per row, the largest magnitude of each input and control (the class docstring)."""
+        """Per row, the largest magnitude of each input and control (class docstring)."""
         n, L = self.policy.normaliser, self.input_limit
         scales = (n.state_scale, n.ref_scale, n.control_scale)
         sx, sr, su = (s.detach().cpu().double().numpy()[self._tag] for s in scales)
@@ -216,10 +204,7 @@ class PolicyRuntime:
 
     @_one_thread
     def select(self, rows: Sequence[int] | np.ndarray) -> None:
-        """Go on with only ``rows`` of the batch (in that order), their histories kept.
-
-        E.g. to drop the rows a :class:`RejectedStep` names while the others go on.
-        """
+        """Go on with only ``rows`` of the batch (in that order), their histories kept."""
         idx = np.asarray(rows, dtype=np.int64).reshape(-1)
         if idx.size == 0 or idx.min() < 0 or idx.max() >= len(self._systems):
             raise ValueError(f"rows must be 1 or more of 0..{len(self._systems) - 1}")
@@ -266,10 +251,8 @@ class PolicyRuntime:
     ) -> None:
         """Known actuator limits for anti-windup of an integrating policy (None: no limit).
 
-        While the actuator clips the command (``|u| <= u_limit``, ``|du/dt| <= rate_limit``)
-        the error integral is frozen whenever integrating would push the command further
-        into the limit, the direction being that of the LQI expert the policy imitates
-        (``-Ki``). Without limits nothing changes. Takes effect at the next :meth:`reset`.
+        The error integral is frozen while integrating would push a clipped command further
+        into the limit (the LQI expert's direction, ``-Ki``). Takes effect at :meth:`reset`.
 
         Raises
         ------
@@ -319,12 +302,8 @@ class PolicyRuntime:
     def step(self, x: Any, r: Any, y: Any = None) -> float | np.ndarray:
         """Control for the current sample (the first of the predicted sequence).
 
-        Every input, padded state entries included, must be finite and within
-        ``input_limit`` times its training RMS for the row's plant (class docstring), as must
-        every predicted control and the error integral after the sample. Otherwise
-        :class:`RejectedStep` (a ``ValueError``) names rows, plants, inputs, values and
-        allowed ranges, and nothing changes (history, integral, anti-windup memory,
-        :attr:`plan`); a batch is refused whole if any row is at fault.
+        A step with a value beyond ``input_limit`` times its training RMS (class docstring)
+        is refused whole, nothing changed.
 
         Parameters
         ----------
@@ -382,11 +361,9 @@ class PolicyRuntime:
     def record_applied(self, u: Any) -> None:
         """Tell the runtime the control the plant received at the last :meth:`step`.
 
-        For when another controller's control replaced the runtime's own (a fallback
-        controller, the expert during a hand-over, a DAgger rollout's mix of expert and
-        policy). A policy with the ``previous_control`` channel reads it as the previous
-        control at the next step, and a known rate limit starts from it; the error integral
-        does not depend on it. ``u``: a scalar for one plant, (B,) for a batch; finite.
+        Where another controller's control replaced the runtime's own: the
+        ``previous_control`` channel and a known rate limit start from it. ``u``: a scalar
+        for one plant, (B,) for a batch; finite.
         """
         u = real_array(u, "applied control u").reshape(-1)
         if u.shape != self._u_prev.shape:

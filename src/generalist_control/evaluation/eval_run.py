@@ -1,43 +1,99 @@
-"""The evaluation's MLflow run: a run of its own, nested under the policy's training run.
+"""The evaluation's record: where it came from, and its MLflow run.
 
-An evaluation never reopens its training run, so that run's Duration stays the training's
-own. Its run sits in the training run's experiment, nested under it (``mlflow.parentRunId``,
-tag ``gc.source_run_id``); its figures are metrics linked to the training's logged model
-(MLflow 3's ``model_id``: the model is the run's input and shows them beside its params). A
-policy whose training run this store does not hold gets a run in the ``evaluate``
-experiment. The store is asked first (:func:`~generalist_control.tracking.mlflow_utils.
-check_store`), so one that does not answer stops the evaluation before anything is written.
+What reproduces goes into ``summary.json``; the date, the machine and MLflow's ids into the
+git-ignored ``provenance.json``. The run is nested under the policy's training run (its
+figures linked to the logged model), else in the ``evaluate`` experiment.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import os
+import platform
+import sys
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 import mlflow
+import torch
 from mlflow.exceptions import MlflowException
 
 from generalist_control.common.atomic import MARKER
 from generalist_control.common.secrets import redact
 from generalist_control.tracking import mlflow_utils
 
-__all__ = ["EvalRun", "evaluation_run", "flat_metrics"]
+__all__ = [
+    "EvalRun",
+    "command",
+    "evaluation_run",
+    "flat_metrics",
+    "machine",
+    "provenance",
+    "weights_digest",
+]
+
+
+def weights_digest(policy: torch.nn.Module, config: Any) -> str:
+    """SHA-256 of a network's config and weights (unlike the file's, blind to its run)."""
+    digest = hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode())
+    for name, tensor in sorted(policy.state_dict().items()):
+        t = tensor.detach().cpu().contiguous()
+        digest.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode())
+        digest.update(t.flatten().view(torch.uint8).numpy().tobytes())
+    return f"sha256:{digest.hexdigest()}"
+
+
+def machine() -> str:
+    """The machine in a few words: processor, cores, system, Python."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as fh:  # Linux: the model name, as lscpu prints it
+            names = [line.split(":", 1)[1].strip() for line in fh if line.startswith("model name")]
+        cpu = names[0] if names else cpu
+    except OSError:
+        pass
+    return (
+        f"{cpu}, {os.cpu_count()} cores, {platform.system()}, Python {platform.python_version()}"
+    )
+
+
+def command(argv: list[str] | None = None) -> str:
+    """The command line as typed: ``python -m generalist_control.<stage> ...`` for a stage.
+
+    Examples
+    --------
+    >>> command(["/x/src/generalist_control/evaluate.py", "experiment=tag_free"])
+    'python -m generalist_control.evaluate experiment=tag_free'
+    """
+    argv = list(sys.argv if argv is None else argv)
+    path = Path(argv[0])
+    head = f"python {path.name}"
+    if path.parent.name == "generalist_control":
+        head = f"python -m generalist_control.{path.stem}"
+    return " ".join([head, *argv[1:]])
+
+
+def provenance() -> dict[str, str]:
+    """The date (UTC), this machine (:func:`machine`) and the command (credentials masked)."""
+    return {
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
+        "machine": machine(),
+        "command": redact(command()),
+    }
+
 
 #: The tag that says what kind of work a run holds (a report's is ``report``).
 RUN_TYPE_TAG = "gc.run_type"
 
 
 def flat_metrics(summary: Mapping[str, Any], prefix: str) -> dict[str, float]:
-    """The summary's figures as MLflow metrics, names starting with ``prefix``.
-
-    ``<prefix>/<scenario>/<figure>``, ``<prefix>/diverged/<controller>``, each verdict of the
-    quality bar as ``<prefix>/bar/<verdict>`` (1 met, 0 not; one not measured is left out)
-    with ``<prefix>/bar_passed`` and ``<prefix>/bar_checked``, and the set-point check's.
-    """
+    """The summary's figures as MLflow metrics ``<prefix>/...`` (a verdict: 1 met, 0 not)."""
     flat: dict[str, float] = {}
     for scen, vals in summary.get("ratios", {}).items():
         for k, v in vals.items():
@@ -98,8 +154,7 @@ def evaluation_run(
 ) -> Iterator[EvalRun]:
     """An evaluation run (module docstring): FINISHED, FAILED on an error, KILLED by a signal.
 
-    ``logger``: the ``logger`` config (the store already checked); ``source_run_id``: the
-    policy's training run (found by its file's hash); ``tags``: the run's own.
+    ``logger``: the ``logger`` config; ``source_run_id``: the policy's training run.
     """
     training = _training_run(source_run_id)
     nest: dict[str, str] = {}

@@ -1,10 +1,7 @@
 """Shares of a piece of work run side by side: one here, the others in forked children.
 
-The evaluation's loop (and its figures) is Python as much as arithmetic, and one thread at a
-time runs Python, so a second core helps only through a second process
-(docs/notes/evaluation-speed.md). A child is forked, not spawned: it starts at once with
-this process's imports and data. It dies with this process (Linux's parent-death signal),
-keeps no pipe end it does not use, so it never waits on a reader that is gone, and leaves
+The loop is Python as much as arithmetic, so a second core helps only through a second
+process. A child dies with this process, holds no pipe end it does not use, and leaves
 SIGINT to this process, which stops it.
 """
 
@@ -35,11 +32,10 @@ def can_fork() -> bool:
 
 
 def balanced(costs: Sequence[float], parts: int) -> list[list[int]]:
-    """Indices of ``costs`` in ``parts`` groups of about equal total cost.
+    """Indices of ``costs`` in ``parts`` groups of about equal total cost (empty ones left out).
 
-    The largest cost first, each to the group with the least so far; every group's indices
-    in their original order; empty groups left out. E.g. ``balanced([3, 1, 1, 1], 2)`` is
-    ``[[0], [1, 2, 3]]``.
+    The largest cost first, each to the least loaded group; e.g. ``balanced([3, 1, 1, 1], 2)``
+    is ``[[0], [1, 2, 3]]``.
     """
     if parts < 1:
         raise ValueError(f"parts must be at least 1, got {parts}")
@@ -83,10 +79,7 @@ def _result(fn: Callable[[Any], Any], item: Any) -> bytes:
 
 
 def _fork(fn: Callable[[Any], Any], item: Any, others: Sequence[int]) -> tuple[int, int]:
-    """Fork a child that sends back ``fn(item)``; its pid and the read end of its pipe.
-
-    The child closes the read ends, its own and ``others`` (those of earlier children).
-    """
+    """Fork a child that sends back ``fn(item)`` (closing ``others``); its pid and pipe."""
     parent = os.getpid()
     sys.stdout.flush()
     sys.stderr.flush()
@@ -135,10 +128,8 @@ def _unpack(payload: bytes, status: int) -> Any:
 def fork_map(fn: Callable[[T], R], items: Sequence[T]) -> list[R]:
     """``[fn(item) for item in items]``: ``items[0]`` here, each other one in a forked child.
 
-    The children run while this process works on ``items[0]``; their results come back
-    pickled. An error in a child is raised here (its traceback added as a note); on any
-    error, or a signal, here, the children still running are killed. Without ``fork``
-    every item runs here, one after the other.
+    A child's error is raised here (its traceback as a note); on an error or a signal here,
+    the children still running are killed. Without ``fork`` every item runs here.
     """
     if len(items) < 2 or not can_fork():
         return [fn(item) for item in items]

@@ -1,10 +1,4 @@
-"""The evaluation's loop of one share of the plants: its segments, and its progress.
-
-:func:`plan` lays every scenario's runs (and the set-point holds) out as the segments of one
-:func:`~generalist_control.simulation.stacked.simulate_stacked` loop and says where each
-result comes back; :class:`Progress` reports the scenarios as the loop passes their ends.
-Used by :func:`~generalist_control.evaluation.runner.run_suite`.
-"""
+"""The evaluation's loop of one share of the plants: its segments, and its progress."""
 
 from __future__ import annotations
 
@@ -18,8 +12,8 @@ from functools import partial
 import numpy as np
 from tqdm.auto import tqdm
 
+from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.finishing_adapter import FinishingAdapter
 from generalist_control.simulation.lqi import AntiWindupLQIController, LQIController
 from generalist_control.simulation.simulate import PerPlantController, Perturbation, Run
 from generalist_control.simulation.stacked import Segment
@@ -49,11 +43,9 @@ Key = tuple[str, str, str]
 class Plan:
     """Every scenario's runs as segments of one loop, and where each result comes back.
 
-    One GC segment and one LQI segment hold every run; the set-point holds join both. A
-    scenario that limits the actuator adds an LQI-AW segment and, for a policy that
-    integrates the error, a GC-AW segment with its own copy of the runtime (the limits are
-    the runtime's). Elsewhere LQI-AW knows no limits and is LQI exactly (the same law, the
-    same arithmetic), so LQI's trajectories serve for it.
+    One GC and one LQI segment hold every run and the set-point holds. A scenario that limits
+    the actuator adds LQI-AW and (an integrating policy) GC-AW segments; elsewhere LQI-AW is
+    LQI exactly, so LQI's trajectories serve for it.
     """
 
     segments: list[Segment] = field(default_factory=list)
@@ -72,7 +64,7 @@ class Plan:
 def plan(runtime: PolicyRuntime, todo: Mapping[str, list[Run]], held: list[Run]) -> Plan:
     """The segments of ``todo``'s runs and the set-point holds ``held`` (see :class:`Plan`)."""
     out = Plan()
-    gc, lqi = FinishingAdapter(runtime), 1
+    gc, lqi = RuntimeAdapter(runtime), 1
     out.segments += [Segment(gc, []), Segment(PerPlantController(LQIController), [])]
     for name, runs in todo.items():
         out.where[name, "GC"] = [out.add(0, r) for r in runs]
@@ -85,18 +77,14 @@ def plan(runtime: PolicyRuntime, todo: Mapping[str, list[Run]], held: list[Run])
         out.where[name, "LQI-AW"] = [out.add(len(out.segments) - 1, r) for r in runs]
         if runtime.integral:
             twin = copy.copy(runtime)  # its own rows and limits, the same network
-            out.segments.append(Segment(FinishingAdapter(twin, limited), []))
+            out.segments.append(Segment(RuntimeAdapter(twin, limited), []))
             out.where[name, GC_ANTI_WINDUP] = [out.add(len(out.segments) - 1, r) for r in runs]
     out.held = {c: [out.add(s, r) for r in held] for c, s in (("GC", 0), ("LQI", lqi))}
     return out
 
 
 class Progress:
-    """A bar over the scenarios and one log line per scenario as its runs end.
-
-    Driven by this process's loop: a scenario counts as done once that loop passed the
-    scenario's last sample (a forked share of the plants runs beside it, in step).
-    """
+    """A bar over the scenarios and a log line for each as this process's loop passes its end."""
 
     def __init__(
         self, todo: Mapping[str, list[Run]], integral: bool, progress: bool | None

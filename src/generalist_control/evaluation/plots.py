@@ -1,21 +1,12 @@
-"""Plots of the closed-loop evaluation: step and sine responses, perturbation runs.
+"""Plots of the closed-loop evaluation (PNG, 80 dpi, under ``plots/``).
 
-Figures (PNG, 80 dpi) under ``plots/``:
-
-- ``<system>_step_sine.png``: per plant, the step and sine responses of GC and LQI with
-  their controls;
-- ``<system>_<scenario>.png``: per plant of a scenario that runs on at most
-  :data:`PER_PLANT` plants (actuator limits, noise and disturbance, the Crazyflie stand-in),
-  every controller's output and control;
-- ``<scenario>.png``: a scenario on more plants (the unseen families, the perturbations of
-  every plant): one panel per plant, every controller's output against the reference.
-
-The step and sine sheets share one figure, drawn again with each plant's data: building a
-figure costs more than drawing it (the evaluation's 25 sheets take a third of the time).
+Per plant its step and sine sheet; per plant of a scenario on at most :data:`PER_PLANT`
+plants, a figure of every controller; a scenario on more plants, one grid.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -62,18 +53,6 @@ def _light(ax: Any) -> None:
 
 def _label(ctrl: str, tr: Trajectory) -> str:
     return ctrl + (" (diverged)" if tr.diverged[0] else "")
-
-
-def _panel(ax_y: Any, ax_u: Any, by_ctrl: Mapping[str, Trajectory]) -> None:
-    """Reference, outputs and (``ax_u`` not None) controls of the first run of each."""
-    ref = next(iter(by_ctrl.values()))
-    n = ref.u.shape[1]
-    ax_y.plot(ref.t[:n], ref.r[0], color="0.4", lw=1, label="reference")
-    for ctrl in (c for c in _ORDER if c in by_ctrl):
-        tr, (color, ls) = by_ctrl[ctrl], _STYLE[ctrl]
-        ax_y.plot(tr.t[:n], tr.y[0, :n], color=color, ls=ls, label=_label(ctrl, tr))
-        if ax_u is not None:
-            ax_u.plot(tr.t[:n], tr.u[0], color=color, ls=ls)
 
 
 class _StepSine:
@@ -135,7 +114,14 @@ def _run_figure(
     """One plant's run of a scenario on few plants: every controller, output and control."""
     plt = pyplot()
     fig, (ax_y, ax_u) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
-    _panel(ax_y, ax_u, {c: runs[c][s] for c in runs})
+    by_ctrl = {c: runs[c][s] for c in runs}
+    ref = next(iter(by_ctrl.values()))
+    n = ref.u.shape[1]
+    ax_y.plot(ref.t[:n], ref.r[0], color="0.4", lw=1, label="reference")
+    for ctrl in (c for c in _ORDER if c in by_ctrl):
+        tr, (color, ls) = by_ctrl[ctrl], _STYLE[ctrl]
+        ax_y.plot(tr.t[:n], tr.y[0, :n], color=color, ls=ls, label=_label(ctrl, tr))
+        ax_u.plot(tr.t[:n], tr.u[0], color=color, ls=ls)
     ax_y.set_title(f"{s}: {scen}")
     ax_y.set_ylabel("y")
     ax_u.set_ylabel("u")
@@ -170,11 +156,7 @@ def _cell(ax: Any, by_ctrl: Mapping[str, Trajectory], at: tuple[int, int], name:
 
 
 def _grid(runs: Runs, scen: str, out: Path) -> Path:
-    """One cell per plant on one axes: the first run's outputs against the reference.
-
-    Each cell is scaled to the range its curves span (printed beside the plant's name), so
-    the figure is one axes without ticks: a twentieth of the drawing a grid of axes takes.
-    """
+    """One cell per plant, each scaled to its curves' range, on one axes without ticks."""
     systems, plt = list(runs.get("GC", {})), pyplot()
     cols = math.ceil(math.sqrt(len(systems)))
     rows = math.ceil(len(systems) / cols)
@@ -198,16 +180,10 @@ def _grid(runs: Runs, scen: str, out: Path) -> Path:
     return path
 
 
-#: The step and sine sheet of this process (:func:`_sheet`).
-_SHEET: _StepSine | None = None
-
-
+@functools.cache
 def _sheet() -> _StepSine:
     """The step and sine sheet of this process, built on first use."""
-    global _SHEET
-    if _SHEET is None:
-        _SHEET = _StepSine()
-    return _SHEET
+    return _StepSine()
 
 
 def plot_all(trajs: Trajs, out: Path, share: tuple[int, int] = (0, 1)) -> list[Path]:

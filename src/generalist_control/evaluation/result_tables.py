@@ -69,15 +69,8 @@ def table_all_markdown(df: pd.DataFrame) -> str:
     rnd = _step_means(df, "random_steps")
     systems = sorted(df.system.unique())
     cols = ["t_r", "M_p", "t_s", "e_ss", "ISE", "ITAE", "u_max"]
-    head = [
-        "system",
-        *(f"{c} GC/LQI" for c in cols),
-        "ISE ratio",
-        "ITAE ratio",
-        "random: ISE ratio",
-        "random: max rel. e_ss GC",
-        "diverged GC",
-    ]
+    head = ["system", *(f"{c} GC/LQI" for c in cols), "ISE ratio", "ITAE ratio"]
+    head += ["random: ISE ratio", "random: max rel. e_ss GC", "diverged GC"]
     lines = [
         "# Unit-step and random-step metrics, all plants (GC / LQI)",
         "",
@@ -85,15 +78,8 @@ def table_all_markdown(df: pd.DataFrame) -> str:
         "| " + " | ".join(["---"] + ["---:"] * (len(head) - 1)) + " |",
     ]
     d = df[(df.controller == "GC") & (df.metric == "diverged")].groupby("system")["value"].sum()
-    rel = (
-        df[
-            (df.scenario == "random_steps")
-            & (df.controller == "GC")
-            & (df.metric == "relative_steady_state_error")
-        ]
-        .groupby("system")["value"]
-        .max()
-    )
+    gc_rel = df[(df.controller == "GC") & (df.metric == "relative_steady_state_error")]
+    rel = gc_rel[gc_rel.scenario == "random_steps"].groupby("system")["value"].max()
     for s in systems:
 
         def get(c: str, m: str, src: pd.Series = means, s: str = s) -> float:
@@ -109,14 +95,7 @@ def table_all_markdown(df: pd.DataFrame) -> str:
 
 
 def recipes_markdown(results: Mapping[str, pd.DataFrame]) -> str:
-    """Per plant, the quality-bar figures of several evaluations side by side.
-
-    Parameters
-    ----------
-    results : mapping
-        Label (e.g. ``"paper"``, ``"ours"``) -> long-form metrics of an evaluation
-        (``metrics.csv``).
-    """
+    """Per plant, the quality-bar figures of evaluations side by side (label -> metrics)."""
     labels = list(results)
     head = ["system"]
     for what in ("ISE ratio", "ITAE ratio", "e_ss (rel.)", "random: worst rel. e_ss", "diverged"):
@@ -130,11 +109,11 @@ def recipes_markdown(results: Mapping[str, pd.DataFrame]) -> str:
             (gc.scenario == "random_steps") & (gc.metric == "relative_steady_state_error")
         ]
         div = gc[(gc.metric == "diverged") & gc.scenario.isin(["step", "random_steps"])]
+        ours = means.get("GC", pd.Series(dtype=float))
         per[label] = {
-            "ISE": means.get("GC", pd.Series(dtype=float)).xs("ISE", level="metric")
-            / means["LQI"].xs("ISE", level="metric"),
-            "ITAE": means.get("GC", pd.Series(dtype=float)).xs("ITAE", level="metric")
-            / means["LQI"].xs("ITAE", level="metric"),
+            m: ours.xs(m, level="metric") / means["LQI"].xs(m, level="metric")
+            for m in ("ISE", "ITAE")
+        } | {
             "ess": step_rel.groupby("system")["value"].mean(),
             "rnd": rnd_rel.groupby("system")["value"].max(),
             "div": div.groupby("system")["value"].sum(),
@@ -160,18 +139,8 @@ def responses_csv(trajs: Mapping[str, Mapping[str, Mapping[str, Trajectory]]]) -
     for ctrl, by_system in trajs.get("step", {}).items():
         for system, tr in by_system.items():
             n = tr.u.shape[1]
-            frames.append(
-                pd.DataFrame(
-                    {
-                        "system": system,
-                        "controller": ctrl,
-                        "t": tr.t[:n],
-                        "r": tr.r[0],
-                        "y": tr.y[0, :n],
-                        "u": tr.u[0],
-                    }
-                )
-            )
+            cols = {"t": tr.t[:n], "r": tr.r[0], "y": tr.y[0, :n], "u": tr.u[0]}
+            frames.append(pd.DataFrame({"system": system, "controller": ctrl, **cols}))
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
@@ -179,13 +148,9 @@ def _scenario_cell(summary: Mapping[str, Any], scen: str) -> str:
     """``ratio (system)`` of one scenario: ISE for step scenarios, RMSE for tracking ones."""
     div = sum(summary["diverged"].get(c, {}).get(scen, 0) for c in ("GC", "GC-AW"))
     if scen in summary["ratios"]:
-        v, s = (
-            summary["ratios"][scen]["worst_ISE_ratio"],
-            summary["ratios"][scen]["worst_ISE_system"],
-        )
+        v, s = (summary["ratios"][scen][f"worst_ISE_{k}"] for k in ("ratio", "system"))
     elif scen in summary["tracking"]:
-        v = summary["tracking"][scen]["worst_RMSE_ratio"]
-        s = summary["tracking"][scen]["worst_RMSE_system"]
+        v, s = (summary["tracking"][scen][f"worst_RMSE_{k}"] for k in ("ratio", "system"))
     else:
         return "n/a"
     cell = f"{v:.4g} ({s})" if s else "n/a"

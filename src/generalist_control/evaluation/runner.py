@@ -1,18 +1,8 @@
 """Closed-loop evaluation of a trained policy against LQI on every scenario.
 
-Every scenario of ``conf/evaluation`` runs three controllers on each plant it applies to:
-the learned Generalist Controller (GC), the LQI expert, and LQI with anti-windup
-(LQI-AW, conditional integration against the scenario's actuator limits). A policy that
-integrates the tracking error (the ``integral`` channel) winds up like LQI, so in scenarios with
-actuator limits it also runs as GC-AW: the same policy, its runtime told the limits that
-LQI-AW knows (:meth:`~generalist_control.deploy.runtime.PolicyRuntime.set_actuator_limits`).
-Every scenario, plant and controller of a share of the plants runs in one sampled loop
-(:func:`~generalist_control.simulation.stacked.simulate_stacked`), so the policy is called once
-per sample for all of them, and the plants are advanced once per sample for all their runs;
-two shares of about equal work run side by side, one in a forked child
-(:mod:`~generalist_control.evaluation.forked_shares`). Each run's numbers are those of a loop
-of its own (docs/evaluation.md). A run that diverges is reported as diverged (metric
-``diverged`` = 1, other metrics NaN), never as a huge number in an average.
+GC, LQI and LQI with anti-windup (and GC-AW where the actuator is limited and the policy
+integrates) run in one sampled loop per share of the plants, two shares side by side
+(docs/evaluation.md); a diverged run is reported as ``diverged`` = 1, its metrics NaN.
 """
 
 from __future__ import annotations
@@ -26,10 +16,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from generalist_control.deploy.adapter import SinglePlantAdapter
+from generalist_control.deploy.adapter import RuntimeAdapter, SinglePlantAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.eval_config import CrazyflieSettings, SetpointSettings
-from generalist_control.evaluation.finishing_adapter import FinishingAdapter
 from generalist_control.evaluation.forked_shares import balanced, fork_map
 from generalist_control.evaluation.loop_layout import GC_ANTI_WINDUP, Key, Progress, plan
 from generalist_control.evaluation.setpoint import hold_runs, rest_radii, tail_table
@@ -39,11 +28,7 @@ from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.metrics import step_metrics, tracking_metrics
 from generalist_control.simulation.references import state_envelopes
 from generalist_control.simulation.scenarios import envelope_amplitudes, perturbation, references
-from generalist_control.simulation.simulate import (
-    Controller,
-    Run,
-    Trajectory,
-)
+from generalist_control.simulation.simulate import Controller, Run, Trajectory
 from generalist_control.simulation.stacked import controller_rows, simulate_stacked
 
 __all__ = [
@@ -92,28 +77,6 @@ def _flight_shape(spec: CrazyflieSettings) -> tuple[int, int]:
     return spec.runs, int(round(spec.duration * 100))
 
 
-def _crazyflie(
-    runtime: PolicyRuntime,
-    plant: Plant,
-    spec: CrazyflieSettings,
-    trajs: dict[str, dict[str, dict[str, Trajectory]]],
-) -> list[tuple[str, str, str, int, str, float]]:
-    """The sim-to-real stand-in (:mod:`~generalist_control.simulation.crazyflie`): metric rows.
-
-    GC and LQI fly in one loop on the same noise; LQI-AW knows no limits here, so it is LQI
-    (the same law, the same trajectory).
-    """
-    r = np.full(_flight_shape(spec), spec.amplitude)
-    ctrls: list[Controller] = [SinglePlantAdapter(runtime, plant.name), LQIController(plant)]
-    gc, lqi = fly_many(ctrls, r, control_dt=plant.dt, seed=spec.seed)
-    flown = {"GC": gc, "LQI": lqi, "LQI-AW": lqi}
-    trajs["crazyflie_sim2real"] = {c: {plant.name: tr} for c, tr in flown.items()}
-    rows = []
-    for ctrl, tr in flown.items():
-        rows += metric_rows(plant.name, "crazyflie_sim2real", ctrl, "step", tr)
-    return rows
-
-
 def _plants_per_scenario(
     plants: Sequence[Plant], scenarios: Mapping[str, Mapping[str, Any]]
 ) -> dict[str, list[Plant]]:
@@ -131,18 +94,7 @@ def _run(name: str, spec: Mapping[str, Any], plant: Plant) -> Run:
 
 @dataclass(frozen=True)
 class Evaluation:
-    """What :func:`run_suite` returns.
-
-    Attributes
-    ----------
-    metrics : DataFrame
-        Columns ``system, scenario, controller, run, metric, value``.
-    trajectories : dict
-        ``trajectories[scenario][controller][system]``.
-    setpoint : DataFrame or None
-        The set-point check's table
-        (:func:`~generalist_control.evaluation.setpoint.setpoint_stability`) when asked for.
-    """
+    """Metrics (:data:`COLUMNS`), ``trajectories[scenario][controller][system]``, set point."""
 
     metrics: pd.DataFrame
     trajectories: dict[str, dict[str, dict[str, Trajectory]]]
@@ -203,7 +155,7 @@ class _Suite:
             reference, tail = self.setpoint.reference, self.setpoint.tail
             local = controller_rows(layout.segments)
             gc = layout.segments[0].controller
-            assert isinstance(gc, FinishingAdapter)
+            assert isinstance(gc, RuntimeAdapter)
             z = np.array([gc.z_end[local[s][i].start] for s, i in layout.held["GC"]])
             trajs = {c: [results[s][i] for s, i in layout.held[c]] for c in ("GC", "LQI")}
             out.held = tail_table(plants, trajs, z, reference, tail)
@@ -279,18 +231,10 @@ def run_suite(
 ) -> Evaluation:
     """Every scenario under every controller in one loop, the Crazyflie, the set point.
 
-    ``setpoint``: the set-point check (for a policy with the ``integral`` channel): its long
-    holds run in the same loop, then each plant's loop at rest is linearised
-    (:func:`~generalist_control.evaluation.setpoint.rest_radii`).
-    ``crazyflie``: the sim-to-real stand-in's settings (:func:`crazyflie_flight`).
-    ``processes``: the plants are split into this many shares of about equal work, each run
-    in its own loop, the others in forked children beside this process
-    (:mod:`~generalist_control.evaluation.forked_shares`); default 2 where there are 2 cores
-    and the suite is large enough (:data:`SPLIT_WORK`). Every run's numbers are those of a loop
-    of its own either way: a plant's runs stay together, and the network's controls of a row
-    do not depend on the other rows of its batch (docs/evaluation.md).
-    Progress: a bar over the scenarios (``progress``; by default only on a terminal) and
-    one log line (INFO) per scenario as its runs end.
+    ``setpoint``: the set-point check (a policy with the ``integral`` channel), its holds in
+    the same loop. ``processes``: shares of the plants of about equal work, the others in
+    forked children (default 2 on 2 cores for a suite of :data:`SPLIT_WORK` or more); each
+    run's numbers do not depend on it. ``progress``: a bar (default: on a terminal).
     """
     _check_known(runtime, plants)
     chosen = _plants_per_scenario(plants, scenarios)
@@ -319,13 +263,22 @@ def run_suite(
 def crazyflie_flight(
     runtime: PolicyRuntime, plants: Sequence[Plant], spec: CrazyflieSettings | None
 ) -> Evaluation | None:
-    """The sim-to-real stand-in's scenario ``crazyflie_sim2real`` (None: off, or no plant)."""
+    """The sim-to-real stand-in's scenario ``crazyflie_sim2real`` (None: off, or no plant).
+
+    GC and LQI fly in one loop on the same noise; LQI-AW knows no limits here: it is LQI.
+    """
     plant = next((p for p in plants if p.name == "crazyflie_altitude"), None)
     if spec is None or plant is None:
         return None
-    trajs: dict[str, dict[str, dict[str, Trajectory]]] = {}
-    rows = _crazyflie(runtime, plant, spec, trajs)
-    log.info("crazyflie_sim2real: %d controllers", len(trajs["crazyflie_sim2real"]))
+    r = np.full(_flight_shape(spec), spec.amplitude)
+    ctrls: list[Controller] = [SinglePlantAdapter(runtime, plant.name), LQIController(plant)]
+    gc, lqi = fly_many(ctrls, r, control_dt=plant.dt, seed=spec.seed)
+    flown = {"GC": gc, "LQI": lqi, "LQI-AW": lqi}
+    rows = []
+    for c, tr in flown.items():
+        rows += metric_rows(plant.name, "crazyflie_sim2real", c, "step", tr)
+    log.info("crazyflie_sim2real: %d controllers", len(flown))
+    trajs = {"crazyflie_sim2real": {c: {plant.name: tr} for c, tr in flown.items()}}
     return Evaluation(pd.DataFrame(rows, columns=COLUMNS), trajs)
 
 
@@ -336,16 +289,6 @@ def evaluate(
     crazyflie: CrazyflieSettings | None = None,
     progress: bool | None = None,
 ) -> tuple[pd.DataFrame, dict[str, dict[str, dict[str, Trajectory]]]]:
-    """Run every scenario for every controller; return long-form metrics and trajectories.
-
-    :func:`run_suite` without the set-point holds.
-
-    Returns
-    -------
-    metrics : DataFrame
-        Columns ``system, scenario, controller, run, metric, value``.
-    trajectories : dict
-        ``trajectories[scenario][controller][system]``.
-    """
+    """:func:`run_suite` without the set-point check: its metrics and trajectories."""
     ev = run_suite(runtime, plants, scenarios, crazyflie, progress=progress)
     return ev.metrics, ev.trajectories

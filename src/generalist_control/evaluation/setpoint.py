@@ -1,24 +1,7 @@
 """Does the policy settle at its set point? Its closed loop linearised there.
 
-LQI's sampled loop is stable by design. A learned policy imitates the law along the data's
-trajectories, but nothing forces its loop to be stable in the small where it should rest:
-at the set point. If it is not, the policy cannot settle there; float rounding alone starts
-a growing oscillation that only the network's nonlinearity bounds (a limit cycle), and an
-actuator limit can turn it into a large one. :func:`setpoint_stability` measures it.
-
-For each plant, at the equilibrium of a constant reference ``r``: the plant's state ``x*``
-and control ``u*`` (``(Ad - I) x* + Bd u* = 0``, ``C x* = r`` for a linear plant; for a
-nonlinear plant its operating point, ``r = 0``, where ``A``, ``B`` are its linearisation),
-and the error integral ``z*`` at which the policy's control is ``u*`` (the root nearest
-where the policy's own long hold ended, else nearest LQI's integral at rest: a grid refined
-by Brent's method, as the network need not be monotone in ``z``). With every sample of the
-window at that equilibrium, the derivative of the policy's first control with respect to
-every window entry (automatic differentiation, in float64) closes a linear loop with the
-plant sampled at ``dt`` (zero-order hold): the state is the window (the ``history`` newest
-plant states, error integrals ``z_(k+1) = z_k + dt (r - C x_k)`` as the runtime keeps them,
-and previous controls with the ``previous_control`` channel). Its spectral radius is below 1
-exactly when small deviations die out; beside it, the radius of the plant's LQI loop
-sampled the same way (:func:`~generalist_control.simulation.lqi.sampled_closed_loop`).
+A learned policy's loop need not be stable in the small where it should rest; if it is not,
+it cannot settle (docs/evaluation.md, "The set-point check", says how this is measured).
 """
 
 from __future__ import annotations
@@ -32,8 +15,8 @@ import pandas as pd
 import torch
 from scipy.optimize import brentq
 
+from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.evaluation.finishing_adapter import FinishingAdapter
 from generalist_control.model.rest_loop import closed_loop_matrix, equilibrium, rest_window
 from generalist_control.plants.definition import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi, sampled_closed_loop
@@ -41,7 +24,6 @@ from generalist_control.simulation.simulate import PerPlantController, Run, Traj
 from generalist_control.simulation.stacked import Segment, controller_rows, simulate_stacked
 
 __all__ = [
-    "check_hold",
     "closed_loop_matrix",
     "equilibrium",
     "hold_runs",
@@ -55,11 +37,7 @@ __all__ = [
 
 @contextmanager
 def _one_thread() -> Iterator[None]:
-    """Torch on one thread while the check's small float64 forwards run.
-
-    One window, or a few hundred: more threads only wait on each other (ten times slower
-    on a busy machine). The numbers are the same.
-    """
+    """Torch on one thread for the check's small float64 forwards (more only wait)."""
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -81,12 +59,7 @@ def _integral_at(
     z0: float,
     points: int = 401,
 ) -> tuple[float, float]:
-    """The error integral nearest ``z0`` at which the control is ``u_star``: ``(z*, residual)``.
-
-    The network need not be monotone in ``z``: the residual is tabulated on ``points``
-    integrals within ``+-max(1, |z0|)`` of ``z0`` and the sign change nearest ``z0`` is
-    refined by Brent's method. None: ``(nan, smallest |residual| seen)``.
-    """
+    """``(z*, residual)`` nearest ``z0`` on a grid refined by Brent's method (none: NaN)."""
     width = max(1.0, abs(z0))
     grid = z0 + np.linspace(-width, width, points)
     state, mask, ref, tag = window
@@ -115,12 +88,6 @@ def hold_runs(plants: Sequence[Plant], reference: float = 1.0, hold: float = 60.
     return [Run(p, np.full((1, int(round(hold / p.dt))), float(reference))) for p in plants]
 
 
-def check_hold(hold: float, tail: float) -> None:
-    """Refuse a tail that is not inside the hold."""
-    if not 0.0 < tail < hold:
-        raise ValueError(f"need 0 < tail < hold; got tail={tail}, hold={hold}")
-
-
 def tail_table(
     plants: Sequence[Plant],
     trajectories: Mapping[str, Sequence[Trajectory]],
@@ -128,10 +95,7 @@ def tail_table(
     reference: float = 1.0,
     tail: float = 20.0,
 ) -> pd.DataFrame:
-    """:func:`hold_tail`'s table from the holds' trajectories (per controller, per plant).
-
-    ``z_end``: the policy's error integral at the end of each plant's hold (NaN: unknown).
-    """
+    """:func:`hold_tail`'s table from the holds' trajectories; ``z_end``: GC's integrals."""
     out = pd.DataFrame({"system": [p.name for p in plants]})
     for name, trajs in trajectories.items():
         if name == "GC":  # where the policy's integral ended (one row per plant)
@@ -157,17 +121,15 @@ def hold_tail(
 ) -> pd.DataFrame:
     """A long step from rest; what is left of the motion over its last ``tail`` seconds.
 
-    GC and LQI hold the reference ``reference`` for ``hold`` seconds on every plant.
-    Columns ``tail_error_<c>``: the RMS tracking error over the tail relative to
-    ``|reference|``; ``tail_du_<c>``: the RMS change of the control from sample to sample
-    over the tail (zero once a loop rests); NaN for a diverged run. ``z_end_GC``: the
-    policy's error integral at the end of its hold (NaN for a plant whose run the runtime
-    refused). The evaluation runs these holds in its own loop
-    (:func:`~generalist_control.evaluation.runner.run_suite`).
+    GC and LQI hold ``reference`` for ``hold`` seconds on every plant. Columns
+    ``tail_error_<c>``: the tail's RMS tracking error relative to ``|reference|``;
+    ``tail_du_<c>``: the tail's RMS change of control per sample (NaN: diverged);
+    ``z_end_GC``: the policy's error integral at the hold's end (NaN: refused).
     """
-    check_hold(hold, tail)
+    if not 0.0 < tail < hold:
+        raise ValueError(f"need 0 < tail < hold; got tail={tail}, hold={hold}")
     runs = hold_runs(plants, reference, hold)
-    gc = FinishingAdapter(runtime)
+    gc = RuntimeAdapter(runtime)
     segments = [Segment(gc, runs), Segment(PerPlantController(LQIController), runs)]
     gc_trajs, lqi_trajs = simulate_stacked(segments)
     rows = [sl.start for sl in controller_rows(segments)[0]]
@@ -177,10 +139,7 @@ def hold_tail(
 def _radius_row(
     runtime: PolicyRuntime, policy: torch.nn.Module, plant: Plant, reference: float, z0: float
 ) -> tuple[object, ...]:
-    """One plant's ``(system, r, z_LQI, z*, residual, radius_GC, radius_LQI)``.
-
-    ``z*`` is searched nearest ``z0`` (where the policy's own hold ended), else nearest LQI's.
-    """
+    """One plant's ``(system, r, z_LQI, z*, residual, radius_GC, radius_LQI)``."""
     x_star, u_star, r = equilibrium(plant, reference)
     gains = design_lqi(plant)
     z_lqi = -(u_star + float(np.dot(gains.Kx, x_star))) / float(gains.Ki)
@@ -212,9 +171,7 @@ def rest_radii(
 ) -> pd.DataFrame:
     """Per plant, the spectral radii of the policy's and LQI's loops at the set point.
 
-    ``ends``: per plant, the error integral at which the policy's own hold ended (NaN:
-    unknown); the search for ``z*`` starts there. The columns of :func:`setpoint_stability`
-    up to ``settles``.
+    ``ends``: per plant, where the policy's own hold ended (the search for ``z*`` starts there).
     """
     policy = copy.deepcopy(runtime.policy).double().eval()
     with _one_thread():
@@ -236,13 +193,10 @@ def setpoint_stability(
 ) -> pd.DataFrame:
     """Per plant: the spectral radius of the policy's and LQI's loops at the set point.
 
-    Columns: ``system``, ``reference`` (``r``; 0 for a nonlinear plant), ``z_LQI`` (the
-    expert's integral at rest), ``z_star`` (the policy's: for a linear plant the root
-    nearest the integral at which its own hold ended, ``z_end_GC``; else nearest ``z_LQI``),
-    ``residual`` (``|u(z*) - u*|``), ``radius_GC`` (NaN: no equilibrium near where the
-    search started), ``radius_LQI``, ``settles`` (``radius_GC < 1``), then :func:`hold_tail`'s
-    columns for ``hold`` and ``tail`` (``held``: that table, already computed). See the
-    module docstring.
+    Columns: ``system``, ``reference`` (0 for a nonlinear plant), ``z_LQI``, ``z_star``,
+    ``residual`` (``|u(z*) - u*|``), ``radius_GC`` (NaN: no equilibrium found),
+    ``radius_LQI``, ``settles`` (``radius_GC < 1``), then :func:`hold_tail`'s (``held``:
+    that table, already computed).
 
     Raises
     ------

@@ -1,17 +1,6 @@
 """The quality-bar figures of an evaluation: divergences and worst GC/LQI ratios.
 
-Every scenario counts. Step scenarios (those with step metrics) give the worst GC/LQI
-ratios of the mean ISE and ITAE and the worst relative steady-state error of GC; tracking
-scenarios give the worst GC/LQI ratio of the tracking RMSE. The quality bar
-(``evaluation.quality_bar``) is then judged on:
-
-- ``stable_everywhere``: no run of a learned controller (GC, GC-AW) diverged in any scenario;
-- ``ISE_ratio_le_<x>``, ``ITAE_ratio_le_<x>``: the unit step (scenario ``step``);
-- ``ess_within_<x>``: the relative steady-state error of GC on ``step`` and ``random_steps``;
-- ``RMSE_ratio_le_<x>``: every tracking scenario (references other than steps);
-- ``GC_AW_no_worse_than_LQI_AW``: in the ``anti_windup`` scenarios, GC-AW's mean ISE is at
-  most LQI-AW's on every plant (within a relative ``anti_windup_tolerance``, 1e-6: a policy
-  that is LQI's law to float32 rounding is no worse).
+Every scenario counts; docs/evaluation.md ("The quality bar") lists the verdicts.
 """
 
 from __future__ import annotations

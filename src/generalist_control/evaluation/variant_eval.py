@@ -1,11 +1,7 @@
 """Evaluation on unseen plant variants (``evaluation.variants``, ``experiment=variants``).
 
-For each plant, ``count`` variants are drawn with the evaluation's own seed; none may equal
-a variant the training saw (:class:`TrainingDraws`: the data's, from its manifest or its seed
-stream, and DAgger's fresh ones). GC (told the nominal plant's tag), each variant's own LQI
-(the oracle) and the nominal plant's LQI run on every variant and scenario; the bars are
-:mod:`~generalist_control.evaluation.variant_summary`'s, also on a held-out second draw
-(``validation``). docs/evaluation.md lists the outputs.
+GC (told the nominal plant's tag), each variant's own LQI and the nominal LQI run on
+variants none of which the training saw; docs/evaluation.md lists the outputs.
 """
 
 from __future__ import annotations
@@ -54,7 +50,6 @@ __all__ = [
     "OWNED",
     "TrainingDraws",
     "check_disjoint",
-    "check_variants_dir",
     "draw_eval_variants",
     "evaluate_variants",
     "run_variants",
@@ -79,10 +74,9 @@ OWNED: dict[str, str | None] = {
 class TrainingDraws:
     """The variants a training may have seen: the evaluation's must differ from them.
 
-    ``data_*``: the data stage's ``data.variants`` (its manifest in ``data_dir`` records the
-    kept ones; without it, ``data_count * data_tries`` candidates of its seed stream count).
-    ``dagger_seeds``, ``dagger_fresh``: DAgger's fresh variants per plant and round (none:
-    an empty range); they are drawn with the data's range and tries.
+    ``data_*``: ``data.variants`` (the manifest in ``data_dir``, else ``data_count *
+    data_tries`` candidates of its seed stream); ``dagger_*``: DAgger's fresh variants per
+    plant and round (none: an empty range), drawn with the data's range and tries.
     """
 
     data_dir: Path
@@ -94,19 +88,10 @@ class TrainingDraws:
     dagger_fresh: int
 
 
-def check_variants_dir(out_dir: str | Path) -> None:
-    """Refuse (before any work) a ``paths.reports_dir`` that holds other files."""
-    check_reports_dir(out_dir, OWNED)
-
-
 def draw_eval_variants(
     plants: Sequence[Plant], spec: VariantEvalSettings, steps: int, held_out: bool = False
 ) -> dict[str, VariantDraw]:
-    """``spec``'s variants per plant: its ``count`` from its ``seed``, in its ``range``.
-
-    ``held_out``: the count and seed of ``spec.validation``. Each variant is found in at most
-    ``spec.max_tries`` draws.
-    """
+    """``spec``'s variants per plant (``held_out``: ``spec.validation``'s count and seed)."""
     val = spec.validation if held_out else None
     seed, n = (spec.seed, spec.count) if val is None else (val.seed, val.count)
     return {
@@ -254,12 +239,7 @@ def _judge(
     training: TrainingDraws,
     held_out: bool = False,
 ) -> tuple[dict[str, VariantDraw], pd.DataFrame, dict[str, Any]]:
-    """Draw the variants, check them against training, evaluate, summarise.
-
-    ``held_out``: the validation draw (its seed and count); the bars judge the first of
-    ``scenarios``. Returns the draws, the long-form metrics and the summary (bars,
-    verdicts, per plant, ``disjoint``).
-    """
+    """The draws, metrics and summary of ``scenarios`` (the bars judge the first)."""
     first = next(iter(scenarios.values()))
     steps = int(round(float(first["duration"]) / plants[0].dt))
     val = spec.validation if held_out else None
@@ -282,11 +262,8 @@ def run_variants(
     record: Record,
     run: EvalRun | None = None,
 ) -> dict[str, Any]:
-    """Draw, check, evaluate and write the variants report to ``out_dir``; its summary.
-
-    ``record`` and ``run`` as for :func:`~generalist_control.evaluation.writer.write_reports`.
-    """
-    check_variants_dir(out_dir)
+    """Draw, check, evaluate and write the variants report to ``out_dir``; its summary."""
+    check_reports_dir(out_dir, OWNED)
     spec = settings.variants
     scen = {n: settings.scenarios[n] for n in spec.scenarios}
     draws, df, summary = _judge(runtime, plants, spec, scen, training)

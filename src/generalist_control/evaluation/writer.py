@@ -1,12 +1,7 @@
-"""An evaluation's outputs in one folder: one snapshot, written under one lock.
+"""An evaluation's outputs in one folder, replaced as a whole under one lock.
 
-The folder (``paths.reports_dir``) is replaced as a whole
-(:func:`~generalist_control.common.atomic.publish_directory`), only if it holds nothing but
-an evaluation's own outputs (:data:`OWNED`), and by one evaluation at a time
-(:func:`~generalist_control.common.atomic.folder_lock`). The MLflow run gets the files of
-the snapshot it publishes, logged before the swap. ``scores.json`` (the DVC metric) holds
-headline figures in units that read well at ``dvc metrics show``'s 5 decimals
-(:func:`headline_scores`).
+Only a folder holding nothing but an evaluation's own outputs (:data:`OWNED`) is replaced;
+the MLflow run gets the files of the snapshot it publishes.
 """
 
 from __future__ import annotations
@@ -62,14 +57,11 @@ Record = Mapping[str, Mapping[str, Any]]
 
 
 def headline_scores(summary: Mapping[str, Any]) -> dict[str, Any]:
-    """The headline figures of a :func:`~generalist_control.evaluation.summary.summarise` result.
+    """``scores.json``: the headline figures of a ``summarise`` result (None: not measured).
 
-    ``diverged``: runs of a learned controller (GC, GC-AW) that diverged, all scenarios;
-    ``bar_passed`` / ``bar_checked``: verdicts of the quality bar passed / measured;
-    ``ISE_ratio``, ``ITAE_ratio``: worst GC/LQI ratio on the unit step; ``RMSE_ratio``: worst
-    over the tracking scenarios; ``ess_ppm``: the worst relative steady-state error of GC on
-    the step scenarios in parts per million (1e-6), so that errors down to 1e-11 do not round
-    to 0.0. A figure that was not measured is ``None`` (``null``).
+    ``diverged`` (GC and GC-AW runs), ``bar_passed`` / ``bar_checked``, the worst ratios, and
+    ``ess_ppm``: GC's worst relative steady-state error in parts per million, so that errors
+    down to 1e-11 do not round to 0.0 at ``dvc metrics show``'s 5 decimals.
     """
     ratios, tracking = summary.get("ratios", {}), summary.get("tracking", {})
     step = ratios.get("step", {})
@@ -102,10 +94,7 @@ def write_json(path: Path, content: Any) -> None:
 def publish_snapshot(
     out_dir: Path, owned: Mapping[str, str | None], run: EvalRun | None
 ) -> Iterator[tuple[Path, dict[str, Any]]]:
-    """A staging folder to write; on exit its files are logged to ``run`` and published.
-
-    Yields the folder and the summary to log (filled in by the caller).
-    """
+    """Yield a staging folder and a summary to fill; on exit both are logged and published."""
     with staging_directory(out_dir) as staging:
         summary: dict[str, Any] = {}
         yield staging, summary
@@ -124,9 +113,7 @@ def write_reports(
 ) -> dict[str, Any]:
     """Write the CSV, tables, summary and figures of ``ev`` to ``out_dir``; return the summary.
 
-    ``record``: :data:`Record`; ``run``: the MLflow run that gets the same files and the
-    summary's figures (None: none). The figures are drawn in two processes
-    (:func:`~generalist_control.evaluation.forked_shares.fork_map`).
+    ``run``: the MLflow run that gets the same files and figures (None: none).
 
     Raises
     ------
