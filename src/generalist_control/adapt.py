@@ -13,13 +13,12 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.adaptation import adapt
 from generalist_control.adaptation.request import read_request
 from generalist_control.adaptation.run_folder import Stopped, sigterm_raises
-from generalist_control.common.paths import HYDRA_CONFIG_PATH
+from generalist_control.common.stage_main import stage_main
 
 __all__ = ["main", "run"]
 
@@ -38,7 +37,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return record
 
 
-@hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="adapt")
+@stage_main("adapt")
 def main(cfg: DictConfig) -> float:
     """Hydra entry point: adapt, and return the kept closed-loop score (lower is better).
 

@@ -14,14 +14,13 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-import hydra
 from omegaconf import DictConfig
 
 from generalist_control.common.atomic import folder_lock
 from generalist_control.common.configs import as_dict
-from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.common.secrets import redact
 from generalist_control.common.sections import read_section
+from generalist_control.common.stage_main import stage_main
 from generalist_control.data.variant_data import variants_config
 from generalist_control.deploy.policy_source import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
@@ -123,7 +122,7 @@ def _stop(signum: int, frame: FrameType | None) -> None:
     raise SystemExit(128 + signum)
 
 
-@hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="config")
+@stage_main("config")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point of the ``evaluate`` stage."""
     signal.signal(signal.SIGTERM, _stop)

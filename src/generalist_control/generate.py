@@ -7,10 +7,9 @@ import os
 from pathlib import Path
 from typing import Any, cast
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from generalist_control.common.paths import HYDRA_CONFIG_PATH
+from generalist_control.common.stage_main import stage_main
 from generalist_control.data.demos import check_data_dir, write_demos
 from generalist_control.data.generation import build_manifest, generate_demos
 from generalist_control.plants.catalog import check_tags, plants_from_config
@@ -47,7 +46,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return manifest
 
 
-@hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="config")
+@stage_main("config")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point of the ``generate`` stage."""
     run(cfg)

@@ -9,11 +9,10 @@ import logging
 from pathlib import Path
 from typing import Any, cast
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.common.schema import require_int
+from generalist_control.common.stage_main import stage_main
 from generalist_control.data.demos import check_data_dir, write_demos
 from generalist_control.data.generation import build_manifest, generate_demos
 from generalist_control.simulation.family_draw import draw_family, read_families
@@ -60,7 +59,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return manifest
 
 
-@hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="generate_families")
+@stage_main("generate_families")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point of the ``generate_families`` stage."""
     run(cfg)

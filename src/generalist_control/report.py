@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from typing import Any
 
-import hydra
 from omegaconf import DictConfig
 
 from generalist_control.common.configs import as_dict
-from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.common.sections import read_section
+from generalist_control.common.stage_main import stage_main
 from generalist_control.reports.ablation import build_report
 from generalist_control.reports.report_settings import ReportJob, ReportSettings
 
@@ -45,7 +44,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return build_report(read_job(cfg))
 
 
-@hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="config")
+@stage_main("config")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point of the report."""
     run(cfg)

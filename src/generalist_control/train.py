@@ -9,11 +9,10 @@ from __future__ import annotations
 
 from typing import Any
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from generalist_control.common.paths import HYDRA_CONFIG_PATH
+from generalist_control.common.stage_main import stage_main
 from generalist_control.training.fit import train
 from generalist_control.training.settings import read_training
 
@@ -26,7 +25,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return metrics
 
 
-@hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="config")
+@stage_main("config")
 def main(cfg: DictConfig) -> float:
     """Hydra entry point: train and return the optimised metric (``optimized_metric``)."""
     metrics = run(cfg)

@@ -14,15 +14,14 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, cast
 
-import hydra
 import optuna
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 from optuna.trial import TrialState
 
 from generalist_control.common.configs import as_dict
-from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.common.sections import read_section
+from generalist_control.common.stage_main import stage_main
 from generalist_control.sweeps.fixed_config import fixed_config
 from generalist_control.sweeps.search_settings import SearchSettings, parse_space
 from generalist_control.sweeps.stop_signals import Stopped
@@ -96,7 +95,7 @@ def run(cfg: DictConfig) -> optuna.Study:
     return run_study(search, space, fixed, logger, train_point, _trials_dir(search))
 
 
-@hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="tune")
+@stage_main("tune")
 def _main(cfg: DictConfig) -> float:
     """Hydra entry point: run the study; return its best value (NaN if none completed)."""
     study = run(cfg)

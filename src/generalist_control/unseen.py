@@ -11,13 +11,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.adaptation.request import AdaptRequest, read_request
 from generalist_control.adaptation.run_folder import Stopped, sigterm_raises
 from generalist_control.common.configs import as_dict
-from generalist_control.common.paths import HYDRA_CONFIG_PATH
+from generalist_control.common.stage_main import stage_main
 from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.plants.catalog import available_plants
 from generalist_control.reports.held_out import UnseenSettings, run_unseen
@@ -69,7 +68,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return run_unseen(read_unseen(cfg), requests(cfg))
 
 
-@hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="unseen")
+@stage_main("unseen")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point of the held-out protocol's evaluation (SIGTERM: exit 143)."""
     try:
