@@ -34,7 +34,7 @@ from generalist_control.common.atomic import (
     staging_directory,
 )
 from generalist_control.data.generation import generate_demos
-from generalist_control.model.grow import ROWS, start_rows
+from generalist_control.model.bank import ROWS, start_rows
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.definition import PlantConfigError

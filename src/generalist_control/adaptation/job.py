@@ -33,7 +33,7 @@ from generalist_control.common.secrets import redact
 from generalist_control.data.generation import enabled_families
 from generalist_control.data.windows import Windows
 from generalist_control.deploy.policy_source import resolve
-from generalist_control.model.grow import (
+from generalist_control.model.bank import (
     ROWS,
     RecipeError,
     check_growable,

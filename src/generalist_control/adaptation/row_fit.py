@@ -19,7 +19,7 @@ from torch.func import functional_call
 from generalist_control.adaptation.request import AdaptSettings
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.model.grow import ROWS, set_row
+from generalist_control.model.bank import ROWS, set_row
 from generalist_control.model.policy import Policy
 from generalist_control.plants.definition import Plant
 from generalist_control.simulation.comparison import ClosedLoopScore

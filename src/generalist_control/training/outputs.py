@@ -20,8 +20,14 @@ from generalist_control.common.hydra_redact import scrub_hydra_files
 from generalist_control.common.secrets import redact
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.model.flat import FlatPolicy, flat_columns
-from generalist_control.model.policy import POLICY_FILE, Policy, PolicyFileError, load_policy
+from generalist_control.model.policy import (
+    POLICY_FILE,
+    FlatPolicy,
+    Policy,
+    PolicyFileError,
+    flat_columns,
+    load_policy,
+)
 from generalist_control.simulation.comparison import output_mse
 from generalist_control.tracking import mlflow_utils, training_run
 from generalist_control.training.datamodule import DemoDataModule
