@@ -15,21 +15,10 @@ def mlp(n_in: int, n_hidden: int, n_out: int) -> nn.Sequential:
 
 
 class SummaryAttention(nn.Module):
-    """Multi-head scaled dot-product attention with a residual: ``z + W_O [a_1 .. a_H]``.
+    """Multi-head attention with a residual, ``z + W_O [a_1 .. a_H]``, ``d_k = ceil(dim / heads)``.
 
-    Parameters
-    ----------
-    dim : int
-        Token size (``2 d_h`` in the paper).
-    heads : int
-        ``N_h``. Each head has ``d_k = ceil(dim / heads)``; the concatenated heads
-        (``heads * d_k``, which may exceed ``dim``) are projected back to ``dim`` by ``W_O``.
-
-    Notes
-    -----
-    As in the paper the one token is ``z``, so the softmax over one key is 1 and
-    :meth:`forward` computes ``z + W_O V z`` (the kernel's output to the bit). Q and K are
-    kept for the paper's parameter count; they get zero gradient.
+    The one token is ``z``, so the softmax over one key is 1: :meth:`forward` computes
+    ``z + W_O V z``. Q and K are kept for the paper's parameter count (zero gradient).
     """
 
     def __init__(self, dim: int, heads: int) -> None:

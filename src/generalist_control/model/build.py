@@ -1,8 +1,7 @@
-"""Build the network from its config (``conf/model``, or the copy a policy file stores).
+"""Build the network from its config (``conf/model``, or a policy file's copy) with Hydra.
 
-Hydra's ``instantiate`` builds it, each nested part a partial the network calls with its
-sizes. Only classes of :mod:`generalist_control.model` may be named, so loading a policy
-file cannot make the loader call anything else.
+Only classes of :mod:`generalist_control.model` may be named: loading a policy file calls
+nothing else.
 """
 
 from __future__ import annotations

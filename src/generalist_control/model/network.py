@@ -1,9 +1,7 @@
-"""The Generalist Controller network (paper, Section 4), composed from named parts.
+"""The Generalist Controller network (paper, Section 4), composed from parts in ``conf/model``.
 
-Per step, state, reference and plant encoders; a fast and a strided LSTM; attention with a
-residual; a softmax-gated mixture of experts giving ``horizon`` normalised controls. Parts
-chosen in ``conf/model``: the plant part and an optional skip path; ours besides: extra
-``channels`` and per-window scaling. Where the paper is silent: docs/training.md.
+Encoders, a fast and a strided LSTM, attention, a gated mixture of experts; ours besides: the
+plant part, a skip path, extra ``channels`` and per-window scaling (docs/training.md).
 """
 
 from __future__ import annotations
@@ -23,8 +21,7 @@ from generalist_control.plants.definition import MAX_ORDER
 
 __all__ = ["CHANNELS", "WINDOW_SCALE_FLOOR", "GeneralistNetwork", "count_parameters"]
 
-#: The window's extra state channels, in order after the padded state: the tracking-error
-#: integral (as the LQI expert keeps it), the previous control (an identifier's input).
+#: The window's extra state channels, in order after the padded state.
 CHANNELS = ("integral", "previous_control")
 
 #: Smallest window scale (normalised units): a window at rest maps to inputs near zero.
@@ -50,26 +47,16 @@ class GeneralistNetwork(nn.Module):
 
     Parameters
     ----------
-    plant : callable
-        Builds the plant part: ``plant(dim=hidden)`` (``model.plant``).
-    hidden, heads, stride, experts : int
-        ``d`` (even), ``N_h``, ``tau``, ``M``.
-    history, horizon : int
-        ``T_h`` (samples per window) and ``K`` (controls per window).
-    skip : callable, optional
-        Builds the skip path (``model.skip``).
+    plant, skip : callable
+        Build the plant part (``plant(dim=hidden)``) and the optional skip path.
+    hidden, heads, stride, experts, history, horizon : int
+        ``d`` (even), ``N_h``, ``tau``, ``M``, ``T_h`` and ``K``.
     channels : sequence of str
-        Extra state channels of the window (:data:`CHANNELS`).
+        Extra state channels of the window (:data:`CHANNELS`), after the padded state.
     law_history : int, optional
-        How many of the newest samples the law reads (encoders, LSTMs, linear paths); the
-        plant part reads the whole window. None: all.
+        The newest samples the law reads (the plant part reads the whole window); None: all.
     window_scale : bool
-        Divide each window by its peak and return the scale (:attr:`NetOutput.scale`), so
-        errors are relative to the signal; off in the paper's recipe.
-
-    Notes
-    -----
-    Each sample's state is the plant's, zero-padded to ``MAX_ORDER`` entries, then the channels.
+        Divide each window by its peak and return the scale (:attr:`NetOutput.scale`).
 
     Examples
     --------
@@ -138,6 +125,7 @@ class GeneralistNetwork(nn.Module):
         self.slow_start = (self.law_history - 1) % self.stride
 
     def _law_history(self, law_history: int | None) -> int:
+        """``model.law_history`` checked against the window (None: the whole window)."""
         if law_history is None:
             return self.history
         n = require_int("model.law_history", law_history)
@@ -170,15 +158,7 @@ class GeneralistNetwork(nn.Module):
         return (state * mask)[..., : state.shape[-1] - drop]
 
     def forward(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor) -> NetOutput:
-        """The network's output for a batch of normalised windows.
-
-        Parameters
-        ----------
-        state, mask : Tensor, shape (B, history, width)
-            ``width``: ``state_dim`` plus one per channel (:attr:`channels`).
-        ref : Tensor, shape (B, history)
-        tag : Tensor of int, shape (B,)
-        """
+        """The output for normalised windows: state, mask (B, history, width), ref, tag."""
         state, ref, scale = self.scaled_inputs(state, ref)
         code, reading = self.plant(state, mask, ref, tag)
         n = self.law_history  # the law reads the newest n samples only
