@@ -14,8 +14,7 @@ from torch import Tensor, nn
 from generalist_control.common.schema import require_int, require_nonnegative
 from generalist_control.model.card import CARD_FEATURES
 from generalist_control.model.identifier import TransitionSet
-from generalist_control.model.output import PlantReading
-from generalist_control.model.plant import PlantPart
+from generalist_control.model.plant import PlantPart, PlantReading
 from generalist_control.plants.definition import MAX_ORDER
 
 __all__ = ["ContextPlant"]

@@ -6,20 +6,29 @@ plant part, a skip path, extra ``channels`` and per-window scaling (docs/trainin
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import cast
 
 import torch
 from torch import Tensor, nn
 
 from generalist_control.common.schema import require_int, require_switch
-from generalist_control.model.blocks import ExpertMLP, SummaryAttention, mlp
 from generalist_control.model.linear import LinearSkip
-from generalist_control.model.output import NetOutput
-from generalist_control.model.plant import PlantPart
+from generalist_control.model.plant import PlantPart, PlantReading
 from generalist_control.plants.definition import MAX_ORDER
 
-__all__ = ["CHANNELS", "WINDOW_SCALE_FLOOR", "GeneralistNetwork", "count_parameters"]
+__all__ = [
+    "CHANNELS",
+    "WINDOW_SCALE_FLOOR",
+    "ExpertMLP",
+    "GeneralistNetwork",
+    "NetOutput",
+    "SummaryAttention",
+    "count_parameters",
+    "mlp",
+]
 
 #: The window's extra state channels, in order after the padded state.
 CHANNELS = ("integral", "previous_control")
@@ -28,6 +37,57 @@ CHANNELS = ("integral", "previous_control")
 WINDOW_SCALE_FLOOR = 1e-3
 
 Part = Callable[..., nn.Module]
+
+
+@dataclass(frozen=True)
+class NetOutput:
+    """One forward pass of :class:`~generalist_control.model.network.GeneralistNetwork`."""
+
+    control: Tensor  #: (B, horizon), normalised units divided by the window scale
+    gates: Tensor  #: (B, experts), the mixture's softmax weights
+    scale: Tensor  #: (B, 1), each window's scale (ones without window scaling)
+    plant: PlantReading | None  #: what an inferred plant part read (None: by its tag)
+
+
+def mlp(n_in: int, n_hidden: int, n_out: int) -> nn.Sequential:
+    """Two-layer encoder ``W_2 relu(W_1 x + b_1) + b_2`` (paper, Eq. f_1..f_4)."""
+    return nn.Sequential(nn.Linear(n_in, n_hidden), nn.ReLU(), nn.Linear(n_hidden, n_out))
+
+
+class SummaryAttention(nn.Module):
+    """Multi-head attention with a residual, ``z + W_O [a_1 .. a_H]``, ``d_k = ceil(dim / heads)``.
+
+    The one token is ``z``, so the softmax over one key is 1: :meth:`forward` computes
+    ``z + W_O V z``. Q and K are kept for the paper's parameter count (zero gradient).
+    """
+
+    def __init__(self, dim: int, heads: int) -> None:
+        super().__init__()
+        self.heads = heads
+        self.d_k = math.ceil(dim / heads)
+        inner = heads * self.d_k
+        self.qkv = nn.Linear(dim, 3 * inner)
+        self.out = nn.Linear(inner, dim)
+
+    def forward(self, z: Tensor) -> Tensor:
+        """The block's output for the one token ``z`` (B, dim): ``z + W_O V z`` (B, dim)."""
+        inner = self.heads * self.d_k
+        return z + self.out(self.qkv(z)[..., 2 * inner :])
+
+
+class ExpertMLP(nn.Sequential):
+    """One expert: three linear layers, ReLU then LayerNorm after each hidden layer."""
+
+    def __init__(self, n_in: int, n_hidden: int, n_out: int) -> None:
+        super().__init__(
+            nn.Linear(n_in, n_hidden),
+            nn.ReLU(),
+            nn.LayerNorm(n_hidden),
+            nn.Linear(n_hidden, n_hidden),
+            nn.ReLU(),
+            nn.LayerNorm(n_hidden),
+            nn.Linear(n_hidden, n_out),
+        )
 
 
 def _channels(channels: Sequence[str]) -> tuple[str, ...]:

@@ -7,6 +7,7 @@ the same rows by an identity head read from the window (the tag a training label
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -14,13 +15,21 @@ from torch import Tensor, nn
 
 from generalist_control.common.schema import require_int, require_nonnegative
 from generalist_control.model.identifier import TransitionSet
-from generalist_control.model.output import PlantReading
 from generalist_control.plants.definition import MAX_ORDER
 
-__all__ = ["EVIDENCE_WEIGHT", "InferredPlant", "PlantPart", "TagEmbedding"]
+__all__ = ["EVIDENCE_WEIGHT", "InferredPlant", "PlantPart", "PlantReading", "TagEmbedding"]
 
 #: The initial weight of each plant's one-step-model evidence in its identity logit.
 EVIDENCE_WEIGHT = 4.0
+
+
+@dataclass(frozen=True)
+class PlantReading:
+    """What a plant part that infers the plant read from the window."""
+
+    logits: Tensor | None  #: (B, n_tags): the identity head's logits (None: no head)
+    summary: Tensor  #: (B, features): the identifier's state, what a context skip reads
+    evidence: Tensor | None  #: (B, n_tags): each plant's one-step model's evidence
 
 
 class PlantPart(nn.Module):

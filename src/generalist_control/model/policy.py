@@ -20,9 +20,8 @@ from torch import Tensor, nn
 
 from generalist_control.data.windows import Windows
 from generalist_control.model.build import build_network
-from generalist_control.model.network import GeneralistNetwork
+from generalist_control.model.network import GeneralistNetwork, NetOutput
 from generalist_control.model.normalise import Normaliser
-from generalist_control.model.output import NetOutput
 
 __all__ = [
     "POLICY_FILE",

@@ -92,11 +92,7 @@ def check_models_dir(models_dir: Path) -> None:
 def closed_loop_scores(
     settings: TrainingSettings, policy: Policy, meta: dict[str, Any]
 ) -> dict[str, float]:
-    """``closed_loop/mse/<plant>``: GC-vs-LQI unit-step output MSE on ``closed_loop.systems``.
-
-    The ablation's score (Section 7), so that every sweep point carries it; untrained plants
-    are skipped.
-    """
+    """``closed_loop/mse/<plant>``: GC-vs-LQI unit-step output MSE on ``closed_loop.systems``."""
     wanted = set(settings.closed_loop.systems)
     plants = [p for p in settings.plants if p.name in wanted and p.name in meta["tags"]]
     if not plants:
@@ -113,11 +109,10 @@ def closed_loop_scores(
 def log_model(
     policy: Policy, windows: dict[str, torch.Tensor], registered_name: str | None = None
 ) -> str | None:
-    """Log the best policy as an MLflow PyTorch model (``torch.export``, one flat input).
+    """Log the policy as an MLflow PyTorch model (``torch.export`` of :class:`FlatPolicy`).
 
-    Input float32 (B, F) in the columns of :func:`flat_columns` (also in the metadata),
-    output the controls (B, horizon); eight validation ``windows`` are the signature's
-    example. With ``registered_name``, a new registered version tagged with the run, returned.
+    Eight ``windows`` are the signature's example; with ``registered_name``, a new registered
+    version tagged with the run, returned.
     """
     flat = FlatPolicy(policy).eval()
     n = min(8, windows["tag"].shape[0])
@@ -198,11 +193,7 @@ def log_inputs(settings: TrainingSettings, dm: DemoDataModule, n_params: int) ->
 
 
 def log_dataset(dm: DemoDataModule) -> None:
-    """Log the training windows' schema as the run's dataset input (context ``training``).
-
-    The digest is the data's content hash cut to MLflow's 36 characters; the input's tag
-    ``content_hash`` holds it whole.
-    """
+    """Log the training windows' schema as the run's dataset input (context ``training``)."""
     meta = dm.meta()
     if dm.train_set is None:
         raise RuntimeError("the data module is not set up")
@@ -224,8 +215,7 @@ def log_dataset(dm: DemoDataModule) -> None:
 def dvc_metrics(metrics: Mapping[str, float]) -> dict[str, float]:
     """The headline numbers for ``metrics.json`` (:data:`DVC_METRICS`), 7 significant digits.
 
-    Closed-loop errors (1e-12 .. 1e-5) as ``log10``, which ``dvc metrics show``'s five
-    decimals do not round to 0; a metric the run lacks is left out.
+    Closed-loop errors as ``log10`` (``dvc metrics show`` rounds 1e-6 to 0).
 
     Examples
     --------
