@@ -1,8 +1,6 @@
-"""Add a plant to a trained policy: ``python -m generalist_control.adapt plant=<name or path>``.
+"""Add a plant to a trained policy: ``python adapt.py plant=<name or path>`` (``gc-adapt``).
 
-Also ``python adapt.py`` at the root and ``gc-adapt``. The policy gains a tag for the plant
-and only that row is learned (:mod:`generalist_control.adaptation`; docs/training.md,
-"Adding a plant to a trained policy").
+The policy gains a tag for the plant and only that row is learned (docs/training.md).
 """
 
 from __future__ import annotations
@@ -40,11 +38,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 @hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="adapt")
 def main(cfg: DictConfig) -> float:
-    """Hydra entry point: adapt, and return the kept closed-loop score (lower is better).
-
-    SIGTERM ends it as SIGINT does (exit 143, the MLflow run KILLED). Hydra writes no folder
-    (``conf/adapt.yaml``): a refused or stopped adaptation leaves none.
-    """
+    """Hydra entry point: adapt, return the kept closed-loop score; SIGTERM exits 143."""
     try:
         with sigterm_raises():
             return float(run(cfg)["closed_loop"]["kept"])

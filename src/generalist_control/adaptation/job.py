@@ -1,9 +1,7 @@
 """An adaptation's work: everything read and checked first (:func:`prepare`), then the row learned.
 
-:func:`learn` grows the policy by one tag (:mod:`~generalist_control.model.grow`), starts the
-new row (``adapt.init``), fits it, runs DAgger rounds on the plant and keeps the row whose
-closed loop is nearest LQI's, the start row included. A tag-free policy is only named for
-the plant: its scales on a free row, nothing learned.
+The row kept is the one whose closed loop is nearest LQI's, the start row included; a
+tag-free policy is only named for the plant (its scales on a free row).
 """
 
 from __future__ import annotations
@@ -120,10 +118,8 @@ def prepare(request: AdaptRequest) -> AdaptJob:
     Raises
     ------
     ValueError
-        Naming the fix: a policy whose recipe cannot take a row
-        (:class:`~generalist_control.model.grow.RecipeError`), a plant refused by
-        :func:`~.new_plant.load_new_plant`, unusable recorded demonstrations
-        (:class:`~.recordings.RecordingError`), an ``adapt.unfreeze`` name the policy lacks.
+        Naming the fix: a policy that cannot take a row, a plant refused, unusable recorded
+        demonstrations, an ``adapt.unfreeze`` name the policy lacks.
     """
     torch.set_num_threads(request.threads)
     if request.policy.startswith(("runs:/", "models:/")):  # the store is touched for these only
@@ -180,11 +176,7 @@ def _snapshot(policy: Policy, tag: int, learned: dict[str, torch.nn.Parameter]) 
 def _fit(
     job: AdaptJob, policy: Policy, meta: dict[str, Any], data: WindowTensors, start: float
 ) -> dict[str, Any]:
-    """The fit, then each DAgger round and fit; the best row (and learned) restored.
-
-    Kept: the lowest closed-loop score of the start, the fit and the rounds (the later on a
-    tie), so the row kept is never worse than the start row.
-    """
+    """The fit, then each DAgger round and fit; the lowest-scoring row (later on a tie) kept."""
     s, tag = job.settings, job.new.plant.tag
     learned = learned_parameters(policy, s.unfreeze)
     best, kept, keep = start, "start", _snapshot(policy, tag, learned)

@@ -1,7 +1,6 @@
 """The plant a policy is adapted to: its file read once, checked against the policy, demonstrated.
 
-``plant=`` names a catalogue plant (``conf/plants/<name>.yaml``) or the path of a YAML file
-in the catalogue's schema; the file's stem is the plant's name. Every refusal names the file.
+``plant=`` names a catalogue plant or the path of a YAML file in the catalogue's schema.
 """
 
 from __future__ import annotations
@@ -49,7 +48,7 @@ class NewPlant:
 
 
 def _path(spec: str) -> tuple[Path, bool]:
-    """The plant file ``spec`` names and whether it is a catalogue plant."""
+    """The plant file ``spec`` names and whether it is a catalogue plant (its stem: the name)."""
     known = available_plants()
     if not spec.endswith((".yaml", ".yml")) and "/" not in spec:
         path = conf_dir() / "plants" / f"{spec}.yaml"
@@ -79,10 +78,8 @@ def load_new_plant(spec: str, meta: Mapping[str, Any]) -> NewPlant:
     Raises
     ------
     PlantConfigError
-        Naming the file: it is missing, not YAML, invalid
-        (:func:`~generalist_control.plants.config.plant_from_config`), or unfit for LQI; its
-        name is already one of the policy's plants, its ``tag`` one the policy uses, or its
-        ``dt`` not the policy's.
+        Naming the file: missing, not YAML, invalid or unfit for LQI; its name or ``tag``
+        already the policy's, or its ``dt`` not the policy's.
     """
     path, in_catalogue = _path(spec)
     try:
@@ -120,11 +117,7 @@ def load_new_plant(spec: str, meta: Mapping[str, Any]) -> NewPlant:
 
 
 def plant_meta(meta: Mapping[str, Any], plant: Plant, record: Mapping[str, Any]) -> dict[str, Any]:
-    """The policy's meta with ``plant`` (on its row) added, and its ``adapted`` record.
-
-    What the runtime needs of a plant the catalogue may not hold, as training stores it:
-    its order, its output row ``C`` and the sign of its expert's ``-Ki`` (anti-windup).
-    """
+    """The policy's meta with ``plant`` added as training stores a plant, and its ``record``."""
     name = plant.name
     return {
         **meta,

@@ -1,10 +1,7 @@
 """Demonstrations recorded from any controller: the file a user gives ``adapt`` (``demos=``).
 
 One row per sample (Parquet or CSV): ``traj``, ``t``, the states ``x0 .. x{n-1}``, ``r``,
-``y``, ``u`` (docs/training.md), deviations from the operating point. The windows come from
-the one window builder with the error integral of ``r - y``, so a recording of an LQI
-simulation gives exactly the data stage's windows. It is read here, not in ``data/``: only
-adaptation reads it, and the data stage need not run again when it changes.
+``y``, ``u``, deviations from the operating point (docs/training.md).
 """
 
 from __future__ import annotations
@@ -33,14 +30,7 @@ class RecordingError(ValueError):
 
 @dataclass(frozen=True)
 class RecordedDemos:
-    """The windows of a recorded file and what they came from.
-
-    Attributes
-    ----------
-    windows : Windows
-        Tagged with the tag given to :func:`read_recorded`.
-    trajectories, samples : int
-    """
+    """The windows of a recorded file (tagged as asked) and what they came from."""
 
     windows: Windows
     trajectories: int
@@ -48,6 +38,7 @@ class RecordedDemos:
 
 
 def _table(path: Path) -> pd.DataFrame:
+    """The recording's rows, or a :class:`RecordingError` naming the fix."""
     if not path.is_file():
         raise RecordingError(f"no recorded demonstrations at {path}: give demos=<file>")
     if path.suffix in (".parquet", ".csv"):
@@ -125,26 +116,15 @@ def _trajectories(
 def read_recorded(
     path: str | Path, plant: Plant, tag: int, history: int, horizon: int, controls: bool = False
 ) -> RecordedDemos:
-    """The training windows of a recorded file (format: the module docstring).
+    """The windows of a recorded file of ``plant``, tagged ``tag``, with the error integral.
 
-    Parameters
-    ----------
-    path : str or Path
-    plant : Plant
-        The plant recorded (its order and ``dt`` are checked).
-    tag : int
-        The system tag the windows carry (the policy's row for the plant).
-    history, horizon : int
-        The policy's window sizes.
-    controls : bool
-        Also the previous-control channel (``model.channels``).
+    ``controls``: also the previous-control channel (``model.channels``).
 
     Raises
     ------
     RecordingError
         Naming the fix: an unknown suffix, missing or non-numeric columns, NaN or inf,
-        samples not ``plant.dt`` apart, too short a trajectory, state columns beyond the
-        plant's order.
+        samples not ``plant.dt`` apart, too short a trajectory, extra state columns.
     """
     path = Path(path)
     values = _checked(_table(path), path, plant)
@@ -166,11 +146,7 @@ def read_recorded(
 def write_recorded(
     path: str | Path, plant: Plant, x: np.ndarray, r: np.ndarray, y: np.ndarray, u: np.ndarray
 ) -> Path:
-    """Write ``B`` trajectories of ``N`` samples in the recorded format (Parquet or CSV).
-
-    ``x`` (B, N, >= n): the plant's states first (padding beyond ``plant.order`` is
-    dropped); ``r``, ``y``, ``u`` (B, N). E.g. an LQI simulation of the plant.
-    """
+    """Write ``x`` (B, N, >= n; padding dropped), ``r``, ``y``, ``u`` (B, N) as a recording."""
     path = Path(path)
     B, N = r.shape
     cols: dict[str, np.ndarray] = {

@@ -1,9 +1,7 @@
 """Learning one plant's row of a grown policy, everything else frozen; scoring its loop.
 
-The optimiser holds the row alone (a parameter of its own, spliced into the embedding for
-each forward pass with :func:`torch.func.functional_call`), plus, only when asked
-(``adapt.unfreeze``), a few named parameters; every other parameter has ``requires_grad``
-off. The loss is the training's. DAgger rounds reuse the training's sampler and labeller.
+The row is a parameter of its own, spliced into the embedding with
+:func:`torch.func.functional_call`; ``adapt.unfreeze`` may name a few parameters besides.
 """
 
 from __future__ import annotations
@@ -85,8 +83,7 @@ def learned_parameters(policy: Policy, unfreeze: Sequence[str]) -> dict[str, nn.
     Raises
     ------
     ValueError
-        If a prefix names no parameter (listing the network's parts), or names the tag
-        embedding, whose trained rows must not move.
+        If a prefix names no parameter, or names the tag embedding (trained rows stay).
     """
     named = dict(policy.named_parameters())
     out: dict[str, nn.Parameter] = {}
@@ -131,10 +128,9 @@ def fit_row(
     learned: Mapping[str, nn.Parameter],
     seed: int,
 ) -> list[float]:
-    """Fit row ``tag`` (and ``learned``) on ``tensors`` for ``settings.epochs`` epochs.
+    """Fit row ``tag`` (and ``learned``) on ``tensors``; return each epoch's mean loss.
 
-    The row is written into the policy at the end; every other row and every parameter not
-    in ``learned`` is left bit for bit as it was. Returns the mean loss of each epoch.
+    Every other row and every parameter not in ``learned`` is left bit for bit as it was.
     """
     frozen = policy.state_dict()[ROWS].clone()
     row = nn.Parameter(frozen[tag].clone())
@@ -157,10 +153,9 @@ def fit_row(
 
 
 class LoopScore:
-    """The plant's step error in closed loop against its LQI, relative to LQI's (1: diverged).
+    """The plant's step error in closed loop relative to its LQI's (1: diverged).
 
-    On the steps of ``closed_loop_val`` (the training's closed-loop validation,
-    :class:`~generalist_control.simulation.comparison.ClosedLoopScore`, LQI simulated once).
+    On the steps of ``closed_loop_val``, LQI simulated once.
     """
 
     def __init__(self, plant: Plant, scoring: ClosedLoopValSettings) -> None:
