@@ -20,7 +20,7 @@ import yaml
 
 from generalist_control.adaptation import adapt
 from generalist_control.adaptation.job import learn, prepare
-from generalist_control.adaptation.recordings import RecordingError, write_recorded
+from generalist_control.adaptation.new_plant import RecordingError, write_recorded
 from generalist_control.data.generation import generate_demos
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime

@@ -24,8 +24,7 @@ import yaml
 
 from generalist_control.adaptation import AdaptationDiverged, adapt, run_folder
 from generalist_control.adaptation.job import learn, prepare
-from generalist_control.adaptation.new_plant import load_new_plant
-from generalist_control.adaptation.recordings import RecordingError, write_recorded
+from generalist_control.adaptation.new_plant import RecordingError, load_new_plant, write_recorded
 from generalist_control.common.atomic import (
     FolderBusy,
     ForeignDirectoryError,

@@ -17,8 +17,8 @@ from generalist_control.adaptation.new_plant import (
     generated_windows,
     load_new_plant,
     plant_meta,
+    read_recorded,
 )
-from generalist_control.adaptation.recordings import read_recorded
 from generalist_control.adaptation.request import AdaptRequest, AdaptSettings
 from generalist_control.adaptation.row_fit import (
     LoopScore,
@@ -28,7 +28,6 @@ from generalist_control.adaptation.row_fit import (
     nearest_row,
 )
 from generalist_control.common.secrets import redact
-from generalist_control.data.generation import enabled_families
 from generalist_control.data.windows import Windows
 from generalist_control.deploy.policy_source import resolve
 from generalist_control.model.bank import (
@@ -47,6 +46,7 @@ from generalist_control.tracking import mlflow_utils
 from generalist_control.training.datamodule import WindowTensors
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
+from generalist_control.training.settings import rollout_data
 
 __all__ = ["AdaptJob", "learn", "prepare"]
 
@@ -97,17 +97,17 @@ def _windows(request: AdaptRequest, new: NewPlant, policy: Policy) -> tuple[Wind
 
 def _dagger(request: AdaptRequest, new: NewPlant, policy: Policy) -> tuple | None:
     """The training's sampler (on the new plant alone) and labeller; None without rounds."""
-    spec, data = request.dagger, request.data
+    spec, data = request.dagger, rollout_data(request.data)
     if spec is None or request.demos is not None or not request.adapt.rounds:
         return None  # a recorded controller cannot label the states the policy visits
     sampler = RolloutSampler(
         [new.plant],
         spec.sampler,
-        limit=float(data["amplitudes"]["limit"]),
-        families=enabled_families(data),
+        limit=data.amplitude_limit,
+        families=data.families,
         seed=request.seed,
-        variant_range=float(data["variants"]["range"]),
-        variant_tries=int(data["variants"]["max_tries"]),
+        variant_range=data.variant_range,
+        variant_tries=data.variant_tries,
     )
     return sampler, ExpertLabeller(spec.labeller, policy.history, policy.horizon, policy.channels)
 
