@@ -26,12 +26,6 @@ class TransitionSet(nn.Module):
 
     ``u_j``: the last channel at ``j + 1``; ``m``: the order mask. ``models`` builds the
     plants' :class:`TransitionModels`, whose evidence follows the encoder's output.
-
-    Examples
-    --------
-    >>> enc = TransitionSet(state_dim=4, hidden=8)
-    >>> tuple(enc(torch.zeros(2, 5, 6), torch.ones(2, 5, 6)).shape)
-    (2, 8)
     """
 
     def __init__(
@@ -98,13 +92,6 @@ class TransitionModels(nn.Module):
     ``eps`` is added to the residual (no motion: equal evidence); ``input_gain`` the fitted
     input gain's range (None: 1); ``lags`` the input lags tried; ``offset``: fit a constant
     input disturbance.
-
-    Examples
-    --------
-    >>> m = TransitionModels(state_dim=2, embedding=4)
-    >>> tuple(m(torch.zeros(3, 5, 2), torch.zeros(3, 5, 2), torch.zeros(3, 5),
-    ...         torch.zeros(7, 4)).shape)
-    (3, 7)
     """
 
     def __init__(

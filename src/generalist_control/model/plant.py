@@ -49,15 +49,7 @@ class PlantPart(nn.Module):
 
 
 class TagEmbedding(PlantPart):
-    """The tag's row of a learned embedding, ``dim`` wide (the paper's system-tag input).
-
-    Examples
-    --------
-    >>> part = TagEmbedding(dim=4, n_tags=3)
-    >>> code, reading = part(None, None, None, torch.tensor([2, 0]))
-    >>> tuple(code.shape), reading
-    ((2, 4), None)
-    """
+    """The tag's row of a learned embedding, ``dim`` wide (the paper's system-tag input)."""
 
     def __init__(self, dim: int, n_tags: int = 25) -> None:
         super().__init__()

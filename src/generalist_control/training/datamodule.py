@@ -103,16 +103,8 @@ class BatchIndexSampler(Sampler[Tensor]):
 class DemoDataModule(L.LightningDataModule):
     """Windows of the dataset at ``data_dir`` for Lightning (``tags``, ``orders`` after setup).
 
-    Parameters
-    ----------
-    seed : int
-        Seeds the split and the per-epoch shuffling.
-    plants : sequence of str, optional
-        Only these plants (None: all); the split is made over the whole dataset first.
-    channels : sequence of str
-        The window's extra channels (``model.channels``).
-    families : FamilySet, optional
-        Plant families joining the dataset (``train_families``); list their plants in ``plants``.
+    ``seed`` seeds the split and the shuffling; ``plants``: only these (None: all; the split is
+    made over the whole dataset first); ``families`` join the dataset (list their plants too).
     """
 
     def __init__(

@@ -47,12 +47,6 @@ class Actuator:
 
     The offset is uniform in ``+-offset``, both drawn from ``rng``; the windows keep the
     command, so the identifier learns to name a plant whose actuator lags or is offset.
-
-    Examples
-    --------
-    >>> act = Actuator(np.zeros(2), np.zeros(2), np.random.default_rng(0))
-    >>> act(np.array([1.0, -2.0])).tolist()
-    [1.0, -2.0]
     """
 
     def __init__(self, lag: np.ndarray, offset: np.ndarray, rng: np.random.Generator) -> None:
@@ -202,19 +196,11 @@ def run_rollouts(
 
 
 class RolloutSampler:
-    """The rollouts of each DAgger round (``dagger.sampler``).
+    """The rollouts of each DAgger round (``dagger.sampler``) of ``plants`` and their variants.
 
-    Parameters
-    ----------
-    plants : sequence of Plant
-        The training plant versions: each plant, then (with variant data) its variants.
-    limit, families, variant_range, variant_tries
-        From the data recipe: the largest step amplitude, the enabled reference families,
-        the fresh variants' range and draws.
-    seed : int
-        Seeds the round's draws (round ``i``: amplitudes from ``seed + i``).
-    rotating, per_round
-        Plants (a family's) rolled out ``per_round`` at a time, in turn, after ``plants``.
+    ``limit``, ``families``, ``variant_range`` and ``variant_tries`` come from the data recipe;
+    ``seed`` seeds round ``i``'s draws (``seed + i``); ``rotating`` plants (a family's) join
+    ``per_round`` at a time, in turn.
     """
 
     def __init__(

@@ -1,8 +1,7 @@
 """A training run's config, read once into typed settings before anything is logged.
 
-:func:`read_training` is the one reader: an entry point (``python train.py``, a sweep's job,
-an Optuna trial) calls it and hands :class:`TrainingSettings` on; each part receives its own
-section. Every default lives in ``conf/``, none here.
+Entry points call :func:`read_training`; each part receives its own section. Every default
+lives in ``conf/``, none here.
 """
 
 from __future__ import annotations
