@@ -22,17 +22,12 @@ from generalist_control.common.paths import HYDRA_CONFIG_PATH
 __all__ = ["main", "run"]
 
 
-def _run_dir(cfg: DictConfig) -> Path:
-    """``run_dir``, else a new ``outputs/adapt/<time>``."""
-    if cfg.run_dir:
-        return Path(cfg.run_dir)
-    return Path("outputs/adapt") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-
-
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Adapt the configured policy to ``cfg.plant``; return the adaptation's record."""
     plain = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
-    record, _ = adapt(read_request(plain, _run_dir(cfg)))  # type: ignore[arg-type]
+    stamp = datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    run_dir = Path(cfg.run_dir) if cfg.run_dir else Path("outputs/adapt") / stamp
+    record, _ = adapt(read_request(plain, run_dir))  # type: ignore[arg-type]
     return record
 
 

@@ -96,14 +96,15 @@ def _module(
         meta=meta,
     )
     lit.policy.normaliser.fit(**_tensors(dm.train_set))
-    fit_model_rows(lit.policy, _trained(settings, dm))
+    plants, family = _trained(settings, dm)
+    fit_model_rows(lit.policy, plants + family)
     return lit
 
 
-def _trained(settings: TrainingSettings, dm: DemoDataModule) -> list[Plant]:
-    """The plants the data holds: the set's, then the families'."""
+def _trained(settings: TrainingSettings, dm: DemoDataModule) -> tuple[list[Plant], list[Plant]]:
+    """The plants the data holds: the set's, and the families'."""
     family = dm.families.plants if dm.families else []
-    return [p for p in settings.plants if p.name in dm.tags] + family
+    return [p for p in settings.plants if p.name in dm.tags], family
 
 
 def _callbacks(
@@ -112,9 +113,8 @@ def _callbacks(
     """The config's callbacks, DAgger and the closed-loop validation."""
     callbacks = config_callbacks(settings.callbacks, settings.run_dir)
     ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
-    plants = [p for p in settings.plants if p.name in dm.tags]
+    plants, family = _trained(settings, dm)
     channels = lit.policy.channels
-    family = dm.families.plants if dm.families else []
     spec = dm.families.spec if dm.families else None
     turn, checked = (spec.dagger_plants, spec.closed_loop_plants) if spec else (0, 0)
     own = [
