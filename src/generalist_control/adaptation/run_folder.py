@@ -146,17 +146,13 @@ def _register(
     """Log the MLflow model and register it; tag the version with its base and plant."""
     w = job.windows
     windows = {k: torch.from_numpy(getattr(w, k)[:8]) for k in ("state", "mask", "ref", "tag")}
-    version = log_model(policy, windows, name)
-    if version is not None and name:
-        client = mlflow.MlflowClient()
-        for key, value in (
-            ("base_version", base or ""),
-            ("base_run_id", base_run),
-            ("adapted_plant", job.new.name),
-            ("adapted_tag", str(job.new.plant.tag)),
-        ):
-            client.set_model_version_tag(name, version, key, value)
-    return version
+    tags = {
+        "base_version": base or "",
+        "base_run_id": base_run,
+        "adapted_plant": job.new.name,
+        "adapted_tag": str(job.new.plant.tag),
+    }
+    return log_model(policy, windows, name, tags)
 
 
 def _write(folder: Path, job: AdaptJob, policy: Policy, meta: dict, record: dict) -> list[Path]:

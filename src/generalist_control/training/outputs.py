@@ -107,12 +107,15 @@ def closed_loop_scores(
 
 
 def log_model(
-    policy: Policy, windows: dict[str, torch.Tensor], registered_name: str | None = None
+    policy: Policy,
+    windows: dict[str, torch.Tensor],
+    registered_name: str | None = None,
+    tags: Mapping[str, str] | None = None,
 ) -> str | None:
     """Log the policy as an MLflow PyTorch model (``torch.export`` of :class:`FlatPolicy`).
 
     Eight ``windows`` are the signature's example; with ``registered_name``, a new registered
-    version tagged with the run, returned.
+    version tagged with the run (and ``tags``), returned.
     """
     flat = FlatPolicy(policy).eval()
     n = min(8, windows["tag"].shape[0])
@@ -143,23 +146,19 @@ def log_model(
     version = info.registered_model_version
     if not registered_name or version is None:
         return None
-    _tag_version(registered_name, str(version))
+    client, run = mlflow.MlflowClient(), mlflow.active_run()
+    version_tags = dict(tags or {})
+    if run is not None:  # the version names the run that made it
+        run_tags = client.get_run(run.info.run_id).data.tags
+        version_tags = {
+            "run_id": run.info.run_id,
+            "run_name": run_tags.get("mlflow.runName", ""),
+            "data.content_hash": run_tags.get("data.content_hash", ""),
+            **version_tags,
+        }
+    for key, value in version_tags.items():
+        client.set_model_version_tag(registered_name, str(version), key, value)
     return str(version)
-
-
-def _tag_version(name: str, version: str) -> None:
-    """Tag a registered version with the active run: ``run_id``, ``run_name``, data hash."""
-    run = mlflow.active_run()
-    if run is None:
-        return
-    client = mlflow.MlflowClient()
-    tags = client.get_run(run.info.run_id).data.tags
-    for key, value in (
-        ("run_id", run.info.run_id),
-        ("run_name", tags.get("mlflow.runName", "")),
-        ("data.content_hash", tags.get("data.content_hash", "")),
-    ):
-        client.set_model_version_tag(name, version, key, value)
 
 
 def log_inputs(settings: TrainingSettings, dm: DemoDataModule, n_params: int) -> None:
