@@ -22,7 +22,6 @@ from generalist_control.adaptation.new_plant import (
 from generalist_control.adaptation.request import AdaptRequest, AdaptSettings
 from generalist_control.adaptation.row_fit import (
     LoopScore,
-    dagger_round,
     fit_row,
     learned_parameters,
     nearest_row,
@@ -30,6 +29,7 @@ from generalist_control.adaptation.row_fit import (
 from generalist_control.common.secrets import redact
 from generalist_control.data.windows import Windows
 from generalist_control.deploy.policy_source import resolve
+from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.bank import (
     ROWS,
     RecipeError,
@@ -43,6 +43,7 @@ from generalist_control.model.bank import (
 )
 from generalist_control.model.policy import Policy, load_policy, policy_sha256
 from generalist_control.tracking import mlflow_utils
+from generalist_control.training.callbacks import dagger_round
 from generalist_control.training.datamodule import WindowTensors
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
@@ -184,7 +185,9 @@ def _fit(
     for i in range(1 + (s.rounds if job.dagger else 0)):
         if i:  # DAgger round i: roll out, label, add, fit again
             sampler, labeller = job.dagger  # type: ignore[misc]
-            added += dagger_round(policy, meta, sampler, labeller, data, i - 1, s.beta_at(i - 1))
+            runtime = PolicyRuntime(policy, meta)
+            windows, _ = dagger_round(sampler, labeller, runtime, data, i - 1, s.beta_at(i - 1))
+            added += len(windows)
         losses += fit_row(policy, tag, data.tensors, s, learned, job.request.seed + i)
         scores.append(job.score(policy, meta))
         if scores[-1] <= best:

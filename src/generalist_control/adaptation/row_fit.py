@@ -22,14 +22,10 @@ from generalist_control.model.policy import Policy
 from generalist_control.plants.definition import Plant
 from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.simulation.simulate import simulate_many
-from generalist_control.training.datamodule import WindowTensors
-from generalist_control.training.labeller import ExpertLabeller
-from generalist_control.training.sampler import RolloutSampler
 from generalist_control.training.settings import ClosedLoopValSettings
 
 __all__ = [
     "LoopScore",
-    "dagger_round",
     "fit_row",
     "learned_parameters",
     "nearest_row",
@@ -172,22 +168,3 @@ class LoopScore:
         with torch.inference_mode():
             runs = simulate_many(self.steps.runs, RuntimeAdapter(PolicyRuntime(policy, meta)))
         return any(bool(run.diverged.any()) for run in runs)
-
-
-def dagger_round(
-    policy: Policy,
-    meta: dict[str, Any],
-    sampler: RolloutSampler,
-    labeller: ExpertLabeller,
-    data: WindowTensors,
-    round_index: int,
-    beta: float,
-) -> int:
-    """Roll the policy out on the sampler's plant, label with its LQI, append; windows added."""
-    runtime = PolicyRuntime(policy, meta)
-    with torch.inference_mode():
-        rollouts = sampler.run(round_index, runtime, beta)
-        bounds = labeller.bounds(data, sampler.plants)
-        windows, _ = labeller.label(rollouts, bounds)
-    data.append(windows)
-    return len(windows)

@@ -12,12 +12,14 @@ import lightning as L
 import numpy as np
 import torch
 
+from generalist_control.data.windows import Windows
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
 from generalist_control.plants.definition import Plant
 from generalist_control.plants.variants import make_variant
 from generalist_control.simulation.comparison import ClosedLoopScore
+from generalist_control.training.datamodule import WindowTensors
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
 from generalist_control.training.settings import DaggerSettings, TrainingSettings
@@ -29,6 +31,7 @@ __all__ = [
     "config_callbacks",
     "dagger_callback",
     "dagger_plants",
+    "dagger_round",
 ]
 
 log = logging.getLogger(__name__)
@@ -92,12 +95,10 @@ class DAggerCallback(L.Callback):
         policy = cast(Policy, pl_module.policy)
         was_training = policy.training
         runtime = PolicyRuntime(policy, dm.meta())
-        with torch.inference_mode():
-            rollouts = self.sampler.run(self.done, runtime, beta)
-            bounds = self.labeller.bounds(dm.train_set, rollouts.plants)
-            windows, counts = self.labeller.label(rollouts, bounds)
+        windows, counts = dagger_round(
+            self.sampler, self.labeller, runtime, dm.train_set, self.done, beta
+        )
         policy.train(was_training)
-        dm.train_set.append(windows)
         self.done += 1
         for cb in cast(Any, trainer).callbacks:  # the training set changed: patience anew
             if isinstance(cb, L.pytorch.callbacks.EarlyStopping):
@@ -108,6 +109,23 @@ class DAggerCallback(L.Callback):
         log.info("DAgger round %d (beta %.3g): %d windows added", self.done, beta, len(windows))
         pl_module.log("dagger/windows", float(len(windows)), logger=False)
         pl_module.log("dagger/beta", float(beta), logger=False)
+
+
+def dagger_round(
+    sampler: RolloutSampler,
+    labeller: ExpertLabeller,
+    runtime: PolicyRuntime,
+    train_set: WindowTensors,
+    round_index: int,
+    beta: float,
+) -> tuple[Windows, dict[str, int]]:
+    """Roll ``runtime``'s policy out, label what it visits, add it to ``train_set``."""
+    with torch.inference_mode():
+        rollouts = sampler.run(round_index, runtime, beta)
+        bounds = labeller.bounds(train_set, rollouts.plants)
+        windows, counts = labeller.label(rollouts, bounds)
+    train_set.append(windows)
+    return windows, counts
 
 
 def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
