@@ -111,9 +111,8 @@ def _rows(policy: Policy, plants: Sequence[Plant]) -> dict[str, Tensor]:
 def fit_cards(policy: Policy, plants: Sequence[Plant], standardise: bool = True) -> None:
     """Fill ``policy``'s bank and normaliser rows at each plant's tag, in place.
 
-    With ``standardise`` (training), the cards' mean and spread over these rows become the
-    part's standardisation; without, it is kept (rows written into a trained bank). Rows of
-    tags no plant holds keep what they held.
+    With ``standardise`` (training), the cards' mean and spread become the part's
+    standardisation; without, it is kept (rows written into a trained bank).
 
     Raises
     ------
@@ -157,15 +156,12 @@ def fit_targets(part: ContextPlant, plants: Sequence[Plant]) -> None:
 
 
 def add_rows(policy: Policy, rows: Mapping[str, Tensor]) -> Policy:
-    """``policy`` with one more tag whose per-tag buffers hold ``rows`` (one row each).
-
-    Every other parameter and buffer is copied bit for bit; ``policy`` is not changed.
+    """A copy of ``policy`` (bit for bit) with one more tag, its per-tag entries ``rows``.
 
     Raises
     ------
     RecipeError
-        If an entry sized by the number of tags is missing from ``rows`` (a learned per-tag
-        parameter: a tag embedding has no row for a plant it never saw).
+        If an entry sized by the number of tags is missing from ``rows``.
     """
     old = policy.state_dict()
     config = copy.deepcopy(policy.config)
@@ -195,8 +191,7 @@ def add_plant(policy: Policy, plant: Plant) -> Policy:
     Raises
     ------
     NoModelRowError
-        If the policy's plant part learns its rows (a tag embedding) or reads the plant from
-        the window with scales of the plant's data (in context): naming the part.
+        Naming the plant part, if it is not a card bank.
     """
     if not isinstance(policy.net.plant, CardPlant):
         raise NoModelRowError(type(policy.net.plant).__name__)
@@ -225,13 +220,12 @@ def add_scales(policy: Policy, scales: Mapping[str, Tensor]) -> Policy:
 
 
 def check_growable(policy: Policy, source: str = "the policy") -> None:
-    """Refuse a policy whose recipe cannot take a new row to learn, naming what to do instead.
+    """Refuse a policy whose plant part is no tag embedding, naming what to do instead.
 
     Raises
     ------
     RecipeError
-        For a tag-free policy (it needs no row: name the plant and evaluate it directly),
-        or for a plant part other than a tag embedding.
+        For a tag-free policy (it needs no row) or any other part.
     """
     plant = policy.net.plant
     if isinstance(plant, InferredPlant):
@@ -257,13 +251,7 @@ def start_rows(policy: Policy, tags: Iterable[int]) -> dict[str, Tensor]:
 
 
 def grow_policy(policy: Policy, row: Tensor, scales: Mapping[str, Tensor]) -> Policy:
-    """``policy`` (a tag embedding's) with one more tag: its row ``row``, its scales ``scales``.
-
-    Raises
-    ------
-    RecipeError
-        If the recipe cannot take a row (:func:`check_growable`).
-    """
+    """``policy`` with one more tag: embedding row ``row``, normaliser row ``scales``."""
     check_growable(policy)
     return add_rows(policy, {ROWS: row[None], **{k: scales[k] for k in SCALES}})
 
