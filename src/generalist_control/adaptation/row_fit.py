@@ -12,7 +12,6 @@ from typing import Any
 
 import torch
 from torch import Tensor, nn
-from torch.func import functional_call
 
 from generalist_control.adaptation.request import AdaptSettings
 from generalist_control.deploy.adapter import RuntimeAdapter
@@ -38,19 +37,6 @@ _NET_ROWS = ROWS.removeprefix("net.")
 _COMPARED = 4096
 
 
-def _imitation_loss(
-    policy: Policy, batch: Mapping[str, Tensor], rows: Tensor | None = None
-) -> Tensor:
-    """The training's loss on ``batch``, with the embedding's weight ``rows`` if given."""
-    state, mask, ref, tag = policy.normaliser.normalise_inputs(
-        batch["state"], batch["mask"], batch["ref"], batch["tag"]
-    )
-    params = {} if rows is None else {_NET_ROWS: rows}
-    out = functional_call(policy.net, params, (state, mask, ref, tag))
-    target = policy.normaliser.normalise_controls(batch["target"], batch["tag"])
-    return ((out.control - target / out.scale) ** 2).mean()
-
-
 def _spliced(frozen: Tensor, tag: int, row: Tensor) -> Tensor:
     """The embedding's weight with row ``tag`` replaced by ``row`` (the others detached)."""
     return torch.cat([frozen[:tag], row[None], frozen[tag + 1 :]])
@@ -66,7 +52,7 @@ def nearest_row(
     pick = torch.randperm(n, generator=torch.Generator().manual_seed(0))[:_COMPARED]
     batch = {k: v[pick] for k, v in tensors.items()}
     losses = {
-        name: float(_imitation_loss(policy, batch, _spliced(frozen, tag, row)))
+        name: float(policy.errors(batch, {_NET_ROWS: _spliced(frozen, tag, row)})[0].mean())
         for name, row in candidates.items()
     }
     finite = {k: v for k, v in losses.items() if v == v}
@@ -138,7 +124,7 @@ def fit_row(
             total = 0.0
             for idx in torch.randperm(n, generator=generator).split(settings.batch_size):
                 batch = {k: v[idx] for k, v in tensors.items()}
-                loss = _imitation_loss(policy, batch, _spliced(frozen, tag, row))
+                loss = policy.errors(batch, {_NET_ROWS: _spliced(frozen, tag, row)})[0].mean()
                 optimiser.zero_grad(set_to_none=True)
                 loss.backward()
                 optimiser.step()

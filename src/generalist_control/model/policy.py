@@ -17,6 +17,7 @@ from typing import Any, cast
 import numpy as np
 import torch
 from torch import Tensor, nn
+from torch.func import functional_call
 
 from generalist_control.data.windows import Windows
 from generalist_control.model.build import build_network
@@ -94,6 +95,20 @@ class Policy(nn.Module):
         """The network's output for raw windows (normalised by the plant's tag)."""
         state, mask, ref, tag = self.normaliser.normalise_inputs(state, mask, ref, tag)
         return self.net(state, mask, ref, tag)
+
+    def errors(
+        self, batch: Mapping[str, Tensor], params: Mapping[str, Tensor] | None = None
+    ) -> tuple[Tensor, NetOutput]:
+        """The imitation loss's squared errors (B, horizon) on ``batch``, and the output.
+
+        In normalised units over the window scale; ``params`` replace the network's
+        parameters of those names (:func:`torch.func.functional_call`).
+        """
+        tag = batch["tag"]
+        args = self.normaliser.normalise_inputs(batch["state"], batch["mask"], batch["ref"], tag)
+        out = self.net(*args) if params is None else functional_call(self.net, dict(params), args)
+        target = self.normaliser.normalise_controls(batch["target"], tag)
+        return (out.control - target / out.scale) ** 2, out
 
     def forward(
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor

@@ -15,7 +15,6 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import RichProgressBar
 from torch import Tensor
 
-from generalist_control.model.network import NetOutput
 from generalist_control.model.policy import Policy
 
 __all__ = ["ImitationModule"]
@@ -54,12 +53,6 @@ class ImitationModule(L.LightningModule):
         """Controls in plant units and gate weights (see :meth:`Policy.forward`)."""
         return self.policy(state, mask, ref, tag)
 
-    def _errors(self, batch: dict[str, Tensor]) -> tuple[Tensor, NetOutput]:
-        """Squared errors (B, horizon), normalised units over the window scale; the output."""
-        out = self.policy.output(batch["state"], batch["mask"], batch["ref"], batch["tag"])
-        target = self.policy.normaliser.normalise_controls(batch["target"], batch["tag"])
-        return (out.control - target / out.scale) ** 2, out
-
     def on_train_epoch_start(self) -> None:
         """Reset the epoch's loss sums."""
         self._train_sum = torch.zeros((), dtype=torch.float64, device=self.device)
@@ -70,7 +63,7 @@ class ImitationModule(L.LightningModule):
 
         ``train/loss``, the epoch's mean, is logged once, with the last batch (cheaper).
         """
-        errors, out = self._errors(batch)
+        errors, out = self.policy.errors(batch)
         loss = errors.mean()
         own = self.policy.net.plant.loss(out.plant, batch["tag"])
         if own is not None:
@@ -96,7 +89,7 @@ class ImitationModule(L.LightningModule):
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         """Accumulate squared errors per system tag."""
-        err, out = self._errors(batch)
+        err, out = self.policy.errors(batch)
         err = err.to(torch.float64)
         if out.plant is not None and out.plant.logits is not None:  # an identity head's
             self._val_hits_seen = True
