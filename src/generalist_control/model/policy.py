@@ -62,26 +62,10 @@ class Policy(nn.Module):
         mapped = bool(getattr(net.plant, "maps_states", False))  # the card route's frame
         self.normaliser = Normaliser(net.n_tags, net.width, mapped)
         self.net = net
-
-    @property
-    def history(self) -> int:
-        """Samples per window (``T_h``)."""
-        return self.net.history
-
-    @property
-    def horizon(self) -> int:
-        """Controls per window (``K``)."""
-        return self.net.horizon
-
-    @property
-    def width(self) -> int:
-        """Entries per window sample: the padded plant state and the channels."""
-        return self.net.width
-
-    @property
-    def channels(self) -> tuple[str, ...]:
-        """The window's extra channels (``model.channels``)."""
-        return self.net.channels
+        self.history: int = net.history  #: samples per window (``T_h``)
+        self.horizon: int = net.horizon  #: controls per window (``K``)
+        self.width: int = net.width  #: entries per window sample: padded state, channels
+        self.channels: tuple[str, ...] = net.channels  #: the window's extra channels
 
     def network_inputs(
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
