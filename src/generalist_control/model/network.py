@@ -157,11 +157,12 @@ class GeneralistNetwork(nn.Module):
         self.state_dim = state_dim = MAX_ORDER
         self.law_history = self._law_history(law_history)
         self.width = state_dim + len(self.channels)
-        law_width = state_dim + ("integral" in self.channels)  # the law's [x; z]
+        self.law_width = law_width = state_dim + ("integral" in self.channels)  # [x; z]
         self.state_encoder_1 = mlp(law_width, d, e)
         self.state_encoder_2 = mlp(law_width, d, e)
         self.ref_encoder = mlp(1, d, e)
         self.plant = cast(PlantPart, plant(dim=d))
+        self.n_tags = int(self.plant.n_tags)  #: system tags ``0 .. n_tags - 1``
         missing = [c for c in self.plant.needs if c not in self.channels]
         if missing:
             raise ValueError(
@@ -196,11 +197,6 @@ class GeneralistNetwork(nn.Module):
             )
         return n
 
-    @property
-    def n_tags(self) -> int:
-        """The system tags the network knows (``0 .. n_tags - 1``)."""
-        return int(self.plant.n_tags)
-
     def scaled_inputs(self, state: Tensor, ref: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Each window divided by its peak (at least :data:`WINDOW_SCALE_FLOOR`), and the peaks.
 
@@ -212,17 +208,13 @@ class GeneralistNetwork(nn.Module):
         s = peak.clamp(min=WINDOW_SCALE_FLOOR).unsqueeze(1)
         return state / s.unsqueeze(2), ref / s, s
 
-    def law_state(self, state: Tensor, mask: Tensor) -> Tensor:
-        """The paper's ``X * M`` without the previous-control channel: ``[x; z]`` per step."""
-        drop = int("previous_control" in self.channels)
-        return (state * mask)[..., : state.shape[-1] - drop]
-
     def forward(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor) -> NetOutput:
         """The output for normalised windows: state, mask (B, history, width), ref, tag."""
         state, ref, scale = self.scaled_inputs(state, ref)
         code, reading = self.plant(state, mask, ref, tag)
         n = self.law_history  # the law reads the newest n samples only
-        x, ref = self.law_state(state[:, -n:], mask[:, -n:]), ref[:, -n:]
+        # the paper's X * M without the previous-control channel: [x; z] per step
+        x, ref = (state[:, -n:] * mask[:, -n:])[..., : self.law_width], ref[:, -n:]
         f_plant = self.plant_encoder(code).unsqueeze(1).expand(-1, n, -1)
         f = torch.cat(
             [self.state_encoder_1(x), self.state_encoder_2(x), self.ref_encoder(ref[..., None]),
