@@ -33,7 +33,6 @@ from generalist_control.model.bank import (
     ROWS,
     RecipeError,
     check_growable,
-    free_rows,
     grow_policy,
     plant_scales,
     set_row,
@@ -209,7 +208,8 @@ class AdaptJob:
 
 def _free_row(policy: Policy, meta: dict[str, Any], new: NewPlant) -> int:
     """A normaliser row no trained plant holds (tag-free): its file's tag if free."""
-    free = free_rows(policy, meta["tags"].values())
+    taken = {int(t) for t in meta["tags"].values()}
+    free = [t for t in range(policy.net.n_tags) if t not in taken]
     if not free:
         raise RecipeError(
             f"every one of the tag-free policy's {policy.net.n_tags} normaliser rows is a "

@@ -34,7 +34,6 @@ __all__ = [
     "fit_model_rows",
     "fit_targets",
     "frame_rows",
-    "free_rows",
     "grow_policy",
     "plant_scales",
     "set_row",
@@ -260,12 +259,6 @@ def set_row(policy: Policy, tag: int, row: Tensor) -> None:
     """Write ``row`` into the embedding's row ``tag``, in place; nothing else is touched."""
     with torch.no_grad():
         policy.get_parameter(ROWS)[tag].copy_(row)
-
-
-def free_rows(policy: Policy, used: Iterable[int]) -> list[int]:
-    """Tags of ``policy`` that no plant in ``used`` (its meta's tags) holds."""
-    taken = set(int(t) for t in used)
-    return [t for t in range(policy.net.n_tags) if t not in taken]
 
 
 def with_scales(policy: Policy, tag: int, scales: Mapping[str, Tensor]) -> Policy:

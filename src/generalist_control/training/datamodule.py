@@ -156,14 +156,11 @@ class DemoDataModule(L.LightningDataModule):
         self.train_set = WindowTensors(windows, kept & ~is_val)
         self.val_set = WindowTensors(windows, kept & is_val)
         rows = zip(demos.plant.tolist(), demos.tag, demos.order, strict=True)
-        kept_rows = [(str(p), int(t), int(n)) for p, t, n in rows if self._wanted(str(p))]
+        wanted = set(self.plants) if self.plants is not None else None
+        kept_rows = [(str(p), int(t), int(n)) for p, t, n in rows if wanted is None or p in wanted]
         self.tags = {p: t for p, t, _ in kept_rows}
         self.orders = {p: n for p, _, n in kept_rows}
         self.dt = float(demos.dt)
-
-    def _wanted(self, plant: str) -> bool:
-        """Whether ``plant`` is kept."""
-        return self.plants is None or plant in self.plants
 
     def _kept(self, plant: np.ndarray) -> np.ndarray:
         """Trajectories of :attr:`plants` (all without), after checking the data has them."""
