@@ -8,9 +8,8 @@ import pytest
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.simulate import plant_stepper
-from generalist_control.training.actuator import Actuator, lag_mix
 from generalist_control.training.labeller import ExpertLabeller
-from generalist_control.training.sampler import run_rollouts
+from generalist_control.training.sampler import Actuator, lag_mix, run_rollouts
 from generalist_control.training.settings import LabellerSettings
 from helpers import config_section
 

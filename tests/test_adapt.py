@@ -20,11 +20,11 @@ import yaml
 
 from generalist_control.adaptation import adapt
 from generalist_control.adaptation.job import learn, prepare
-from generalist_control.adaptation.recordings import RecordingError, write_recorded
+from generalist_control.adaptation.new_plant import RecordingError, write_recorded
 from generalist_control.data.generation import generate_demos
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.model.grow import ROWS, SCALES, RecipeError, grow_policy, plant_scales
+from generalist_control.model.bank import ROWS, SCALES, RecipeError, grow_policy, plant_scales
 from generalist_control.model.policy import load_policy, policy_sha256
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.definition import PlantConfigError

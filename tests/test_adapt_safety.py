@@ -24,8 +24,7 @@ import yaml
 
 from generalist_control.adaptation import AdaptationDiverged, adapt, run_folder
 from generalist_control.adaptation.job import learn, prepare
-from generalist_control.adaptation.new_plant import load_new_plant
-from generalist_control.adaptation.recordings import RecordingError, write_recorded
+from generalist_control.adaptation.new_plant import RecordingError, load_new_plant, write_recorded
 from generalist_control.common.atomic import (
     FolderBusy,
     ForeignDirectoryError,
@@ -34,7 +33,7 @@ from generalist_control.common.atomic import (
     staging_directory,
 )
 from generalist_control.data.generation import generate_demos
-from generalist_control.model.grow import ROWS, start_rows
+from generalist_control.model.bank import ROWS, start_rows
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.definition import PlantConfigError

@@ -132,7 +132,7 @@ def test_the_expert_s_share_decays_by_round_and_the_schedule_runs_when_due():
         DaggerSettings, "dagger", start_epoch=6, every=4, rounds=5, beta=0.5, beta_decay=0.5
     )
     assert [settings.beta_at(i) for i in range(4)] == [0.5, 0.25, 0.125, 0.0625]
-    from generalist_control.training.dagger import DAggerCallback
+    from generalist_control.training.callbacks import DAggerCallback
 
     cb = DAggerCallback(None, None, settings)  # type: ignore[arg-type]
     due = []
@@ -147,7 +147,7 @@ def test_a_round_executes_the_expert_s_share_of_its_round():
     """Round i's rollouts blend beta_i of the expert's control with the policy's."""
     from types import SimpleNamespace
 
-    from generalist_control.training.dagger import DAggerCallback
+    from generalist_control.training.callbacks import DAggerCallback
 
     plant = load_plant("dc_servo")
     torch.manual_seed(0)

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from generalist_control.adaptation.recordings import read_recorded, write_recorded
+from generalist_control.adaptation.new_plant import read_recorded, write_recorded
 from generalist_control.data.generation import generate_demos
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import LQIController

@@ -17,8 +17,7 @@ from hydra import compose, initialize_config_dir
 from generalist_control.common.paths import conf_dir
 from generalist_control.data.demos import MissingDataError, content_hash, load_demos
 from generalist_control.deploy.policy_source import resolve
-from generalist_control.model.flat import FlatPolicy
-from generalist_control.model.policy import load_policy, policy_sha256
+from generalist_control.model.policy import FlatPolicy, load_policy, policy_sha256
 from generalist_control.tracking.policy_runs import find_training_run
 from helpers import tiny_train_overrides, train
 

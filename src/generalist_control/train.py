@@ -1,8 +1,7 @@
 """The ``train`` stage: ``python train.py`` at the repo root, ``gc-train``, ``dvc repro train``.
 
-Hydra overrides as usual, e.g. ``python train.py model.hidden=64 experts=5`` or
-``experiment=paper``; the config is read once (:func:`~.training.settings.read_training`),
-the work is :func:`generalist_control.training.fit.train`.
+The config is read once (:func:`~.training.settings.read_training`); the work is
+:func:`~.training.fit.train`.
 """
 
 from __future__ import annotations

@@ -1,10 +1,7 @@
 """Adding a plant to a trained policy without retraining: learn its row, nothing else.
 
-``python adapt.py plant=<name or path>`` (:mod:`generalist_control.adapt`): the config read
-once (:mod:`.request`), the plant checked (:mod:`.new_plant`), its demonstrations generated
-or recorded (:mod:`.recordings`), its row learned (:mod:`.job`, :mod:`.row_fit`), and the run
-folder, MLflow run and model version written last (:mod:`.run_folder`). docs/training.md,
-"Adding a plant to a trained policy".
+Everything is read and checked first; the run folder, MLflow run and model version are
+written last (docs/training.md, "Adding a plant to a trained policy").
 """
 
 from __future__ import annotations
@@ -35,9 +32,7 @@ def adapt(request: AdaptRequest) -> tuple[dict[str, Any], dict[str, Any]]:
     Returns
     -------
     record : dict
-        What was done and measured (also ``<run_dir>/adapt.json``): the plant and its row,
-        the demonstrations, the start row chosen, closed-loop scores against LQI (start,
-        after the fit, after each DAgger round, kept and which), losses, ``wall_s``.
+        What was done and measured (also ``<run_dir>/adapt.json``).
     objects : dict
         ``policy``, ``meta``, ``policy_path``, ``run_id``, ``experiment``,
         ``registered_version``, ``base_version``.

@@ -1,43 +1,38 @@
 """An adaptation's work: everything read and checked first (:func:`prepare`), then the row learned.
 
-:func:`learn` grows the policy by one tag (:mod:`~generalist_control.model.grow`), starts the
-new row (``adapt.init``), fits it, runs DAgger rounds on the plant and keeps the row whose
-closed loop is nearest LQI's, the start row included. A tag-free policy is only named for
-the plant: its scales on a free row, nothing learned.
+The row is a parameter of its own, spliced into the embedding (``adapt.unfreeze`` may name a few
+parameters besides); the row kept is the one whose closed loop is nearest LQI's, the start
+row included. A tag-free policy is only named for the plant (its scales on a free row).
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
+from torch import Tensor, nn
 
 from generalist_control.adaptation.new_plant import (
     NewPlant,
     generated_windows,
     load_new_plant,
     plant_meta,
+    read_recorded,
 )
-from generalist_control.adaptation.recordings import read_recorded
 from generalist_control.adaptation.request import AdaptRequest, AdaptSettings
-from generalist_control.adaptation.row_fit import (
-    LoopScore,
-    dagger_round,
-    fit_row,
-    learned_parameters,
-    nearest_row,
-)
 from generalist_control.common.secrets import redact
-from generalist_control.data.generation import enabled_families
 from generalist_control.data.windows import Windows
+from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.policy_source import resolve
-from generalist_control.model.grow import (
+from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.model.bank import (
     ROWS,
     RecipeError,
     check_growable,
-    free_rows,
     grow_policy,
     plant_scales,
     set_row,
@@ -45,12 +40,150 @@ from generalist_control.model.grow import (
     with_scales,
 )
 from generalist_control.model.policy import Policy, load_policy, policy_sha256
+from generalist_control.plants.definition import Plant
+from generalist_control.simulation.comparison import ClosedLoopScore
+from generalist_control.simulation.simulate import simulate_many
 from generalist_control.tracking import mlflow_utils
+from generalist_control.training.callbacks import dagger_round
 from generalist_control.training.datamodule import WindowTensors
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
+from generalist_control.training.settings import ClosedLoopValSettings, rollout_data
 
-__all__ = ["AdaptJob", "learn", "prepare"]
+__all__ = [
+    "AdaptJob",
+    "LoopScore",
+    "fit_row",
+    "learn",
+    "learned_parameters",
+    "nearest_row",
+    "prepare",
+]
+
+#: The row's name inside the network (``ROWS`` without ``net.``).
+_NET_ROWS = ROWS.removeprefix("net.")
+
+#: Windows the start rows are compared on (a random subset when there are more).
+_COMPARED = 4096
+
+
+def _spliced(frozen: Tensor, tag: int, row: Tensor) -> Tensor:
+    """The embedding's weight with row ``tag`` replaced by ``row`` (the others detached)."""
+    return torch.cat([frozen[:tag], row[None], frozen[tag + 1 :]])
+
+
+@torch.no_grad()
+def nearest_row(
+    policy: Policy, tag: int, tensors: Mapping[str, Tensor], candidates: Mapping[str, Tensor]
+) -> tuple[str, dict[str, float]]:
+    """The candidate row whose policy imitates the windows best, and every candidate's loss."""
+    frozen = policy.state_dict()[ROWS]
+    n = len(tensors["tag"])
+    pick = torch.randperm(n, generator=torch.Generator().manual_seed(0))[:_COMPARED]
+    batch = {k: v[pick] for k, v in tensors.items()}
+    losses = {
+        name: float(policy.errors(batch, {_NET_ROWS: _spliced(frozen, tag, row)})[0].mean())
+        for name, row in candidates.items()
+    }
+    finite = {k: v for k, v in losses.items() if v == v}
+    return min(finite, key=finite.__getitem__), losses
+
+
+def learned_parameters(policy: Policy, unfreeze: Sequence[str]) -> dict[str, nn.Parameter]:
+    """The network's parameters ``unfreeze`` names (each a dotted prefix of their names).
+
+    Raises
+    ------
+    ValueError
+        If a prefix names no parameter, or names the tag embedding (trained rows stay).
+    """
+    named = dict(policy.named_parameters())
+    out: dict[str, nn.Parameter] = {}
+    for prefix in unfreeze:
+        hits = {k: p for k, p in named.items() if k == prefix or k.startswith(prefix + ".")}
+        if not hits:
+            parts = sorted({".".join(k.split(".")[:2]) for k in named})
+            raise ValueError(
+                f"adapt.unfreeze names {prefix!r}, which is no parameter of the policy; its "
+                f"parts: {parts} (e.g. net.skip.gains)"
+            )
+        if ROWS in hits:
+            raise ValueError(
+                f"adapt.unfreeze names {prefix!r}, which holds the trained plants' rows "
+                f"({ROWS}): the new row is always learned, the others never"
+            )
+        out.update(hits)
+    return out
+
+
+@contextmanager
+def _learning(policy: Policy, learned: Mapping[str, nn.Parameter]) -> Iterator[None]:
+    """Only ``learned`` parameters take gradients inside; afterwards every one does again."""
+    flags = {k: p.requires_grad for k, p in policy.named_parameters()}
+    for k, p in policy.named_parameters():
+        p.requires_grad_(k in learned)
+    was_training = policy.training
+    policy.train()
+    try:
+        yield
+    finally:
+        for k, p in policy.named_parameters():
+            p.requires_grad_(flags[k])
+        policy.train(was_training)
+
+
+def fit_row(
+    policy: Policy,
+    tag: int,
+    tensors: Mapping[str, Tensor],
+    settings: AdaptSettings,
+    learned: Mapping[str, nn.Parameter],
+    seed: int,
+) -> list[float]:
+    """Fit row ``tag`` (and ``learned``) on ``tensors``; return each epoch's mean loss.
+
+    Every other row and every parameter not in ``learned`` is left bit for bit as it was.
+    """
+    frozen = policy.state_dict()[ROWS].clone()
+    row = nn.Parameter(frozen[tag].clone())
+    optimiser = torch.optim.Adam([row, *learned.values()], lr=settings.lr)
+    generator = torch.Generator().manual_seed(seed)
+    n, losses = len(tensors["tag"]), []
+    with _learning(policy, learned):
+        for _ in range(settings.epochs):
+            total = 0.0
+            for idx in torch.randperm(n, generator=generator).split(settings.batch_size):
+                batch = {k: v[idx] for k, v in tensors.items()}
+                loss = policy.errors(batch, {_NET_ROWS: _spliced(frozen, tag, row)})[0].mean()
+                optimiser.zero_grad(set_to_none=True)
+                loss.backward()
+                optimiser.step()
+                total += loss.item() * len(idx)
+            losses.append(total / n)
+    set_row(policy, tag, row)
+    return losses
+
+
+class LoopScore:
+    """The plant's step error in closed loop relative to its LQI's (1: diverged).
+
+    On the steps of ``closed_loop_val``, LQI simulated once.
+    """
+
+    def __init__(self, plant: Plant, scoring: ClosedLoopValSettings) -> None:
+        self.plant = plant
+        self.steps = ClosedLoopScore([plant], scoring.amplitudes, scoring.duration)
+
+    def __call__(self, policy: Policy, meta: dict[str, Any]) -> float:
+        """The score of ``policy`` (lower is better, at most 1)."""
+        with torch.inference_mode():
+            return self.steps(RuntimeAdapter(PolicyRuntime(policy, meta)))[self.plant.name]
+
+    def diverges(self, policy: Policy, meta: dict[str, Any]) -> bool:
+        """Whether a step run of ``policy`` diverges (a state beyond the simulator's bound)."""
+        with torch.inference_mode():
+            runs = simulate_many(self.steps.runs, RuntimeAdapter(PolicyRuntime(policy, meta)))
+        return any(bool(run.diverged.any()) for run in runs)
 
 
 @dataclass(frozen=True)
@@ -75,7 +208,8 @@ class AdaptJob:
 
 def _free_row(policy: Policy, meta: dict[str, Any], new: NewPlant) -> int:
     """A normaliser row no trained plant holds (tag-free): its file's tag if free."""
-    free = free_rows(policy, meta["tags"].values())
+    taken = {int(t) for t in meta["tags"].values()}
+    free = [t for t in range(policy.net.n_tags) if t not in taken]
     if not free:
         raise RecipeError(
             f"every one of the tag-free policy's {policy.net.n_tags} normaliser rows is a "
@@ -99,17 +233,17 @@ def _windows(request: AdaptRequest, new: NewPlant, policy: Policy) -> tuple[Wind
 
 def _dagger(request: AdaptRequest, new: NewPlant, policy: Policy) -> tuple | None:
     """The training's sampler (on the new plant alone) and labeller; None without rounds."""
-    spec, data = request.dagger, request.data
+    spec, data = request.dagger, rollout_data(request.data)
     if spec is None or request.demos is not None or not request.adapt.rounds:
         return None  # a recorded controller cannot label the states the policy visits
     sampler = RolloutSampler(
         [new.plant],
         spec.sampler,
-        limit=float(data["amplitudes"]["limit"]),
-        families=enabled_families(data),
+        limit=data.amplitude_limit,
+        families=data.families,
         seed=request.seed,
-        variant_range=float(data["variants"]["range"]),
-        variant_tries=int(data["variants"]["max_tries"]),
+        variant_range=data.variant_range,
+        variant_tries=data.variant_tries,
     )
     return sampler, ExpertLabeller(spec.labeller, policy.history, policy.horizon, policy.channels)
 
@@ -120,10 +254,8 @@ def prepare(request: AdaptRequest) -> AdaptJob:
     Raises
     ------
     ValueError
-        Naming the fix: a policy whose recipe cannot take a row
-        (:class:`~generalist_control.model.grow.RecipeError`), a plant refused by
-        :func:`~.new_plant.load_new_plant`, unusable recorded demonstrations
-        (:class:`~.recordings.RecordingError`), an ``adapt.unfreeze`` name the policy lacks.
+        Naming the fix: a policy that cannot take a row, a plant refused, unusable recorded
+        demonstrations, an ``adapt.unfreeze`` name the policy lacks.
     """
     torch.set_num_threads(request.threads)
     if request.policy.startswith(("runs:/", "models:/")):  # the store is touched for these only
@@ -180,11 +312,7 @@ def _snapshot(policy: Policy, tag: int, learned: dict[str, torch.nn.Parameter]) 
 def _fit(
     job: AdaptJob, policy: Policy, meta: dict[str, Any], data: WindowTensors, start: float
 ) -> dict[str, Any]:
-    """The fit, then each DAgger round and fit; the best row (and learned) restored.
-
-    Kept: the lowest closed-loop score of the start, the fit and the rounds (the later on a
-    tie), so the row kept is never worse than the start row.
-    """
+    """The fit, then each DAgger round and fit; the lowest-scoring row (later on a tie) kept."""
     s, tag = job.settings, job.new.plant.tag
     learned = learned_parameters(policy, s.unfreeze)
     best, kept, keep = start, "start", _snapshot(policy, tag, learned)
@@ -192,7 +320,9 @@ def _fit(
     for i in range(1 + (s.rounds if job.dagger else 0)):
         if i:  # DAgger round i: roll out, label, add, fit again
             sampler, labeller = job.dagger  # type: ignore[misc]
-            added += dagger_round(policy, meta, sampler, labeller, data, i - 1, s.beta_at(i - 1))
+            runtime = PolicyRuntime(policy, meta)
+            windows, _ = dagger_round(sampler, labeller, runtime, data, i - 1, s.beta_at(i - 1))
+            added += len(windows)
         losses += fit_row(policy, tag, data.tensors, s, learned, job.request.seed + i)
         scores.append(job.score(policy, meta))
         if scores[-1] <= best:

@@ -1,8 +1,4 @@
-"""The adapt command's config, read once into typed settings (defaults: ``conf/adapt.yaml``).
-
-The entry points (``adapt``, ``unseen``) read the composed config with :func:`read_request`;
-nothing below them sees the config itself.
-"""
+"""The adapt command's config (``conf/adapt.yaml``), read once into typed settings."""
 
 from __future__ import annotations
 
@@ -77,9 +73,8 @@ def read_request(cfg: Mapping[str, Any], run_dir: Path) -> AdaptRequest:
     Raises
     ------
     ValueError
-        Naming the key: no ``plant``, an ``adapt`` setting of the wrong type or out of
-        range, ``closed_loop_val=null`` (it picks the row kept), DAgger rounds with
-        ``dagger=null``.
+        Naming the key: no ``plant``, a bad ``adapt`` setting, ``closed_loop_val=null``,
+        DAgger rounds with ``dagger=null``.
     """
     if not cfg["plant"]:
         raise ValueError("plant= is required: a catalogue name or the path of a plant YAML")

@@ -1,11 +1,7 @@
 """What an adaptation leaves: its run folder, its MLflow run and a registered model version.
 
-``run_dir`` (``outputs/adapt/<time>`` by default) holds ``policy.ckpt``, ``adapt.json`` and
-``plants/<name>.yaml`` (so that ``hydra.searchpath`` finds the plant for an evaluation). It
-is the command's own as a stage's output folder is (:mod:`~generalist_control.common.atomic`:
-its marker names ``run_dir``): missing, empty, or written by an adaptation before. It is
-written under a lock, staged beside its place and swapped in last, after the model version
-is registered, so a folder that looks complete always has its version.
+``run_dir`` holds ``policy.ckpt``, ``adapt.json`` and ``plants/<name>.yaml``; it is staged and
+swapped in last, after the version is registered: a complete-looking folder has its version.
 """
 
 from __future__ import annotations
@@ -82,8 +78,7 @@ def check_run_dir(run_dir: Path) -> None:
     Raises
     ------
     ForeignDirectoryError
-        Naming the files that are not an adaptation's, or the other command's setting
-        (``paths.data_dir``, ...) whose marker the folder holds; nothing is changed.
+        Naming the foreign files or the other command's setting; nothing is changed.
     """
     check_replaceable(run_dir, {}, SETTING)
     if (run_dir / MARKER).is_file():
@@ -151,17 +146,13 @@ def _register(
     """Log the MLflow model and register it; tag the version with its base and plant."""
     w = job.windows
     windows = {k: torch.from_numpy(getattr(w, k)[:8]) for k in ("state", "mask", "ref", "tag")}
-    version = log_model(policy, windows, name)
-    if version is not None and name:
-        client = mlflow.MlflowClient()
-        for key, value in (
-            ("base_version", base or ""),
-            ("base_run_id", base_run),
-            ("adapted_plant", job.new.name),
-            ("adapted_tag", str(job.new.plant.tag)),
-        ):
-            client.set_model_version_tag(name, version, key, value)
-    return version
+    tags = {
+        "base_version": base or "",
+        "base_run_id": base_run,
+        "adapted_plant": job.new.name,
+        "adapted_tag": str(job.new.plant.tag),
+    }
+    return log_model(policy, windows, name, tags)
 
 
 def _write(folder: Path, job: AdaptJob, policy: Policy, meta: dict, record: dict) -> list[Path]:
@@ -178,8 +169,7 @@ def publish(
 ) -> dict[str, Any]:
     """Log the run, register the model, then put the run folder in place (last).
 
-    Interrupted (SIGINT, SIGTERM under :func:`sigterm_raises`), the run ends KILLED and no
-    run folder appears; any other error ends it FAILED.
+    Interrupted, the run ends KILLED and no run folder appears; any other error: FAILED.
     """
     logger = dict(job.request.logger)
     logger["run_name"] = redact(logger["run_name"]) or f"adapt-{job.new.name}"

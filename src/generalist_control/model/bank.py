@@ -1,14 +1,13 @@
-"""A policy's per-plant rows that are computed, not learned: the card bank and its frames.
+"""A policy's per-tag rows: the card bank computed from the plants' models, and growing by one.
 
-Training fills them for its plants (:func:`fit_cards`); a plant never seen grows the policy
-by one row (:func:`add_plant`), nothing learned. A tag embedding's rows are learned: such a
-policy cannot grow here.
+A grown policy copies every trained parameter and buffer bit for bit; its new row is a card
+(nothing learned), scales fitted on the plant's windows, or a tag embedding's row to learn.
 """
 
 from __future__ import annotations
 
 import copy
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 import torch
 from torch import Tensor
@@ -16,25 +15,48 @@ from torch import Tensor
 from generalist_control.model.card import CardFrame, CardPlant, card_features, card_frame
 from generalist_control.model.context import ContextPlant
 from generalist_control.model.normalise import Normaliser
+from generalist_control.model.plant import InferredPlant, TagEmbedding
 from generalist_control.model.policy import Policy
 from generalist_control.plants.definition import MAX_ORDER, Plant
 
-#: Smallest spread of a descriptor entry (an entry every training card shares).
-STD_FLOOR = 1e-3
-
 __all__ = [
+    "ROWS",
+    "SCALES",
     "NoModelRowError",
+    "RecipeError",
     "add_card",
     "add_plant",
     "add_rows",
     "add_scales",
     "card_part",
-    "data_rows",
+    "check_growable",
     "fit_cards",
     "fit_model_rows",
     "fit_targets",
     "frame_rows",
+    "grow_policy",
+    "plant_scales",
+    "set_row",
+    "start_rows",
+    "with_scales",
 ]
+
+#: Smallest spread of a descriptor entry (an entry every training card shares).
+STD_FLOOR = 1e-3
+
+#: The tag embedding's rows in a policy's ``state_dict``.
+ROWS = "net.plant.rows.weight"
+
+#: The normaliser's per-tag buffers in a policy's ``state_dict``.
+SCALES = tuple(f"normaliser.{k}" for k in ("state_scale", "ref_scale", "control_scale", "seen"))
+
+
+class RecipeError(ValueError):
+    """A policy whose recipe cannot take a new plant's row; the message says what to do."""
+
+
+class NoModelRowError(ValueError):
+    """A policy whose plant part cannot take a plant from its model (no card bank)."""
 
 
 def card_part(policy: Policy) -> CardPlant:
@@ -88,9 +110,8 @@ def _rows(policy: Policy, plants: Sequence[Plant]) -> dict[str, Tensor]:
 def fit_cards(policy: Policy, plants: Sequence[Plant], standardise: bool = True) -> None:
     """Fill ``policy``'s bank and normaliser rows at each plant's tag, in place.
 
-    With ``standardise`` (training), the cards' mean and spread over these rows become the
-    part's standardisation; without, it is kept (rows written into a trained bank). Rows of
-    tags no plant holds keep what they held.
+    With ``standardise`` (training), the cards' mean and spread become the part's
+    standardisation; without, it is kept (rows written into a trained bank).
 
     Raises
     ------
@@ -113,11 +134,7 @@ def fit_cards(policy: Policy, plants: Sequence[Plant], standardise: bool = True)
 
 
 def fit_model_rows(policy: Policy, plants: Sequence[Plant]) -> None:
-    """Fill the rows a policy computes from its plants' models; else nothing.
-
-    Called by training after the normaliser's fit on the data: the card bank replaces the
-    fitted rows; an in-context part's card targets (training only) are filled beside them.
-    """
+    """After the normaliser's fit: the card bank's rows, or an in-context part's card targets."""
     part = policy.net.plant
     if isinstance(part, CardPlant):
         fit_cards(policy, plants)
@@ -138,15 +155,12 @@ def fit_targets(part: ContextPlant, plants: Sequence[Plant]) -> None:
 
 
 def add_rows(policy: Policy, rows: Mapping[str, Tensor]) -> Policy:
-    """``policy`` with one more tag whose per-tag buffers hold ``rows`` (one row each).
-
-    Every other parameter and buffer is copied bit for bit; ``policy`` is not changed.
+    """A copy of ``policy`` (bit for bit) with one more tag, its per-tag entries ``rows``.
 
     Raises
     ------
-    ValueError
-        If an entry sized by the number of tags is missing from ``rows`` (a learned per-tag
-        parameter: a tag embedding has no row for a plant it never saw).
+    RecipeError
+        If an entry sized by the number of tags is missing from ``rows``.
     """
     old = policy.state_dict()
     config = copy.deepcopy(policy.config)
@@ -156,9 +170,9 @@ def add_rows(policy: Policy, rows: Mapping[str, Tensor]) -> Policy:
     state: dict[str, Tensor] = {}
     for key, fresh in grown.state_dict().items():
         if key in rows:
-            state[key] = torch.cat([old[key], rows[key].to(old[key].dtype)])
+            state[key] = torch.cat([old[key], rows[key].detach().to(old[key].dtype)])
         elif old[key].shape != fresh.shape:
-            raise ValueError(f"{key} is learned per tag: a plant never trained on has no row")
+            raise RecipeError(f"{key} is learned per tag: a plant never trained on has no row")
         else:
             state[key] = old[key].clone()
     grown.load_state_dict(state)
@@ -170,43 +184,89 @@ def add_card(policy: Policy, plant: Plant) -> Policy:
     return add_rows(policy, _rows(policy, [plant]))
 
 
-class NoModelRowError(ValueError):
-    """A policy whose plant part cannot take a plant from its model (no card bank)."""
-
-
 def add_plant(policy: Policy, plant: Plant) -> Policy:
     """``policy`` grown by ``plant``'s row computed from its model (the card route only).
 
     Raises
     ------
     NoModelRowError
-        If the policy's plant part learns its rows (a tag embedding) or reads the plant from
-        the window with scales of the plant's data (in context): naming the part.
+        Naming the plant part, if it is not a card bank.
     """
-    part = policy.net.plant
-    if not isinstance(part, CardPlant):
-        raise NoModelRowError(type(part).__name__)
+    if not isinstance(policy.net.plant, CardPlant):
+        raise NoModelRowError(type(policy.net.plant).__name__)
     return add_card(policy, plant)
 
 
-def data_rows(
-    policy: Policy, state: Tensor, mask: Tensor, ref: Tensor, target: Tensor
+def plant_scales(
+    state: Tensor, mask: Tensor, ref: Tensor, target: Tensor, mapped: bool = False
 ) -> dict[str, Tensor]:
-    """A new plant's normaliser row fitted on its windows, as training fits every row."""
-    one = Normaliser(1, policy.width, policy.normaliser.mapped)
+    """One plant's normaliser row fitted on its windows, keyed as in a policy's ``state_dict``.
+
+    ``mapped``: the policy's normaliser maps states (``Normaliser.mapped``).
+    """
+    one = Normaliser(1, state.shape[-1], mapped)
     one.fit(state, mask, ref, torch.zeros(len(state), dtype=torch.long), target)
     return {f"normaliser.{k}": v.detach().clone() for k, v in one.named_buffers()}
 
 
 def add_scales(policy: Policy, scales: Mapping[str, Tensor]) -> Policy:
-    """``policy`` grown by one normaliser row, ``scales`` (keys as in its ``state_dict``).
-
-    The plant part's own per-tag buffers (an in-context part's card targets, training only)
-    get an empty row.
-    """
-    n = policy.net.n_tags
+    """``policy`` grown by one normaliser row, ``scales``; the plant part's buffers get zeros."""
     rows = dict(scales)
     for key, value in policy.net.plant.named_buffers(prefix="net.plant"):
-        if key not in rows and value.shape[:1] == (n,):
+        if key not in rows and value.shape[:1] == (policy.net.n_tags,):
             rows[key] = torch.zeros_like(value[:1])
     return add_rows(policy, rows)
+
+
+def check_growable(policy: Policy, source: str = "the policy") -> None:
+    """Refuse a policy whose plant part is no tag embedding, naming what to do instead.
+
+    Raises
+    ------
+    RecipeError
+        For a tag-free policy (it needs no row) or any other part.
+    """
+    plant = policy.net.plant
+    if isinstance(plant, InferredPlant):
+        raise RecipeError(
+            f"{source} is tag-free (model.plant: InferredPlant): it reads the plant from the "
+            "window and has no row to learn for a new plant. Evaluate it directly: "
+            "adapt.learn=false names the plant and fits its normaliser scales, nothing learned"
+        )
+    if not isinstance(plant, TagEmbedding):
+        raise RecipeError(
+            f"{source} reaches the plant through {type(plant).__name__}, not a tag embedding "
+            "(model.plant: TagEmbedding): there is no row to add"
+        )
+
+
+def start_rows(policy: Policy, tags: Iterable[int]) -> dict[str, Tensor]:
+    """Where a new row may start: ``mean`` of the rows of ``tags`` (the trained plants only)."""
+    rows = policy.state_dict()[ROWS]
+    chosen = torch.as_tensor(sorted(set(tags)), dtype=torch.long)
+    if chosen.numel() == 0:
+        raise ValueError("the policy names no trained plant (meta tags): no row to start from")
+    return {"mean": rows[chosen].mean(0)}
+
+
+def grow_policy(policy: Policy, row: Tensor, scales: Mapping[str, Tensor]) -> Policy:
+    """``policy`` with one more tag: embedding row ``row``, normaliser row ``scales``."""
+    check_growable(policy)
+    return add_rows(policy, {ROWS: row[None], **{k: scales[k] for k in SCALES}})
+
+
+def set_row(policy: Policy, tag: int, row: Tensor) -> None:
+    """Write ``row`` into the embedding's row ``tag``, in place; nothing else is touched."""
+    with torch.no_grad():
+        policy.get_parameter(ROWS)[tag].copy_(row)
+
+
+def with_scales(policy: Policy, tag: int, scales: Mapping[str, Tensor]) -> Policy:
+    """A copy of ``policy`` whose normaliser row ``tag`` (a free one) holds ``scales``."""
+    state = {k: v.clone() for k, v in policy.state_dict().items()}
+    for key in SCALES:
+        state[key][tag] = scales[key][0].to(state[key].dtype)
+    with torch.random.fork_rng():
+        named = Policy(policy.config)
+    named.load_state_dict(state)
+    return named.eval()

@@ -1,13 +1,12 @@
-"""Build the network from its config (``conf/model``, or the copy a policy file stores).
+"""Build the network from its config (``conf/model``, or a policy file's copy) with Hydra.
 
-Hydra's ``instantiate`` builds it, each nested part a partial the network calls with its
-sizes. Only classes of :mod:`generalist_control.model` may be named, so loading a policy
-file cannot make the loader call anything else.
+Only classes of :mod:`generalist_control.model` may be named: loading a policy file calls
+nothing else.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 from hydra.errors import InstantiationException
@@ -21,32 +20,21 @@ __all__ = ["TARGET_PREFIX", "build_network", "targets"]
 TARGET_PREFIX = "generalist_control.model."
 
 
-def targets(config: Any, path: str = "model") -> dict[str, str]:
-    """Every ``_target_`` in ``config`` by its dotted path (``model``, ``model.plant``, ...)."""
-    found: dict[str, str] = {}
+def _nodes(config: Any, path: str = "model") -> Iterator[tuple[str, Mapping[str, Any]]]:
+    """Every mapping in ``config`` that names a ``_target_``, with its dotted path."""
     if isinstance(config, Mapping):
         if "_target_" in config:
-            found[path] = str(config["_target_"])
+            yield path, config
         for key, value in config.items():
-            found.update(targets(value, f"{path}.{key}"))
+            yield from _nodes(value, f"{path}.{key}")
     elif isinstance(config, list | tuple):
         for i, value in enumerate(config):
-            found.update(targets(value, f"{path}[{i}]"))
-    return found
+            yield from _nodes(value, f"{path}[{i}]")
 
 
-def _not_partial(config: Any, path: str = "model") -> list[str]:
-    """Paths of nested ``_target_`` nodes that are not ``_partial_: true``."""
-    found = []
-    if isinstance(config, Mapping):
-        if path != "model" and "_target_" in config and config.get("_partial_") is not True:
-            found.append(path)
-        for key, value in config.items():
-            found += _not_partial(value, f"{path}.{key}")
-    elif isinstance(config, list | tuple):
-        for i, value in enumerate(config):
-            found += _not_partial(value, f"{path}[{i}]")
-    return found
+def targets(config: Any) -> dict[str, str]:
+    """Every ``_target_`` in ``config`` by its dotted path (``model``, ``model.plant``, ...)."""
+    return {path: str(node["_target_"]) for path, node in _nodes(config)}
 
 
 def build_network(config: Mapping[str, Any]) -> GeneralistNetwork:
@@ -70,7 +58,9 @@ def build_network(config: Mapping[str, Any]) -> GeneralistNetwork:
             f"the model config names classes outside {TARGET_PREFIX[:-1]}: {outside}; a network "
             "is built from the project's own parts only"
         )
-    partial = _not_partial(config)
+    partial = [
+        p for p, node in _nodes(config) if p != "model" and node.get("_partial_") is not True
+    ]
     if partial:
         raise ValueError(
             f"{', '.join(partial)} must be a part the network builds: add `_partial_: true` "

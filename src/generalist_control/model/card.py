@@ -1,10 +1,7 @@
 """The model card route: the plant reaches the network as a descriptor of its model.
 
-From a plant's card (A, B, C, dt, Q, R) two things are computed by stated rules, never
-fitted, so that a plant never trained on is served with no training: its frame (the state as
-the output and its scaled derivatives, units from the nominal LQI loop's unit step) and its
-descriptor in that frame. The LQI gain never enters (that is the hybrid). Why each rule:
-``docs/notes/family-policy.md``.
+A plant's frame and its descriptor in that frame are computed from its card (A, B, C, dt, Q,
+R) by stated rules, never fitted, so a new plant needs no training (docs/notes/family-policy.md).
 """
 
 from __future__ import annotations
@@ -55,35 +52,24 @@ class CardError(ValueError):
 
 @dataclass(frozen=True)
 class CardFrame:
-    """A plant's normalised realisation (:func:`card_frame`).
+    """A plant's normalised realisation (:func:`card_frame`); RMS over the nominal unit step."""
 
-    Attributes
-    ----------
-    map : ndarray, shape (n, n)
-        ``x -> q / s_q``: the state in the frame.
-    state, integral, control : ndarray (n,), float, float
-        RMS of ``x`` (its own coordinates: the runtime's input range), ``z`` and ``u`` over
-        the nominal loop's unit step.
-    omega : float
-        The frame's time scale ``w`` (rad/s).
-    reference : float
-        The reference's scale (1: a unit step).
-    """
-
-    map: np.ndarray
-    state: np.ndarray
-    integral: float
-    control: float
-    omega: float
-    reference: float = 1.0
+    map: np.ndarray  #: (n, n): ``x -> q / s_q``, the state in the frame
+    state: np.ndarray  #: (n,): RMS of ``x`` in its own coordinates
+    integral: float  #: RMS of ``z``
+    control: float  #: RMS of ``u``
+    omega: float  #: the frame's time scale ``w`` (rad/s)
+    reference: float = 1.0  #: the reference's scale (a unit step)
 
 
 def _rms(v: np.ndarray) -> np.ndarray:
+    """RMS over the first axis (1 where it is tiny)."""
     rms = np.sqrt(np.mean(np.square(v), axis=0))
     return np.where(rms > _TINY, rms, 1.0)
 
 
 def _observability(plant: Plant, omega: float) -> np.ndarray:
+    """The output and its derivatives scaled by ``omega``; refuses a non-minimal model."""
     rows = [plant.C[0]]
     for _ in range(plant.order - 1):
         rows.append(rows[-1] @ plant.A / omega)
@@ -97,12 +83,7 @@ def _observability(plant: Plant, omega: float) -> np.ndarray:
 
 
 def card_frame(plant: Plant, duration: float) -> CardFrame:
-    """The plant's normalised realisation and scales (module docstring).
-
-    The nominal loop is the expert's, sampled at ``plant.dt``:
-    ``[x; z]_(k+1) = M [x; z]_k + [0; dt r]``
-    (:func:`~generalist_control.simulation.lqi.sampled_closed_loop`), ``u_k = -K [x; z]_k``,
-    ``r = 1``, samples ``0 .. round(duration / dt) - 1``.
+    """The plant's frame: scales over ``duration`` s of the expert's sampled unit-step loop.
 
     Raises
     ------
@@ -169,14 +150,11 @@ def _weights(plant: Plant, frame: CardFrame) -> np.ndarray:
 
 
 def card_features(plant: Plant, frame: CardFrame) -> np.ndarray:
-    """The plant's descriptor (:data:`CARD_FEATURES`,) in ``frame`` (module docstring).
+    """The plant's descriptor (:data:`CARD_FEATURES`,) in ``frame``.
 
-    In order: ``asinh`` of the rates ``(Ad - I) / dt`` (MAX_ORDER x MAX_ORDER, row-major),
-    of the input column ``Bd / dt`` and of the output row, all zero-padded; ``asinh`` of the
-    open-loop step response at :data:`STEP_SAMPLES`; ``log10 |G|``, ``cos`` and ``sin`` of
-    the phase at ``w`` times :data:`FREQUENCIES`; ``log10`` of the diagonal of ``Q / R`` (the
-    integral's last, floored at :data:`WEIGHT_FLOOR`, zero where padded) and the
-    correlations above the diagonal; one per real state (the order mask).
+    ``asinh`` of the padded rates ``(Ad - I) / dt``, input column and output row and of the
+    step response at :data:`STEP_SAMPLES`; the frequency response at :data:`FREQUENCIES`;
+    the weights (:func:`_weights`); the order mask.
     """
     n, dt = plant.order, plant.dt
     T, Ti = frame.map, np.linalg.inv(frame.map)
@@ -195,33 +173,15 @@ def card_features(plant: Plant, frame: CardFrame) -> np.ndarray:
 
 
 class CardPlant(PlantPart):
-    """The plant's code from its model card: a bank of descriptors, encoded by an MLP.
+    """The plant's code from its model card: a bank of descriptors (buffers), encoded by an MLP.
 
-    Parameters
-    ----------
-    dim : int
-        Size of the code (the network's ``hidden``); given by the network.
-    n_tags : int
-        Rows of the bank (the training plants' tags; a plant added at run time gets a row).
-    hidden : int
-        Width of the encoder's two hidden layers.
-    duration : float
-        Seconds of the unit step the frame's scales are taken over (:func:`card_frame`).
-
-    Attributes
-    ----------
-    cards : Tensor, shape (n_tags, CARD_FEATURES)
-        The descriptors (:func:`card_features`), buffers: in every checkpoint and export.
-    card_mean, card_std : Tensor, shape (CARD_FEATURES,)
-        The training rows' mean and spread (set with them): the encoder reads
-        ``(card - mean) / std``.
+    ``hidden``: the encoder's width; ``duration``: the frame's step (:func:`card_frame`).
     """
 
-    #: The normaliser maps each plant's state into its card's frame (``Normaliser.state_map``).
-    maps_states = True
+    maps_states = True  #: the normaliser maps each plant's state into its card's frame
 
-    cards: Tensor
-    card_mean: Tensor
+    cards: Tensor  #: (n_tags, CARD_FEATURES)
+    card_mean: Tensor  #: the training rows' mean: the encoder reads ``(card - mean) / std``
     card_std: Tensor
 
     def __init__(self, dim: int, n_tags: int, hidden: int = 128, duration: float = 10.0) -> None:

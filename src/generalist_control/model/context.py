@@ -1,9 +1,7 @@
-"""The in-context route: the plant read from the policy's own window, no row per plant.
+"""The in-context route: the plant read from the window's transitions, no parameter per plant.
 
-The window's transitions are encoded with no per-plant parameter; over a plant family the
-code also learns to predict the plant's card (a training target, never an input). Its
-normaliser rows come from each plant's operating data: RMS scales, the state whitened by its
-covariance (``docs/notes/family-policy.md``).
+The code may also learn to predict the plant's card (a training target, never an input);
+``docs/notes/family-policy.md``.
 """
 
 from __future__ import annotations
@@ -16,8 +14,7 @@ from torch import Tensor, nn
 from generalist_control.common.schema import require_int, require_nonnegative
 from generalist_control.model.card import CARD_FEATURES
 from generalist_control.model.identifier import TransitionSet
-from generalist_control.model.output import PlantReading
-from generalist_control.model.plant import PlantPart
+from generalist_control.model.plant import PlantPart, PlantReading
 from generalist_control.plants.definition import MAX_ORDER
 
 __all__ = ["ContextPlant"]
@@ -26,34 +23,16 @@ __all__ = ["ContextPlant"]
 class ContextPlant(PlantPart):
     """The plant's code from the window's transitions alone (see the module docstring).
 
-    Parameters
-    ----------
-    dim : int
-        Size of the code (the network's ``hidden``); given by the network.
-    identifier : callable
-        Builds the encoder (``identifier(state_dim=..., hidden=dim)``, a
-        :class:`~generalist_control.model.identifier.TransitionSet` without models).
-    n_tags : int
-        The normaliser's rows (one per training plant); nothing learned is per plant.
-    noise : float
-        Training only: white noise on the encoder's copy of each window's plant states, std
-        per window uniform in ``[0, noise]`` (normalised units). 0: none.
-    card_weight : float
-        Weight of the card-prediction term (:meth:`loss`); 0: none.
-    duration : float
-        Seconds of the nominal step the card targets' frames are taken over.
-
-    Attributes
-    ----------
-    targets : Tensor, shape (n_tags, CARD_FEATURES)
-        Each training plant's standardised card (zero where none: :attr:`has_target`).
+    ``identifier`` builds a :class:`~generalist_control.model.identifier.TransitionSet`
+    without models; ``noise`` as :class:`~generalist_control.model.plant.InferredPlant`'s;
+    ``card_weight`` weighs the card-prediction term (:meth:`loss`; 0: none), whose targets'
+    frames are taken over ``duration`` seconds of the nominal step.
     """
 
     needs: tuple[str, ...] = ("previous_control",)
-    #: The normaliser whitens each plant's state over its data (``Normaliser.state_map``).
-    maps_states = True
+    maps_states = True  #: the normaliser whitens each plant's state over its data
 
-    targets: Tensor
+    targets: Tensor  #: (n_tags, CARD_FEATURES): each training plant's standardised card
     has_target: Tensor
 
     def __init__(

@@ -1,9 +1,7 @@
-"""The transition-set identifier of :class:`~generalist_control.model.plant.InferredPlant`.
+"""The transition-set identifier: the plant read from the window's one-step transitions.
 
-Reads the plant from the window's one-step transitions, each encoded alone and averaged (a
-DeepSets encoder): a transition depends on the plant, not on the controller. Optionally
-each plant's linear one-step model weighs its hypothesis against the window, with a fitted
-input gain, lag and offset. Why and how: docs/notes/transition-identifier.md.
+Each transition is encoded alone and averaged (DeepSets); optionally each plant's linear
+one-step model weighs its evidence (docs/notes/transition-identifier.md).
 """
 
 from __future__ import annotations
@@ -17,11 +15,7 @@ __all__ = ["TransitionModels", "TransitionSet", "noisy_states"]
 
 
 def noisy_states(state: Tensor, mask: Tensor, std: float, state_dim: int) -> Tensor:
-    """Windows with white noise on their unpadded plant states (the identifier's noise).
-
-    Each window's std is drawn uniform in ``[0, std]``; the channels after the
-    ``state_dim`` plant states (the integral, the previous control) are left as they are.
-    """
+    """Windows with white noise on their plant states, std per window uniform in ``[0, std]``."""
     scale = std * torch.rand(state.shape[0], 1, 1, device=state.device, dtype=state.dtype)
     noise = scale * torch.randn_like(state[..., :state_dim]) * mask[..., :state_dim]
     return torch.cat([state[..., :state_dim] + noise, state[..., state_dim:]], dim=-1)
@@ -30,26 +24,8 @@ def noisy_states(state: Tensor, mask: Tensor, std: float, state_dim: int) -> Ten
 class TransitionSet(nn.Module):
     """``tanh(rho(mean_j phi(x_j, x_(j+1) - x_j, u_j, m)))`` over a window's transitions.
 
-    Parameters
-    ----------
-    state_dim : int
-        Padded plant state entries at the front of each sample (``MAX_ORDER``).
-    hidden : int
-        Size of ``phi``'s layers and of the output.
-    models : callable, optional
-        Builds each plant's one-step models (``models(state_dim=..., embedding=hidden)``, a
-        :class:`TransitionModels`): their evidence on the window follows the encoder's output.
-
-    Notes
-    -----
-    ``u_j`` is the window's last channel (``previous_control``) at ``j + 1``; ``m`` is the
-    plant's order mask.
-
-    Examples
-    --------
-    >>> enc = TransitionSet(state_dim=4, hidden=8)
-    >>> tuple(enc(torch.zeros(2, 5, 6), torch.ones(2, 5, 6)).shape)
-    (2, 8)
+    ``u_j``: the last channel at ``j + 1``; ``m``: the order mask. ``models`` builds the
+    plants' :class:`TransitionModels`, whose evidence follows the encoder's output.
     """
 
     def __init__(
@@ -78,11 +54,7 @@ class TransitionSet(nn.Module):
         return torch.cat([x[:, :-1], x[:, 1:] - x[:, :-1], u, order], dim=-1)
 
     def forward(self, state: Tensor, mask: Tensor, rows: Tensor | None = None) -> Tensor:
-        """The identifier's state (B, hidden) of windows (B, history, width).
-
-        With :attr:`models`, the plants' evidence (B, plants) follows it: (B, hidden +
-        plants); ``rows`` (plants, embedding) are the plants' embedding rows.
-        """
+        """The state (B, hidden) of windows, then (with :attr:`models`) the plants' evidence."""
         if state.shape[1] < 2:
             raise ValueError("the transition identifier needs a window of at least 2 samples")
         steps = self.transitions(state, mask)
@@ -115,34 +87,11 @@ class TransitionSet(nn.Module):
 
 
 class TransitionModels(nn.Module):
-    """Each plant's linear one-step model from its embedding row, and its evidence.
+    """Each plant's linear one-step model ``theta_p = W e_p + w`` (zero at first), its evidence.
 
-    Parameters
-    ----------
-    state_dim : int
-        Padded plant state entries (``MAX_ORDER``).
-    embedding : int
-        Size of a plant's embedding row.
-    eps : float
-        Added to the mean squared residual: a window without motion gives every plant the
-        same evidence.
-    input_gain : sequence of two floats, optional
-        The range of the fitted input gain (e.g. ``[0.75, 1.25]``); None: 1.
-    lags : sequence of float
-        The input lags tried, the best kept per model; ``(0.0,)``: none.
-    offset : bool
-        Fit a constant input disturbance ``d``.
-
-    Notes
-    -----
-    ``theta_p = W e_p + w`` holds ``A_p``, ``b_p`` and ``c_p``, zero at initialisation.
-
-    Examples
-    --------
-    >>> m = TransitionModels(state_dim=2, embedding=4)
-    >>> tuple(m(torch.zeros(3, 5, 2), torch.zeros(3, 5, 2), torch.zeros(3, 5),
-    ...         torch.zeros(7, 4)).shape)
-    (3, 7)
+    ``eps`` is added to the residual (no motion: equal evidence); ``input_gain`` the fitted
+    input gain's range (None: 1); ``lags`` the input lags tried; ``offset``: fit a constant
+    input disturbance.
     """
 
     def __init__(
@@ -210,12 +159,9 @@ class TransitionModels(nn.Module):
     def _fit(
         self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None
     ) -> tuple[Tensor, Tensor]:
-        """Residual and gain (B, plants), at the best of :attr:`lags` (least residual).
+        """Residual and gain (B, plants) at the best lag, from the window's second moments.
 
-        From the window's second moments of ``z = [x; u; 1; u_prev]`` and ``dx``:
-        ``|dx|^2 - 2 tr(Theta S_zd) + tr(Theta S_zz Theta^T)``; with a fitted input, that of
-        the model without its input column, ``b_p (g u_a + d)`` then fitted in closed form.
-        In float64, since the sum cancels where a model fits; clamped at 0.
+        In float64 (the sum cancels where a model fits); a fitted input in closed form.
         """
         n = self.state_dim
         fitted_input = self.input_gain is not None or self.offset or self.lags != (0.0,)
@@ -247,12 +193,7 @@ class TransitionModels(nn.Module):
     def _fit_input(
         self, rss: Tensor, s_zz: Tensor, s_zd: Tensor, theta: Tensor, b: Tensor
     ) -> tuple[Tensor, Tensor]:
-        """``b_p (g u_a + d)`` fitted to what the model without its input column leaves.
-
-        ``rss`` (B, plants): that model's mean squared residual; ``theta`` without its input
-        column, ``b`` (plants, state_dim) the column. Per lag (a leading axis), then the
-        lag with the least residual: the residual and the gain (B, plants), float64.
-        """
+        """``b_p (g u_a + d)`` fitted to the residual ``rss`` of the model without column ``b``."""
         n = self.state_dim
 
         def mean_br(k: int) -> Tensor:  # mean over the window of (b_p . r) z_k, (B, plants)

@@ -1,8 +1,7 @@
-"""Linear paths added to the experts' output (ours): ``model.skip``.
+"""Linear paths added to the experts' output (ours, ``model.skip``) on the newest samples.
 
-They read the newest ``samples`` of the law's window (the state ``[x; z]`` and reference).
-With the error integral the LQI law is linear in the newest augmented state alone, so one
-sample lets such a path carry the feedback exactly and leaves the experts the rest.
+With the error integral the LQI law is linear in the newest ``[x; z]``: such a path can carry
+the feedback exactly and leave the experts the rest.
 """
 
 from __future__ import annotations
@@ -21,6 +20,7 @@ def linear_features(state: Tensor, ref: Tensor, samples: int) -> Tensor:
 
 
 def _samples(key: str, samples: int, history: int) -> int:
+    """``samples`` checked: at most the law's ``history``."""
     n = require_int(key, samples)
     if n > history:
         raise ValueError(
@@ -31,11 +31,9 @@ def _samples(key: str, samples: int, history: int) -> int:
 
 
 class LinearSkip(nn.Module):
-    """``u += G(code) w``: gains ``G = A code + b`` from the plant's code, ``A, b`` shared.
+    """``u += G(code) w``, gains ``G = A code + b`` (zero at first), ``w`` the newest ``samples``.
 
-    ``dim``, ``horizon``, ``width``, ``history`` and ``summary`` (read by
-    :class:`ContextSkip` only) are given by the network; ``samples``: how many of the newest
-    samples ``w`` holds. Zero at initialisation: training starts from the paper's network.
+    The sizes are given by the network (``summary``: read by :class:`ContextSkip` only).
     """
 
     def __init__(
@@ -67,9 +65,8 @@ class LinearSkip(nn.Module):
 class ContextSkip(LinearSkip):
     """A :class:`LinearSkip` whose gains also read the window's summary, scaled by ``exp(s)``.
 
-    A plant inferred from its history thus gets gains over the ~200x range LQI's span:
-    ``s = gain_range tanh(s' / gain_range)``, ``s'`` learned from the gains' input (zero at
-    first), so the gains move within a factor ``e^gain_range``.
+    ``s = gain_range tanh(s' / gain_range)``, ``s'`` learned (zero at first): the gains span
+    a factor ``e^gain_range``, as LQI's do across plants.
     """
 
     def __init__(

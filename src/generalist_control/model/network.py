@@ -1,36 +1,93 @@
-"""The Generalist Controller network (paper, Section 4), composed from named parts.
+"""The Generalist Controller network (paper, Section 4), composed from parts in ``conf/model``.
 
-Per step, state, reference and plant encoders; a fast and a strided LSTM; attention with a
-residual; a softmax-gated mixture of experts giving ``horizon`` normalised controls. Parts
-chosen in ``conf/model``: the plant part and an optional skip path; ours besides: extra
-``channels`` and per-window scaling. Where the paper is silent: docs/training.md.
+Encoders, a fast and a strided LSTM, attention, a gated mixture of experts; ours besides: the
+plant part, a skip path, extra ``channels`` and per-window scaling (docs/training.md).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import cast
 
 import torch
 from torch import Tensor, nn
 
 from generalist_control.common.schema import require_int, require_switch
-from generalist_control.model.blocks import ExpertMLP, SummaryAttention, mlp
 from generalist_control.model.linear import LinearSkip
-from generalist_control.model.output import NetOutput
-from generalist_control.model.plant import PlantPart
+from generalist_control.model.plant import PlantPart, PlantReading
 from generalist_control.plants.definition import MAX_ORDER
 
-__all__ = ["CHANNELS", "WINDOW_SCALE_FLOOR", "GeneralistNetwork", "count_parameters"]
+__all__ = [
+    "CHANNELS",
+    "WINDOW_SCALE_FLOOR",
+    "ExpertMLP",
+    "GeneralistNetwork",
+    "NetOutput",
+    "SummaryAttention",
+    "count_parameters",
+    "mlp",
+]
 
-#: The window's extra state channels, in order after the padded state: the tracking-error
-#: integral (as the LQI expert keeps it), the previous control (an identifier's input).
+#: The window's extra state channels, in order after the padded state.
 CHANNELS = ("integral", "previous_control")
 
 #: Smallest window scale (normalised units): a window at rest maps to inputs near zero.
 WINDOW_SCALE_FLOOR = 1e-3
 
 Part = Callable[..., nn.Module]
+
+
+@dataclass(frozen=True)
+class NetOutput:
+    """One forward pass of :class:`~generalist_control.model.network.GeneralistNetwork`."""
+
+    control: Tensor  #: (B, horizon), normalised units divided by the window scale
+    gates: Tensor  #: (B, experts), the mixture's softmax weights
+    scale: Tensor  #: (B, 1), each window's scale (ones without window scaling)
+    plant: PlantReading | None  #: what an inferred plant part read (None: by its tag)
+
+
+def mlp(n_in: int, n_hidden: int, n_out: int) -> nn.Sequential:
+    """Two-layer encoder ``W_2 relu(W_1 x + b_1) + b_2`` (paper, Eq. f_1..f_4)."""
+    return nn.Sequential(nn.Linear(n_in, n_hidden), nn.ReLU(), nn.Linear(n_hidden, n_out))
+
+
+class SummaryAttention(nn.Module):
+    """Multi-head attention with a residual, ``z + W_O [a_1 .. a_H]``, ``d_k = ceil(dim / heads)``.
+
+    The one token is ``z``, so the softmax over one key is 1: :meth:`forward` computes
+    ``z + W_O V z``. Q and K are kept for the paper's parameter count (zero gradient).
+    """
+
+    def __init__(self, dim: int, heads: int) -> None:
+        super().__init__()
+        self.heads = heads
+        self.d_k = math.ceil(dim / heads)
+        inner = heads * self.d_k
+        self.qkv = nn.Linear(dim, 3 * inner)
+        self.out = nn.Linear(inner, dim)
+
+    def forward(self, z: Tensor) -> Tensor:
+        """The block's output for the one token ``z`` (B, dim): ``z + W_O V z`` (B, dim)."""
+        inner = self.heads * self.d_k
+        return z + self.out(self.qkv(z)[..., 2 * inner :])
+
+
+class ExpertMLP(nn.Sequential):
+    """One expert: three linear layers, ReLU then LayerNorm after each hidden layer."""
+
+    def __init__(self, n_in: int, n_hidden: int, n_out: int) -> None:
+        super().__init__(
+            nn.Linear(n_in, n_hidden),
+            nn.ReLU(),
+            nn.LayerNorm(n_hidden),
+            nn.Linear(n_hidden, n_hidden),
+            nn.ReLU(),
+            nn.LayerNorm(n_hidden),
+            nn.Linear(n_hidden, n_out),
+        )
 
 
 def _channels(channels: Sequence[str]) -> tuple[str, ...]:
@@ -50,26 +107,16 @@ class GeneralistNetwork(nn.Module):
 
     Parameters
     ----------
-    plant : callable
-        Builds the plant part: ``plant(dim=hidden)`` (``model.plant``).
-    hidden, heads, stride, experts : int
-        ``d`` (even), ``N_h``, ``tau``, ``M``.
-    history, horizon : int
-        ``T_h`` (samples per window) and ``K`` (controls per window).
-    skip : callable, optional
-        Builds the skip path (``model.skip``).
+    plant, skip : callable
+        Build the plant part (``plant(dim=hidden)``) and the optional skip path.
+    hidden, heads, stride, experts, history, horizon : int
+        ``d`` (even), ``N_h``, ``tau``, ``M``, ``T_h`` and ``K``.
     channels : sequence of str
-        Extra state channels of the window (:data:`CHANNELS`).
+        Extra state channels of the window (:data:`CHANNELS`), after the padded state.
     law_history : int, optional
-        How many of the newest samples the law reads (encoders, LSTMs, linear paths); the
-        plant part reads the whole window. None: all.
+        The newest samples the law reads (the plant part reads the whole window); None: all.
     window_scale : bool
-        Divide each window by its peak and return the scale (:attr:`NetOutput.scale`), so
-        errors are relative to the signal; off in the paper's recipe.
-
-    Notes
-    -----
-    Each sample's state is the plant's, zero-padded to ``MAX_ORDER`` entries, then the channels.
+        Divide each window by its peak and return the scale (:attr:`NetOutput.scale`).
 
     Examples
     --------
@@ -110,11 +157,12 @@ class GeneralistNetwork(nn.Module):
         self.state_dim = state_dim = MAX_ORDER
         self.law_history = self._law_history(law_history)
         self.width = state_dim + len(self.channels)
-        law_width = state_dim + ("integral" in self.channels)  # the law's [x; z]
+        self.law_width = law_width = state_dim + ("integral" in self.channels)  # [x; z]
         self.state_encoder_1 = mlp(law_width, d, e)
         self.state_encoder_2 = mlp(law_width, d, e)
         self.ref_encoder = mlp(1, d, e)
         self.plant = cast(PlantPart, plant(dim=d))
+        self.n_tags = int(self.plant.n_tags)  #: system tags ``0 .. n_tags - 1``
         missing = [c for c in self.plant.needs if c not in self.channels]
         if missing:
             raise ValueError(
@@ -138,6 +186,7 @@ class GeneralistNetwork(nn.Module):
         self.slow_start = (self.law_history - 1) % self.stride
 
     def _law_history(self, law_history: int | None) -> int:
+        """``model.law_history`` checked against the window (None: the whole window)."""
         if law_history is None:
             return self.history
         n = require_int("model.law_history", law_history)
@@ -147,11 +196,6 @@ class GeneralistNetwork(nn.Module):
                 " lower it, or lengthen data.history"
             )
         return n
-
-    @property
-    def n_tags(self) -> int:
-        """The system tags the network knows (``0 .. n_tags - 1``)."""
-        return int(self.plant.n_tags)
 
     def scaled_inputs(self, state: Tensor, ref: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Each window divided by its peak (at least :data:`WINDOW_SCALE_FLOOR`), and the peaks.
@@ -164,25 +208,13 @@ class GeneralistNetwork(nn.Module):
         s = peak.clamp(min=WINDOW_SCALE_FLOOR).unsqueeze(1)
         return state / s.unsqueeze(2), ref / s, s
 
-    def law_state(self, state: Tensor, mask: Tensor) -> Tensor:
-        """The paper's ``X * M`` without the previous-control channel: ``[x; z]`` per step."""
-        drop = int("previous_control" in self.channels)
-        return (state * mask)[..., : state.shape[-1] - drop]
-
     def forward(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor) -> NetOutput:
-        """The network's output for a batch of normalised windows.
-
-        Parameters
-        ----------
-        state, mask : Tensor, shape (B, history, width)
-            ``width``: ``state_dim`` plus one per channel (:attr:`channels`).
-        ref : Tensor, shape (B, history)
-        tag : Tensor of int, shape (B,)
-        """
+        """The output for normalised windows: state, mask (B, history, width), ref, tag."""
         state, ref, scale = self.scaled_inputs(state, ref)
         code, reading = self.plant(state, mask, ref, tag)
         n = self.law_history  # the law reads the newest n samples only
-        x, ref = self.law_state(state[:, -n:], mask[:, -n:]), ref[:, -n:]
+        # the paper's X * M without the previous-control channel: [x; z] per step
+        x, ref = (state[:, -n:] * mask[:, -n:])[..., : self.law_width], ref[:, -n:]
         f_plant = self.plant_encoder(code).unsqueeze(1).expand(-1, n, -1)
         f = torch.cat(
             [self.state_encoder_1(x), self.state_encoder_2(x), self.ref_encoder(ref[..., None]),

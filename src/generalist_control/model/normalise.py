@@ -1,22 +1,8 @@
-"""Per-tag input and control scaling, fitted on the training split and stored with the model.
+"""Per-tag RMS scales of states, reference and controls, fitted on the training windows.
 
-The plants' signals differ by orders of magnitude (a Crazyflie's thrust deviation is about
-0.01 N, a CSTR's input about 2), so one global scale would leave the loss dominated by a
-few plants. The system tag is known at deployment, so each signal is divided by its
-root-mean-square over the training windows *of that tag*: each state entry, the reference
-and the control. Only scales are used, no offsets: the data are deviations about an
-operating point, and zero stays zero.
-
-The scales are buffers of a :class:`Normaliser` module, so they travel in the model's
-``state_dict`` (and every checkpoint); training, evaluation and deployment all call
-:meth:`Normaliser.normalise_inputs` and :meth:`Normaliser.denormalise_controls` of the
-same object (see :class:`generalist_control.policy.Policy`). Tags never seen in training
-fall back to the scales over all training windows and are flagged in :attr:`seen`.
-
-With ``mapped`` each tag also has a matrix that takes its plant state into a frame
-(:attr:`Normaliser.state_map`), applied in place of the state entries' scales (the scales stay
-for the runtime's input range): fitted, the state whitened by its covariance over the tag's
-windows (the in-context route); the model card route writes its card's frame instead.
+Plants' signals differ by orders of magnitude, so each is divided by its RMS over its own
+tag's windows (no offsets: the data are deviations). Unseen tags get the scales over all
+windows. With ``mapped``, each tag's plant state is also taken into a frame (``state_map``).
 """
 
 from __future__ import annotations
@@ -39,8 +25,7 @@ def _rms(sum_sq: Tensor, count: Tensor) -> Tensor:
     return torch.where((count > 0) & (rms > _TINY), rms, torch.ones_like(rms))
 
 
-#: Windows x tags beyond which sums per tag are scattered rather than taken through a one-hot
-#: matrix (a family's 2,000 plants: 12 GB); the catalogue's 25 tags keep the matrix's sums.
+#: Windows x tags beyond which sums per tag are scattered rather than taken by a one-hot matrix.
 _ONEHOT_LIMIT = 2**27
 
 
@@ -53,10 +38,9 @@ def _per_tag(tag: Tensor, n_tags: int) -> Callable[[Tensor], Tensor]:
 
 
 def _whitening(cov: Tensor, valid: Tensor, tag: Tensor, seen: Tensor) -> Tensor:
-    """Per tag ``cov^(-1/2)`` over its plant's real state entries (zero beyond; I unseen).
+    """Per tag ``cov^(-1/2)`` over its plant's real state entries (``valid``), zero beyond.
 
-    ``valid`` (W, MAX_ORDER): each window's real entries; eigenvalues below ``1e-12`` of the
-    largest are raised to it (a state that never moves is not blown up).
+    Eigenvalues below ``1e-12`` of the largest are raised to it; unseen tags get ``I``.
     """
     real = valid.new_zeros(cov.shape[0], MAX_ORDER).index_copy_(0, tag, valid)
     keep = real[:, :, None] * real[:, None, :]
@@ -68,23 +52,10 @@ def _whitening(cov: Tensor, valid: Tensor, tag: Tensor, seen: Tensor) -> Tensor:
 
 
 class Normaliser(nn.Module):
-    """Per-tag RMS scales of state entries, reference and controls.
+    """Per-tag RMS scales (buffers) of ``n_tags`` tags, windows ``state_dim`` wide.
 
-    Parameters
-    ----------
-    n_tags : int
-        Number of system tags (tags are ``0 .. n_tags - 1``).
-    state_dim : int
-        Padded state size ``n_max``.
-
-    Attributes
-    ----------
-    state_scale : Tensor, shape (n_tags, state_dim)
-    ref_scale, control_scale : Tensor, shape (n_tags,)
-    seen : Tensor of bool, shape (n_tags,)
-        Tags present in the data the scales were fitted on.
-    state_map : Tensor, shape (n_tags, MAX_ORDER, MAX_ORDER), only with ``mapped``
-        Per tag, the padded plant state -> the network's (zero beyond the plant's order).
+    ``seen`` flags the tags the scales were fitted on; ``state_map`` (only with ``mapped``)
+    takes each tag's padded plant state into the network's frame.
     """
 
     state_scale: Tensor
@@ -106,14 +77,7 @@ class Normaliser(nn.Module):
 
     @torch.no_grad()
     def fit(self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor, target: Tensor) -> None:
-        """Set the scales from training windows (see :class:`~generalist_control.windows.Windows`).
-
-        Parameters
-        ----------
-        state, mask : Tensor, shape (W, history, state_dim)
-        ref : Tensor, shape (W, history)
-        tag : Tensor of int, shape (W,)
-        target : Tensor, shape (W, horizon)
+        """Set the scales from training windows (``Windows``' fields as tensors).
 
         Raises
         ------

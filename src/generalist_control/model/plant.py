@@ -1,19 +1,13 @@
-"""Where the plant reaches the network: its code, one row of the learned tag embedding.
+"""Where the plant reaches the network (``model.plant``): a window and tag -> the plant's code.
 
-A plant part maps a window and the system tag to the plant's code (B, hidden), the only
-way the plant enters the network (``model.plant`` in config):
-
-* :class:`TagEmbedding`, the paper's: the tag's row of a learned embedding (the one-hot tag
-  times ``W_1``, Section 4).
-* :class:`InferredPlant`, without the tag (``experiment=tag_free``): the same rows, weighed
-  by an identity head's softmax over the training plants, read from the window by an
-  identifier (:mod:`~generalist_control.model.identifier`). The tag is a training label
-  only (:meth:`InferredPlant.loss`); the code never depends on it.
+:class:`TagEmbedding` is the paper's (the tag's learned row); :class:`InferredPlant` weighs
+the same rows by an identity head read from the window (the tag a training label only).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -21,35 +15,30 @@ from torch import Tensor, nn
 
 from generalist_control.common.schema import require_int, require_nonnegative
 from generalist_control.model.identifier import TransitionSet
-from generalist_control.model.output import PlantReading
 from generalist_control.plants.definition import MAX_ORDER
 
-__all__ = ["EVIDENCE_WEIGHT", "InferredPlant", "PlantPart", "TagEmbedding"]
+__all__ = ["EVIDENCE_WEIGHT", "InferredPlant", "PlantPart", "PlantReading", "TagEmbedding"]
 
 #: The initial weight of each plant's one-step-model evidence in its identity logit.
 EVIDENCE_WEIGHT = 4.0
 
 
+@dataclass(frozen=True)
+class PlantReading:
+    """What a plant part that infers the plant read from the window."""
+
+    logits: Tensor | None  #: (B, n_tags): the identity head's logits (None: no head)
+    summary: Tensor  #: (B, features): the identifier's state, what a context skip reads
+    evidence: Tensor | None  #: (B, n_tags): each plant's one-step model's evidence
+
+
 class PlantPart(nn.Module):
-    """What every plant part offers: its code (``forward``), the tags it knows, its own loss.
+    """What every plant part offers: its code (``forward``), the tags it knows, its own loss."""
 
-    Attributes
-    ----------
-    needs : tuple of str
-        Window channels the part reads (see ``GeneralistNetwork.channels``).
-    summary_size : int
-        Size of what it adds to a context skip's summary.
-    n_tags : int
-        System tags ``0 .. n_tags - 1``: the training plants.
-    reads_tag : bool
-        Whether the code is the tag's row (a new plant then needs one: ``adapt``).
-    """
-
-    needs: tuple[str, ...] = ()
-    summary_size = 0
-    n_tags: int
-    #: The code is the tag's row: a new plant needs a row of its own (``adapt``).
-    reads_tag = True
+    needs: tuple[str, ...] = ()  #: window channels the part reads
+    summary_size = 0  #: size of what it adds to a context skip's summary
+    n_tags: int  #: system tags ``0 .. n_tags - 1``
+    reads_tag = True  #: the code is the tag's row: a new plant needs a row (``adapt``)
 
     def loss(self, reading: PlantReading | None, tag: Tensor) -> tuple[Tensor, Tensor] | None:
         """The part's own training term: ``(logged, weighted)``, or None where it has none.
@@ -60,22 +49,7 @@ class PlantPart(nn.Module):
 
 
 class TagEmbedding(PlantPart):
-    """The tag's row of a learned embedding (the paper's system-tag input).
-
-    Parameters
-    ----------
-    dim : int
-        Size of a row (the network's ``hidden``); given by the network.
-    n_tags : int
-        System tags ``0 .. n_tags - 1``.
-
-    Examples
-    --------
-    >>> part = TagEmbedding(dim=4, n_tags=3)
-    >>> code, reading = part(None, None, None, torch.tensor([2, 0]))
-    >>> tuple(code.shape), reading
-    ((2, 4), None)
-    """
+    """The tag's row of a learned embedding, ``dim`` wide (the paper's system-tag input)."""
 
     def __init__(self, dim: int, n_tags: int = 25) -> None:
         super().__init__()
@@ -94,31 +68,17 @@ class InferredPlant(PlantPart):
 
     Parameters
     ----------
-    dim : int
-        Size of a row (the network's ``hidden``); given by the network.
     identifier : callable
-        Builds the identifier (``identifier(state_dim=..., hidden=dim)``, a
-        :class:`~generalist_control.model.identifier.TransitionSet`); its models, if any,
-        get the rows (detached) and their evidence joins the identity logits.
-    n_tags : int
-        The training plants (rows).
+        Builds the :class:`~generalist_control.model.identifier.TransitionSet`; its models,
+        if any, get the rows (detached) and their evidence joins the identity logits.
     noise : float
-        Training only: the identifier's copy of each window gets white noise on its plant
-        states, std per window uniform in ``[0, noise]`` (normalised units); the law's
-        copy stays clean. 0: none.
+        Training only: white noise on the identifier's copy of the plant states, std per
+        window uniform in ``[0, noise]`` (normalised units). 0: none.
     loss_weight : float
-        Weight of :meth:`loss` beside the imitation loss (> 0: the head must be trained).
-    state_dim : int
-        Padded plant state entries at the front of each sample.
-
-    Notes
-    -----
-    The identifier reads the window's one-step transitions, so the window must carry the
-    previous control (``model.channels`` with ``previous_control``: :attr:`needs`).
+        Weight of :meth:`loss` beside the imitation loss (> 0: the head is trained by it).
     """
 
     needs: tuple[str, ...] = ("previous_control",)
-    #: The tag is a training label only: a new plant needs no row (``adapt``).
     reads_tag = False
 
     def __init__(
@@ -162,12 +122,7 @@ class InferredPlant(PlantPart):
         return code, PlantReading(logits=logits, summary=summary, evidence=evidence)
 
     def loss(self, reading: PlantReading | None, tag: Tensor) -> tuple[Tensor, Tensor] | None:
-        """The identity head's cross-entropy against ``tag``, and the weighed identity term.
-
-        The term adds how badly the true plants' one-step models fit their windows
-        (:meth:`~generalist_control.model.identifier.TransitionModels.fit_loss`), times
-        :attr:`loss_weight`.
-        """
+        """The head's cross-entropy against ``tag``, and it plus the models' fit, weighed."""
         if reading is None or reading.logits is None:
             return None
         cross_entropy = F.cross_entropy(reading.logits, tag)

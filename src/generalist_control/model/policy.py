@@ -1,44 +1,38 @@
-"""The deployable policy: normaliser + network, and its checkpoint file.
+"""The deployable policy (normaliser + network), its policy file and its flat view for MLflow.
 
-:class:`Policy` is the single preprocessing path of the project: training computes its
-loss on :meth:`Policy.output`, and evaluation and deployment call :meth:`Policy.forward`
-(raw plant units in and out) or :meth:`Policy.predict_windows` on
-:class:`~generalist_control.data.windows.Windows` built by the one window builder.
-
-A policy file (``models/policy.ckpt``) holds plain types and tensors only, so it loads with
-``torch.load(path, weights_only=True)``::
-
-    {"format_version": 3, "model": {...the network's config, _target_ and parts...},
-     "state_dict": {...}, "meta": {"tags": {plant: tag}, "orders": {plant: n}, "dt": ...,
-     "history": ..., "horizon": ..., "content_hash": "sha256:...", "metrics": {...}, ...}}
-
-:func:`load_policy` reads such a file or a Lightning checkpoint written by training, and
-refuses anything else with :class:`PolicyFileError`, naming the file and how to remake it.
+:class:`Policy` is the one preprocessing path: training, evaluation and deployment all call it.
+A policy file holds plain types and tensors only (``torch.load(..., weights_only=True)``):
+``format_version``, ``model`` (the network's config), ``state_dict`` and ``meta`` (tags, ...).
 """
 
 from __future__ import annotations
 
 import hashlib
+import math
+import numbers
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
 from torch import Tensor, nn
+from torch.func import functional_call
 
 from generalist_control.data.windows import Windows
 from generalist_control.model.build import build_network
-from generalist_control.model.meta import check_meta
+from generalist_control.model.network import GeneralistNetwork, NetOutput
 from generalist_control.model.normalise import Normaliser
-from generalist_control.model.output import NetOutput
 
 __all__ = [
     "POLICY_FILE",
+    "FlatPolicy",
     "POLICY_FORMAT_VERSION",
     "RETRAIN",
     "Policy",
     "PolicyFileError",
+    "check_meta",
+    "flat_columns",
     "load_policy",
     "policy_sha256",
     "save_policy",
@@ -59,14 +53,7 @@ class PolicyFileError(ValueError):
 
 
 class Policy(nn.Module):
-    """Normaliser and network: raw windows in, controls in plant units out.
-
-    Parameters
-    ----------
-    model : mapping
-        The network's config (``conf/model``, resolved to plain types):
-        :func:`~generalist_control.model.build.build_network` builds it.
-    """
+    """Normaliser and network (``model``: ``conf/model``): raw windows in, plant-unit controls."""
 
     def __init__(self, model: Mapping[str, Any]) -> None:
         super().__init__()
@@ -75,26 +62,10 @@ class Policy(nn.Module):
         mapped = bool(getattr(net.plant, "maps_states", False))  # the card route's frame
         self.normaliser = Normaliser(net.n_tags, net.width, mapped)
         self.net = net
-
-    @property
-    def history(self) -> int:
-        """Samples per window (``T_h``)."""
-        return self.net.history
-
-    @property
-    def horizon(self) -> int:
-        """Controls per window (``K``)."""
-        return self.net.horizon
-
-    @property
-    def width(self) -> int:
-        """Entries per window sample: the padded plant state and the channels."""
-        return self.net.width
-
-    @property
-    def channels(self) -> tuple[str, ...]:
-        """The window's extra channels (``model.channels``)."""
-        return self.net.channels
+        self.history: int = net.history  #: samples per window (``T_h``)
+        self.horizon: int = net.horizon  #: controls per window (``K``)
+        self.width: int = net.width  #: entries per window sample: padded state, channels
+        self.channels: tuple[str, ...] = net.channels  #: the window's extra channels
 
     def network_inputs(
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
@@ -109,22 +80,26 @@ class Policy(nn.Module):
         state, mask, ref, tag = self.normaliser.normalise_inputs(state, mask, ref, tag)
         return self.net(state, mask, ref, tag)
 
-    def normalised(
-        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """Network output in normalised units and gate weights."""
-        out = self.output(state, mask, ref, tag)
-        return out.control * out.scale, out.gates
+    def errors(
+        self, batch: Mapping[str, Tensor], params: Mapping[str, Tensor] | None = None
+    ) -> tuple[Tensor, NetOutput]:
+        """The imitation loss's squared errors (B, horizon) on ``batch``, and the output.
+
+        In normalised units over the window scale; ``params`` replace the network's
+        parameters of those names (:func:`torch.func.functional_call`).
+        """
+        tag = batch["tag"]
+        args = self.normaliser.normalise_inputs(batch["state"], batch["mask"], batch["ref"], tag)
+        out = self.net(*args) if params is None else functional_call(self.net, dict(params), args)
+        target = self.normaliser.normalise_controls(batch["target"], tag)
+        return (out.control - target / out.scale) ** 2, out
 
     def forward(
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
     ) -> tuple[Tensor, Tensor]:
-        """Controls ``u[k .. k + horizon - 1]`` in plant units (B, horizon) and gates (B, M).
-
-        Inputs are raw windows as built by :func:`generalist_control.data.windows.build_windows`.
-        """
-        u, gates = self.normalised(state, mask, ref, tag)
-        return self.normaliser.denormalise_controls(u, tag), gates
+        """Controls ``u[k .. k + horizon - 1]`` in plant units (B, horizon) and gates (B, M)."""
+        out = self.output(state, mask, ref, tag)
+        return self.normaliser.denormalise_controls(out.control * out.scale, tag), out.gates
 
     @torch.no_grad()
     def predict_windows(
@@ -149,8 +124,33 @@ class Policy(nn.Module):
         return np.concatenate(us), np.concatenate(gs)
 
 
+def flat_columns(history: int, state_dim: int) -> list[str]:
+    """Column names of :class:`FlatPolicy`'s input (``k = 0``: the oldest sample)."""
+    cols = [f"state_{k}_{i}" for k in range(history) for i in range(state_dim)]
+    cols += [f"mask_{k}_{i}" for k in range(history) for i in range(state_dim)]
+    cols += [f"ref_{k}" for k in range(history)]
+    return [*cols, "tag"]
+
+
+class FlatPolicy(nn.Module):
+    """MLflow's one-array view: float32 (B, 2 T width + T + 1) in :func:`flat_columns`."""
+
+    def __init__(self, policy: Policy) -> None:
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Controls (B, horizon) in plant units for flat rows ``x``."""
+        T, n = self.policy.history, self.policy.width
+        state = x[:, : T * n].reshape(-1, T, n)
+        mask = x[:, T * n : 2 * T * n].reshape(-1, T, n)
+        ref = x[:, 2 * T * n : 2 * T * n + T]
+        tag = x[:, -1].round().long()
+        return self.policy(state, mask, ref, tag)[0]
+
+
 def save_policy(path: str | Path, policy: Policy, meta: dict[str, Any]) -> Path:
-    """Write ``policy`` and plain-typed ``meta`` to ``path`` (see the module docstring)."""
+    """Write ``policy`` and plain-typed ``meta`` to ``path`` (atomically: a temporary, renamed)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu() for k, v in policy.state_dict().items()}
@@ -169,6 +169,46 @@ def save_policy(path: str | Path, policy: Policy, meta: dict[str, Any]) -> Path:
 def policy_sha256(path: str | Path) -> str:
     """``sha256:<hex>`` of a policy file's bytes: its identity (same weights, same bytes)."""
     return "sha256:" + hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def check_meta(meta: dict[str, Any], net: GeneralistNetwork) -> None:
+    """Refuse meta the network cannot serve: tags, orders, ``dt``, window sizes.
+
+    Raises
+    ------
+    ValueError
+        Naming the first inconsistency: a tag outside ``0 .. n_tags - 1`` or used twice, an
+        order outside ``1 .. state_dim``, a plant with a tag but no order, ``dt`` not a
+        positive finite number, or a window size other than the network's.
+    """
+    tags, orders = meta.get("tags"), meta.get("orders")
+    if not isinstance(tags, dict) or not tags or not isinstance(orders, dict):
+        raise ValueError("its meta lists no plants (tags and orders)")
+    n_tags, state_dim = net.n_tags, net.state_dim
+    for name, tag in tags.items():
+        if not _is_int(tag) or not 0 <= int(tag) < n_tags:
+            raise ValueError(f"plant {name!r} has tag {tag!r}, outside 0..{n_tags - 1}")
+        order = orders.get(name)
+        if not _is_int(order) or not 1 <= int(cast(int, order)) <= state_dim:
+            raise ValueError(f"plant {name!r} has order {order!r}, outside 1..{state_dim}")
+    if len(set(tags.values())) != len(tags):
+        raise ValueError(f"two plants share a tag: {tags}")
+    dt = meta.get("dt")
+    if (
+        not isinstance(dt, numbers.Real)
+        or isinstance(dt, bool)
+        or not (math.isfinite(float(dt)) and float(dt) > 0)
+    ):
+        raise ValueError(f"its sample time dt = {dt!r} is not a positive number")
+    for key in ("history", "horizon"):
+        if meta.get(key) != getattr(net, key):
+            raise ValueError(
+                f"its meta says {key} = {meta.get(key)!r}, its network {getattr(net, key)}"
+            )
 
 
 def _read(path: Path, map_location: str | torch.device) -> dict[str, Any]:
@@ -210,10 +250,10 @@ def _parts(path: Path, blob: dict[str, Any]) -> tuple[Any, Any, Any]:
 def load_policy(
     path: str | Path, map_location: str | torch.device = "cpu"
 ) -> tuple[Policy, dict[str, Any]]:
-    """Load a policy file or a training (Lightning) checkpoint; return it with its meta.
+    """Load a policy file or a training (Lightning) checkpoint; return it (eval mode) and its meta.
 
-    The policy is in eval mode. Loading uses ``weights_only=True``: no code is unpickled,
-    and the network is built from the project's own classes only.
+    ``weights_only=True``: no code is unpickled; the network is built from the project's own
+    classes only.
 
     Raises
     ------

@@ -1,9 +1,6 @@
 """The policy's loop at rest, linearised, for the set-point check (``evaluation/setpoint.py``).
 
-At the equilibrium ``(x*, u*)`` of a constant reference (:func:`equilibrium`), with every
-window sample at rest (:func:`rest_window`), the policy's Jacobian closes a linear loop with
-the plant sampled at ``dt`` (:func:`closed_loop_matrix`); its spectral radius is below 1
-exactly when small deviations from rest die out.
+Its spectral radius is below 1 exactly when small deviations from rest die out.
 """
 
 from __future__ import annotations
@@ -20,10 +17,7 @@ __all__ = ["closed_loop_matrix", "equilibrium", "rest_window"]
 
 
 def equilibrium(plant: Plant, reference: float) -> tuple[np.ndarray, float, float]:
-    """``(x*, u*, r)``: the plant at rest on ``reference`` (deviations; nonlinear: ``r = 0``).
-
-    For a linear plant ``(Ad - I) x* + Bd u* = 0`` and ``C x* = r``; a nonlinear plant rests
-    at its operating point (its linearisation's origin).
+    """``(x*, u*, r)``: the plant at rest on ``reference`` (nonlinear: at its operating point).
 
     Raises
     ------
@@ -53,12 +47,7 @@ def rest_window(
     controls: bool,
     tag: int,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The window after one sample ``(x, z, u_prev = u)`` at reference ``r``: float64, batch 1.
-
-    Built by the one window builder (:class:`HistoryBuffer`, with the error integral), which
-    repeats a first sample over the whole history, as at rest. ``tag``: the policy's tag for
-    the plant.
-    """
+    """The window (float64, batch 1) after one sample ``(x, z, u_prev = u)``: all at rest."""
     buffer = HistoryBuffer(np.array([plant.order]), history, True, controls)
     padded = np.zeros((1, MAX_ORDER))
     padded[0, : plant.order] = x
@@ -79,11 +68,9 @@ def closed_loop_matrix(
 ) -> np.ndarray:
     """The linear loop of a sampled plant and a window law, on the window's samples.
 
-    ``jx`` (H, n), ``jz`` (H,) and ``ju`` (H,): the control's derivative with respect to
-    each window sample, oldest first (``jz``/``ju`` None: no such channel). State, newest
-    first: ``x_k .. x_(k-H+1)``, then ``z_k ..``, then ``u_(k-1) ..``. Steps:
-    ``u_k = sum_j jx[-1-j] x_(k-j) + ...``, ``x_(k+1) = Ad x_k + Bd u_k``,
-    ``z_(k+1) = z_k - dt C x_k``, and the previous control becomes ``u_k``.
+    ``jx`` (H, n), ``jz`` and ``ju`` (H,; None: no such channel): the control's derivative
+    with respect to each window sample, oldest first. State, newest first: ``x_k ..``, then
+    ``z_k ..``, then ``u_(k-1) ..``.
     """
     H, n = len(jx), Ad.shape[0]
     blocks = [n] + [1] * (jz is not None) + [1] * (ju is not None)

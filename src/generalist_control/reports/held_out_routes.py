@@ -20,7 +20,7 @@ from generalist_control.common.paths import conf_dir
 from generalist_control.data.generation import generate_demos
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.runner import evaluate
-from generalist_control.model.bank import add_scales, data_rows
+from generalist_control.model.bank import add_scales, plant_scales
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
 from generalist_control.plants.definition import Plant
 from generalist_control.simulation.family_draw import draw_family, read_families
@@ -70,7 +70,7 @@ def _scales(
     state, mask, ref, target = (
         torch.from_numpy(np.asarray(getattr(w, k))) for k in ("state", "mask", "ref", "target")
     )
-    return data_rows(policy, state, mask, ref, target)
+    return plant_scales(state, mask, ref, target, policy.normaliser.mapped)
 
 
 def zero_shot(

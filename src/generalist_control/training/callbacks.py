@@ -1,19 +1,40 @@
-"""Training callbacks of ours: the closed-loop validation score ``val/closed_loop``."""
+"""The training's callbacks: those named in ``callbacks``, DAgger and the closed-loop score."""
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any, cast
 
+import hydra
 import lightning as L
 import numpy as np
 import torch
 
+from generalist_control.data.windows import Windows
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import Policy
+from generalist_control.plants.definition import Plant
+from generalist_control.plants.variants import make_variant
 from generalist_control.simulation.comparison import ClosedLoopScore
+from generalist_control.training.datamodule import WindowTensors
+from generalist_control.training.labeller import ExpertLabeller
+from generalist_control.training.sampler import RolloutSampler
+from generalist_control.training.settings import DaggerSettings, TrainingSettings
 
-__all__ = ["ClosedLoopValidation"]
+__all__ = [
+    "ClosedLoopValidation",
+    "DAggerCallback",
+    "closed_loop_validation",
+    "config_callbacks",
+    "dagger_callback",
+    "dagger_plants",
+    "dagger_round",
+]
+
+log = logging.getLogger(__name__)
 
 
 class ClosedLoopValidation(L.Callback):
@@ -41,3 +62,126 @@ class ClosedLoopValidation(L.Callback):
         pl_module.log("val/closed_loop", score, prog_bar=True, logger=False)
         for name, v in scores.items():
             pl_module.log(f"val/closed_loop/{name}", v, logger=False)
+
+
+class DAggerCallback(L.Callback):
+    """DAgger (ours): expert-labelled rollouts of the policy join the training set.
+
+    After epoch ``start_epoch``, then every ``every`` epochs, for ``rounds`` rounds; validation
+    stays on the demonstrations. ``history`` holds each round's record; early stopping's
+    patience restarts after each round (the training set has changed).
+    """
+
+    def __init__(
+        self, sampler: RolloutSampler, labeller: ExpertLabeller, settings: DaggerSettings
+    ) -> None:
+        self.sampler, self.labeller, self.settings = sampler, labeller, settings
+        self.done = 0
+        self.history: list[dict[str, Any]] = []
+
+    def due(self, epochs_done: int) -> bool:
+        """Whether a round runs after ``epochs_done`` finished epochs."""
+        s = self.settings
+        if self.done >= s.rounds or epochs_done < s.start_epoch:
+            return False
+        return (epochs_done - s.start_epoch) % s.every == 0
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """Run a round when one is due; append its windows to the training set."""
+        if not self.due(trainer.current_epoch + 1):
+            return
+        dm = cast(Any, trainer).datamodule
+        beta = self.settings.beta_at(self.done)
+        policy = cast(Policy, pl_module.policy)
+        was_training = policy.training
+        runtime = PolicyRuntime(policy, dm.meta())
+        windows, counts = dagger_round(
+            self.sampler, self.labeller, runtime, dm.train_set, self.done, beta
+        )
+        policy.train(was_training)
+        self.done += 1
+        for cb in cast(Any, trainer).callbacks:  # the training set changed: patience anew
+            if isinstance(cb, L.pytorch.callbacks.EarlyStopping):
+                cb.wait_count = 0
+        trainer.should_stop = False
+        record = {"round": self.done, "beta": beta, "windows": len(windows), **counts}
+        self.history.append(record)
+        log.info("DAgger round %d (beta %.3g): %d windows added", self.done, beta, len(windows))
+        pl_module.log("dagger/windows", float(len(windows)), logger=False)
+        pl_module.log("dagger/beta", float(beta), logger=False)
+
+
+def dagger_round(
+    sampler: RolloutSampler,
+    labeller: ExpertLabeller,
+    runtime: PolicyRuntime,
+    train_set: WindowTensors,
+    round_index: int,
+    beta: float,
+) -> tuple[Windows, dict[str, int]]:
+    """Roll ``runtime``'s policy out, label what it visits, add it to ``train_set``."""
+    with torch.inference_mode():
+        rollouts = sampler.run(round_index, runtime, beta)
+        bounds = labeller.bounds(train_set, rollouts.plants)
+        windows, counts = labeller.label(rollouts, bounds)
+    train_set.append(windows)
+    return windows, counts
+
+
+def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
+    """``plants`` and the data's variants of them, rebuilt from the manifest's factors."""
+    recorded = manifest.get("variants") or {}
+    out: list[Plant] = []
+    for p in plants:
+        out.append(p)
+        out.extend(make_variant(p, v["factors"]) for v in recorded.get(p.name, {}).get("kept", []))
+    return out
+
+
+def dagger_callback(
+    settings: TrainingSettings,
+    plants: list[Plant],
+    channels: tuple[str, ...],
+    rotating: Sequence[Plant] = (),
+    per_round: int = 0,
+) -> L.Callback | None:
+    """The DAgger callback on ``plants`` (None when ``dagger`` is off).
+
+    ``rotating`` plants (a family's) join each round, ``per_round`` at a time, in turn.
+    """
+    spec = settings.dagger
+    if spec is None:
+        return None
+    data = settings.rollout_data
+    sampler = RolloutSampler(
+        plants,
+        spec.sampler,
+        limit=data.amplitude_limit,
+        families=data.families,
+        seed=settings.seed,
+        variant_range=data.variant_range,
+        variant_tries=data.variant_tries,
+        rotating=rotating,
+        per_round=per_round,
+    )
+    labeller = ExpertLabeller(spec.labeller, settings.history, settings.horizon, channels)
+    return DAggerCallback(sampler, labeller, spec)
+
+
+def closed_loop_validation(settings: TrainingSettings, plants: list[Plant]) -> L.Callback | None:
+    """``val/closed_loop`` on ``plants`` (None when ``closed_loop_val`` is off)."""
+    spec = settings.closed_loop_val
+    if spec is None:
+        return None
+    return ClosedLoopValidation(ClosedLoopScore(plants, list(spec.amplitudes), spec.duration))
+
+
+def config_callbacks(nodes: Sequence[Mapping[str, Any]], run_dir: Path) -> list[L.Callback]:
+    """The callbacks ``callbacks`` names; ``dirpath: null`` becomes ``<run_dir>/checkpoints``."""
+    callbacks = []
+    for node in nodes:
+        kwargs = {}
+        if "dirpath" in node and node["dirpath"] is None:
+            kwargs["dirpath"] = str(run_dir / "checkpoints")
+        callbacks.append(hydra.utils.instantiate(node, **kwargs))
+    return callbacks

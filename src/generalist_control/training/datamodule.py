@@ -1,8 +1,7 @@
 """Training and validation windows of ``data/demos``, split by trajectory, held in memory.
 
-Windows come from the one window builder; a fraction of each plant's trajectories goes whole
-to validation. Batches are whole index batches (shuffled from ``seed + epoch``, so a resume
-sees the same order) gathered from a few tensors: no per-sample ``__getitem__``, no workers.
+Batches are whole index batches (shuffled from ``seed + epoch``: a resume sees the same
+order) gathered from a few tensors: no per-sample ``__getitem__``, no workers.
 """
 
 from __future__ import annotations
@@ -36,13 +35,10 @@ FIELDS = ("state", "mask", "ref", "tag", "target")
 
 
 def split_by_trajectory(plant: np.ndarray, val_fraction: float, seed: int) -> np.ndarray:
-    """Validation flags of ``B`` trajectories, stratified by plant.
+    """Validation flags of trajectories of the plants ``plant`` names, stratified by plant.
 
-    ``plant`` (B,) names each trajectory's plant; a fraction ``val_fraction`` in ``[0, 1)``
-    of each plant's goes to validation, at least one of a plant with two or more.
+    ``val_fraction`` of each plant's go to validation, at least one of a plant with two or more.
     """
-    if not 0.0 <= val_fraction < 1.0:
-        raise ValueError(f"loader.val_fraction must lie in [0, 1), got {val_fraction}")
     rng = np.random.default_rng(seed)
     is_val = np.zeros(len(plant), dtype=bool)
     if val_fraction == 0.0:
@@ -85,8 +81,6 @@ class BatchIndexSampler(Sampler[Tensor]):
     """Index batches over ``n`` items, reshuffled each epoch from ``seed + epoch``."""
 
     def __init__(self, n: int, batch_size: int, shuffle: bool, seed: int = 0) -> None:
-        if batch_size < 1:
-            raise ValueError(f"batch size must be positive, got {batch_size}")
         self.n, self.batch_size, self.shuffle, self.seed = n, batch_size, shuffle, seed
         self.epoch = 0
 
@@ -107,32 +101,10 @@ class BatchIndexSampler(Sampler[Tensor]):
 
 
 class DemoDataModule(L.LightningDataModule):
-    """Windows of the dataset at ``data_dir`` for Lightning.
+    """Windows of the dataset at ``data_dir`` for Lightning (``tags``, ``orders`` after setup).
 
-    Parameters
-    ----------
-    data_dir : str or Path
-        Directory written by the ``generate`` stage.
-    history, horizon : int
-        Window sizes (the policy's ``T_h`` and ``K``).
-    seed : int
-        Seeds the split and the per-epoch shuffling.
-    plants : sequence of str, optional
-        Only these plants (None: all). The split is made over the whole dataset first, so a
-        plant has the same split whatever else is kept.
-    channels : sequence of str
-        The window's extra channels (``model.channels``: ``integral``, ``previous_control``).
-    families : FamilySet, optional
-        Plant families whose demonstrations join the dataset's (``train_families``); list
-        their plants in ``plants`` too.
-
-    Attributes
-    ----------
-    manifest : dict
-        The dataset's manifest (after :meth:`setup`).
-    train_set, val_set : WindowTensors
-    tags, orders : dict of str to int
-        Plant name -> system tag and state dimension, for the plants in the data.
+    ``seed`` seeds the split and the shuffling; ``plants``: only these (None: all; the split is
+    made over the whole dataset first); ``families`` join the dataset (list their plants too).
     """
 
     def __init__(
@@ -184,13 +156,11 @@ class DemoDataModule(L.LightningDataModule):
         self.train_set = WindowTensors(windows, kept & ~is_val)
         self.val_set = WindowTensors(windows, kept & is_val)
         rows = zip(demos.plant.tolist(), demos.tag, demos.order, strict=True)
-        kept_rows = [(str(p), int(t), int(n)) for p, t, n in rows if self._wanted(str(p))]
+        wanted = set(self.plants) if self.plants is not None else None
+        kept_rows = [(str(p), int(t), int(n)) for p, t, n in rows if wanted is None or p in wanted]
         self.tags = {p: t for p, t, _ in kept_rows}
         self.orders = {p: n for p, _, n in kept_rows}
         self.dt = float(demos.dt)
-
-    def _wanted(self, plant: str) -> bool:
-        return self.plants is None or plant in self.plants
 
     def _kept(self, plant: np.ndarray) -> np.ndarray:
         """Trajectories of :attr:`plants` (all without), after checking the data has them."""
@@ -223,6 +193,7 @@ class DemoDataModule(L.LightningDataModule):
         }
 
     def _loaded(self, windows: WindowTensors | None) -> WindowTensors:
+        """``windows``, or an error saying :meth:`setup` comes first."""
         if windows is None:
             raise RuntimeError("DemoDataModule: call setup() before asking for a dataloader")
         return windows

@@ -1,8 +1,6 @@
 """Training over plant families beside the catalogue (``train_families``, issue 50).
 
-A family's plants (tags ``0 .. count - 1`` in its own data) take the tags after the
-catalogue's: the policy's rows are the catalogue's, then each family's. Their plants are
-rebuilt from the families' manifests, bit for bit as drawn.
+A family's plants take the tags after the catalogue's, rebuilt from its manifest as drawn.
 """
 
 from __future__ import annotations
@@ -74,23 +72,11 @@ def join_demos(first: DemoSet, second: DemoSet, offset: int) -> DemoSet:
 
 @dataclass(frozen=True)
 class FamilySet:
-    """The families trained on, their plants tagged after the catalogue's.
+    """The families trained on, their plants tagged after the catalogue's."""
 
-    Attributes
-    ----------
-    dirs : tuple of Path
-        The families' data folders, in the order their tags follow each other.
-    plants : list of Plant
-        Every family plant, tag ``offset + i``.
-    offset : int
-        The first family tag (the catalogue's tag count).
-    spec : FamilyTraining, optional
-        How much of the families DAgger and the closed-loop validation see.
-    """
-
-    dirs: tuple[Path, ...]
-    plants: list[Plant]
-    offset: int
+    dirs: tuple[Path, ...]  #: the families' data folders, in tag order
+    plants: list[Plant]  #: every family plant, tag ``offset + i``
+    offset: int  #: the first family tag (the catalogue's tag count)
     spec: FamilyTraining | None = None
 
     @classmethod
@@ -133,10 +119,7 @@ class FamilySet:
         return [p.name for p in self.plants]
 
     def joined(self, demos: DemoSet, manifest: dict[str, Any]) -> tuple[DemoSet, dict[str, Any]]:
-        """The catalogue's demonstrations with every family's, and the joint manifest.
-
-        The joint ``content_hash`` is the SHA-256 of the catalogue's and each family's.
-        """
+        """The catalogue's demonstrations with every family's; the manifest's hash over all."""
         hashes = [str(manifest.get("content_hash", ""))]
         start = self.offset
         for d in self.dirs:

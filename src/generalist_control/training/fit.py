@@ -1,9 +1,6 @@
-"""Training: demonstrations -> trained policy, logged to MLflow.
+"""Training: demonstrations -> trained policy, one MLflow run (docs/training.md, "Outputs").
 
-:func:`train` does the work of the ``train`` stage (``python train.py``), every sweep job and
-every Optuna trial: checkpoints in ``<run_dir>/checkpoints/``, ``policy.ckpt`` and
-``metrics.json`` in :attr:`.settings.TrainingSettings.models_dir`, one MLflow run and a new
-registered model version (docs/training.md, "Outputs, MLflow, DVC").
+:func:`train` is the work of the ``train`` stage, every sweep job and every Optuna trial.
 """
 
 from __future__ import annotations
@@ -40,18 +37,17 @@ from generalist_control.plants.definition import Plant
 from generalist_control.tracking import training_run
 from generalist_control.tracking.policy_runs import POLICY_HASH_TAG
 from generalist_control.training import outputs
-from generalist_control.training.dagger import DAggerCallback
-from generalist_control.training.datamodule import DemoDataModule, WindowTensors
-from generalist_control.training.family_set import FamilySet, read_family_training, with_rows
-from generalist_control.training.lit_module import ImitationModule
-from generalist_control.training.settings import TrainingSettings
-from generalist_control.training.setup import (
-    check_resume,
+from generalist_control.training.callbacks import (
+    DAggerCallback,
     closed_loop_validation,
     config_callbacks,
     dagger_callback,
     dagger_plants,
 )
+from generalist_control.training.datamodule import DemoDataModule, WindowTensors
+from generalist_control.training.family_set import FamilySet, read_family_training, with_rows
+from generalist_control.training.lit_module import ImitationModule
+from generalist_control.training.settings import TrainingSettings
 
 __all__ = ["METRICS_FILE", "train"]
 
@@ -92,10 +88,7 @@ def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
 def _module(
     settings: TrainingSettings, dm: DemoDataModule, meta: dict[str, Any]
 ) -> ImitationModule:
-    """The Lightning module, its normaliser fitted on the training windows.
-
-    Rows a recipe computes from its plants' models (the card bank) replace the fitted ones.
-    """
+    """The Lightning module, its normaliser fitted on the training windows (then model rows)."""
     lit = ImitationModule(
         model=settings.model,
         optimizer=settings.optimizer,
@@ -103,14 +96,15 @@ def _module(
         meta=meta,
     )
     lit.policy.normaliser.fit(**_tensors(dm.train_set))
-    fit_model_rows(lit.policy, _trained(settings, dm))
+    plants, family = _trained(settings, dm)
+    fit_model_rows(lit.policy, plants + family)
     return lit
 
 
-def _trained(settings: TrainingSettings, dm: DemoDataModule) -> list[Plant]:
-    """The plants the data holds: the set's, then the families'."""
+def _trained(settings: TrainingSettings, dm: DemoDataModule) -> tuple[list[Plant], list[Plant]]:
+    """The plants the data holds: the set's, and the families'."""
     family = dm.families.plants if dm.families else []
-    return [p for p in settings.plants if p.name in dm.tags] + family
+    return [p for p in settings.plants if p.name in dm.tags], family
 
 
 def _callbacks(
@@ -119,9 +113,8 @@ def _callbacks(
     """The config's callbacks, DAgger and the closed-loop validation."""
     callbacks = config_callbacks(settings.callbacks, settings.run_dir)
     ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
-    plants = [p for p in settings.plants if p.name in dm.tags]
+    plants, family = _trained(settings, dm)
     channels = lit.policy.channels
-    family = dm.families.plants if dm.families else []
     spec = dm.families.spec if dm.families else None
     turn, checked = (spec.dagger_plants, spec.closed_loop_plants) if spec else (0, 0)
     own = [
@@ -180,16 +173,43 @@ def _fit(
 
 
 def _stopped(exc: SystemExit, trainer: L.Trainer) -> int | None:
-    """The exit status of a training stopped by a signal, else None.
-
-    Lightning leaves by ``SystemExit`` with status 0 (SIGTERM) or 1 (Ctrl-C): neither may
-    read as success.
-    """
+    """The exit status of a training stopped by a signal (Lightning exits 0 or 1), else None."""
     if isinstance(exc, SIGTERMException):
         return 128 + signal.SIGTERM
     if trainer.interrupted:
         return 128 + signal.SIGINT
     return None
+
+
+def check_resume(ckpt_path: str, meta: dict[str, Any], max_epochs: int | None = None) -> None:
+    """Refuse to resume from a checkpoint of other data, other plants, or nothing left to do.
+
+    Raises
+    ------
+    ValueError
+        Other data (content hash), another plant set, or (given ``max_epochs``) all epochs
+        already run, so that a resume would only publish the old checkpoint.
+    """
+    blob = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    old = blob.get("hyper_parameters", {}).get("meta", {})
+    if old.get("content_hash") != meta["content_hash"]:
+        raise ValueError(
+            f"checkpoint {ckpt_path} was trained on data {old.get('content_hash')}, but "
+            f"{meta['data_dir']} holds {meta['content_hash']}; resume on the same data"
+        )
+    if sorted(old.get("tags", {})) != sorted(meta["tags"]):
+        raise ValueError(
+            f"checkpoint {ckpt_path} was trained on the plants {sorted(old.get('tags', {}))}, "
+            f"this config's set is {sorted(meta['tags'])}: resume with the same systems "
+            "(systems, systems.include), or drop ckpt_path to start a new run"
+        )
+    done = int(blob.get("epoch", -1)) + 1
+    if max_epochs is not None and done >= max_epochs:
+        raise ValueError(
+            f"checkpoint {ckpt_path} has finished {done} epochs and trainer.max_epochs is "
+            f"{max_epochs}: there is nothing left to train; raise trainer.max_epochs, or "
+            "drop ckpt_path to start a new run"
+        )
 
 
 def _check_fits(settings: TrainingSettings, ckpt_path: str, lit: ImitationModule) -> None:
@@ -219,10 +239,7 @@ def _check_fits(settings: TrainingSettings, ckpt_path: str, lit: ImitationModule
 def _publish(
     settings: TrainingSettings, best: str, metrics: dict[str, Any], meta: dict[str, Any]
 ) -> tuple[Policy, Path]:
-    """Save the best policy and its metrics, log them to the run, add closed-loop scores.
-
-    The policy file holds only what reproduces, so the run is tagged with its hash.
-    """
+    """Save the best policy and its metrics, log them (the run tagged with the file's hash)."""
     policy, _ = load_policy(best)
     models_dir = settings.models_dir
     policy_meta = {**meta, "metrics": metrics}

@@ -1,10 +1,4 @@
-"""DAgger's expert labeller: LQI labels on the states the learned policy itself visits.
-
-The label at sample ``k`` is the expert's plan from there (:func:`expert_plans`), its
-integrator the one tracked along the rollout when the policy sees the error integral, else a
-bumpless take-over (:func:`bumpless_integrator`). Rollouts are cut where they leave
-``bound_factor`` times the data's range.
-"""
+"""DAgger's expert labeller: LQI plans from the states the learned policy itself visits."""
 
 from __future__ import annotations
 
@@ -26,22 +20,10 @@ __all__ = ["ExpertLabeller", "bumpless_integrator", "expert_plans"]
 def expert_plans(
     plant: Plant, x: np.ndarray, z: np.ndarray, r: np.ndarray, horizon: int
 ) -> np.ndarray:
-    """The LQI expert's next ``horizon`` controls from each state of each trajectory.
+    """The LQI expert's next ``horizon`` controls (B, N, horizon) from each visited state.
 
-    Parameters
-    ----------
-    x : ndarray, shape (B, N, n)
-        Visited states (deviations).
-    z : ndarray, shape (B, N)
-        Expert integrator at each visited state (before that sample's control).
-    r : ndarray, shape (B, N)
-        References; beyond the last sample the last one is held.
-
-    Returns
-    -------
-    ndarray, shape (B, N, horizon)
-        ``plans[b, k, j]``: the expert's control at sample ``k + j`` had it taken over at
-        ``k``. ``plans[:, :, 0]`` is the LQI law at the visited state.
+    ``x`` (B, N, n), the integrator ``z`` before each sample's control and ``r`` (B, N; the
+    last held beyond the end). ``plans[:, :, 0]`` is the LQI law at the visited state.
     """
     gains = design_lqi(plant)
     advance = plant_stepper(plant)
@@ -60,12 +42,10 @@ def expert_plans(
 
 
 def bumpless_integrator(plant: Plant, x: np.ndarray, u: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """The expert's integrator for a bumpless take-over at every sample of a rollout.
+    """The expert's integrator (B, N) for a bumpless take-over at every sample of a rollout.
 
-    ``z_k = z_(k-1) + dt (r_(k-1) - y_(k-1))`` from the ``z_(k-1)`` with which the LQI law
-    gives the applied ``u_(k-1)``: the label is the LQI law in velocity form, a function of
-    the window's last two samples, so it never contradicts the demonstrations. ``z_0 = 0``.
-    ``x`` (B, N, n), ``u`` (applied) and ``r`` (B, N); returns (B, N).
+    ``z_k`` follows from the ``z_(k-1)`` with which the LQI law gives the applied ``u_(k-1)``:
+    the LQI law in velocity form, which never contradicts the demonstrations. ``z_0 = 0``.
     """
     g = design_lqi(plant)
     z = np.zeros(u.shape)

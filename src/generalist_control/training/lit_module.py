@@ -15,29 +15,16 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import RichProgressBar
 from torch import Tensor
 
-from generalist_control.model.output import NetOutput
 from generalist_control.model.policy import Policy
 
 __all__ = ["ImitationModule"]
 
 
 class ImitationModule(L.LightningModule):
-    """Behaviour cloning of the LQI experts.
+    """Behaviour cloning of the LQI experts (plain-dict arguments: ``weights_only`` checkpoints).
 
-    Parameters
-    ----------
-    model : dict
-        The network's config (``conf/model``, plain types).
-    optimizer, scheduler : dict
-        Hydra partials of the optimiser and an epoch-wise LR scheduler (optional).
-    meta : dict, optional
-        Plain-typed data facts (``tags``, ``dt``, ``content_hash``, ...), kept in checkpoints.
-
-    Notes
-    -----
-    A plant part's own loss (an inferred plant's identity term) is added and logged as
-    ``train/identity``, its accuracy as ``val/identity_acc``. Plain-dict arguments keep
-    checkpoints loadable with ``weights_only=True``.
+    ``model`` is the network's config, ``optimizer`` and ``scheduler`` Hydra partials, ``meta``
+    the data's facts. A plant part's own loss is added (``train/identity``).
     """
 
     def __init__(
@@ -66,12 +53,6 @@ class ImitationModule(L.LightningModule):
         """Controls in plant units and gate weights (see :meth:`Policy.forward`)."""
         return self.policy(state, mask, ref, tag)
 
-    def _errors(self, batch: dict[str, Tensor]) -> tuple[Tensor, NetOutput]:
-        """Squared errors (B, horizon), normalised units over the window scale; the output."""
-        out = self.policy.output(batch["state"], batch["mask"], batch["ref"], batch["tag"])
-        target = self.policy.normaliser.normalise_controls(batch["target"], batch["tag"])
-        return (out.control - target / out.scale) ** 2, out
-
     def on_train_epoch_start(self) -> None:
         """Reset the epoch's loss sums."""
         self._train_sum = torch.zeros((), dtype=torch.float64, device=self.device)
@@ -80,10 +61,9 @@ class ImitationModule(L.LightningModule):
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         """MSE on the control sequence of one batch (plus a plant part's own loss).
 
-        ``train/loss``, the epoch's mean, is logged once, with the last batch: a log per step
-        costs 4 % of it.
+        ``train/loss``, the epoch's mean, is logged once, with the last batch (cheaper).
         """
-        errors, out = self._errors(batch)
+        errors, out = self.policy.errors(batch)
         loss = errors.mean()
         own = self.policy.net.plant.loss(out.plant, batch["tag"])
         if own is not None:
@@ -109,7 +89,7 @@ class ImitationModule(L.LightningModule):
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         """Accumulate squared errors per system tag."""
-        err, out = self._errors(batch)
+        err, out = self.policy.errors(batch)
         err = err.to(torch.float64)
         if out.plant is not None and out.plant.logits is not None:  # an identity head's
             self._val_hits_seen = True
@@ -132,10 +112,7 @@ class ImitationModule(L.LightningModule):
             self.log(f"val/mse/{name}", mse.float(), logger=False)
 
     def setup(self, stage: str) -> None:
-        """Show the rich progress bar's metrics in 3 significant digits (``.3f`` shows 1e-9 as 0).
-
-        Set on the bar the trainer made: ``enable_progress_bar=false`` refuses one passed in.
-        """
+        """The rich progress bar's metrics in 3 significant digits (``.3f`` shows 1e-9 as 0)."""
         bar = self.trainer.progress_bar_callback
         if isinstance(bar, RichProgressBar):  # a copy: the default theme is shared by every bar
             bar.theme = dataclasses.replace(bar.theme, metrics_format=".3g")

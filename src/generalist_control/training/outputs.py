@@ -20,8 +20,14 @@ from generalist_control.common.hydra_redact import scrub_hydra_files
 from generalist_control.common.secrets import redact
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.model.flat import FlatPolicy, flat_columns
-from generalist_control.model.policy import POLICY_FILE, Policy, PolicyFileError, load_policy
+from generalist_control.model.policy import (
+    POLICY_FILE,
+    FlatPolicy,
+    Policy,
+    PolicyFileError,
+    flat_columns,
+    load_policy,
+)
 from generalist_control.simulation.comparison import output_mse
 from generalist_control.tracking import mlflow_utils, training_run
 from generalist_control.training.datamodule import DemoDataModule
@@ -86,11 +92,7 @@ def check_models_dir(models_dir: Path) -> None:
 def closed_loop_scores(
     settings: TrainingSettings, policy: Policy, meta: dict[str, Any]
 ) -> dict[str, float]:
-    """``closed_loop/mse/<plant>``: GC-vs-LQI unit-step output MSE on ``closed_loop.systems``.
-
-    The ablation's score (Section 7), so that every sweep point carries it; untrained plants
-    are skipped.
-    """
+    """``closed_loop/mse/<plant>``: GC-vs-LQI unit-step output MSE on ``closed_loop.systems``."""
     wanted = set(settings.closed_loop.systems)
     plants = [p for p in settings.plants if p.name in wanted and p.name in meta["tags"]]
     if not plants:
@@ -105,13 +107,15 @@ def closed_loop_scores(
 
 
 def log_model(
-    policy: Policy, windows: dict[str, torch.Tensor], registered_name: str | None = None
+    policy: Policy,
+    windows: dict[str, torch.Tensor],
+    registered_name: str | None = None,
+    tags: Mapping[str, str] | None = None,
 ) -> str | None:
-    """Log the best policy as an MLflow PyTorch model (``torch.export``, one flat input).
+    """Log the policy as an MLflow PyTorch model (``torch.export`` of :class:`FlatPolicy`).
 
-    Input float32 (B, F) in the columns of :func:`flat_columns` (also in the metadata),
-    output the controls (B, horizon); eight validation ``windows`` are the signature's
-    example. With ``registered_name``, a new registered version tagged with the run, returned.
+    Eight ``windows`` are the signature's example; with ``registered_name``, a new registered
+    version tagged with the run (and ``tags``), returned.
     """
     flat = FlatPolicy(policy).eval()
     n = min(8, windows["tag"].shape[0])
@@ -142,23 +146,19 @@ def log_model(
     version = info.registered_model_version
     if not registered_name or version is None:
         return None
-    _tag_version(registered_name, str(version))
+    client, run = mlflow.MlflowClient(), mlflow.active_run()
+    version_tags = dict(tags or {})
+    if run is not None:  # the version names the run that made it
+        run_tags = client.get_run(run.info.run_id).data.tags
+        version_tags = {
+            "run_id": run.info.run_id,
+            "run_name": run_tags.get("mlflow.runName", ""),
+            "data.content_hash": run_tags.get("data.content_hash", ""),
+            **version_tags,
+        }
+    for key, value in version_tags.items():
+        client.set_model_version_tag(registered_name, str(version), key, value)
     return str(version)
-
-
-def _tag_version(name: str, version: str) -> None:
-    """Tag a registered version with the active run: ``run_id``, ``run_name``, data hash."""
-    run = mlflow.active_run()
-    if run is None:
-        return
-    client = mlflow.MlflowClient()
-    tags = client.get_run(run.info.run_id).data.tags
-    for key, value in (
-        ("run_id", run.info.run_id),
-        ("run_name", tags.get("mlflow.runName", "")),
-        ("data.content_hash", tags.get("data.content_hash", "")),
-    ):
-        client.set_model_version_tag(name, version, key, value)
 
 
 def log_inputs(settings: TrainingSettings, dm: DemoDataModule, n_params: int) -> None:
@@ -192,11 +192,7 @@ def log_inputs(settings: TrainingSettings, dm: DemoDataModule, n_params: int) ->
 
 
 def log_dataset(dm: DemoDataModule) -> None:
-    """Log the training windows' schema as the run's dataset input (context ``training``).
-
-    The digest is the data's content hash cut to MLflow's 36 characters; the input's tag
-    ``content_hash`` holds it whole.
-    """
+    """Log the training windows' schema as the run's dataset input (context ``training``)."""
     meta = dm.meta()
     if dm.train_set is None:
         raise RuntimeError("the data module is not set up")
@@ -217,8 +213,7 @@ def log_dataset(dm: DemoDataModule) -> None:
 def dvc_metrics(metrics: Mapping[str, float]) -> dict[str, float]:
     """The headline numbers for ``metrics.json`` (:data:`DVC_METRICS`), 7 significant digits.
 
-    Closed-loop errors (1e-12 .. 1e-5) as ``log10``, which ``dvc metrics show``'s five
-    decimals do not round to 0; a metric the run lacks is left out.
+    Closed-loop errors as ``log10`` (``dvc metrics show`` rounds 1e-6 to 0).
 
     Examples
     --------

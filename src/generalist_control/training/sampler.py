@@ -1,9 +1,7 @@
 """DAgger's rollout sampler: which rollouts a round runs, and the loop that runs them.
 
-Per round and plant version (with variant data, the variants too): steps from rest of random
-amplitude within the data's range and references of the data's families from random states,
-executed as ``beta * LQI + (1 - beta) * policy`` (:class:`MixedController`), optionally with
-control noise and a random actuator.
+Steps from rest and the data's reference families, per plant version, executed as
+``beta * LQI + (1 - beta) * policy``, optionally with control noise and a random actuator.
 """
 
 from __future__ import annotations
@@ -21,10 +19,54 @@ from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.references import family_references, family_spec
 from generalist_control.simulation.simulate import Run, Trajectory, row_slices, simulate_many
 from generalist_control.simulation.variant_sampling import sample_variants
-from generalist_control.training.actuator import Actuator
 from generalist_control.training.settings import SamplerSettings
 
-__all__ = ["MixedController", "RolloutSampler", "Rollouts", "run_rollouts"]
+__all__ = ["Actuator", "MixedController", "RolloutSampler", "Rollouts", "lag_mix", "run_rollouts"]
+
+
+def lag_mix(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A first-order lag's mean weight and decay over one sample (time constants ``tau``).
+
+    For a command ``u`` held from the lag's output ``s``, the mean output is
+    ``u + mix (s - u)`` and the end value ``u + decay (s - u)``; 0 at ``tau = 0``.
+
+    Examples
+    --------
+    >>> mix, decay = lag_mix(np.array([0.0, 0.6]))
+    >>> np.round(mix, 3).tolist(), np.round(decay, 3).tolist()
+    ([0.0, 0.487], [0.0, 0.189])
+    """
+    tau = np.asarray(tau, dtype=float)
+    safe = np.where(tau > 0, tau, 1.0)
+    decay = np.where(tau > 0, np.exp(-1.0 / safe), 0.0)
+    return tau * (1.0 - decay), decay
+
+
+class Actuator:
+    """A random actuator per row: a lag (uniform in ``[0, lag]`` samples) and an offset.
+
+    The offset is uniform in ``+-offset``, both drawn from ``rng``; the windows keep the
+    command, so the identifier learns to name a plant whose actuator lags or is offset.
+    """
+
+    def __init__(self, lag: np.ndarray, offset: np.ndarray, rng: np.random.Generator) -> None:
+        lag, offset = np.asarray(lag, dtype=float), np.asarray(offset, dtype=float)
+        if lag.shape != offset.shape or lag.ndim != 1:
+            raise ValueError(f"lag {lag.shape} and offset {offset.shape} must be (rows,) alike")
+        for name, v in (("lag", lag), ("offset", offset)):
+            if not np.all(np.isfinite(v) & (v >= 0)):
+                raise ValueError(f"the actuator's {name} must be finite and >= 0, got {v}")
+        self.tau = lag * rng.random(lag.shape[0])
+        self.d = offset * rng.uniform(-1.0, 1.0, offset.shape[0])
+        self.mix, self.decay = lag_mix(self.tau)
+        self.s = np.zeros(lag.shape[0])
+
+    def __call__(self, u: np.ndarray) -> np.ndarray:
+        """What the plants receive over this sample for commands ``u`` (rows,)."""
+        u = np.asarray(u, dtype=float)
+        applied = u + self.mix * (self.s - u) + self.d
+        self.s = u + self.decay * (self.s - u)
+        return applied
 
 
 def _per_row(
@@ -36,14 +78,11 @@ def _per_row(
 
 
 class MixedController:
-    """Executes ``beta * LQI + (1 - beta) * policy``; records the experts' integrators.
+    """Executes ``beta * LQI + (1 - beta) * policy``; records the experts' integrators (:attr:`z`).
 
-    ``noise`` (plant name -> std in control units) adds white noise to the executed control,
-    so rollouts visit states off the closed-loop curve (as in DART, Laskey et al., 2017);
-    ``actuator`` (plant name -> (lag, offset)) puts an :class:`Actuator` between command and
-    plant; both draw from ``seed`` at :meth:`reset`. The policy's runtime is told the executed
-    control (or the command, with an actuator). After a run, :attr:`z` holds the expert's
-    integrator before each sample's control, (rows, N).
+    ``noise`` (plant name -> std, control units) adds white noise to the executed control (as
+    DART does); ``actuator`` (plant name -> (lag, offset)) puts an :class:`Actuator` between
+    command and plant; both draw from ``seed``.
     """
 
     def __init__(
@@ -129,11 +168,7 @@ RolloutSpec = tuple[np.ndarray, np.ndarray | None]
 
 @dataclass(frozen=True)
 class Rollouts:
-    """A round's rollouts: per plant version its trajectories and the experts' integrators.
-
-    ``trajectories[i].u`` is what the windows carry: the executed mix, or with an actuator
-    the command.
-    """
+    """A round's rollouts: per plant version its trajectories and the experts' integrators."""
 
     plants: list[Plant]
     trajectories: list[Trajectory]
@@ -149,10 +184,7 @@ def run_rollouts(
     seed: int = 0,
     actuator: Mapping[str, tuple[float, float]] | None = None,
 ) -> Rollouts:
-    """Run every plant's rollouts (``specs``, in order) under the :class:`MixedController`.
-
-    ``runtime`` is the current policy (None with ``beta = 1``: pure expert rollouts).
-    """
+    """Run every plant's rollouts (``specs``) under the :class:`MixedController`."""
     runs = [Run(p, r, x0) for p, (r, x0) in zip(plants, specs, strict=True)]
     ctrl = MixedController(runtime, beta, noise, seed, actuator)
     trajs, slices = simulate_many(runs, ctrl), row_slices([len(r.r) for r in runs])
@@ -164,24 +196,11 @@ def run_rollouts(
 
 
 class RolloutSampler:
-    """The rollouts of each DAgger round (``dagger.sampler``; see the module docstring).
+    """The rollouts of each DAgger round (``dagger.sampler``) of ``plants`` and their variants.
 
-    Parameters
-    ----------
-    plants : sequence of Plant
-        The training plant versions: each plant, then (with variant data) its variants.
-    limit : float
-        Largest step amplitude, before each plant's ``amplitude_scale`` (``data.amplitudes``).
-    families : mapping
-        The data's enabled families (name -> spec); rolled out ``settings.families`` each.
-    seed : int
-        Seeds the round's draws (round ``i``: amplitudes from ``seed + i``).
-    variant_range, variant_tries : float, int
-        Parameter range and draws per variant of the fresh variants (``data.variants``).
-    rotating : sequence of Plant
-        Plants rolled out ``per_round`` at a time, in turn, after ``plants`` (a plant
-        family's, ``train_families``).
-    per_round : int
+    ``limit``, ``families``, ``variant_range`` and ``variant_tries`` come from the data recipe;
+    ``seed`` seeds round ``i``'s draws (``seed + i``); ``rotating`` plants (a family's) join
+    ``per_round`` at a time, in turn.
     """
 
     def __init__(
@@ -222,6 +241,7 @@ class RolloutSampler:
         return self._versions_of_round(round_index) + turn
 
     def _versions_of_round(self, round_index: int) -> list[Plant]:
+        """The data's versions (all, or in turn) and the round's fresh variants."""
         variants = self.settings.variants
         if variants is None or variants.data is None:
             out = list(self.plants)

@@ -1,12 +1,12 @@
 """A training run's config, read once into typed settings before anything is logged.
 
-:func:`read_training` is the one reader: an entry point (``python train.py``, a sweep's job,
-an Optuna trial) calls it and hands :class:`TrainingSettings` on; each part receives its own
-section. Every default lives in ``conf/``, none here.
+Entry points call :func:`read_training`; each part receives its own section. Every default
+lives in ``conf/``, none here.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -43,6 +43,7 @@ __all__ = [
     "VariantSettings",
     "model_config",
     "read_training",
+    "rollout_data",
 ]
 
 
@@ -284,9 +285,8 @@ def _models_dir(cfg: DictConfig, run_dir: Path) -> Path:
     return run_dir / "models"
 
 
-def _rollout_data(cfg: DictConfig) -> RolloutData:
-    """What DAgger takes from the data recipe."""
-    data = _plain(cfg, "data")
+def rollout_data(data: Mapping[str, Any]) -> RolloutData:
+    """What DAgger's rollouts take from the data recipe ``data`` (plain types)."""
     variants = data["variants"]
     return RolloutData(
         amplitude_limit=float(data["amplitudes"]["limit"]),
@@ -345,7 +345,7 @@ def read_training(cfg: DictConfig) -> TrainingSettings:
             else read_section(ClosedLoopValSettings, closed, "closed_loop_val")
         ),
         closed_loop=read_section(ClosedLoopSettings, _plain(cfg, "closed_loop"), "closed_loop"),
-        rollout_data=_rollout_data(cfg),
+        rollout_data=rollout_data(_plain(cfg, "data")),
         plants=tuple(plants),
         held_out=_held_out(cfg, plants),
         data_dir=Path(str(_plain(cfg, "paths.data_dir"))),
