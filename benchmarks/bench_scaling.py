@@ -183,7 +183,7 @@ def _pass(lit: ImitationModule, opt, data: dict, order: list, clip: float, devic
     for idx in order:
         idx = idx.to(device)
         batch = {k: v[idx] for k, v in data.items()}
-        loss = lit._errors(batch)[0].mean()  # the imitation loss of training_step
+        loss = lit.policy.errors(batch)[0].mean()  # the imitation loss of training_step
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(lit.parameters(), clip)

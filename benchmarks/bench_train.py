@@ -110,7 +110,7 @@ def bench_steps(
             torch.cuda.synchronize()
         t0 = time.perf_counter()
         for b in batches:
-            loss = lit._errors(b)[0].mean()  # the imitation loss (not the identity's)
+            loss = lit.policy.errors(b)[0].mean()  # the imitation loss (not the identity's)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(lit.parameters(), 1.0)

@@ -162,7 +162,9 @@ def test_every_entry_point_config_registers_the_callback(config_name):
     for name in mains:  # each main composes one of these two
         tree = ast.parse((REPO / "src/generalist_control" / f"{name}.py").read_text())
         calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call)]
-        names = [k.value.value for c in calls for k in c.keywords if k.arg == "config_name"]
+        names = [  # @stage_main("<config>"), the stages' hydra.main
+            c.args[0].value for c in calls if getattr(c.func, "id", None) == "stage_main"
+        ]
         assert names and set(names) <= {"config", "tune"}, name
 
 
