@@ -10,6 +10,7 @@ stages sleep, two at a time.
 from __future__ import annotations
 
 import os
+import re
 import shlex
 import shutil
 import subprocess
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 from generalist_control.common.paths import conf_dir
 
@@ -81,6 +83,37 @@ def _compose(cmd: str) -> tuple[str, object]:
         return words[2].split(".")[-1], compose("config", words[3:], return_hydra_config=True)
 
 
+#: The overrides of a point's commands that hold the point: its values, its key in paths.
+POINT_KEYS = ("model.hidden", "experts", "seed", "paths.models_dir", "run_dir", "policy",
+              "logger.run_name", "paths.reports_dir")  # fmt: skip
+
+
+def _compose_point(cmd: str, key: str, composed: dict) -> tuple[str, object]:
+    """``_compose(cmd)``, composed once per entry point and recipe: a later point's command
+    must be the first's with only its own values (:data:`POINT_KEYS`) changed."""
+    words = shlex.split(cmd)
+    stage, overrides = words[2], dict(w.split("=", 1) for w in words[3:])
+    if stage not in composed:
+        composed[stage] = (overrides, *_compose(cmd))
+        return composed[stage][1:]
+    first, name, cfg = composed[stage]
+    assert overrides.keys() == first.keys(), cmd
+    assert {k: v for k, v in overrides.items() if k not in POINT_KEYS} == {
+        k: v for k, v in first.items() if k not in POINT_KEYS
+    }, cmd
+    cfg = cfg.copy()
+    for k in POINT_KEYS:
+        if k not in overrides:
+            continue
+        value: object = overrides[k]
+        if k in ("model.hidden", "experts", "seed"):
+            value = int(overrides[k])
+        else:  # the point's own folder or run name
+            assert key in re.split(r"[/-]", overrides[k]), (k, overrides[k])
+        OmegaConf.update(cfg, k, value, merge=False)
+    return name, cfg
+
+
 def _outs(stage) -> dict[str, bool]:
     """Each output's path and whether DVC caches it."""
     return {str(o.def_path): bool(o.use_cache) for o in stage.outs}
@@ -92,9 +125,10 @@ def test_the_stages_are_the_issues_points_and_their_commands_compose(tmp_path):
     assert set(stages) == expected
     groups, eval_dirs = {}, {}
     for recipe in RECIPES:
+        composed = {}  # a point's commands differ from the first's only in the point's values
         for key, (d, m, seed) in POINTS.items():
             stage = stages[f"{recipe}@{key}"]
-            (train, cfg), (evaluate, ecfg) = (_compose(c) for c in stage.cmd)
+            (train, cfg), (evaluate, ecfg) = (_compose_point(c, key, composed) for c in stage.cmd)
             assert (train, evaluate) == ("train", "evaluate")
             assert (cfg.model.hidden, cfg.experts, cfg.seed) == (d, m, seed)
             # the recipe: the paper's data, network and training, or the default's
