@@ -440,3 +440,29 @@ def test_the_dashboard_command_serves_the_studys_trials(tmp_path):
         ["ps", "-o", "pid=", "-s", str(server.pid)], capture_output=True, text=True
     )
     assert left.stdout.split() == []  # gunicorn's worker went with it
+
+
+def test_two_parents_made_at_the_same_moment_become_one_when_a_worker_stops(tmp_path):
+    """Each of two workers created a parent before the other's was visible: the newer's trial
+    runs move under the older, and the newer is deleted."""
+    from generalist_control.sweeps.study import _settled_parent
+    from generalist_control.tracking.parents import create_parent_run
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    logger = {"tracking_uri": uri, "experiment_name": "merge/tune"}
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    study = optuna.create_study(study_name="s", storage=storage)
+    tags = {"optuna.study": "s", "optuna.storage": storage}
+    older = create_parent_run(logger, "study:s", "study", tags)
+    time.sleep(0.01)  # a later start time
+    newer = create_parent_run(logger, "study:s", "study", tags)
+    client = mlflow.MlflowClient(uri)
+    exp = client.get_run(newer).info.experiment_id
+    trial_run = client.create_run(exp, tags={"mlflow.parentRunId": newer}).info.run_id
+
+    assert _settled_parent(study, logger, storage, older) == older  # the older keeps its own
+    assert client.get_run(newer).info.lifecycle_stage == "active"
+    assert _settled_parent(study, logger, storage, newer) == older
+    assert client.get_run(trial_run).data.tags["mlflow.parentRunId"] == older
+    assert client.get_run(newer).info.lifecycle_stage == "deleted"
+    assert study.user_attrs[PARENT_ATTR] == older

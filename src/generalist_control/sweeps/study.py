@@ -136,33 +136,61 @@ def _progress(n_trials: int) -> Callable[[optuna.Study, FrozenTrial], None]:
     return report
 
 
+def _oldest_parent(study: optuna.Study, logger: Mapping[str, Any], storage: str) -> str | None:
+    """The oldest live run tagged as this study's parent, if any.
+
+    Its tags: ``gc.role=study``, ``optuna.study`` and ``optuna.storage``.
+    """
+    exp_id = mlflow_utils.experiment_id(logger, kind="tune")
+    query = f"tags.`{ROLE_TAG}` = 'study' and tags.`optuna.study` = '{study.study_name}'"
+    found = mlflow.MlflowClient().search_runs([exp_id], filter_string=query, max_results=1000)
+    runs = [r for r in found if r.data.tags.get("optuna.storage") == storage]
+    runs.sort(key=lambda r: (r.info.start_time, r.info.run_id))
+    return runs[0].info.run_id if runs else None
+
+
 def _study_parent(study: optuna.Study, logger: Mapping[str, Any], storage: str) -> str:
     """The study's MLflow parent run, reopened as ``RUNNING``; created on first use.
 
-    It is the oldest run tagged as this study's (``gc.role=study``, ``optuna.study``,
-    ``optuna.storage``): workers that both create one keep the older. Its id is kept in the
-    study's user attribute ``mlflow_parent_run_id``.
+    It is the oldest run tagged as this study's: workers that both create one keep the older
+    (and :func:`_settled_parent` mends the case where neither saw the other's yet). Its id is
+    kept in the study's user attribute ``mlflow_parent_run_id``.
     """
-    exp_id = mlflow_utils.experiment_id(logger, kind="tune")
+    run_id = _oldest_parent(study, logger, storage)  # MLflow pointed at logger's store
     client = mlflow.MlflowClient()
-    query = f"tags.`{ROLE_TAG}` = 'study' and tags.`optuna.study` = '{study.study_name}'"
-
-    def oldest() -> str | None:
-        found = client.search_runs([exp_id], filter_string=query, max_results=1000)
-        runs = [r for r in found if r.data.tags.get("optuna.storage") == storage]
-        runs.sort(key=lambda r: (r.info.start_time, r.info.run_id))
-        return runs[0].info.run_id if runs else None
-
-    run_id = oldest()
     if run_id is None:
         tags = {"optuna.study": study.study_name, "optuna.storage": storage}
         own = create_parent_run(logger, f"study:{study.study_name}", "study", tags)
-        run_id = oldest() or own
+        run_id = _oldest_parent(study, logger, storage) or own
         if run_id != own:
             client.delete_run(own)
     client.update_run(run_id, status="RUNNING")
     study.set_user_attr(PARENT_ATTR, run_id)
     return run_id
+
+
+def _settled_parent(
+    study: optuna.Study, logger: Mapping[str, Any], storage: str, parent_id: str
+) -> str:
+    """The study's one parent when a worker stops: ``parent_id``, or the older one.
+
+    Two workers that started together may each have created a parent before the other's was
+    visible; the newer one's trial runs then move under the older, and the newer is deleted.
+    """
+    oldest = _oldest_parent(study, logger, storage)
+    if oldest is None or oldest == parent_id:
+        return parent_id
+    client = mlflow.MlflowClient()
+    experiments = [e.experiment_id for e in client.search_experiments()]
+    query = f"tags.`mlflow.parentRunId` = '{parent_id}'"
+    for child in client.search_runs(experiments, filter_string=query, max_results=10000):
+        client.set_tag(child.info.run_id, "mlflow.parentRunId", oldest)
+    client.delete_run(parent_id)
+    study.set_user_attr(PARENT_ATTR, oldest)
+    log.info(
+        "study %r: parent run %s merged into the older %s", study.study_name, parent_id, oldest
+    )
+    return oldest
 
 
 def _summarise(study: optuna.Study, parent_id: str, status: str) -> dict[str, Any]:
@@ -226,6 +254,7 @@ def _optimize(
     search: SearchSettings,
     n_trials: int,
     logger: Mapping[str, Any],
+    storage: str,
 ) -> None:
     """Add ``n_trials`` trials (stopping at a signal); log the outcome to the parent run."""
     callbacks: list[Any] = [_progress(n_trials)]
@@ -248,7 +277,8 @@ def _optimize(
         if stop_signals.received() is not None:
             status = "KILLED"
         mlflow_utils.set_tracking(logger)
-        summary = _summarise(study, objective.parent_id, status)
+        parent_id = _settled_parent(study, logger, storage, objective.parent_id)
+        summary = _summarise(study, parent_id, status)
         log.info("study %r: %s", study.study_name, summary)
 
 
@@ -288,5 +318,5 @@ def run_study(
     )  # fmt: skip
     parent_id = _study_parent(study, logger, url)
     objective = Objective(train_point, space, search.metric, trials_dir, parent_id)
-    _optimize(study, objective, search, n_trials, logger)
+    _optimize(study, objective, search, n_trials, logger, url)
     return study
