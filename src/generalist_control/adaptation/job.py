@@ -44,7 +44,7 @@ from generalist_control.plants.definition import Plant
 from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.simulation.simulate import simulate_many
 from generalist_control.tracking import mlflow_utils
-from generalist_control.training.callbacks import dagger_round
+from generalist_control.training.callbacks import dagger_round, rollout_sampler
 from generalist_control.training.datamodule import WindowTensors
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
@@ -236,15 +236,7 @@ def _dagger(request: AdaptRequest, new: NewPlant, policy: Policy) -> tuple | Non
     spec, data = request.dagger, rollout_data(request.data)
     if spec is None or request.demos is not None or not request.adapt.rounds:
         return None  # a recorded controller cannot label the states the policy visits
-    sampler = RolloutSampler(
-        [new.plant],
-        spec.sampler,
-        limit=data.amplitude_limit,
-        families=data.families,
-        seed=request.seed,
-        variant_range=data.variant_range,
-        variant_tries=data.variant_tries,
-    )
+    sampler = rollout_sampler([new.plant], spec, data, request.seed)
     return sampler, ExpertLabeller(spec.labeller, policy.history, policy.horizon, policy.channels)
 
 
