@@ -62,7 +62,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             "same config first"
         )
     df = pd.read_csv(metrics)
-    plants = [p for p in plants_from_config(cfg.systems) if p.name in set(df.system)]
+    plants = [p for p in plants_from_config(as_dict(cfg.systems)) if p.name in set(df.system)]
     scenarios = settings.scenarios
     trajectories: dict = {}  # no diverged run: an empty departures table
     gc = df[(df.controller == "GC") & (df.metric == "diverged")]

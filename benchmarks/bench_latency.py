@@ -30,6 +30,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from generalist_control.common.configs import as_dict
 from generalist_control.data.windows import build_windows, integral_of_error  # noqa: E402
 from generalist_control.deploy.policy_source import resolve  # noqa: E402
 from generalist_control.deploy.runtime import PolicyRuntime, RejectedStep  # noqa: E402
@@ -50,7 +51,7 @@ def _default_model() -> dict:
     from generalist_control.training.settings import model_config
 
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
-        return model_config(compose("config"))
+        return model_config(as_dict(compose("config")))
 
 
 def _reference(k: int) -> float:

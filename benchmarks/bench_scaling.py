@@ -51,6 +51,7 @@ import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.jsonsafe import write_json  # noqa: E402
 from generalist_control.common.paths import conf_dir  # noqa: E402
 from generalist_control.data.generation import amplitude_grid, generate_demos  # noqa: E402
@@ -271,7 +272,7 @@ def measure_eval(s: Setup, scenarios: dict, repeats: int) -> dict:
 def measure_count(catalogue: Sequence[Plant], n: int, args: argparse.Namespace) -> dict:
     """Every measurement for ``n`` plants."""
     cfg = compose_cfg([f"model.plant.n_tags={n}", *args.overrides])
-    settings = read_training(cfg)
+    settings = read_training(as_dict(cfg))
     data = OmegaConf.to_container(cfg.data, resolve=True)
     assert isinstance(data, dict)
     t0 = time.perf_counter()
@@ -381,7 +382,7 @@ def main(argv: list[str] | None = None) -> dict:
         "loadavg_start": os.getloadavg(),
         "repeats": args.repeats,
     }
-    catalogue = plants_from_config(compose_cfg(args.overrides).systems)
+    catalogue = plants_from_config(as_dict(compose_cfg(args.overrides).systems))
     if args.smoke:
         catalogue = catalogue[:SMOKE_CATALOGUE]
     result["catalogue"] = len(catalogue)

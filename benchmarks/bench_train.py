@@ -38,6 +38,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
 from generalist_control.data.demos import write_demos
 from generalist_control.data.generation import build_manifest, generate_demos
@@ -87,7 +88,9 @@ def make_data(cfg, out: Path) -> Path:
 
 
 def build(cfg, dm: DemoDataModule) -> ImitationModule:
-    settings = read_training(cfg)  # the training config's sections, as train.py reads them
+    settings = read_training(
+        as_dict(cfg)
+    )  # the training config's sections, as train.py reads them
     lit = ImitationModule(settings.model, settings.optimizer, settings.scheduler, dm.meta())
     lit.policy.normaliser.fit(**dm.train_set.tensors)
     return lit
@@ -197,7 +200,7 @@ def main(argv: list[str] | None = None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         data_dir = args.data or make_data(cfg, Path(tmp))
-        settings = read_training(cfg)
+        settings = read_training(as_dict(cfg))
         dm = DemoDataModule(
             data_dir,
             settings.history,

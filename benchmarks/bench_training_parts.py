@@ -59,7 +59,7 @@ def main() -> None:
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
         cfg = compose("config")
     policy, meta = load_policy(args.policy)
-    plants = [p for p in plants_from_config(cfg.systems) if p.name in meta["tags"]]
+    plants = [p for p in plants_from_config(as_dict(cfg.systems)) if p.name in meta["tags"]]
     runtime = PolicyRuntime(policy, meta)
     spec = cfg.closed_loop_val
     amps, duration = list(spec.amplitudes), float(spec.duration)
@@ -72,7 +72,7 @@ def main() -> None:
         t_first = _median_time(first, args.repeats)
         score(RuntimeAdapter(runtime))
         t_val = _median_time(lambda: score(RuntimeAdapter(runtime)), args.repeats)
-    d = read_training(cfg).dagger
+    d = read_training(as_dict(cfg)).dagger
     assert d is not None, "the default config runs DAgger"
     sampler = RolloutSampler(
         plants, d.sampler, float(cfg.data.amplitudes.limit),

@@ -7,6 +7,7 @@ import os
 
 from hydra import compose, initialize_config_dir
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
 
 #: Composed configs by (folder, its files and their times of change, config, overrides):
@@ -239,7 +240,7 @@ def train(cfg):
     from generalist_control.training.fit import train as fit
     from generalist_control.training.settings import read_training
 
-    return fit(read_training(cfg))
+    return fit(read_training(as_dict(cfg)))
 
 
 #: What the fast adaptations add to ``conf/adapt.yaml``: a few steps on the tiny data recipe.

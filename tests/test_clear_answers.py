@@ -34,11 +34,13 @@ from helpers import compose_cfg, lqi_law_policy
 def test_an_empty_include_list_names_no_plant_and_is_refused(tmp_path):
     cfg = compose_cfg("systems.include=[]", f"paths.data_dir={tmp_path / 'demos'}")
     with pytest.raises(PlantConfigError, match=r"systems\.include=\[\] names no plant.*drop"):
-        plants_from_config(cfg.systems)
+        plants_from_config(as_dict(cfg.systems))
     with pytest.raises(PlantConfigError, match=r"name plants, e\.g\. systems\.include=\[cstr\]"):
         generate_run(cfg)
     assert list(tmp_path.iterdir()) == []  # refused before anything was written
-    everything = plants_from_config(compose_cfg().systems)  # the key left out: every plant
+    everything = plants_from_config(
+        as_dict(compose_cfg().systems)
+    )  # the key left out: every plant
     assert len(everything) == len(compose_cfg().systems.plants) >= 25
 
 

@@ -23,6 +23,7 @@ import torch
 import yaml
 from omegaconf import OmegaConf
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
 from generalist_control.common.schema import require_int
 from generalist_control.generate import run as generate_run
@@ -62,7 +63,7 @@ def _refused(*overrides: str) -> str:
     """The message of the ValueError with which the training config is refused."""
     cfg = compose_cfg(*overrides)
     with pytest.raises(ValueError) as err:
-        Policy(read_training(cfg).model)
+        Policy(read_training(as_dict(cfg)).model)
     return str(err.value)
 
 
@@ -103,13 +104,13 @@ def test_a_bad_training_value_is_refused_naming_its_key(override, message):
 
 def test_the_typed_settings_take_integers_of_any_kind_and_keep_the_config():
     cfg = compose_cfg("experiment=variants")
-    settings = read_training(cfg)
+    settings = read_training(as_dict(cfg))
     assert settings.dagger is not None and settings.dagger.sampler.variants is not None
     assert settings.dagger.sampler.variants.fresh == 8 and settings.dagger.sampler.families == 0
     assert settings.closed_loop_val is not None and settings.closed_loop_val.duration == 30.0
     assert settings.scheduler is not None and settings.scheduler["T_max"] == 30
     assert settings.model["experts"] == 3 and settings.model["history"] == 8
-    assert read_training(compose_cfg("experiment=paper")).dagger is None
+    assert read_training(as_dict(compose_cfg("experiment=paper"))).dagger is None
     assert require_int("x", np.int64(0), minimum=0) == 0
 
 
@@ -244,8 +245,10 @@ def test_the_tag_count_is_the_catalogues_and_an_explicit_one_is_kept(tmp_path, m
     assert tag_count() == 26 and catalogue_tags()["my_plant"] == 25
     cfg = compose_cfg("systems=paper")  # a set without it: the rows are the catalogue's
     assert cfg.model.plant.n_tags == 26
-    assert read_training(cfg).model["plant"]["n_tags"] == 26  # the policy's file holds 26
-    assert read_training(compose_cfg("model.plant.n_tags=40")).model["plant"]["n_tags"] == 40
+    assert read_training(as_dict(cfg)).model["plant"]["n_tags"] == 26  # the policy's file holds 26
+    assert (
+        read_training(as_dict(compose_cfg("model.plant.n_tags=40"))).model["plant"]["n_tags"] == 40
+    )
 
 
 def test_data_module_keeps_the_included_plants_with_the_same_split(tiny_data_dir):

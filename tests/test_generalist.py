@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from generalist_control.common.configs import as_dict
 from generalist_control.model.network import GeneralistNetwork
 from generalist_control.model.plant import TagEmbedding
 from generalist_control.model.policy import Policy, load_policy
@@ -45,14 +46,14 @@ def _tag_only_through_embedding(net: GeneralistNetwork) -> bool:
 
 def test_the_default_recipe_indexes_nothing_by_plant_but_the_tag_embedding():
     cfg = compose_cfg()
-    policy = Policy(read_training(cfg).model)
+    policy = Policy(read_training(as_dict(cfg)).model)
     assert isinstance(policy.net.plant, TagEmbedding)
     assert _indexed_by_plant(policy) == {TAG_EMBEDDING}
     assert _tag_only_through_embedding(policy.net)
 
 
 def test_the_checks_see_a_parameter_indexed_by_plant_and_a_tag_read_elsewhere():
-    policy = Policy(read_training(compose_cfg()).model)
+    policy = Policy(read_training(as_dict(compose_cfg())).model)
     policy.net.extra = torch.nn.Embedding(policy.net.n_tags, 4)  # a per-plant table
     assert _indexed_by_plant(policy) == {TAG_EMBEDDING, "net.extra.weight"}
     plant = policy.net.plant

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from generalist_control.common.configs import as_dict
 from generalist_control.data import demos as demos_mod
 from generalist_control.data.demos import MissingDataError, load_demos
 from generalist_control.data.generation import DataConfigError, amplitude_grid
@@ -46,7 +47,9 @@ def paper(tmp_path_factory):
 
 def test_paper_counts_match_the_paper(paper):
     out, manifest = paper
-    n = len(plants_from_config(compose_cfg().systems))  # the paper's 25, and any plant added
+    n = len(
+        plants_from_config(as_dict(compose_cfg().systems))
+    )  # the paper's 25, and any plant added
     the_papers = [m for m in manifest["plants"].values() if m["tag"] < 25]
     windows = sum(m["n_demonstrations"] for m in the_papers)
     assert len(the_papers) == 25 and abs(windows - PAPER_WINDOWS) / PAPER_WINDOWS < 0.01
@@ -70,7 +73,7 @@ def test_default_families_are_counted_per_family(full, paper):
     out, manifest = full
     cfg = compose_cfg()
     per_traj = 200 - 3 + 1
-    n = len(plants_from_config(cfg.systems))
+    n = len(plants_from_config(as_dict(cfg.systems)))
     expected = {"steps": n * 64}
     expected.update({k: n * int(v["count"]) for k, v in cfg.data.families.items()})
     got = {k: v["n_trajectories"] for k, v in manifest["families"].items()}
@@ -170,7 +173,9 @@ def test_missing_data_error_gives_the_command(tmp_path):
 
 
 def test_sets_compose_the_documented_plants():
-    names = lambda s: [p.name for p in plants_from_config(compose_cfg(f"systems={s}").systems)]  # noqa: E731
+    def names(s):
+        return [p.name for p in plants_from_config(as_dict(compose_cfg(f"systems={s}").systems))]
+
     assert sorted(names("paper")) == sorted(
         [
             "unstable",

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from generalist_control.common.configs import as_dict
 from generalist_control.data.demos import load_demos
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
@@ -107,7 +108,7 @@ def test_short_training_imitates_the_expert_and_saves_the_best_checkpoint(
     trained, meta = load_policy(tmp_path / "models" / "policy.ckpt")
     u_trained, _ = trained.predict_windows(windows)
     torch.manual_seed(int(cfg.seed))
-    untrained = Policy(model_config(cfg))  # the same network untrained, same normaliser
+    untrained = Policy(model_config(as_dict(cfg)))  # the same network untrained, same normaliser
     untrained.normaliser.fit(**objs["datamodule"].train_set.tensors)
     u_untrained, _ = untrained.predict_windows(windows)
     err_trained = _relative_mse(u_trained, target, windows.tag)

@@ -152,6 +152,34 @@ def test_no_project_import_inside_a_function():
     assert not inside, f"imports inside functions (only {allowed} may be): {inside}"
 
 
+def test_no_function_below_the_entry_points_takes_a_dictconfig():
+    """Issue 49: entry points read the config once into typed settings or plain mappings.
+
+    Exempt: the entry points' decorator (``common.stage_main``) and the methods of Hydra
+    callbacks, whose interface Hydra defines (``on_run_start(config: DictConfig)``).
+    """
+    entry = LAYERS[-1]
+    taking = []
+    for name, tree in TREES.items():
+        if name.split(".")[-1] in entry or name.endswith("common.stage_main"):
+            continue
+        hydra_hooks = {
+            id(f)
+            for c in ast.walk(tree)
+            if isinstance(c, ast.ClassDef) and any("Callback" in ast.unparse(b) for b in c.bases)
+            for f in c.body
+        }
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+                and id(node) not in hydra_hooks
+            ):
+                args = [*node.args.posonlyargs, *node.args.args, *node.args.kwonlyargs]
+                if any(a.annotation and "DictConfig" in ast.unparse(a.annotation) for a in args):
+                    taking.append(f"{name}.{node.name}")
+    assert not taking, f"functions below the entry points that take a DictConfig: {taking}"
+
+
 def test_imports_point_down_the_layers():
     up = []
     for name, deps in GRAPH.items():

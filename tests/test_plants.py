@@ -8,6 +8,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 import generalist_control.common.paths
+from generalist_control.common.configs import as_dict
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi
@@ -94,7 +95,7 @@ def _compose(systems: str) -> dict[str, Plant]:
     conf = str(generalist_control.common.paths.conf_dir())
     with initialize_config_dir(conf, version_base="1.3"):
         cfg = compose("config", overrides=[f"systems={systems}"])
-    return {p.name: p for p in plants_from_config(cfg.systems)}
+    return {p.name: p for p in plants_from_config(as_dict(cfg.systems))}
 
 
 @pytest.fixture(scope="module")

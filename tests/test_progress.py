@@ -10,6 +10,7 @@ from lightning.pytorch.callbacks import RichProgressBar
 from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
 from omegaconf import OmegaConf
 
+from generalist_control.common.configs import as_dict
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.training.callbacks import ClosedLoopValidation
@@ -49,7 +50,7 @@ def fitted(tiny_data_dir):
     dm = DemoDataModule(tiny_data_dir, 8, 3, loader, channels=["integral"])
     dm.setup("fit")
     optimizer = OmegaConf.to_container(cfg.optimizer, resolve=True)
-    lit = ImitationModule(model=model_config(cfg), optimizer=optimizer, meta=dm.meta())
+    lit = ImitationModule(model=model_config(as_dict(cfg)), optimizer=optimizer, meta=dm.meta())
     plants = [load_plant("cstr"), load_plant("hydraulic_actuator")]
     trainer = L.Trainer(
         max_epochs=1,

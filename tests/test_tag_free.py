@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from generalist_control.common.configs import as_dict
 from generalist_control.model.identifier import TransitionSet
 from generalist_control.model.plant import InferredPlant
 from generalist_control.model.policy import Policy
@@ -36,7 +37,7 @@ def _batch(n: int = 64, seed: int = 0) -> dict[str, torch.Tensor]:
 
 
 def test_experiment_tag_free_composes_the_inferred_plant():
-    settings = read_training(compose_cfg("experiment=tag_free"))
+    settings = read_training(as_dict(compose_cfg("experiment=tag_free")))
     policy = Policy(settings.model)
     assert isinstance(policy.net.plant, InferredPlant)
     assert isinstance(policy.net.plant.identifier, TransitionSet)
@@ -47,7 +48,7 @@ def test_experiment_tag_free_composes_the_inferred_plant():
         1.0,
         0.3,
     )
-    assert Policy(read_training(compose_cfg()).model).channels == ("integral",)
+    assert Policy(read_training(as_dict(compose_cfg())).model).channels == ("integral",)
 
 
 def test_an_inferred_plant_weighs_the_rows_by_its_head_and_ignores_the_tag():

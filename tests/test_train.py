@@ -14,6 +14,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
 from generalist_control.data.demos import MissingDataError, content_hash, load_demos
 from generalist_control.deploy.policy_source import resolve
@@ -188,7 +189,7 @@ def test_default_recipe_config_composes_the_learned_generalist():
     from generalist_control.training.settings import read_training
 
     cfg = _cfg([])
-    policy = Policy(read_training(cfg).model)
+    policy = Policy(read_training(as_dict(cfg)).model)
     # the learned generalist: the integral channel, window scaling and the shared skip path
     assert policy.channels == ("integral",) and policy.net.window_scale
     assert policy.net.skip is not None

@@ -15,6 +15,7 @@ import pandas as pd
 import pytest
 import yaml
 
+from generalist_control.common.configs import as_dict
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import available_plants, load_plant
 from generalist_control.reports.held_out import POLICIES, judge, plant_class
@@ -59,11 +60,11 @@ def test_the_held_out_plants_span_the_classes_and_each_class_stays_in_training()
 
 def test_held_out_plants_are_left_out_of_training():
     cfg = compose_cfg("systems.include=[cstr,hydraulic_actuator]", "held_out=[cstr]")
-    assert read_training(cfg).trained_names == ["hydraulic_actuator"]
+    assert read_training(as_dict(cfg)).trained_names == ["hydraulic_actuator"]
     with pytest.raises(ValueError, match=r"held_out names \['nowhere'\].*does not hold"):
-        read_training(compose_cfg("held_out=[nowhere]"))
+        read_training(as_dict(compose_cfg("held_out=[nowhere]")))
     with pytest.raises(ValueError, match="leaves no plant of the set to train on"):
-        read_training(compose_cfg("systems.include=[cstr]", "held_out=[cstr]"))
+        read_training(as_dict(compose_cfg("systems.include=[cstr]", "held_out=[cstr]")))
 
 
 def test_a_held_out_typo_is_refused_before_anything_is_adapted(tiny_demos, tmp_path):

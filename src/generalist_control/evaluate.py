@@ -96,7 +96,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         check_reports_dir(out_dir, VARIANTS_OWNED if variants else OWNED)
         check_store(logger)  # an MLflow store that does not answer: refused now
         runtime, record, tags = _policy(cfg, settings)
-        plants = plants_from_config(cfg.systems)
+        plants = plants_from_config(as_dict(cfg.systems))
         training = _training_draws(cfg) if variants else None
         source_run = record["provenance"]["policy"]["mlflow_run_id"]
         tags["gc.reports_dir"] = str(out_dir)

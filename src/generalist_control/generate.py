@@ -9,6 +9,7 @@ from typing import Any, cast
 
 from omegaconf import DictConfig, OmegaConf
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.stage_main import stage_main
 from generalist_control.data.demos import check_data_dir, write_demos
 from generalist_control.data.generation import build_manifest, generate_demos
@@ -21,7 +22,7 @@ log = logging.getLogger(__name__)
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Validate the config (tags the policy takes too), generate and write; the manifest."""
-    plants = plants_from_config(cfg.systems)
+    plants = plants_from_config(as_dict(cfg.systems))
     check_tags(plants, cfg.model.plant.n_tags)
     if "OPENBLAS_CORETYPE" not in os.environ:
         log.warning(

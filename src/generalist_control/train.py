@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig
 
+from generalist_control.common.configs import as_dict
 from generalist_control.common.stage_main import stage_main
 from generalist_control.training.fit import train
 from generalist_control.training.settings import read_training
@@ -20,7 +21,7 @@ __all__ = ["main", "run"]
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Train the policy ``cfg`` describes; return its metrics."""
-    metrics, _ = train(read_training(cfg))
+    metrics, _ = train(read_training(as_dict(cfg)))
     return metrics
 
 

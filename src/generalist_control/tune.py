@@ -90,7 +90,7 @@ def run(cfg: DictConfig) -> optuna.Study:
     def train_point(values: Mapping[str, Any], trial_dir: Path) -> Mapping[str, Any]:
         experiment = logger["experiment_name"]
         tcfg = trial_config(cfg, values, trial_dir, search.monitor, experiment)
-        return train(read_training(tcfg))[0]
+        return train(read_training(as_dict(tcfg)))[0]
 
     return run_study(search, space, fixed, logger, train_point, _trials_dir(search))
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from typing import Any, cast
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 
 from generalist_control.common.paths import conf_dir
 from generalist_control.common.schema import require_int
@@ -51,8 +51,8 @@ def load_plant(name: str) -> Plant:
     return plant_from_config(name, cfg, path)
 
 
-def plants_from_config(systems: DictConfig | Mapping[str, Any]) -> list[Plant]:
-    """Validated plants of a composed ``systems`` config, ordered by tag.
+def plants_from_config(systems: Mapping[str, Any]) -> list[Plant]:
+    """Validated plants of a composed ``systems`` config (plain types), ordered by tag.
 
     ``systems.include`` (a list of names, optional) keeps only those plants of the set.
 
@@ -64,8 +64,6 @@ def plants_from_config(systems: DictConfig | Mapping[str, Any]) -> list[Plant]:
         If a plant is invalid, two plants share a tag, or ``include`` is an empty list (it
         names no plant; leaving the key out means every plant of the set).
     """
-    if isinstance(systems, DictConfig):
-        systems = cast(dict[str, Any], OmegaConf.to_container(systems, resolve=True))
     entries: Mapping[str, Any] = systems.get("plants") or {}
     if not entries:
         raise PlantConfigError(f"systems set '{systems.get('name', '?')}' lists no plants")

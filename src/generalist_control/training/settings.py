@@ -15,7 +15,6 @@ from typing import Any
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.schema import require_int
 from generalist_control.common.secrets import redact
@@ -214,12 +213,14 @@ class TrainingSettings:
         return [p.name for p in self.plants if p.name not in self.held_out]
 
 
-def _plain(cfg: DictConfig, key: str) -> Any:
-    """``cfg[key]`` resolved to plain types (None when absent or null)."""
-    node = OmegaConf.select(cfg, key)
-    if node is None:
-        return None
-    return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+def _plain(config: Mapping[str, Any], key: str) -> Any:
+    """``config``'s value at the dotted ``key`` (None when absent or null)."""
+    node: Any = config
+    for part in key.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return None
+        node = node[part]
+    return node
 
 
 def _optimizer(spec: Any, scheduler: Any, max_epochs: int) -> tuple[dict, dict | None]:
@@ -238,18 +239,18 @@ def _optimizer(spec: Any, scheduler: Any, max_epochs: int) -> tuple[dict, dict |
     return spec, scheduler
 
 
-def model_config(cfg: DictConfig) -> dict[str, Any]:
+def model_config(config: Mapping[str, Any]) -> dict[str, Any]:
     """The network's config, ``model`` resolved to plain types (``conf/model``)."""
-    model = _plain(cfg, "model")
+    model = _plain(config, "model")
     if not isinstance(model, dict):
         raise ValueError("model must be a network config (conf/model)")
     return model
 
 
-def _held_out(cfg: DictConfig, plants: list[Plant]) -> tuple[str, ...]:
+def _held_out(config: Mapping[str, Any], plants: list[Plant]) -> tuple[str, ...]:
     """``held_out``: plants of the set training never sees (the held-out protocol)."""
     names = [p.name for p in plants]
-    held = tuple(str(h) for h in (_plain(cfg, "held_out") or ()))
+    held = tuple(str(h) for h in (_plain(config, "held_out") or ()))
     unknown = [h for h in held if h not in names]
     if unknown:
         raise ValueError(
@@ -261,24 +262,24 @@ def _held_out(cfg: DictConfig, plants: list[Plant]) -> tuple[str, ...]:
     return held
 
 
-def _run_dir(cfg: DictConfig) -> Path:
+def _run_dir(config: Mapping[str, Any]) -> Path:
     """Where the run's checkpoints go: ``run_dir``, Hydra's output dir, or a new one."""
-    if _plain(cfg, "run_dir"):
-        return Path(str(_plain(cfg, "run_dir")))
+    if _plain(config, "run_dir"):
+        return Path(str(_plain(config, "run_dir")))
     if HydraConfig.initialized():
         return Path(HydraConfig.get().runtime.output_dir)
     return Path("outputs/train") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
 
 
-def _models_dir(cfg: DictConfig, run_dir: Path) -> Path:
+def _models_dir(config: Mapping[str, Any], run_dir: Path) -> Path:
     """Where the run writes ``policy.ckpt`` and ``metrics.json``.
 
     ``paths.published_dir`` only when it publishes (``publish=true``: the DVC stage); else
     ``paths.models_dir`` if that is another folder (an Optuna trial's), else ``<run_dir>/models``.
     """
-    published = _plain(cfg, "paths.published_dir")
-    models_dir = Path(str(_plain(cfg, "paths.models_dir")))
-    if _plain(cfg, "publish"):
+    published = _plain(config, "paths.published_dir")
+    models_dir = Path(str(_plain(config, "paths.models_dir")))
+    if _plain(config, "publish"):
         return Path(published) if published else models_dir
     if published is None or models_dir.resolve() != Path(published).resolve():
         return models_dir
@@ -296,14 +297,14 @@ def rollout_data(data: Mapping[str, Any]) -> RolloutData:
     )
 
 
-def _callbacks(cfg: DictConfig) -> tuple[dict[str, Any], ...]:
+def _callbacks(config: Mapping[str, Any]) -> tuple[dict[str, Any], ...]:
     """The ``callbacks`` nodes that name a class (a null one is switched off)."""
-    nodes = (_plain(cfg, "callbacks") or {}).values()
+    nodes = (_plain(config, "callbacks") or {}).values()
     return tuple(n for n in nodes if isinstance(n, dict) and "_target_" in n)
 
 
-def read_training(cfg: DictConfig) -> TrainingSettings:
-    """The training config ``cfg`` (``conf/config.yaml`` composed), checked and typed.
+def read_training(config: Mapping[str, Any]) -> TrainingSettings:
+    """The training config ``config`` (``conf/config.yaml`` composed, as plain types), checked.
 
     Raises
     ------
@@ -311,49 +312,49 @@ def read_training(cfg: DictConfig) -> TrainingSettings:
         Naming the key: a wrong type or range, an unknown key, an optimiser that refuses its
         settings, sections that do not fit together, a plant the set does not hold.
     """
-    max_epochs = require_int("trainer.max_epochs", _plain(cfg, "trainer.max_epochs"))
-    monitor = _plain(cfg, "monitor")
+    max_epochs = require_int("trainer.max_epochs", _plain(config, "trainer.max_epochs"))
+    monitor = _plain(config, "monitor")
     if monitor not in ("val/loss", "val/closed_loop"):
         raise ValueError(f"monitor must be val/loss or val/closed_loop, got {monitor!r}")
-    closed = _plain(cfg, "closed_loop_val")
+    closed = _plain(config, "closed_loop_val")
     if monitor == "val/closed_loop" and closed is None:
         raise ValueError(
             "monitor=val/closed_loop needs the closed-loop validation, which closed_loop_val="
             "null turns off: set monitor=val/loss, or keep closed_loop_val"
         )
-    dagger = _plain(cfg, "dagger")
+    dagger = _plain(config, "dagger")
     optimizer, scheduler = _optimizer(
-        _plain(cfg, "optimizer"), _plain(cfg, "scheduler"), max_epochs
+        _plain(config, "optimizer"), _plain(config, "scheduler"), max_epochs
     )
-    plants = plants_from_config(_plain(cfg, "systems"))
-    run_dir = _run_dir(cfg)
+    plants = plants_from_config(_plain(config, "systems"))
+    run_dir = _run_dir(config)
     return TrainingSettings(
-        seed=require_int("seed", _plain(cfg, "seed"), minimum=0),
-        threads=require_int("threads", _plain(cfg, "threads")),
+        seed=require_int("seed", _plain(config, "seed"), minimum=0),
+        threads=require_int("threads", _plain(config, "threads")),
         max_epochs=max_epochs,
         monitor=str(monitor),
-        history=require_int("data.history", _plain(cfg, "data.history")),
-        horizon=require_int("data.horizon", _plain(cfg, "data.horizon")),
-        model=model_config(cfg),
+        history=require_int("data.history", _plain(config, "data.history")),
+        horizon=require_int("data.horizon", _plain(config, "data.horizon")),
+        model=model_config(config),
         optimizer=optimizer,
         scheduler=scheduler,
-        loader=read_section(LoaderSettings, _plain(cfg, "loader"), "loader"),
+        loader=read_section(LoaderSettings, _plain(config, "loader"), "loader"),
         dagger=None if dagger is None else read_section(DaggerSettings, dagger, "dagger"),
         closed_loop_val=(
             None
             if closed is None
             else read_section(ClosedLoopValSettings, closed, "closed_loop_val")
         ),
-        closed_loop=read_section(ClosedLoopSettings, _plain(cfg, "closed_loop"), "closed_loop"),
-        rollout_data=rollout_data(_plain(cfg, "data")),
+        closed_loop=read_section(ClosedLoopSettings, _plain(config, "closed_loop"), "closed_loop"),
+        rollout_data=rollout_data(_plain(config, "data")),
         plants=tuple(plants),
-        held_out=_held_out(cfg, plants),
-        data_dir=Path(str(_plain(cfg, "paths.data_dir"))),
+        held_out=_held_out(config, plants),
+        data_dir=Path(str(_plain(config, "paths.data_dir"))),
         run_dir=run_dir,
-        models_dir=_models_dir(cfg, run_dir),
-        ckpt_path=_plain(cfg, "ckpt_path") or None,
-        trainer=_plain(cfg, "trainer"),
-        callbacks=_callbacks(cfg),
-        logger=_plain(cfg, "logger") or {},
-        resolved=redact(OmegaConf.to_container(cfg, resolve=True)),
+        models_dir=_models_dir(config, run_dir),
+        ckpt_path=_plain(config, "ckpt_path") or None,
+        trainer=_plain(config, "trainer"),
+        callbacks=_callbacks(config),
+        logger=_plain(config, "logger") or {},
+        resolved=redact(dict(config)),
     )
