@@ -86,15 +86,41 @@ def test_the_probe_is_bounded_in_time(tmp_path):
     assert time.monotonic() - start < 20
 
 
-def test_dry_run_prints_the_commands_and_installs_nothing():
-    out = subprocess.run(
+PIP_LINE = "+ python -m pip install -q -e .[dev]"
+UV_LINE = "+ python -m uv pip install -q --python {} --compile-bytecode -e .[dev]"
+
+
+def _dry_run(**env: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
         ["bash", str(SCRIPT)],
         capture_output=True,
         text=True,
         timeout=300,
-        env={**os.environ, "GC_SETUP_DRY_RUN": "1"},
+        env={**os.environ, "GC_SETUP_DRY_RUN": "1", **env},
         cwd=REPO,
     )
+
+
+@pytest.mark.parametrize("installer", ["uv", "pip"])
+def test_dry_run_prints_the_commands_and_installs_nothing(installer):
+    """The project's requirements go through uv where the environment has it, else pip."""
+    out = _dry_run(GC_INSTALLER=installer)
     assert out.returncode == 0, out.stderr
-    assert "+ python -m pip install -q -e .[dev]" in out.stdout
+    venv_python = REPO / ".venv" / "bin" / "python"
+    has_uv = subprocess.run([venv_python, "-m", "uv", "--version"], capture_output=True)
+    if installer == "uv" and has_uv.returncode == 0:
+        assert UV_LINE.format(REPO / ".venv" / "bin" / "python") in out.stdout
+        assert PIP_LINE not in out.stdout
+    else:
+        assert PIP_LINE in out.stdout and "uv pip" not in out.stdout
     assert "setup done" not in out.stdout
+
+
+def test_pip_installs_the_requirements_when_uv_fails():
+    """uv answers but fails (say, an index it cannot reach): pip installs instead."""
+    fake = 'uv_ready() { return 0; }\nrun() { echo "+ $*"; [ "$3" != uv ]; }\ninstall_project'
+    out = _bash(fake)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert lines[0].startswith("+ python -m uv pip install") and lines[1] == PIP_LINE
+    assert "trying pip" in out.stderr
