@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from generalist_control.common.schema import require_int
+from generalist_control.common.sections import require_int
 from generalist_control.plants.definition import Plant
 from generalist_control.plants.variants import variant_range
 from generalist_control.simulation.lqi import LQIController

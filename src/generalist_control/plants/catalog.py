@@ -8,7 +8,7 @@ from typing import Any, cast
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.common.paths import conf_dir
-from generalist_control.common.schema import require_int
+from generalist_control.common.sections import require_int
 from generalist_control.plants.config import plant_from_config
 from generalist_control.plants.definition import Plant, PlantConfigError
 

@@ -17,12 +17,12 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from generalist_control.common.schema import require_int
 from generalist_control.common.secrets import redact
 from generalist_control.common.sections import (
     SettingError,
     positive,
     read_section,
+    require_int,
     unit_interval,
 )
 from generalist_control.data.generation import enabled_families
