@@ -23,6 +23,7 @@ from generalist_control.common.paths import conf_dir
 from generalist_control.data.demos import content_hash
 from generalist_control.data.generation import generate_demos
 from generalist_control.data.windows import Windows, build_windows, integral_of_error
+from generalist_control.deploy.runtime_plants import integral_facts
 from generalist_control.plants.catalog import available_plants
 from generalist_control.plants.config import plant_from_config
 from generalist_control.plants.definition import Plant, PlantConfigError, pad_states
@@ -131,16 +132,12 @@ def load_new_plant(spec: str, meta: Mapping[str, Any]) -> NewPlant:
 
 def plant_meta(meta: Mapping[str, Any], plant: Plant, record: Mapping[str, Any]) -> dict[str, Any]:
     """The policy's meta with ``plant`` added as training stores a plant, and its ``record``."""
-    name = plant.name
+    name, facts = plant.name, integral_facts(plants=[plant])
     return {
         **meta,
         "tags": {**meta["tags"], name: int(plant.tag)},
         "orders": {**meta["orders"], name: int(plant.order)},
-        "outputs": {**meta.get("outputs", {}), name: [float(c) for c in plant.C[0]]},
-        "integral_directions": {
-            **meta.get("integral_directions", {}),
-            name: float(np.sign(-design_lqi(plant).Ki)),
-        },
+        **{k: {**meta.get(k, {}), **v} for k, v in facts.items()},
         "adapted": {**meta.get("adapted", {}), name: dict(record)},
     }
 
