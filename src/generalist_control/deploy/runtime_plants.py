@@ -16,8 +16,8 @@ import numpy as np
 from generalist_control.model.bank import NoModelRowError, add_plant
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import available_plants, load_plant
+from generalist_control.plants.config import plant_from_file, plant_from_model
 from generalist_control.plants.definition import MAX_ORDER, Plant
-from generalist_control.plants.given import plant_from_file, plant_from_model
 from generalist_control.simulation.lqi import design_lqi
 
 __all__ = [
