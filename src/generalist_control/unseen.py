@@ -13,7 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.adaptation.request import AdaptRequest, read_request
 from generalist_control.adaptation.run_folder import exits_on_sigterm
-from generalist_control.common.configs import as_dict
+from generalist_control.common.sections import as_dict
 from generalist_control.common.stage_main import stage_main
 from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.plants.catalog import available_plants

@@ -16,8 +16,11 @@ import typing
 from collections.abc import Mapping
 from typing import Any, TypeVar, Union
 
+from omegaconf import DictConfig, OmegaConf
+
 __all__ = [
     "SettingError",
+    "as_dict",
     "positive",
     "read_section",
     "require_int",
@@ -35,6 +38,15 @@ class SettingError(ValueError):
     def __init__(self, field: str, message: str) -> None:
         super().__init__(f"{field} {message}")
         self.field, self.message = field, message
+
+
+def as_dict(node: Any) -> dict[str, Any]:
+    """``node`` (a config or plain mapping) resolved into a plain ``dict``; else a TypeError."""
+    if isinstance(node, DictConfig):
+        node = OmegaConf.to_container(node, resolve=True)
+    if not isinstance(node, dict):
+        raise TypeError(f"expected a config mapping, got {type(node).__name__}: {node!r}")
+    return node
 
 
 def unit_interval(name: str, value: float) -> None:
