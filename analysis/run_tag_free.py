@@ -27,8 +27,8 @@ from analysis.handover import handover_table
 from analysis.identity import identity_trace
 from analysis.local_gains import local_gains
 from analysis.tag_free import write_tag_free_report
-from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import HYDRA_CONFIG_PATH
+from generalist_control.common.sections import as_dict
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.evaluation.runner import evaluate

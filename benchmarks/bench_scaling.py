@@ -56,11 +56,11 @@ from generalist_control.common.jsonsafe import write_json  # noqa: E402
 from generalist_control.common.paths import conf_dir  # noqa: E402
 from generalist_control.data.generation import amplitude_grid, generate_demos  # noqa: E402
 from generalist_control.deploy.runtime import PolicyRuntime  # noqa: E402
+from generalist_control.deploy.runtime_plants import integral_facts  # noqa: E402
 from generalist_control.evaluation.runner import evaluate  # noqa: E402
 from generalist_control.model.policy import Policy  # noqa: E402
 from generalist_control.plants.catalog import check_tags, plants_from_config  # noqa: E402
 from generalist_control.plants.definition import Plant  # noqa: E402
-from generalist_control.simulation.lqi import design_lqi  # noqa: E402
 from generalist_control.simulation.variant_sampling import sample_variants  # noqa: E402
 from generalist_control.training.datamodule import (  # noqa: E402
     BatchIndexSampler,
@@ -132,8 +132,7 @@ def plant_meta(plants: Sequence[Plant], history: int, horizon: int) -> dict[str,
         "dt": plants[0].dt,
         "history": history,
         "horizon": horizon,
-        "outputs": {p.name: p.C[0].tolist() for p in plants},
-        "integral_directions": {p.name: float(np.sign(-design_lqi(p).Ki)) for p in plants},
+        **integral_facts(plants=plants),
     }
 
 

@@ -26,8 +26,8 @@ import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
 
-from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
+from generalist_control.common.sections import as_dict
 from generalist_control.data.generation import enabled_families
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime

@@ -19,8 +19,8 @@ from generalist_control.model.card import (
 )
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
+from generalist_control.plants.config import plant_from_model
 from generalist_control.plants.definition import MAX_ORDER
-from generalist_control.plants.given import plant_from_model
 
 DURATION = 10.0
 

@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
-from generalist_control.data.variant_data import variants_config
+from generalist_control.common.sections import as_dict
+from generalist_control.data.generation import variants_config
 from generalist_control.evaluate import run as evaluate_run
 from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.generate import run as generate_run

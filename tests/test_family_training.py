@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
+from generalist_control.common.sections import as_dict
 from generalist_control.data.demos import load_demos
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.runner import evaluate

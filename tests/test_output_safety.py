@@ -19,7 +19,7 @@ import pytest
 
 from generalist_control.common import atomic
 from generalist_control.common.atomic import ForeignDirectoryError
-from generalist_control.common.configs import as_dict
+from generalist_control.common.sections import as_dict
 from generalist_control.data.demos import (
     CorruptDataError,
     DemoSet,

@@ -366,7 +366,7 @@ def test_tiny_variants_chain_writes_the_reports(tmp_path, mlflow_uri):
 
 
 def test_dagger_rolls_out_on_the_training_variants_the_data_stage_drew():
-    from generalist_control.data.variant_data import training_variants, variants_config
+    from generalist_control.data.generation import training_variants, variants_config
     from generalist_control.training.callbacks import dagger_plants
 
     nominal = [_fast_plant(), load_plant("two_tank")]

@@ -5,8 +5,6 @@ The policy gains a tag for the plant and only that row is learned (docs/training
 
 from __future__ import annotations
 
-import signal
-import sys
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -15,7 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.adaptation import adapt
 from generalist_control.adaptation.request import read_request
-from generalist_control.adaptation.run_folder import Stopped, sigterm_raises
+from generalist_control.adaptation.run_folder import exits_on_sigterm
 from generalist_control.common.stage_main import stage_main
 
 __all__ = ["main", "run"]
@@ -33,12 +31,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 @stage_main("adapt")
 def main(cfg: DictConfig) -> float:
     """Hydra entry point: adapt, return the kept closed-loop score; SIGTERM exits 143."""
-    try:
-        with sigterm_raises():
-            return float(run(cfg)["closed_loop"]["kept"])
-    except Stopped:
-        print("adapt: stopped by SIGTERM; nothing was published", file=sys.stderr)
-        sys.exit(128 + signal.SIGTERM)
+    with exits_on_sigterm("adapt: stopped by SIGTERM; nothing was published"):
+        return float(run(cfg)["closed_loop"]["kept"])
 
 
 if __name__ == "__main__":

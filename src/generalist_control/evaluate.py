@@ -17,11 +17,10 @@ from typing import Any
 from omegaconf import DictConfig
 
 from generalist_control.common.atomic import folder_lock
-from generalist_control.common.configs import as_dict
 from generalist_control.common.secrets import redact
-from generalist_control.common.sections import read_section
+from generalist_control.common.sections import as_dict, read_section
 from generalist_control.common.stage_main import stage_main
-from generalist_control.data.variant_data import variants_config
+from generalist_control.data.generation import variants_config
 from generalist_control.deploy.policy_source import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.eval_config import EvaluationSettings, read_evaluation

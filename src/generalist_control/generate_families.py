@@ -11,7 +11,7 @@ from typing import Any, cast
 
 from omegaconf import DictConfig, OmegaConf
 
-from generalist_control.common.schema import require_int
+from generalist_control.common.sections import require_int
 from generalist_control.common.stage_main import stage_main
 from generalist_control.data.demos import check_data_dir, write_demos
 from generalist_control.data.generation import build_manifest, generate_demos

@@ -6,8 +6,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from generalist_control.common.configs import as_dict
-from generalist_control.common.sections import read_section
+from generalist_control.common.sections import as_dict, read_section
 from generalist_control.common.stage_main import stage_main
 from generalist_control.reports.ablation import build_report
 from generalist_control.reports.report_settings import ReportJob, ReportSettings

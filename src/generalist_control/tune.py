@@ -19,8 +19,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 from optuna.trial import TrialState
 
-from generalist_control.common.configs import as_dict
-from generalist_control.common.sections import read_section
+from generalist_control.common.sections import as_dict, read_section
 from generalist_control.common.stage_main import stage_main
 from generalist_control.sweeps.fixed_config import fixed_config
 from generalist_control.sweeps.search_settings import SearchSettings, parse_space

@@ -6,16 +6,14 @@ Run by ``beyond/dvc.yaml:unseen`` after its trainings without ``held_out``; the 
 
 from __future__ import annotations
 
-import signal
-import sys
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.adaptation.request import AdaptRequest, read_request
-from generalist_control.adaptation.run_folder import Stopped, sigterm_raises
-from generalist_control.common.configs import as_dict
+from generalist_control.adaptation.run_folder import exits_on_sigterm
+from generalist_control.common.sections import as_dict
 from generalist_control.common.stage_main import stage_main
 from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.plants.catalog import available_plants
@@ -71,12 +69,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 @stage_main("unseen")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point of the held-out protocol's evaluation (SIGTERM: exit 143)."""
-    try:
-        with sigterm_raises():
-            run(cfg)
-    except Stopped:
-        print("unseen: stopped by SIGTERM", file=sys.stderr)
-        sys.exit(128 + signal.SIGTERM)
+    with exits_on_sigterm("unseen: stopped by SIGTERM"):
+        run(cfg)
 
 
 if __name__ == "__main__":

@@ -15,16 +15,14 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import yaml
-from omegaconf import OmegaConf
-from omegaconf.errors import OmegaConfBaseException
 
 from generalist_control.common.paths import conf_dir
 from generalist_control.data.demos import content_hash
 from generalist_control.data.generation import generate_demos
 from generalist_control.data.windows import Windows, build_windows, integral_of_error
+from generalist_control.deploy.runtime_plants import integral_facts
 from generalist_control.plants.catalog import available_plants
-from generalist_control.plants.config import plant_from_config
+from generalist_control.plants.config import plant_from_config, read_plant_file
 from generalist_control.plants.definition import Plant, PlantConfigError, pad_states
 from generalist_control.simulation.lqi import design_lqi
 
@@ -95,11 +93,7 @@ def load_new_plant(spec: str, meta: Mapping[str, Any]) -> NewPlant:
         already the policy's, or its ``dt`` not the policy's.
     """
     path, in_catalogue = _path(spec)
-    try:
-        raw = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    except (yaml.YAMLError, OmegaConfBaseException) as exc:
-        raise PlantConfigError(f"{path}: not a YAML file ({exc})") from None
-    plant = plant_from_config(path.stem, raw, path)
+    plant = plant_from_config(path.stem, read_plant_file(path), path)
     tags = {str(k): int(v) for k, v in meta["tags"].items()}
     used = set(tags.values()) | {int(r["file_tag"]) for r in meta.get("adapted", {}).values()}
     dt = float(meta["dt"])
@@ -131,16 +125,12 @@ def load_new_plant(spec: str, meta: Mapping[str, Any]) -> NewPlant:
 
 def plant_meta(meta: Mapping[str, Any], plant: Plant, record: Mapping[str, Any]) -> dict[str, Any]:
     """The policy's meta with ``plant`` added as training stores a plant, and its ``record``."""
-    name = plant.name
+    name, facts = plant.name, integral_facts(plants=[plant])
     return {
         **meta,
         "tags": {**meta["tags"], name: int(plant.tag)},
         "orders": {**meta["orders"], name: int(plant.order)},
-        "outputs": {**meta.get("outputs", {}), name: [float(c) for c in plant.C[0]]},
-        "integral_directions": {
-            **meta.get("integral_directions", {}),
-            name: float(np.sign(-design_lqi(plant).Ki)),
-        },
+        **{k: {**meta.get(k, {}), **v} for k, v in facts.items()},
         "adapted": {**meta.get("adapted", {}), name: dict(record)},
     }
 

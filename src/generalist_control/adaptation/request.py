@@ -7,8 +7,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from generalist_control.common.schema import require_int
-from generalist_control.common.sections import SettingError, positive, read_section, unit_interval
+from generalist_control.common.sections import (
+    SettingError,
+    positive,
+    read_section,
+    require_int,
+    unit_interval,
+)
 from generalist_control.model.policy import POLICY_FILE
 from generalist_control.training.settings import ClosedLoopValSettings, DaggerSettings
 

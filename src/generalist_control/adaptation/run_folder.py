@@ -10,6 +10,7 @@ import dataclasses
 import json
 import shutil
 import signal
+import sys
 import threading
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
@@ -41,8 +42,8 @@ __all__ = [
     "base_version",
     "check_run_dir",
     "end_message",
+    "exits_on_sigterm",
     "publish",
-    "sigterm_raises",
 ]
 
 #: The adaptation's record beside its policy.
@@ -52,12 +53,12 @@ SETTING = "run_dir"
 
 
 class Stopped(KeyboardInterrupt):
-    """SIGTERM, raised where the command was so that it unwinds (:func:`sigterm_raises`)."""
+    """SIGTERM, raised where the command was so that it unwinds (:func:`exits_on_sigterm`)."""
 
 
 @contextmanager
-def sigterm_raises() -> Iterator[None]:
-    """Inside, SIGTERM raises :class:`Stopped` as SIGINT raises ``KeyboardInterrupt``."""
+def exits_on_sigterm(message: str) -> Iterator[None]:
+    """Inside, SIGTERM unwinds like SIGINT (:class:`Stopped`), then exits 143 with ``message``."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -68,6 +69,9 @@ def sigterm_raises() -> Iterator[None]:
     old = signal.signal(signal.SIGTERM, stop)
     try:
         yield
+    except Stopped:
+        print(message, file=sys.stderr)
+        sys.exit(128 + signal.SIGTERM)
     finally:
         signal.signal(signal.SIGTERM, old)
 

@@ -2,7 +2,8 @@
 
 Reading is strict: an ``int`` takes integers only (``32.0``, ``true``, ``"32"`` refused), a
 ``float`` any real but a boolean; unknown keys are refused; a dataclass checks its ranges in
-``__post_init__`` with :class:`SettingError`.
+``__post_init__`` with :class:`SettingError`. The ``require_*`` checks apply the same rules to
+a value a network part reads itself (``conf/model``).
 """
 
 from __future__ import annotations
@@ -15,7 +16,18 @@ import typing
 from collections.abc import Mapping
 from typing import Any, TypeVar, Union
 
-__all__ = ["SettingError", "positive", "read_section", "unit_interval"]
+from omegaconf import DictConfig, OmegaConf
+
+__all__ = [
+    "SettingError",
+    "as_dict",
+    "positive",
+    "read_section",
+    "require_int",
+    "require_nonnegative",
+    "require_switch",
+    "unit_interval",
+]
 
 T = TypeVar("T")
 
@@ -26,6 +38,15 @@ class SettingError(ValueError):
     def __init__(self, field: str, message: str) -> None:
         super().__init__(f"{field} {message}")
         self.field, self.message = field, message
+
+
+def as_dict(node: Any) -> dict[str, Any]:
+    """``node`` (a config or plain mapping) resolved into a plain ``dict``; else a TypeError."""
+    if isinstance(node, DictConfig):
+        node = OmegaConf.to_container(node, resolve=True)
+    if not isinstance(node, dict):
+        raise TypeError(f"expected a config mapping, got {type(node).__name__}: {node!r}")
+    return node
 
 
 def unit_interval(name: str, value: float) -> None:
@@ -55,6 +76,38 @@ _SCALARS: dict[Any, tuple[str, Any]] = {
     float: ("a number", lambda v: not isinstance(v, bool) and isinstance(v, numbers.Real)),
     str: ("a string", lambda v: isinstance(v, str)),
 }
+
+
+def require_int(key: str, value: Any, minimum: int = 1) -> int:
+    """``value`` as an ``int`` if it is an integer ``>= minimum``; else a ``ValueError``.
+
+    >>> require_int("model.hidden", 32.9)
+    Traceback (most recent call last):
+    ...
+    ValueError: model.hidden must be an integer, got 32.9 (float)
+    """
+    if not _SCALARS[int][1](value):
+        raise ValueError(f"{key} must be an integer, got {_kind(value)}")
+    if value < minimum:
+        what = {0: "a non-negative integer", 1: "a positive integer"}.get(
+            minimum, f"an integer >= {minimum}"
+        )
+        raise ValueError(f"{key} must be {what}, got {value}")
+    return int(value)
+
+
+def require_switch(key: str, value: Any) -> int:
+    """``value`` as 0 or 1 if it is a boolean or the integer 0 or 1; else a ``ValueError``."""
+    if isinstance(value, numbers.Integral) and value in (0, 1):
+        return int(value)
+    raise ValueError(f"{key} must be 0 or 1 (false/true), got {_kind(value)}")
+
+
+def require_nonnegative(key: str, value: Any) -> float:
+    """``value`` as a ``float`` if it is a finite real number ``>= 0``; else a ``ValueError``."""
+    if not (_SCALARS[float][1](value) and math.isfinite(value) and value >= 0.0):
+        raise ValueError(f"{key} must be a finite number >= 0, got {_kind(value)}")
+    return float(value)
 
 
 def _convert(kind: Any, value: Any, key: str) -> Any:

@@ -1,11 +1,14 @@
 """The demonstrations: every plant's LQI expert on the step grid and on richer families.
 
 The paper's are steps from rest on the amplitude grid (family ``steps``); ``data.families``
-adds reference families (:mod:`generalist_control.simulation.references`).
+adds reference families (:mod:`generalist_control.simulation.references`). ``data.variants``
+(off by default) deals a plant's trajectories round-robin to the nominal plant (slot 0) and its
+variants, each with its own LQI expert; off, nothing reaches the data or its hash.
 """
 
 from __future__ import annotations
 
+import copy
 import sys
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -14,19 +17,15 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from generalist_control import __version__
+from generalist_control.common.sections import require_int
 from generalist_control.data.demos import FORMAT_VERSION, DemoSet, content_hash
-from generalist_control.data.variant_data import (
-    hashed_config,
-    simulate_assigned,
-    training_variants,
-    variants_config,
-)
 from generalist_control.data.windows import windows_per_trajectory
 from generalist_control.plants.definition import MAX_ORDER, Plant, pad_states
+from generalist_control.plants.variants import variant_range
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.references import FAMILIES, family_references
 from generalist_control.simulation.simulate import Trajectory, simulate
-from generalist_control.simulation.variant_sampling import VariantDraw
+from generalist_control.simulation.variant_sampling import VariantDraw, sample_variants
 
 __all__ = [
     "STEPS",
@@ -35,6 +34,8 @@ __all__ = [
     "build_manifest",
     "enabled_families",
     "generate_demos",
+    "training_variants",
+    "variants_config",
 ]
 
 #: The family of the paper's steps from rest on the amplitude grid.
@@ -129,6 +130,78 @@ def enabled_families(data: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
     return out
 
 
+def variants_config(data: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The checked ``data.variants`` block, or None when it is absent or disabled.
+
+    Raises
+    ------
+    ValueError
+        Naming the bad key.
+    """
+    block = dict(data.get("variants") or {})
+    if not block or not block["enabled"]:
+        return None
+    missing = sorted({"count", "seed", "max_tries", "range"} - set(block))
+    if missing:
+        raise ValueError(f"data.variants needs {missing} (conf/data/demos.yaml has them all)")
+    count = require_int("data.variants.count", block["count"])
+    seed = require_int("data.variants.seed", block["seed"], minimum=0)
+    tries = require_int("data.variants.max_tries", block["max_tries"])
+    rng = variant_range(block["range"], "data.variants.range")
+    if count < 1 or tries < 1:
+        raise ValueError("data.variants.count and data.variants.max_tries must be at least 1")
+    return {"count": count, "seed": seed, "range": rng, "max_tries": tries}
+
+
+def hashed_config(config: Mapping[str, Any]) -> dict[str, Any]:
+    """``config`` without the variant keys when variants are off (they change nothing then)."""
+    out = copy.deepcopy(dict(config))
+    data = out.get("data") or {}
+    if variants_config(data) is not None:
+        return out
+    data.pop("variants", None)
+    for plant in ((out.get("systems") or {}).get("plants") or {}).values():
+        if isinstance(plant, dict):
+            plant.pop("variants", None)
+    return out
+
+
+def training_variants(
+    plants: Sequence[Plant], vcfg: Mapping[str, Any], grid: np.ndarray, steps: int
+) -> dict[str, VariantDraw]:
+    """Each plant's variants; each must hold the grid's largest steps (both signs)."""
+    top = float(np.abs(grid).max())
+    return {
+        p.name: sample_variants(
+            p, vcfg["count"], vcfg["seed"], vcfg["range"], (top, -top), steps, vcfg["max_tries"]
+        )
+        for p in plants
+    }
+
+
+def simulate_assigned(
+    draw: VariantDraw,
+    ctrl: LQIController,
+    r: np.ndarray,
+    x0: np.ndarray | None,
+    start: int,
+) -> tuple[Trajectory, np.ndarray]:
+    """Row ``j`` of ``r`` run on slot ``(start + j) mod (count + 1)``; trajectories and slots."""
+    slots = (start + np.arange(len(r))) % (len(draw.kept) + 1)
+    plants = [(draw.nominal, ctrl)] + [(v.plant, LQIController(v.plant)) for v in draw.kept]
+    n, steps = draw.nominal.order, r.shape[1]
+    x = np.zeros((len(r), steps + 1, n))
+    y, u = np.zeros((len(r), steps + 1)), np.zeros((len(r), steps))
+    diverged = np.zeros(len(r), bool)
+    for slot, (plant, c) in enumerate(plants):
+        rows = np.flatnonzero(slots == slot)
+        if rows.size:
+            tr = simulate(plant, c, r[rows], None if x0 is None else x0[rows])
+            x[rows], y[rows], u[rows], diverged[rows] = tr.x, tr.y, tr.u, tr.diverged
+    t = np.arange(steps + 1) * draw.nominal.dt
+    return Trajectory(t=t, x=x, u=u, r=r, y=y, diverged=diverged), slots
+
+
 def _plant_runs(
     plant: Plant, grid: np.ndarray, families: Mapping[str, Mapping[str, Any]], steps: int
 ) -> list[tuple[str, np.ndarray, np.ndarray | None]]:
@@ -175,7 +248,7 @@ def generate_demos(
     """Simulate every plant's LQI expert on the amplitude grid and on every family of ``data``.
 
     With ``data.variants`` enabled, trajectories are dealt to the plant and its variants
-    (:mod:`generalist_control.data.variant_data`). ``progress`` None: a bar on a terminal.
+    (:func:`variants_config`). ``progress`` None: a bar on a terminal.
     """
     grid = amplitude_grid(data["amplitudes"])
     families = enabled_families(data)

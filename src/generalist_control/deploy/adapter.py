@@ -6,7 +6,7 @@ runtime and is commanded NaN (recorded as diverged), while the other runs go on 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -15,25 +15,7 @@ from generalist_control.deploy.runtime import PolicyRuntime, RejectedStep
 from generalist_control.plants.definition import MAX_ORDER
 from generalist_control.simulation.simulate import Perturbation, row_slices
 
-__all__ = ["RuntimeAdapter", "SinglePlantAdapter", "stacked_output", "step_live"]
-
-
-def stacked_output(
-    plants: Sequence[Any], counts: Sequence[int]
-) -> Callable[[np.ndarray], np.ndarray]:
-    """``y(x)`` for zero-padded states of ``counts[i]`` stacked runs of ``plants[i]``.
-
-    Each group of rows goes through its plant's own output map, as the LQI expert measures it.
-    """
-    parts = list(zip(plants, row_slices(counts), strict=True))
-
-    def output(x: np.ndarray) -> np.ndarray:
-        y = np.empty(x.shape[0])
-        for plant, rows in parts:
-            y[rows] = plant.output(np.asarray(x[rows, : plant.order], dtype=np.float64))
-        return y
-
-    return output
+__all__ = ["RuntimeAdapter", "SinglePlantAdapter", "step_live"]
 
 
 def step_live(
@@ -88,7 +70,7 @@ class RuntimeAdapter:
 
     def __init__(self, runtime: PolicyRuntime, limits: Perturbation | None = None) -> None:
         self.runtime, self.limits = runtime, limits
-        self._output: Callable[[np.ndarray], np.ndarray] | None = None
+        self._parts: list[tuple[Any, slice]] = []  # each plant's rows (integrating policy)
         self._rows = np.zeros(0, np.int64)  # the batch rows the runtime holds, in its order
         self.refused: dict[int, str] = {}
         self.z_end = np.zeros(0)
@@ -98,7 +80,8 @@ class RuntimeAdapter:
         lim = self.limits or Perturbation()
         self.runtime.set_actuator_limits(lim.u_limit, lim.rate_limit)
         self.runtime.reset([p.name for p, c in zip(plants, counts, strict=True) for _ in range(c)])
-        self._output = stacked_output(plants, counts) if self.runtime.integral else None
+        parts = list(zip(plants, row_slices(counts), strict=True))
+        self._parts = parts if self.runtime.integral else []
         self._rows = np.arange(sum(counts), dtype=np.int64)
         self.refused, self.z_end = {}, np.full(sum(counts), np.nan)
 
@@ -108,12 +91,19 @@ class RuntimeAdapter:
         rows = self._rows
         if not rows.size:
             return u
-        y = None if self._output is None else self._output(x)[rows]
+        y = self._outputs(x)[rows] if self._parts else None
         live, refused = np.ones(rows.size, bool), dict[int, str]()
         u[rows] = step_live(self.runtime, live, x[rows], r[rows], y, refused)
         self.refused.update({int(rows[i]): msg for i, msg in refused.items()})
         self._rows = rows[live]
         return u
+
+    def _outputs(self, x: np.ndarray) -> np.ndarray:
+        """``y(x)``: each plant's rows through its own output map, as the LQI expert measures."""
+        y = np.empty(x.shape[0])
+        for plant, rows in self._parts:
+            y[rows] = plant.output(np.asarray(x[rows, : plant.order], dtype=np.float64))
+        return y
 
     def record_applied(self, u: np.ndarray) -> None:
         """Record the controls (B,) the plants received (:meth:`PolicyRuntime.record_applied`)."""

@@ -7,7 +7,7 @@ Runtime one plant stepped alone runs a shrunk batch-1 graph of its own (:func:`p
 from __future__ import annotations
 
 import io
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -22,11 +22,12 @@ from generalist_control.deploy.onnx_graph import (
     fold_constants,
     freeze,
     prune,
+    session,
     tidy_reshapes,
 )
 from generalist_control.model.policy import Policy
 
-__all__ = ["Backend", "backend", "export_onnx", "export_torchscript", "onnx_bytes", "session"]
+__all__ = ["Backend", "backend", "export_onnx", "export_torchscript", "onnx_bytes"]
 
 _INPUTS = ("state", "mask", "ref", "tag")
 
@@ -103,24 +104,6 @@ def export_onnx(policy: Policy, path: str | Path) -> Path:
 #: session's floats: MatMulAddFusion sums a product and a computed tensor in another order,
 #: MatMulScaleFusion folds the plant's control scale (a constant there) into a product.
 _UNFUSED = ("MatMulAddFusion", "MatMulScaleFusion")
-
-
-def session(model: bytes, arena: bool = True, disabled: Sequence[str] = ()) -> Any:
-    """An ONNX Runtime session for one thread, every graph optimisation on but ``disabled``.
-
-    ``arena``: the memory arena, of use only where shapes change from call to call.
-    """
-    import onnxruntime as ort  # optional and heavy: only for the ONNX backend
-
-    opts = ort.SessionOptions()
-    opts.enable_cpu_mem_arena = arena
-    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
-    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    opts.log_severity_level = 3  # warnings of the optimiser are not the user's business
-    return ort.InferenceSession(
-        model, opts, providers=["CPUExecutionProvider"], disabled_optimizers=list(disabled)
-    )
 
 
 def plant_model(batch_one: onnx.ModelProto, fixed: dict[str, np.ndarray]) -> bytes:

@@ -6,7 +6,9 @@ leaves fewer nodes computing the same floats (docs/notes/deploy-speed.md).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import onnx
@@ -19,6 +21,7 @@ __all__ = [
     "freeze",
     "prune",
     "run_subgraph",
+    "session",
     "tidy_reshapes",
 ]
 
@@ -116,6 +119,28 @@ class Graph:
         self.nodes = done
 
 
+def session(
+    model: bytes, arena: bool = True, disabled: Sequence[str] = (), optimise: bool = True
+) -> Any:
+    """An ONNX Runtime session for one thread, every graph optimisation on but ``disabled``.
+
+    ``arena``: the memory arena, of use only where shapes change from call to call;
+    ``optimise`` False: no graph optimisation at all (the graph runs as written).
+    """
+    import onnxruntime as ort  # optional and heavy: only for the ONNX backend
+
+    opts = ort.SessionOptions()
+    opts.enable_cpu_mem_arena = arena
+    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    level = ort.GraphOptimizationLevel
+    opts.graph_optimization_level = level.ORT_ENABLE_ALL if optimise else level.ORT_DISABLE_ALL
+    opts.log_severity_level = 3  # warnings of the optimiser are not the user's business
+    return ort.InferenceSession(
+        model, opts, providers=["CPUExecutionProvider"], disabled_optimizers=list(disabled)
+    )
+
+
 def run_subgraph(
     graph: Graph,
     nodes: list[onnx.NodeProto],
@@ -129,8 +154,6 @@ def run_subgraph(
     ``consts`` replaces the graph's constants of the same names (e.g. in float64), and
     ``out_type`` (an ONNX element type) the outputs' types.
     """
-    import onnxruntime as ort  # optional and heavy: only for the ONNX backend
-
     values = {**graph.consts, **(consts or {})}
     first = feeds[0]
     names = {i for n in nodes for i in n.input if i in values and i not in first}
@@ -145,11 +168,7 @@ def run_subgraph(
         opset_imports=graph.opset,
         ir_version=graph.ir_version,
     )
-    opts = ort.SessionOptions()
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
-    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
-    opts.log_severity_level = 3
-    sess = ort.InferenceSession(model.SerializeToString(), opts, ["CPUExecutionProvider"])
+    sess = session(model.SerializeToString(), optimise=False)
     return [[np.asarray(v) for v in sess.run(outputs, feed)] for feed in feeds]
 
 

@@ -16,14 +16,6 @@ import numpy as np
 
 from generalist_control.data.windows import HistoryBuffer
 from generalist_control.deploy.export import backend as _backend
-from generalist_control.deploy.given_plants import (
-    GIVEN_TYPES,
-    grown_for,
-    plant_of,
-    refused_reset,
-    unknown_plant,
-)
-from generalist_control.deploy.integral_facts import IntegralFacts
 from generalist_control.deploy.one_plant import OnePlantStep, output_of
 from generalist_control.deploy.policy_source import resolve
 from generalist_control.deploy.refusals import (
@@ -32,6 +24,14 @@ from generalist_control.deploy.refusals import (
     real_array,
     rejection,
     shaped_inputs,
+)
+from generalist_control.deploy.runtime_plants import (
+    GIVEN_TYPES,
+    IntegralFacts,
+    grown_for,
+    plant_of,
+    refused_reset,
+    unknown_plant,
 )
 from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.definition import MAX_ORDER, Plant

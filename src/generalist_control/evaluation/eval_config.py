@@ -153,7 +153,7 @@ class EvaluationSettings:
 
 
 def read_evaluation(node: Any) -> EvaluationSettings:
-    """``evaluation`` (a plain mapping: :func:`~generalist_control.common.configs.as_dict`).
+    """``evaluation`` (a plain mapping: :func:`~generalist_control.common.sections.as_dict`).
 
     Raises
     ------

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from generalist_control.common.schema import require_int, require_nonnegative
+from generalist_control.common.sections import require_int, require_nonnegative
 from generalist_control.model.plant import PlantPart
 from generalist_control.plants.definition import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import design_lqi, sampled_closed_loop

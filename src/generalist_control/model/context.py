@@ -11,7 +11,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-from generalist_control.common.schema import require_int, require_nonnegative
+from generalist_control.common.sections import require_int, require_nonnegative
 from generalist_control.model.card import CARD_FEATURES
 from generalist_control.model.identifier import TransitionSet
 from generalist_control.model.plant import PlantPart, PlantReading

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from generalist_control.common.schema import require_int, require_nonnegative
+from generalist_control.common.sections import require_int, require_nonnegative
 
 __all__ = ["ContextSkip", "LinearSkip", "linear_features"]
 

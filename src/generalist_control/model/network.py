@@ -14,7 +14,7 @@ from typing import cast
 import torch
 from torch import Tensor, nn
 
-from generalist_control.common.schema import require_int, require_switch
+from generalist_control.common.sections import require_int, require_switch
 from generalist_control.model.linear import LinearSkip
 from generalist_control.model.plant import PlantPart, PlantReading
 from generalist_control.plants.definition import MAX_ORDER

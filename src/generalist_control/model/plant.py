@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from generalist_control.common.schema import require_int, require_nonnegative
+from generalist_control.common.sections import require_int, require_nonnegative
 from generalist_control.model.identifier import TransitionSet
 from generalist_control.plants.definition import MAX_ORDER
 

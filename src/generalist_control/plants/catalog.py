@@ -8,8 +8,8 @@ from typing import Any, cast
 from omegaconf import OmegaConf
 
 from generalist_control.common.paths import conf_dir
-from generalist_control.common.schema import require_int
-from generalist_control.plants.config import plant_from_config
+from generalist_control.common.sections import require_int
+from generalist_control.plants.config import plant_from_config, read_plant_file
 from generalist_control.plants.definition import Plant, PlantConfigError
 
 __all__ = [
@@ -47,8 +47,7 @@ def load_plant(name: str) -> Plant:
     path = conf_dir() / "plants" / f"{name}.yaml"
     if not path.is_file():
         raise _unknown(name, available_plants())
-    cfg = cast(dict[str, Any], OmegaConf.to_container(OmegaConf.load(path), resolve=True))
-    return plant_from_config(name, cfg, path)
+    return plant_from_config(name, read_plant_file(path), path)
 
 
 def plants_from_config(systems: Mapping[str, Any]) -> list[Plant]:

@@ -14,7 +14,13 @@ from typing import Any, Protocol
 import numpy as np
 
 from generalist_control.plants.definition import MAX_ORDER, Plant, Signal
-from generalist_control.plants.lqi_weights import BrysonRule, NoBandwidthError, Weights
+from generalist_control.plants.lqi_weights import (
+    BrysonRule,
+    NoBandwidthError,
+    Weights,
+    bounds,
+    log_uniform,
+)
 from generalist_control.plants.realisation import FORMS, TransferModel, realise, scaled
 
 __all__ = [
@@ -83,23 +89,6 @@ class PlantFamily(Protocol):
         """Candidate ``index`` of the family's seed: a function of ``(seed, index)`` alone."""
 
 
-def _log_uniform(rng: np.random.Generator, bounds: Range) -> float:
-    return float(np.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1]))))
-
-
-def _range(name: str, value: Any, positive: bool = True) -> Range:
-    try:
-        lo, hi = (float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"families.generator.{name} must be [low, high], got {value!r}") from None
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi) or (positive and lo <= 0):
-        raise ValueError(
-            f"families.generator.{name} = [{lo}, {hi}] must be finite with low <= high"
-            + (" and low > 0" if positive else "")
-        )
-    return lo, hi
-
-
 def _weights(name: str, value: Mapping[Any, Any], known: Sequence[str]) -> dict[str, float]:
     out = {str(k): float(v) for k, v in dict(value).items()}
     unknown = sorted(set(out) - set(known))
@@ -164,7 +153,7 @@ class LinearFamily:
                 raise ValueError(f"families.generator.{key} must lie in [0, 1]")
         for key in ("time_constant", "frequency", "unstable_pole", "rhp_zero", "slow_zero",
                     "lhp_zero", "gain", "state_scale", "damping", "light_damping"):  # fmt: skip
-            object.__setattr__(self, key, _range(key, getattr(self, key)))
+            object.__setattr__(self, key, bounds(key, getattr(self, key)))
 
     def candidate(self, index: int) -> Candidate:
         """Candidate ``index``: drawn from ``numpy.random.default_rng([seed, index])``."""
@@ -200,12 +189,12 @@ class LinearFamily:
         poles, zeros = self._features(classes, n, rng)
         while _size(poles) < n:  # the rest: well damped
             if n - _size(poles) >= 2 and rng.uniform() < self.complex_share:
-                poles.append(_pair(_log_uniform(rng, self.frequency), rng, self.damping))
+                poles.append(_pair(log_uniform(rng, self.frequency), rng, self.damping))
             else:
-                poles.append(complex(-1.0 / _log_uniform(rng, self.time_constant)))
+                poles.append(complex(-1.0 / log_uniform(rng, self.time_constant)))
         if len(zeros) < n - 1 and rng.uniform() < self.lhp_zero_share:
-            zeros.append(-_log_uniform(rng, self.lhp_zero))
-        gain = _log_uniform(rng, self.gain) * (1.0 if rng.uniform() < 0.5 else -1.0)
+            zeros.append(-log_uniform(rng, self.lhp_zero))
+        gain = log_uniform(rng, self.gain) * (1.0 if rng.uniform() < 0.5 else -1.0)
         named = tuple(c for c in CLASSES if c in classes)  # in the order of CLASSES
         return TransferModel(gain, tuple(poles), tuple(zeros), named)
 
@@ -216,16 +205,16 @@ class LinearFamily:
         zeros: list[float] = []
         for c in sorted(classes, key=lambda c: c == "integrating"):  # its second pole: if room
             if c == "lightly_damped":
-                poles.append(_pair(_log_uniform(rng, self.frequency), rng, self.light_damping))
+                poles.append(_pair(log_uniform(rng, self.frequency), rng, self.light_damping))
             elif c == "integrating":
                 two = n - _size(poles) >= 2 and rng.uniform() < self.double_integrator
                 poles += [0j, 0j] if two else [0j]
             elif c == "unstable":
-                poles.append(complex(_log_uniform(rng, self.unstable_pole)))
+                poles.append(complex(log_uniform(rng, self.unstable_pole)))
             elif c == "nonminimum_phase":
-                zeros.append(_log_uniform(rng, self.rhp_zero))
+                zeros.append(log_uniform(rng, self.rhp_zero))
             elif c == "slow_zero":
-                zeros.append(-_log_uniform(rng, self.slow_zero))
+                zeros.append(-log_uniform(rng, self.slow_zero))
         return poles, zeros
 
 

@@ -15,19 +15,29 @@ import numpy as np
 
 from generalist_control.plants.definition import rhp_roots
 
-__all__ = ["BrysonRule", "NoBandwidthError", "Weights", "right_half_plane"]
+__all__ = ["BrysonRule", "NoBandwidthError", "Weights", "bounds", "log_uniform"]
 
 
 class NoBandwidthError(ValueError):
     """No bandwidth satisfies the rule's limits (an unstable pole too close to an RHP zero)."""
 
 
-def right_half_plane(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> tuple[float, float]:
-    """The largest real part of an unstable pole (0: none) and the smallest RHP zero (inf)."""
-    poles, zeros = rhp_roots(A, B, C, 1e-8)  # integrators come out within ~1e-12 of 0
-    return (float(poles.real.max()) if poles.size else 0.0), (
-        float(np.abs(zeros).min()) if zeros.size else math.inf
-    )
+def log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    """A draw log-uniform in ``bounds``."""
+    return float(np.exp(rng.uniform(math.log(bounds[0]), math.log(bounds[1]))))
+
+
+def bounds(name: str, value: Any) -> tuple[float, float]:
+    """``families.generator.<name>`` as ``(low, high)``: finite, ``0 < low <= high``."""
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"families.generator.{name} must be [low, high], got {value!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+        raise ValueError(
+            f"families.generator.{name} = [{lo}, {hi}] must be finite with low <= high and low > 0"
+        )
+    return lo, hi
 
 
 @dataclass(frozen=True)
@@ -66,12 +76,7 @@ class BrysonRule:
 
     def __post_init__(self) -> None:
         for key in ("bandwidth", "integral_ratio"):
-            lo, hi = (float(v) for v in getattr(self, key))
-            if not (0 < lo <= hi < math.inf):
-                raise ValueError(
-                    f"families.generator.weights.{key} must be [low, high], 0 < low <= high"
-                )
-            object.__setattr__(self, key, (lo, hi))
+            object.__setattr__(self, key, bounds(f"weights.{key}", getattr(self, key)))
         if not 1.0 <= float(self.margin) < math.inf:
             raise ValueError("families.generator.weights.margin must be a number >= 1")
 
@@ -83,7 +88,9 @@ class BrysonRule:
         NoBandwidthError
             If none is left, naming the pole and the zero.
         """
-        p, z = right_half_plane(A, B, C)
+        poles, zeros = rhp_roots(A, B, C, 1e-8)  # integrators come out within ~1e-12 of 0
+        p = float(poles.real.max()) if poles.size else 0.0  # the largest unstable pole
+        z = float(np.abs(zeros).min()) if zeros.size else math.inf  # the smallest RHP zero
         lo = max(self.bandwidth[0], self.margin * p)
         hi = min(self.bandwidth[1], z / self.margin)
         if lo > hi:
@@ -98,7 +105,7 @@ class BrysonRule:
     ) -> Weights:
         """Draw ``w_c`` and the ratio; the weights the rule gives the plant ``(A, B, C)``."""
         lo, hi = self.band(A, B, C)
-        w = float(np.exp(rng.uniform(math.log(lo), math.log(hi))))
+        w = log_uniform(rng, (lo, hi))
         ratio = float(np.exp(rng.uniform(*np.log(self.integral_ratio))))
         G = C @ np.linalg.solve(1j * w * np.eye(A.shape[0]) - A, B)
         q_y = 1.0 / float(np.linalg.norm(G, 2)) ** 2

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from generalist_control.common.schema import require_int
+from generalist_control.common.sections import require_int
 from generalist_control.data.demos import MissingDataError, load_demos
 from generalist_control.data.windows import Windows
 from generalist_control.training.family_set import FamilySet

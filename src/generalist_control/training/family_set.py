@@ -18,7 +18,6 @@ from generalist_control.common.sections import SettingError, read_section
 from generalist_control.data.demos import DemoSet, load_demos, read_manifest
 from generalist_control.plants.definition import Plant
 from generalist_control.plants.families import plant_from_record
-from generalist_control.simulation.lqi import design_lqi
 
 __all__ = ["FamilySet", "FamilyTraining", "join_demos", "read_family_training", "with_rows"]
 
@@ -138,15 +137,6 @@ class FamilySet:
             out.append({"dir": str(d), "name": block["name"], "seed": int(block["seed"]),
                         "plants": len(block["plants"])})  # fmt: skip
         return out
-
-    def facts(self) -> dict[str, dict[str, Any]]:
-        """The meta's ``outputs`` and ``integral_directions`` of the family plants."""
-        return {
-            "outputs": {p.name: [float(c) for c in p.C[0]] for p in self.plants},
-            "integral_directions": {
-                p.name: float(np.sign(-design_lqi(p).Ki)) for p in self.plants
-            },
-        }
 
 
 def with_rows(model: dict[str, Any], families: FamilySet | None) -> dict[str, Any]:

@@ -22,7 +22,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.secrets import redact
-from generalist_control.deploy.integral_facts import integral_facts
+from generalist_control.deploy.runtime_plants import integral_facts
 from generalist_control.model.bank import fit_model_rows
 from generalist_control.model.network import count_parameters
 from generalist_control.model.policy import (
@@ -71,9 +71,7 @@ def _data(
         families=families,
     )
     dm.setup("fit")
-    facts = integral_facts(list(dm.tags))
-    for key, more in (families.facts() if families else {}).items():
-        facts[key] = {**facts[key], **more}
+    facts = integral_facts(dm.tags, families.plants if families else ())
     trained = {"families": families.record()} if families else {}
     return dm, {**dm.meta(), **facts, **trained}
 

@@ -16,12 +16,12 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 
-from generalist_control.common.schema import require_int
 from generalist_control.common.secrets import redact
 from generalist_control.common.sections import (
     SettingError,
     positive,
     read_section,
+    require_int,
     unit_interval,
 )
 from generalist_control.data.generation import enabled_families
