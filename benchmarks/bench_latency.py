@@ -30,7 +30,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from generalist_control.common.configs import as_dict
+from generalist_control.common.sections import as_dict
 from generalist_control.data.windows import build_windows, integral_of_error  # noqa: E402
 from generalist_control.deploy.policy_source import resolve  # noqa: E402
 from generalist_control.deploy.runtime import PolicyRuntime, RejectedStep  # noqa: E402

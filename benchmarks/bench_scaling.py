@@ -51,9 +51,9 @@ import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from generalist_control.common.configs import as_dict
 from generalist_control.common.jsonsafe import write_json  # noqa: E402
 from generalist_control.common.paths import conf_dir  # noqa: E402
+from generalist_control.common.sections import as_dict
 from generalist_control.data.generation import amplitude_grid, generate_demos  # noqa: E402
 from generalist_control.deploy.runtime import PolicyRuntime  # noqa: E402
 from generalist_control.deploy.runtime_plants import integral_facts  # noqa: E402

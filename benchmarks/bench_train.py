@@ -38,8 +38,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
+from generalist_control.common.sections import as_dict
 from generalist_control.data.demos import write_demos
 from generalist_control.data.generation import build_manifest, generate_demos
 from generalist_control.model.network import count_parameters

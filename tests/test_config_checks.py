@@ -23,9 +23,8 @@ import torch
 import yaml
 from omegaconf import OmegaConf
 
-from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
-from generalist_control.common.sections import require_int
+from generalist_control.common.sections import as_dict, require_int
 from generalist_control.generate import run as generate_run
 from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.catalog import (

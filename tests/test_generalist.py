@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from generalist_control.common.configs import as_dict
+from generalist_control.common.sections import as_dict
 from generalist_control.model.network import GeneralistNetwork
 from generalist_control.model.plant import TagEmbedding
 from generalist_control.model.policy import Policy, load_policy

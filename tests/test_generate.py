@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from generalist_control.common.configs import as_dict
+from generalist_control.common.sections import as_dict
 from generalist_control.data import demos as demos_mod
 from generalist_control.data.demos import MissingDataError, load_demos
 from generalist_control.data.generation import DataConfigError, amplitude_grid

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from generalist_control.common.configs import as_dict
+from generalist_control.common.sections import as_dict
 from generalist_control.data.demos import load_demos
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime

@@ -8,7 +8,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 import generalist_control.common.paths
-from generalist_control.common.configs import as_dict
+from generalist_control.common.sections import as_dict
 from generalist_control.plants.catalog import plants_from_config
 from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi

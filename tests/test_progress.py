@@ -10,7 +10,7 @@ from lightning.pytorch.callbacks import RichProgressBar
 from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
 from omegaconf import OmegaConf
 
-from generalist_control.common.configs import as_dict
+from generalist_control.common.sections import as_dict
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.training.callbacks import ClosedLoopValidation

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from generalist_control.common.configs import as_dict
+from generalist_control.common.sections import as_dict
 from generalist_control.model.identifier import TransitionSet
 from generalist_control.model.plant import InferredPlant
 from generalist_control.model.policy import Policy

@@ -14,8 +14,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from generalist_control.common.configs import as_dict
 from generalist_control.common.paths import conf_dir
+from generalist_control.common.sections import as_dict
 from generalist_control.data.demos import MissingDataError, content_hash, load_demos
 from generalist_control.deploy.policy_source import resolve
 from generalist_control.model.policy import FlatPolicy, load_policy, policy_sha256

@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from generalist_control.common.configs import as_dict
+from generalist_control.common.sections import as_dict
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import available_plants, load_plant
 from generalist_control.reports.held_out import POLICIES, judge, plant_class

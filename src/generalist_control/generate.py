@@ -9,7 +9,7 @@ from typing import Any, cast
 
 from omegaconf import DictConfig, OmegaConf
 
-from generalist_control.common.configs import as_dict
+from generalist_control.common.sections import as_dict
 from generalist_control.common.stage_main import stage_main
 from generalist_control.data.demos import check_data_dir, write_demos
 from generalist_control.data.generation import build_manifest, generate_demos

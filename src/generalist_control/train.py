@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig
 
-from generalist_control.common.configs import as_dict
+from generalist_control.common.sections import as_dict
 from generalist_control.common.stage_main import stage_main
 from generalist_control.training.fit import train
 from generalist_control.training.settings import read_training
