@@ -26,6 +26,7 @@ from generalist_control.common.atomic import (
 )
 from generalist_control.common.jsonsafe import finite, strict
 from generalist_control.common.secrets import redact
+from generalist_control.evaluation.eval_run import RUN_TYPE_TAG
 from generalist_control.reports import evaluations as evals
 from generalist_control.reports.claims import claims_records, judge_claims, verdict_counts
 from generalist_control.reports.comparison_markdown import comparison_markdown
@@ -34,12 +35,9 @@ from generalist_control.reports.gates import gate_weights, policy_of_run
 from generalist_control.reports.report_settings import ReportJob, ReportSettings, Tolerance
 from generalist_control.reports.runs import (
     NO_RUN,
-    RUN_TYPE_TAG,
     SWEEP_COMMANDS,
     RunPoint,
     infer_recipe,
-    mlflow_client,
-    mse_frame,
     point_label,
     run_label,
     unique_points,
@@ -103,7 +101,6 @@ def report_tables(
     labels = {p.run_id: run_label(p) for p in sorted(runs, key=lambda p: (p.hidden, p.experts))}
     worst = evals.scenario_worst(labels, inputs.evaluations)
     return {
-        "mse": mse_frame(sweeps, plants),
         "runs": runs_table(sweeps),
         "points": evals.points_frame(by_config, plants, inputs.evaluations),
         "claims": judge_claims(by_config, gates, inputs.tolerance, recipe),
@@ -119,7 +116,7 @@ def _summary(
     sweeps: Sweeps, gate_run: RunPoint | None, plants: Sequence[str], tables: Mapping[str, Any]
 ) -> dict[str, Any]:
     """``summary.json``: the run of each point, the missing ones, the claims, the recipe."""
-    by_label = {f"d={p.hidden},M={p.experts}": p for p in unique_points(sweeps)}
+    by_label = {p.label: p for p in unique_points(sweeps)}
     points = tables["points"].drop_duplicates("run_id").set_index("run_id")
     return {
         "points": {
@@ -254,7 +251,7 @@ def build_report(job: ReportJob) -> dict[str, Any]:
     """
     torch.set_num_threads(job.threads)
     settings = job.report
-    client = mlflow_client(mlflow_utils.set_tracking(job.logger))
+    client = mlflow.MlflowClient(mlflow_utils.set_tracking(job.logger))
     experiment, sweeps, mixed, by_config = select_runs(settings, job.logger, client)
     plants = list(job.plants) or sorted({k for p in unique_points(sweeps) for k in p.mse})
     runs = [p for group in by_config.values() for p in group]

@@ -35,10 +35,10 @@ from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.definition import Plant
 from generalist_control.reports.explore import plant_properties
 from generalist_control.reports.held_out_routes import (
+    ROUTES,
     family_draw,
     judge_routes,
     ratio,
-    route_paths,
     zero_shot,
 )
 from generalist_control.tracking import mlflow_utils
@@ -133,15 +133,18 @@ def judge(entries: Mapping[str, Any], bar: Mapping[str, Any] | None = None) -> d
     return {"bars": bars, "pass": all(v["pass"] for v in bars.values())}
 
 
-def _paths(settings: UnseenSettings) -> dict[str, Path]:
-    """The three policies' files, each checked to exist."""
-    paths = {k: settings.models / v / POLICY_FILE for k, v in TRAININGS.items()}
-    paths["trained_with"] = settings.trained_with
-    for key, path in paths.items():
+def _paths(settings: UnseenSettings) -> tuple[dict[str, Path], dict[str, Path]]:
+    """The three policies' files and the routes' (with ``unseen.routes``), checked to exist."""
+    family = "dvc repro beyond/dvc.yaml:unseen (its family trainings)"
+    made = {k: (settings.models / v / POLICY_FILE, STAGE) for k, v in TRAININGS.items()}
+    made["trained_with"] = (settings.trained_with, "dvc repro train (the pipeline's policy)")
+    if settings.routes:
+        made.update({k: (settings.models / v / POLICY_FILE, family) for k, v in ROUTES.items()})
+    for key, (path, make) in made.items():
         if not path.is_file():
-            make = "dvc repro train (the pipeline's policy)" if key == "trained_with" else STAGE
             raise FileNotFoundError(f"no {key} policy at {path}; make it with: {make}")
-    return paths
+    paths = {k: path for k, (path, _) in made.items()}
+    return {k: paths[k] for k in POLICIES}, {k: paths[k] for k in ROUTES if k in paths}
 
 
 def _zero_shot(request: AdaptRequest, path: Path) -> tuple[Policy, dict[str, Any]]:
@@ -241,8 +244,7 @@ def run_unseen(settings: UnseenSettings, requests: Mapping[str, AdaptRequest]) -
     """
     out_dir = settings.reports_dir
     check_replaceable(out_dir, OWNED, "paths.reports_dir")
-    paths = _paths(settings)
-    routes = route_paths(settings.models) if settings.routes else {}
+    paths, routes = _paths(settings)
     frames, entries = [], {}
     for name, request in requests.items():
         df, entries[name] = _plant(settings, request, paths, routes)

@@ -21,7 +21,7 @@ from generalist_control.data.generation import generate_demos
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.model.bank import add_scales, plant_scales
-from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
+from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.definition import Plant
 from generalist_control.simulation.family_draw import draw_family, read_families
 
@@ -31,7 +31,6 @@ __all__ = [
     "family_draw",
     "judge_routes",
     "ratio",
-    "route_paths",
     "zero_shot",
 ]
 
@@ -43,18 +42,6 @@ ROUTES = {"card": "family_card", "in_context": "family_context"}
 #: Issue 50's bars (``unseen.routes_bar`` overrides them; docs/pipeline.md).
 ROUTES_BAR = {"near": 1.10, "all": 1.25, "allowed_over": 1, "median": 1.05, "p95": 1.25,
               "context": 1.25}  # fmt: skip
-
-
-def route_paths(models: Path) -> dict[str, Path]:
-    """Each route's policy file, checked to exist."""
-    paths = {k: models / v / POLICY_FILE for k, v in ROUTES.items()}
-    for key, path in paths.items():
-        if not path.is_file():
-            raise FileNotFoundError(
-                f"no {key} policy at {path}; make it with: dvc repro beyond/dvc.yaml:unseen "
-                "(its family trainings)"
-            )
-    return paths
 
 
 def _scales(
