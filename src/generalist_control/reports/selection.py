@@ -20,7 +20,7 @@ from generalist_control.reports.runs import (
     seed_runs,
     select_sweeps,
 )
-from generalist_control.tracking.experiments import experiment_name
+from generalist_control.tracking.mlflow_utils import experiment_name
 from generalist_control.tracking.parents import ROLE_TAG
 
 __all__ = [

@@ -24,8 +24,7 @@ from optuna.trial import FrozenTrial, TrialState
 
 from generalist_control.common.secrets import redact
 from generalist_control.sweeps import stop_signals
-from generalist_control.sweeps.fixed_config import check_fixed_config
-from generalist_control.sweeps.search_settings import Param, SearchSettings
+from generalist_control.sweeps.search_settings import Param, SearchSettings, check_fixed_config
 from generalist_control.sweeps.storage import (
     StaleTrialHandler,
     end_trial_run,
@@ -34,7 +33,7 @@ from generalist_control.sweeps.storage import (
 )
 from generalist_control.sweeps.trial_callbacks import active_trial
 from generalist_control.tracking import mlflow_utils
-from generalist_control.tracking.experiments import experiment_name
+from generalist_control.tracking.mlflow_utils import experiment_name
 from generalist_control.tracking.parents import ROLE_TAG, create_parent_run, parent_run
 
 __all__ = ["PARENT_ATTR", "Objective", "TrainPoint", "run_study", "tune_logger"]
@@ -293,7 +292,7 @@ def run_study(
     """Run (or continue) the study; return it, loaded with every worker's trials.
 
     ``fixed`` is the study's fixed config
-    (:func:`~generalist_control.sweeps.fixed_config.fixed_config`), ``logger`` names its
+    (:func:`~generalist_control.sweeps.search_settings.fixed_config`), ``logger`` names its
     experiment (:func:`tune_logger`), ``train_point`` trains one trial in
     ``<trials_dir>/trial_<n>``.
 
