@@ -132,24 +132,10 @@ def runs_from_mlflow(
     client: Any | None = None,
     parents: Sequence[str] | None = None,
 ) -> list[RunPoint]:
-    """Training runs of an MLflow experiment, newest first.
+    """The training runs of an MLflow experiment (none if unknown) passing an MLflow filter.
 
-    Parameters
-    ----------
-    experiment_name : str
-    filter_string : str
-        An MLflow search filter, e.g. ``"attributes.status = 'FINISHED'"``.
-    client : mlflow.tracking.MlflowClient, optional
-        Default: a client on the current tracking URI.
-    parents : sequence of str, optional
-        Keep only the children of these parent runs (sweeps or studies).
-
-    Returns
-    -------
-    list of RunPoint
-        Runs with ``model.hidden`` and ``experts`` params, less report runs, sweep and study
-        parents and (unless ``parents`` names their study) Optuna trials. An unknown
-        experiment gives an empty list.
+    Report runs, parent runs and (unless ``parents`` names their study) Optuna trials are left
+    out; ``parents``: keep only their children. ``client``: default, the current store's.
     """
     client = client or mlflow.MlflowClient()
     experiment = client.get_experiment_by_name(experiment_name)
@@ -188,21 +174,10 @@ def select_sweeps(
     experts: Sequence[int],
     baseline: tuple[int, int],
 ) -> dict[str, dict[int, RunPoint | None]]:
-    """The run of each sweep point: the newest matching run of its smallest seed, or None.
+    """``{"hidden": {d: run}, "experts": {M: run}}``: each point's newest run of its smallest seed.
 
-    Parameters
-    ----------
-    points : sequence of RunPoint
-        Newest first (as :func:`runs_from_mlflow` returns them).
-    hidden, experts : sequence of int
-        The values of d (at the baseline M) and of M (at the baseline d).
-    baseline : (int, int)
-        The baseline's d and M.
-
-    Returns
-    -------
-    dict
-        ``{"hidden": {d: RunPoint | None}, "experts": {M: RunPoint | None}}``.
+    ``hidden`` are the values of d at the baseline's M, ``experts`` those of M at its d; a
+    point without a run maps to None.
     """
     base_d, base_m = baseline
     order = sorted(points, key=lambda p: (p.seed is None, p.seed or 0, -p.start_time))
