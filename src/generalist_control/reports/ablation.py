@@ -152,24 +152,11 @@ def write_report(
     inputs: Inputs,
     gate: tuple[RunPoint, pd.DataFrame] | None = None,
 ) -> dict[str, Any]:
-    """Write every table, then draw the figures from them; publish the folder atomically.
+    """Write every table, draw the figures from them, publish ``out_dir``; the summary.
 
-    Parameters
-    ----------
-    out_dir : path
-        Replaced as a whole, and only if it holds nothing but a report's own outputs.
-    sweeps : mapping
-        From :func:`~generalist_control.reports.runs.select_sweeps`.
-    plants : sequence of str
-        Plants of the MSE figures (``closed_loop/mse/<plant>``).
-    inputs : Inputs
-    gate : (RunPoint, DataFrame), optional
-        The gate-weight model's run and its gates (no gate figure without it).
-
-    Returns
-    -------
-    dict
-        The summary also written to ``summary.json``.
+    ``out_dir`` is replaced only if it holds nothing but a report's own outputs; ``sweeps``
+    from :func:`~generalist_control.reports.runs.select_sweeps`; ``plants`` those of the MSE
+    figures; ``gate``: the gate-weight model's run and its gates (no gate figure without it).
     """
     check_replaceable(out_dir, OWNED, "report.out_dir")
     sweeps = {k: dict(v) for k, v in sweeps.items()}

@@ -255,22 +255,11 @@ def judge_claims(
     recipe: str,
     claims: Sequence[Claim] = CLAIMS,
 ) -> pd.DataFrame:
-    """Every claim beside our figures, with its verdict.
+    """Every claim beside our figures, with its verdict: ``claim, key, paper, ours, rule, ...``.
 
-    Parameters
-    ----------
-    by_config : mapping
-        (d, M) -> the configuration's runs, one per seed.
-    gates : DataFrame or None
-        The M = 5 model's mean gate weights (plants x ``expert_<i>``), or None without it.
-    tolerance : Tolerance
-    recipe : {"default", "paper"}
-        Some figures are comparable only for the paper's.
-
-    Returns
-    -------
-    DataFrame
-        Columns ``claim, key, paper, ours, rule, verdict, note``, one row per claim.
+    ``by_config``: (d, M) -> its runs, one per seed; ``gates``: the M = 5 model's mean gate
+    weights (plants x ``expert_<i>``) or None; ``recipe``: ``default`` or ``paper`` (some
+    figures are comparable only for the paper's).
     """
     rows = []
     for claim in claims:

@@ -66,23 +66,11 @@ def gate_weights(
     plants: Iterable[str] | None = None,
     duration: float = 15.0,
 ) -> pd.DataFrame:
-    """Mean gate weight per expert and plant over closed-loop unit-step runs.
+    """Mean gate weight per plant (rows) and expert (``expert_1 ..``) over closed-loop steps.
 
     The runtime's inputs along each run are rebuilt by the window builder and the gates the
     policy gives them averaged: the weights of the policy at work, not on the demonstrations.
-
-    Parameters
-    ----------
-    policy : Policy
-    meta : mapping
-    plants : iterable of str, optional
-        Default: every plant of the catalogue the policy was trained on, in tag order.
-    duration : float
-
-    Returns
-    -------
-    DataFrame
-        Index: plant (name); columns ``expert_1 .. expert_M``; rows sum to one.
+    ``plants``: default, the catalogue's plants the policy was trained on, in tag order.
     """
     tags = {str(k): int(v) for k, v in meta["tags"].items()}
     if plants is None:
