@@ -24,11 +24,11 @@ from generalist_control.common.atomic import (
     publish_directory,
     staging_directory,
 )
-from generalist_control.common.jsonsafe import finite, strict
+from generalist_control.common.jsonsafe import finite, write_json
 from generalist_control.common.secrets import redact
 from generalist_control.evaluation.eval_run import RUN_TYPE_TAG
 from generalist_control.reports import evaluations as evals
-from generalist_control.reports.claims import claims_records, judge_claims, verdict_counts
+from generalist_control.reports.claims import judge_claims, verdict_counts
 from generalist_control.reports.comparison_markdown import comparison_markdown
 from generalist_control.reports.figures import draw_figures
 from generalist_control.reports.gates import gate_weights, policy_of_run
@@ -138,7 +138,7 @@ def _summary(
             for label, p in by_label.items()
         },  # fmt: skip
         "recipe": tables["recipe"],
-        "claims": claims_records(tables["claims"]),
+        "claims": tables["claims"].to_dict(orient="records"),
         "claims_verdicts": verdict_counts(tables["claims"]),
         "separating_scenarios": dict(tables["separating"]),
         "runs": {r: str(i) for i, r in tables["labels"].items()},
@@ -171,7 +171,7 @@ def write_report(
         text = comparison_markdown(tables, gates, gate_run, tables["recipe"])
         (staging / "comparison.md").write_text(text)
         summary = _summary(sweeps, gate_run, plants, tables)
-        (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
+        write_json(staging / "summary.json", summary)
         publish_directory(staging, out_dir, OWNED, "report.out_dir")
     return summary
 

@@ -9,7 +9,6 @@ import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import pandas as pd
 
@@ -21,7 +20,6 @@ __all__ = [
     "NOT_COMPARABLE",
     "RULES",
     "Claim",
-    "claims_records",
     "judge_claims",
     "verdict_counts",
 ]
@@ -282,8 +280,3 @@ def judge_claims(
 def verdict_counts(table: pd.DataFrame) -> dict[str, int]:
     """How many claims got each verdict."""
     return {str(k): int(v) for k, v in table["verdict"].value_counts(sort=False).items()}
-
-
-def claims_records(table: pd.DataFrame) -> list[dict[str, Any]]:
-    """The table as JSON records (``summary.json``'s ``claims``)."""
-    return [dict(r) for r in table.to_dict(orient="records")]

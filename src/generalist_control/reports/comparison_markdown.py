@@ -7,6 +7,7 @@ from typing import Any
 
 import pandas as pd
 
+from generalist_control.reports.claims import verdict_counts
 from generalist_control.reports.figures import fmt_value
 from generalist_control.reports.results_sections import table
 from generalist_control.reports.runs import SWEEPS, RunPoint
@@ -15,8 +16,7 @@ __all__ = ["comparison_markdown"]
 
 
 def _claims(claims: pd.DataFrame, recipe: str) -> list[str]:
-    counts = claims["verdict"].value_counts(sort=False)
-    tally = ", ".join(f"{n} {v}" for v, n in counts.items())
+    tally = ", ".join(f"{n} {v}" for v, n in verdict_counts(claims).items())
     rows = claims[["claim", "paper", "ours", "verdict", "rule", "note"]].to_numpy().tolist()
     return [
         f"## The paper's claims ({recipe} recipe): {tally}",

@@ -8,7 +8,6 @@ Per held-out plant the :data:`POLICIES` (and with ``unseen.routes`` issue 50's z
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from collections.abc import Mapping
 from pathlib import Path
@@ -28,7 +27,7 @@ from generalist_control.common.atomic import (
     publish_directory,
     staging_directory,
 )
-from generalist_control.common.jsonsafe import strict
+from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.paths import conf_dir
 from generalist_control.data.generation import generate_demos
 from generalist_control.deploy.runtime import PolicyRuntime
@@ -344,7 +343,7 @@ def judge_routes(
 def _write(out_dir: Path, df: pd.DataFrame, summary: Mapping[str, Any]) -> None:
     with staging_directory(out_dir) as staging:
         df.to_csv(staging / "metrics.csv", index=False)
-        (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
+        write_json(staging / "summary.json", summary)
         publish_directory(staging, out_dir, OWNED, "paths.reports_dir")
 
 
