@@ -30,7 +30,7 @@ from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.definition import PlantConfigError
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import PerPlantController, Run, simulate_many
-from generalist_control.tracking.policy_runs import find_training_run
+from generalist_control.tracking.mlflow_utils import find_training_run
 from helpers import (
     TINY_ADAPT,
     TINY_DATA,

@@ -26,8 +26,7 @@ from generalist_control.evaluate import run as evaluate_run
 from generalist_control.model.policy import policy_sha256, save_policy
 from generalist_control.simulation.lqi import design_lqi
 from generalist_control.tracking import mlflow_utils
-from generalist_control.tracking.experiments import KIND_TAG
-from generalist_control.tracking.policy_runs import POLICY_HASH_TAG
+from generalist_control.tracking.mlflow_utils import KIND_TAG, POLICY_HASH_TAG
 from helpers import compose_cfg, lqi_law_policy
 
 #: One short scenario on one plant: seconds per evaluation.

@@ -17,7 +17,7 @@ from generalist_control.evaluation.runner import evaluate
 from generalist_control.generate_families import run as generate_family
 from generalist_control.model.card import card_features, card_frame
 from generalist_control.plants.catalog import load_plant, tag_count
-from generalist_control.reports.held_out_routes import judge_routes, zero_shot
+from generalist_control.reports.held_out import judge_routes, zero_shot
 from generalist_control.reports.routes_section import routes_lines
 from generalist_control.training.family_set import (
     FamilySet,

@@ -13,17 +13,13 @@ from matplotlib.text import Text
 
 from ablation_runs import CONFIGS, PLANTS, log_runs, policy_meta
 from generalist_control.common.paths import conf_dir
+from generalist_control.evaluation.eval_run import RUN_TYPE_TAG
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.report import read_job, run
 from generalist_control.reports.figures import FIGURES, figure_key, read_tables
 from generalist_control.reports.gates import gate_weights
-from generalist_control.reports.runs import (
-    RUN_TYPE_TAG,
-    NoAblationRunsError,
-    RunPoint,
-    select_sweeps,
-)
+from generalist_control.reports.runs import NoAblationRunsError, RunPoint, select_sweeps
 from generalist_control.reports.selection import MixedRunsError
 from helpers import net_config
 

@@ -19,7 +19,7 @@ from generalist_control.common.sections import as_dict
 from generalist_control.data.demos import MissingDataError, content_hash, load_demos
 from generalist_control.deploy.policy_source import resolve
 from generalist_control.model.policy import FlatPolicy, load_policy, policy_sha256
-from generalist_control.tracking.policy_runs import find_training_run
+from generalist_control.tracking.mlflow_utils import find_training_run
 from helpers import tiny_train_overrides, train
 
 REPO = Path(__file__).resolve().parents[1]

@@ -19,12 +19,12 @@ import sqlalchemy
 from omegaconf import OmegaConf
 from optuna.trial import TrialState
 
-from generalist_control.sweeps.fixed_config import (
+from generalist_control.sweeps.search_settings import (
     CHANGES_ATTR,
     FIXED_ATTR,
     StudyConfigChangedError,
+    parse_space,
 )
-from generalist_control.sweeps.search_settings import parse_space
 from generalist_control.sweeps.storage import open_storage
 from generalist_control.sweeps.study import PARENT_ATTR
 from generalist_control.tracking import mlflow_utils

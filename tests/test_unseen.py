@@ -18,8 +18,8 @@ import yaml
 from generalist_control.common.sections import as_dict
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import available_plants, load_plant
-from generalist_control.reports.held_out import POLICIES, judge, plant_class
-from generalist_control.reports.held_out_routes import ROUTES
+from generalist_control.reports.explore import plant_class
+from generalist_control.reports.held_out import POLICIES, ROUTES, judge
 from generalist_control.training.settings import read_training
 from helpers import compose_cfg, tiny_train_overrides, untrained_policy
 

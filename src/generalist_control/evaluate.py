@@ -36,8 +36,7 @@ from generalist_control.evaluation.variant_eval import TrainingDraws, run_varian
 from generalist_control.evaluation.writer import OWNED, check_reports_dir, write_reports
 from generalist_control.model.policy import POLICY_FILE, load_policy, policy_sha256
 from generalist_control.plants.catalog import plants_from_config
-from generalist_control.tracking.mlflow_utils import check_store
-from generalist_control.tracking.policy_runs import find_training_run
+from generalist_control.tracking.mlflow_utils import check_store, find_training_run
 from generalist_control.training.settings import DaggerSettings
 
 __all__ = ["main", "run"]

@@ -21,8 +21,7 @@ from optuna.trial import TrialState
 
 from generalist_control.common.sections import as_dict, read_section
 from generalist_control.common.stage_main import stage_main
-from generalist_control.sweeps.fixed_config import fixed_config
-from generalist_control.sweeps.search_settings import SearchSettings, parse_space
+from generalist_control.sweeps.search_settings import SearchSettings, fixed_config, parse_space
 from generalist_control.sweeps.stop_signals import Stopped
 from generalist_control.sweeps.study import run_study, tune_logger
 from generalist_control.sweeps.trial_callbacks import TrialRunLink, trial_pruning

@@ -33,7 +33,7 @@ from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.secrets import redact
 from generalist_control.model.policy import POLICY_FILE, Policy, policy_sha256, save_policy
 from generalist_control.tracking import mlflow_utils
-from generalist_control.tracking.policy_runs import POLICY_HASH_TAG, find_training_run
+from generalist_control.tracking.mlflow_utils import POLICY_HASH_TAG, find_training_run
 from generalist_control.training.outputs import log_model
 
 __all__ = [

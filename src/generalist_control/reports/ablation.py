@@ -24,22 +24,20 @@ from generalist_control.common.atomic import (
     publish_directory,
     staging_directory,
 )
-from generalist_control.common.jsonsafe import finite, strict
+from generalist_control.common.jsonsafe import finite, write_json
 from generalist_control.common.secrets import redact
+from generalist_control.evaluation.eval_run import RUN_TYPE_TAG
 from generalist_control.reports import evaluations as evals
-from generalist_control.reports.claims import claims_records, judge_claims, verdict_counts
+from generalist_control.reports.claims import judge_claims, verdict_counts
 from generalist_control.reports.comparison_markdown import comparison_markdown
 from generalist_control.reports.figures import draw_figures
 from generalist_control.reports.gates import gate_weights, policy_of_run
 from generalist_control.reports.report_settings import ReportJob, ReportSettings, Tolerance
 from generalist_control.reports.runs import (
     NO_RUN,
-    RUN_TYPE_TAG,
     SWEEP_COMMANDS,
     RunPoint,
     infer_recipe,
-    mlflow_client,
-    mse_frame,
     point_label,
     run_label,
     unique_points,
@@ -103,7 +101,6 @@ def report_tables(
     labels = {p.run_id: run_label(p) for p in sorted(runs, key=lambda p: (p.hidden, p.experts))}
     worst = evals.scenario_worst(labels, inputs.evaluations)
     return {
-        "mse": mse_frame(sweeps, plants),
         "runs": runs_table(sweeps),
         "points": evals.points_frame(by_config, plants, inputs.evaluations),
         "claims": judge_claims(by_config, gates, inputs.tolerance, recipe),
@@ -119,7 +116,7 @@ def _summary(
     sweeps: Sweeps, gate_run: RunPoint | None, plants: Sequence[str], tables: Mapping[str, Any]
 ) -> dict[str, Any]:
     """``summary.json``: the run of each point, the missing ones, the claims, the recipe."""
-    by_label = {f"d={p.hidden},M={p.experts}": p for p in unique_points(sweeps)}
+    by_label = {p.label: p for p in unique_points(sweeps)}
     points = tables["points"].drop_duplicates("run_id").set_index("run_id")
     return {
         "points": {
@@ -141,7 +138,7 @@ def _summary(
             for label, p in by_label.items()
         },  # fmt: skip
         "recipe": tables["recipe"],
-        "claims": claims_records(tables["claims"]),
+        "claims": tables["claims"].to_dict(orient="records"),
         "claims_verdicts": verdict_counts(tables["claims"]),
         "separating_scenarios": dict(tables["separating"]),
         "runs": {r: str(i) for i, r in tables["labels"].items()},
@@ -155,24 +152,11 @@ def write_report(
     inputs: Inputs,
     gate: tuple[RunPoint, pd.DataFrame] | None = None,
 ) -> dict[str, Any]:
-    """Write every table, then draw the figures from them; publish the folder atomically.
+    """Write every table, draw the figures from them, publish ``out_dir``; the summary.
 
-    Parameters
-    ----------
-    out_dir : path
-        Replaced as a whole, and only if it holds nothing but a report's own outputs.
-    sweeps : mapping
-        From :func:`~generalist_control.reports.runs.select_sweeps`.
-    plants : sequence of str
-        Plants of the MSE figures (``closed_loop/mse/<plant>``).
-    inputs : Inputs
-    gate : (RunPoint, DataFrame), optional
-        The gate-weight model's run and its gates (no gate figure without it).
-
-    Returns
-    -------
-    dict
-        The summary also written to ``summary.json``.
+    ``out_dir`` is replaced only if it holds nothing but a report's own outputs; ``sweeps``
+    from :func:`~generalist_control.reports.runs.select_sweeps`; ``plants`` those of the MSE
+    figures; ``gate``: the gate-weight model's run and its gates (no gate figure without it).
     """
     check_replaceable(out_dir, OWNED, "report.out_dir")
     sweeps = {k: dict(v) for k, v in sweeps.items()}
@@ -187,7 +171,7 @@ def write_report(
         text = comparison_markdown(tables, gates, gate_run, tables["recipe"])
         (staging / "comparison.md").write_text(text)
         summary = _summary(sweeps, gate_run, plants, tables)
-        (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
+        write_json(staging / "summary.json", summary)
         publish_directory(staging, out_dir, OWNED, "report.out_dir")
     return summary
 
@@ -254,7 +238,7 @@ def build_report(job: ReportJob) -> dict[str, Any]:
     """
     torch.set_num_threads(job.threads)
     settings = job.report
-    client = mlflow_client(mlflow_utils.set_tracking(job.logger))
+    client = mlflow.MlflowClient(mlflow_utils.set_tracking(job.logger))
     experiment, sweeps, mixed, by_config = select_runs(settings, job.logger, client)
     plants = list(job.plants) or sorted({k for p in unique_points(sweeps) for k in p.mse})
     runs = [p for group in by_config.values() for p in group]

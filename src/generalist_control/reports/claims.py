@@ -9,7 +9,6 @@ import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import pandas as pd
 
@@ -21,7 +20,6 @@ __all__ = [
     "NOT_COMPARABLE",
     "RULES",
     "Claim",
-    "claims_records",
     "judge_claims",
     "verdict_counts",
 ]
@@ -255,22 +253,11 @@ def judge_claims(
     recipe: str,
     claims: Sequence[Claim] = CLAIMS,
 ) -> pd.DataFrame:
-    """Every claim beside our figures, with its verdict.
+    """Every claim beside our figures, with its verdict: ``claim, key, paper, ours, rule, ...``.
 
-    Parameters
-    ----------
-    by_config : mapping
-        (d, M) -> the configuration's runs, one per seed.
-    gates : DataFrame or None
-        The M = 5 model's mean gate weights (plants x ``expert_<i>``), or None without it.
-    tolerance : Tolerance
-    recipe : {"default", "paper"}
-        Some figures are comparable only for the paper's.
-
-    Returns
-    -------
-    DataFrame
-        Columns ``claim, key, paper, ours, rule, verdict, note``, one row per claim.
+    ``by_config``: (d, M) -> its runs, one per seed; ``gates``: the M = 5 model's mean gate
+    weights (plants x ``expert_<i>``) or None; ``recipe``: ``default`` or ``paper`` (some
+    figures are comparable only for the paper's).
     """
     rows = []
     for claim in claims:
@@ -293,8 +280,3 @@ def judge_claims(
 def verdict_counts(table: pd.DataFrame) -> dict[str, int]:
     """How many claims got each verdict."""
     return {str(k): int(v) for k, v in table["verdict"].value_counts(sort=False).items()}
-
-
-def claims_records(table: pd.DataFrame) -> list[dict[str, Any]]:
-    """The table as JSON records (``summary.json``'s ``claims``)."""
-    return [dict(r) for r in table.to_dict(orient="records")]

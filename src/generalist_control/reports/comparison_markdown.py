@@ -2,34 +2,26 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import pandas as pd
 
+from generalist_control.reports.claims import verdict_counts
 from generalist_control.reports.figures import fmt_value
-from generalist_control.reports.runs import SWEEPS, RunPoint, point_label
+from generalist_control.reports.results_sections import table
+from generalist_control.reports.runs import SWEEPS, RunPoint
 
 __all__ = ["comparison_markdown"]
 
 
-def _cell(text: Any) -> str:
-    return str(text).replace("|", "/").replace("\n", " ")
-
-
-def _table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> list[str]:
-    lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
-    return lines + ["| " + " | ".join(_cell(c) for c in row) + " |" for row in rows]
-
-
 def _claims(claims: pd.DataFrame, recipe: str) -> list[str]:
-    counts = claims["verdict"].value_counts(sort=False)
-    tally = ", ".join(f"{n} {v}" for v, n in counts.items())
+    tally = ", ".join(f"{n} {v}" for v, n in verdict_counts(claims).items())
     rows = claims[["claim", "paper", "ours", "verdict", "rule", "note"]].to_numpy().tolist()
     return [
         f"## The paper's claims ({recipe} recipe): {tally}",
         "",
-        *_table(["claim", "paper", "ours (per seed)", "verdict", "rule", "note"], rows),
+        *table(["claim", "paper", "ours (per seed)", "verdict", "rule", "note"], rows),
         "",
         "A verdict needs every seed: `seed-dependent` when some seeds reproduce the figure and "
         "others do not. `not comparable`: the figures differ in definition for this recipe.",
@@ -50,7 +42,7 @@ def _runs(points: pd.DataFrame) -> list[str]:
              fmt_value(r.get("mse_mean")), bar, f"`{str(r['run_id'])[:8]}`"]
         )  # fmt: skip
     header = ["run", "parameters", "final train loss", "final val loss", "mean closed-loop MSE"]
-    return ["", "## Every run", "", *_table([*header, "quality bar", "MLflow run"], rows)]
+    return ["", "## Every run", "", *table([*header, "quality bar", "MLflow run"], rows)]
 
 
 def _verdicts(points: pd.DataFrame) -> list[str]:
@@ -66,7 +58,7 @@ def _verdicts(points: pd.DataFrame) -> list[str]:
         "",
         "## Quality bar per run (docs/evaluation.md)",
         "",
-        *_table(["verdict", *runs], rows),
+        *table(["verdict", *runs], rows),
     ]
 
 
@@ -91,7 +83,7 @@ def _scenarios(worst: pd.DataFrame, separating: Mapping[str, str]) -> list[str]:
         "",
         "## Scenarios: the worst plant's GC/LQI ratio per run (per-plant: `scenarios.csv`)",
         "",
-        *_table(["scenario", "ratio of", *[f"`{r}`" for r in runs], "separates"], rows),
+        *table(["scenario", "ratio of", *[f"`{r}`" for r in runs], "separates"], rows),
         "",
     ]
     if not separating:
@@ -112,27 +104,28 @@ def _gates(gates: pd.DataFrame | None, gate_run: RunPoint | None) -> list[str]:
         "Mean gate weight over a closed-loop unit step (`gate_weights.csv`, "
         "`gate_weights.png`). Expert numbers are arbitrary: compare shares, not numbers."
     )
-    return ["", title, "", note, "", *_table(["plant", "dominant expert", "its share"], rows)]
+    return ["", title, "", note, "", *table(["plant", "dominant expert", "its share"], rows)]
 
 
-def _mse_tables(mse: pd.DataFrame) -> list[str]:
-    """One per-plant MSE table per sweep."""
+def _mse_tables(runs: pd.DataFrame, points: pd.DataFrame) -> list[str]:
+    """One per-plant MSE table per sweep, from ``runs.csv`` and ``points.csv``."""
+    plants = [c[4:] for c in points.columns if c.startswith("mse/")]
+    by_run = points.drop_duplicates("run_id").set_index("run_id")
     lines: list[str] = []
     for sweep, symbol in SWEEPS.items():
-        part = mse[mse["sweep"] == sweep]
-        if part.empty:
+        part = runs[runs["sweep"] == sweep]
+        if part.empty or not plants:
             continue
-        values = list(dict.fromkeys(part["value"]))
-        rows = []
-        for plant, by_plant in part.groupby("plant", sort=False):
-            cells = []
-            for v in values:
-                r = by_plant[by_plant["value"] == v].iloc[0]
-                cells.append(fmt_value(r["mse"]) if r["status"] == "ok" else r["status"])
-            rows.append([plant, *cells])
-        header = ["plant", *(point_label(sweep, v) for v in values)]
+        rows = [
+            [plant]
+            + [
+                fmt_value(by_run.loc[r.run_id, f"mse/{plant}"]) if r.status == "ok" else r.status
+                for r in part.itertuples()
+            ]
+            for plant in plants
+        ]
         title = f"## Output MSE by {symbol} (figure `mse_{sweep}.png`)"
-        lines += ["", title, "", *_table(header, rows)]
+        lines += ["", title, "", *table(["plant", *part["label"]], rows)]
     return lines
 
 
@@ -156,6 +149,6 @@ def comparison_markdown(
         *_verdicts(tables["points"]),
         *_scenarios(tables["worst"], tables["separating"]),
         *_gates(gates, gate_run),
-        *_mse_tables(tables["mse"]),
+        *_mse_tables(tables["runs"], tables["points"]),
     ]
     return "\n".join(lines) + "\n"

@@ -20,7 +20,6 @@ from generalist_control.reports.runs import RunPoint, run_label
 
 __all__ = [
     "Evaluation",
-    "bar_of",
     "load_evaluations",
     "match",
     "points_frame",
@@ -74,18 +73,6 @@ def match(evaluations: Sequence[Evaluation], runs: Sequence[RunPoint]) -> dict[s
     return out
 
 
-def bar_of(summary: Mapping[str, Any]) -> dict[str, bool | None]:
-    """The quality-bar verdicts of an evaluation summary (None: not measured)."""
-    return {
-        str(k): (None if v is None else bool(v))
-        for k, v in (summary.get("quality_bar") or {}).items()
-    }
-
-
-def _kind(metrics: pd.Series) -> str:
-    return "step" if "rise_time" in set(metrics) else "tracking"
-
-
 def scenario_scores(
     labels: Mapping[str, str], evaluations: Mapping[str, Evaluation]
 ) -> pd.DataFrame:
@@ -101,7 +88,8 @@ def scenario_scores(
         if ev is None or ev.metrics is None:
             continue
         df = ev.metrics
-        kinds = df.groupby("scenario", sort=False)["metric"].agg(_kind)
+        step = df.groupby("scenario", sort=False)["metric"].agg(lambda m: "rise_time" in set(m))
+        kinds = step.map({True: "step", False: "tracking"})
         metric = kinds.map({"step": "ISE", "tracking": "RMSE"})
         wanted = df[df["metric"] == df["scenario"].map(metric)]
         means = wanted.groupby(["scenario", "system", "controller"], sort=False)["value"].mean()
@@ -203,7 +191,8 @@ def points_frame(
             }
             ev = evaluations.get(p.run_id)
             if ev is not None:
-                bar = bar_of(ev.summary)
+                verdicts = (ev.summary.get("quality_bar") or {}).items()
+                bar = {str(k): (None if v is None else bool(v)) for k, v in verdicts}
                 diverged = (ev.summary.get("diverged") or {}).get("GC") or {}
                 row["evaluation"] = str(ev.path)
                 row["bar_passed"] = sum(bool(v) for v in bar.values() if v is not None)

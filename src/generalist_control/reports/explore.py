@@ -25,6 +25,7 @@ from generalist_control.simulation.simulate import simulate
 __all__ = [
     "lqi_step_responses",
     "manifest_table",
+    "plant_class",
     "plant_properties",
     "plant_table",
     "plot_step_responses",
@@ -53,6 +54,21 @@ def plant_properties(plant: Plant) -> dict[str, Any]:
         "zeros": zeros,
         "stability": stability,
         "min_phase": bool(np.all(zeros.real < -_TOL)),
+    }
+
+
+def plant_class(plant: Plant) -> dict[str, Any]:
+    """What makes a plant hard: instability, non-minimum phase, order, the least damping."""
+    props = plant_properties(plant)
+    poles, zeros = props["poles"], props["zeros"]
+    complex_poles = poles[np.abs(poles.imag) > _TOL]
+    damping = -complex_poles.real / np.abs(complex_poles)
+    return {
+        "order": plant.order,
+        "nonlinear": not plant.is_linear,
+        "open_loop_unstable": bool(np.any(poles.real > _TOL)),
+        "non_minimum_phase": bool(np.any(zeros.real > _TOL)),
+        "min_damping": float(damping.min()) if damping.size else None,
     }
 
 

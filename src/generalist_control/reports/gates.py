@@ -6,6 +6,7 @@ import tempfile
 from collections.abc import Iterable, Mapping
 from typing import Any
 
+import mlflow
 import numpy as np
 import pandas as pd
 
@@ -20,7 +21,6 @@ from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
 from generalist_control.plants.catalog import available_plants, load_plant
 from generalist_control.plants.definition import Plant, pad_states
-from generalist_control.reports.runs import mlflow_client
 from generalist_control.simulation.scenarios import references
 from generalist_control.simulation.simulate import Run, Trajectory, simulate_many
 
@@ -31,7 +31,7 @@ POLICY_ARTIFACT = f"policy/{POLICY_FILE}"
 
 def policy_of_run(run_id: str, client: Any | None = None) -> tuple[Policy, dict[str, Any]]:
     """Download a run's ``policy/policy.ckpt`` artifact and load it (``weights_only``)."""
-    client = client or mlflow_client()
+    client = client or mlflow.MlflowClient()
     with tempfile.TemporaryDirectory(prefix="gc-policy-") as tmp:
         path = client.download_artifacts(run_id, POLICY_ARTIFACT, tmp)
         return load_policy(path)
@@ -66,23 +66,11 @@ def gate_weights(
     plants: Iterable[str] | None = None,
     duration: float = 15.0,
 ) -> pd.DataFrame:
-    """Mean gate weight per expert and plant over closed-loop unit-step runs.
+    """Mean gate weight per plant (rows) and expert (``expert_1 ..``) over closed-loop steps.
 
     The runtime's inputs along each run are rebuilt by the window builder and the gates the
     policy gives them averaged: the weights of the policy at work, not on the demonstrations.
-
-    Parameters
-    ----------
-    policy : Policy
-    meta : mapping
-    plants : iterable of str, optional
-        Default: every plant of the catalogue the policy was trained on, in tag order.
-    duration : float
-
-    Returns
-    -------
-    DataFrame
-        Index: plant (name); columns ``expert_1 .. expert_M``; rows sum to one.
+    ``plants``: default, the catalogue's plants the policy was trained on, in tag order.
     """
     tags = {str(k): int(v) for k, v in meta["tags"].items()}
     if plants is None:

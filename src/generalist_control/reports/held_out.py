@@ -1,21 +1,23 @@
 """The held-out protocol (``beyond/dvc.yaml:unseen``): plants the policy has never seen.
 
-Per held-out plant, the :data:`POLICIES` run every scenario against its LQI; then a bar on the
-adapted ones (:func:`judge`). docs/pipeline.md describes them and the files.
+Per held-out plant the :data:`POLICIES` (and with ``unseen.routes`` issue 50's zero-shot
+:data:`ROUTES`, with a held-out family draw) run every scenario against its LQI; then the bars
+(:func:`judge`, :func:`judge_routes`). docs/pipeline.md describes them and the files.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import mlflow
 import numpy as np
 import pandas as pd
+import torch
+from omegaconf import OmegaConf
 
 from generalist_control.adaptation import adapt
 from generalist_control.adaptation.job import learn, prepare
@@ -25,32 +27,34 @@ from generalist_control.common.atomic import (
     publish_directory,
     staging_directory,
 )
-from generalist_control.common.jsonsafe import strict
+from generalist_control.common.jsonsafe import write_json
+from generalist_control.common.paths import conf_dir
+from generalist_control.data.generation import generate_demos
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.eval_config import EvaluationSettings
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.summary import summarise
+from generalist_control.model.bank import add_scales, plant_scales
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.definition import Plant
-from generalist_control.reports.explore import plant_properties
-from generalist_control.reports.held_out_routes import (
-    family_draw,
-    judge_routes,
-    ratio,
-    route_paths,
-    zero_shot,
-)
+from generalist_control.reports.explore import plant_class
+from generalist_control.simulation.family_draw import draw_family, read_families
 from generalist_control.tracking import mlflow_utils
 
 __all__ = [
     "DEFAULT_BAR",
     "OWNED",
     "POLICIES",
+    "ROUTES",
+    "ROUTES_BAR",
     "UnseenSettings",
+    "family_draw",
     "judge",
-    "plant_class",
+    "judge_routes",
+    "ratio",
     "run_unseen",
+    "zero_shot",
 ]
 
 log = logging.getLogger(__name__)
@@ -94,21 +98,6 @@ DEFAULT_BAR = {
 STAGE = "dvc repro beyond/dvc.yaml:unseen (its first two commands train them)"
 
 
-def plant_class(plant: Plant) -> dict[str, Any]:
-    """What makes a plant hard: instability, non-minimum phase, order, the least damping."""
-    props = plant_properties(plant)
-    poles, zeros = props["poles"], props["zeros"]
-    complex_poles = poles[np.abs(poles.imag) > 1e-9]
-    damping = -complex_poles.real / np.abs(complex_poles)
-    return {
-        "order": plant.order,
-        "nonlinear": not plant.is_linear,
-        "open_loop_unstable": bool(np.any(poles.real > 1e-9)),
-        "non_minimum_phase": bool(np.any(zeros.real > 1e-9)),
-        "min_damping": float(damping.min()) if damping.size else None,
-    }
-
-
 def judge(entries: Mapping[str, Any], bar: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The bars (:data:`DEFAULT_BAR`) on the ``adapted`` figures, each with ``pass``; ``pass``."""
     b = {**DEFAULT_BAR, **(bar or {})}
@@ -133,18 +122,21 @@ def judge(entries: Mapping[str, Any], bar: Mapping[str, Any] | None = None) -> d
     return {"bars": bars, "pass": all(v["pass"] for v in bars.values())}
 
 
-def _paths(settings: UnseenSettings) -> dict[str, Path]:
-    """The three policies' files, each checked to exist."""
-    paths = {k: settings.models / v / POLICY_FILE for k, v in TRAININGS.items()}
-    paths["trained_with"] = settings.trained_with
-    for key, path in paths.items():
+def _paths(settings: UnseenSettings) -> tuple[dict[str, Path], dict[str, Path]]:
+    """The three policies' files and the routes' (with ``unseen.routes``), checked to exist."""
+    family = "dvc repro beyond/dvc.yaml:unseen (its family trainings)"
+    made = {k: (settings.models / v / POLICY_FILE, STAGE) for k, v in TRAININGS.items()}
+    made["trained_with"] = (settings.trained_with, "dvc repro train (the pipeline's policy)")
+    if settings.routes:
+        made.update({k: (settings.models / v / POLICY_FILE, family) for k, v in ROUTES.items()})
+    for key, (path, make) in made.items():
         if not path.is_file():
-            make = "dvc repro train (the pipeline's policy)" if key == "trained_with" else STAGE
             raise FileNotFoundError(f"no {key} policy at {path}; make it with: {make}")
-    return paths
+    paths = {k: path for k, (path, _) in made.items()}
+    return {k: paths[k] for k in POLICIES}, {k: paths[k] for k in ROUTES if k in paths}
 
 
-def _zero_shot(request: AdaptRequest, path: Path) -> tuple[Policy, dict[str, Any]]:
+def _tag_free(request: AdaptRequest, path: Path) -> tuple[Policy, dict[str, Any]]:
     """The tag-free policy named for the plant (its scales only); nothing written."""
     named = dataclasses.replace(request, adapt=dataclasses.replace(request.adapt, learn=False))
     policy, meta, _ = learn(prepare(dataclasses.replace(named, policy=str(path))))
@@ -189,7 +181,7 @@ def _plant(
     record, objects = adapt(dataclasses.replace(request, policy=str(paths["adapted"])))
     policies = {
         "adapted": (objects["policy"], objects["meta"]),
-        "zero_shot": _zero_shot(request, paths["zero_shot"]),
+        "zero_shot": _tag_free(request, paths["zero_shot"]),
         "trained_with": load_policy(paths["trained_with"]),
     }
     plant = load_plant(name)
@@ -207,10 +199,151 @@ def _plant(
     return df, entry
 
 
+#: The zero-shot routes, each its training's folder under ``unseen.models``.
+ROUTES = {"card": "family_card", "in_context": "family_context"}
+
+#: Issue 50's bars (``unseen.routes_bar`` overrides them; docs/pipeline.md).
+ROUTES_BAR = {"near": 1.10, "all": 1.25, "allowed_over": 1, "median": 1.05, "p95": 1.25,
+              "context": 1.25}  # fmt: skip
+
+
+def _scales(
+    policy: Policy, meta: Mapping[str, Any], plant: Plant, data: Mapping[str, Any]
+) -> dict[str, torch.Tensor]:
+    """The plant's normaliser row: the RMS of its demonstrations' windows."""
+    demos = generate_demos([plant], data, progress=False)
+    channels = policy.channels
+    w = demos.windows(
+        int(meta["history"]), int(meta["horizon"]),
+        "integral" in channels, "previous_control" in channels,
+    )  # fmt: skip
+    state, mask, ref, target = (
+        torch.from_numpy(np.asarray(getattr(w, k))) for k in ("state", "mask", "ref", "target")
+    )
+    return plant_scales(state, mask, ref, target, policy.normaliser.mapped)
+
+
+def zero_shot(
+    route: str, path: Path, plant: Plant, data: Mapping[str, Any]
+) -> tuple[Policy, dict[str, Any]]:
+    """The route's policy meeting ``plant`` with nothing learned, and its meta."""
+    policy, meta = load_policy(path)
+    if route == "card":
+        rt = PolicyRuntime(policy, meta)
+        rt.add_plant(plant)
+        grown = rt.policy
+    else:
+        grown = add_scales(policy, _scales(policy, meta, plant, data))
+    tags = {**meta["tags"], plant.name: grown.net.n_tags - 1}
+    outputs = {**meta.get("outputs", {}), plant.name: [float(c) for c in plant.C[0]]}
+    orders = {**meta["orders"], plant.name: plant.order}
+    return grown, {**meta, "tags": tags, "orders": orders, "outputs": outputs}
+
+
+def _family_node(spec: Mapping[str, Any], data: Mapping[str, Any]) -> dict[str, Any]:
+    """``conf/families/<family>.yaml`` at ``spec.seed``, ``spec.checks`` (if any) merged in."""
+    node = OmegaConf.merge(
+        {"data": dict(data)},
+        {"f": OmegaConf.load(conf_dir() / "families" / f"{spec['family']}.yaml")},
+        {"f": {"generator": {"seed": int(spec["seed"])}, "checks": spec["checks"] or {}}},
+    )
+    tree = cast(dict[str, Any], OmegaConf.to_container(node, resolve=True))
+    return cast(dict[str, Any], tree["f"])
+
+
+def family_draw(
+    path: Path,
+    spec: Mapping[str, Any],
+    data: Mapping[str, Any],
+    scenarios: Mapping[str, Mapping[str, Any]],
+) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """The card route's metrics (``policy`` ``card``) and their summary on a family draw.
+
+    The draw: ``spec.count`` plants of family ``spec.family`` from ``spec.seed``.
+
+    Raises
+    ------
+    ValueError
+        If ``spec.seed`` is the seed of a family the policy was trained on.
+    """
+    policy, meta = load_policy(path)
+    seeds = {int(f["seed"]) for f in meta.get("families", []) if f["name"] == spec["family"]}
+    if int(spec["seed"]) in seeds:
+        raise ValueError(
+            f"unseen.family_draw.seed {spec['seed']} drew the policy's training family "
+            f"(seeds {sorted(seeds)}): choose a seed no training used"
+        )
+    family, settings = read_families(_family_node(spec, data))
+    draw = draw_family(family, int(spec["count"]), settings.checks)
+    rt = PolicyRuntime(policy, meta)
+    for p in draw.plants:
+        rt.add_plant(p)
+    df, _ = evaluate(rt, draw.plants, scenarios)
+    df.insert(0, "policy", "card")
+    return df, _draw_summary(df, draw.plants, spec)
+
+
+def _draw_summary(df: pd.DataFrame, plants: list[Plant], spec: Mapping[str, Any]) -> dict:
+    gc = df[df.controller == "GC"]
+    step = df[(df.scenario == "step") & (df.metric == "ISE")]
+    ise = step.pivot_table(index="system", columns="controller", values="value")
+    ratio = (ise["GC"] / ise["LQI"]).reindex([p.name for p in plants])
+    diverged = gc[gc.metric == "diverged"].groupby("system").value.sum()
+    ratio[diverged.reindex(ratio.index).fillna(0) > 0] = np.inf
+    finite = ratio.replace(np.inf, np.nan)
+    worst = ratio.sort_values(ascending=False).head(5)
+    what = {p.name: p.description for p in plants}
+    return {
+        "family": spec["family"], "seed": int(spec["seed"]), "plants": len(plants),
+        "diverged_plants": int((diverged > 0).sum()),
+        "diverged_runs": int(diverged.sum()),
+        "ISE_ratio": {"median": _quantile(ratio, 0.5), "p95": _quantile(ratio, 0.95),
+                      "max": float(ratio.max()), "min": float(finite.min())},
+        "worst": [{"plant": n, "ISE_ratio": float(v), "plant_is": what[n]}
+                  for n, v in worst.items()],
+        "ISE_ratios": {n: float(v) for n, v in ratio.items()},
+    }  # fmt: skip
+
+
+def _quantile(values: pd.Series, q: float) -> float:
+    """The ``q`` quantile, a sample of the data (a diverged plant's ``inf`` counts as worst)."""
+    return float(np.quantile(values.to_numpy(dtype=float), q, method="inverted_cdf"))
+
+
+def ratio(value: Any) -> float:
+    """A ratio of a summary; a missing one (every run diverged) counts as infinite."""
+    return float("inf") if value is None else float(value)
+
+
+def judge_routes(
+    entries: Mapping[str, Any], draw: Mapping[str, Any] | None, bar: Mapping[str, Any]
+) -> dict[str, Any]:
+    """Issue 50's bars (:data:`ROUTES_BAR`) on the routes' figures; ``pass`` of each."""
+    b = {**ROUTES_BAR, **bar}
+    card = {n: e["policies"]["card"] for n, e in entries.items()}
+    worst = {n: max(ratio(f["ISE_ratio"]), ratio(f["RMSE_ratio_worst"])) for n, f in card.items()}
+    over = sorted(n for n, v in worst.items() if v > b["near"])
+    ctx = {n: e["policies"]["in_context"] for n, e in entries.items()}
+    ctx_over = sorted(n for n, f in ctx.items() if ratio(f["ISE_ratio"]) > b["context"])
+    bars = {
+        "card_no_divergence": sum(int(f["diverged_runs"]) for f in card.values()) == 0,
+        "card_most_within": len(over) <= int(b["allowed_over"]),
+        "card_all_within": all(v <= b["all"] for v in worst.values()),
+        "context_no_divergence": sum(int(f["diverged_runs"]) for f in ctx.values()) == 0,
+        "context_most_within": len(ctx_over) <= int(b["allowed_over"]),
+    }
+    if draw is not None:
+        bars["draw_no_divergence"] = draw["diverged_runs"] == 0
+        bars["draw_median"] = draw["ISE_ratio"]["median"] <= b["median"]
+        bars["draw_p95"] = draw["ISE_ratio"]["p95"] <= b["p95"]
+    return {"bars": bars, "card_over": over, "context_over": ctx_over,
+            "pass": all(bars.values())}  # fmt: skip
+
+
 def _write(out_dir: Path, df: pd.DataFrame, summary: Mapping[str, Any]) -> None:
     with staging_directory(out_dir) as staging:
         df.to_csv(staging / "metrics.csv", index=False)
-        (staging / "summary.json").write_text(json.dumps(strict(summary), indent=2) + "\n")
+        write_json(staging / "summary.json", summary)
         publish_directory(staging, out_dir, OWNED, "paths.reports_dir")
 
 
@@ -241,8 +374,7 @@ def run_unseen(settings: UnseenSettings, requests: Mapping[str, AdaptRequest]) -
     """
     out_dir = settings.reports_dir
     check_replaceable(out_dir, OWNED, "paths.reports_dir")
-    paths = _paths(settings)
-    routes = route_paths(settings.models) if settings.routes else {}
+    paths, routes = _paths(settings)
     frames, entries = [], {}
     for name, request in requests.items():
         df, entries[name] = _plant(settings, request, paths, routes)

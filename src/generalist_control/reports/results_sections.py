@@ -68,11 +68,15 @@ def _names(values: Any, limit: int = 5) -> str:
     return ", ".join(names[:limit]) + more if names else "none"
 
 
-def table(header: Sequence[str], rows: Sequence[Sequence[str]], source: str) -> list[str]:
-    """A markdown table of at most :data:`MAX_ROWS` rows; a last row names what was cut."""
+def table(
+    header: Sequence[str], rows: Sequence[Sequence[Any]], source: str | None = None
+) -> list[str]:
+    """A markdown table; with ``source``, at most :data:`MAX_ROWS` rows, a last one naming it."""
+    keep = rows if source is None else rows[:MAX_ROWS]
+    cells = [[str(c).replace("|", "/").replace("\n", " ") for c in row] for row in keep]
     lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
-    lines += ["| " + " | ".join(row) + " |" for row in rows[:MAX_ROWS]]
-    if len(rows) > MAX_ROWS:
+    lines += ["| " + " | ".join(row) + " |" for row in cells]
+    if len(rows) > len(keep):
         rest = [""] * (len(header) - 1)
         lines.append("| " + " | ".join([f"{len(rows) - MAX_ROWS} more in `{source}`", *rest]))
     return lines

@@ -7,7 +7,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import pandas as pd
+import mlflow
 
 from generalist_control.evaluation.eval_run import RUN_TYPE_TAG
 from generalist_control.tracking.parents import ROLE_TAG
@@ -15,14 +15,11 @@ from generalist_control.tracking.parents import ROLE_TAG
 __all__ = [
     "NOT_AVAILABLE",
     "NO_RUN",
-    "RUN_TYPE_TAG",
     "SWEEPS",
     "SWEEP_COMMANDS",
     "NoAblationRunsError",
     "RunPoint",
-    "mlflow_client",
     "infer_recipe",
-    "mse_frame",
     "point_label",
     "run_label",
     "runs_from_mlflow",
@@ -129,39 +126,18 @@ def _parent_role(client: Any, roles: dict[str, str | None], run: Any) -> str | N
     return roles.get(parent) if parent else None
 
 
-def mlflow_client(tracking_uri: str | None = None) -> Any:
-    """An MLflow client for ``tracking_uri`` (default: the current tracking URI)."""
-    from mlflow.tracking import MlflowClient
-
-    return MlflowClient(tracking_uri=tracking_uri)
-
-
 def runs_from_mlflow(
     experiment_name: str,
     filter_string: str = "",
     client: Any | None = None,
     parents: Sequence[str] | None = None,
 ) -> list[RunPoint]:
-    """Training runs of an MLflow experiment, newest first.
+    """The training runs of an MLflow experiment (none if unknown) passing an MLflow filter.
 
-    Parameters
-    ----------
-    experiment_name : str
-    filter_string : str
-        An MLflow search filter, e.g. ``"attributes.status = 'FINISHED'"``.
-    client : mlflow.tracking.MlflowClient, optional
-        Default: a client on the current tracking URI.
-    parents : sequence of str, optional
-        Keep only the children of these parent runs (sweeps or studies).
-
-    Returns
-    -------
-    list of RunPoint
-        Runs with ``model.hidden`` and ``experts`` params, less report runs, sweep and study
-        parents and (unless ``parents`` names their study) Optuna trials. An unknown
-        experiment gives an empty list.
+    Report runs, parent runs and (unless ``parents`` names their study) Optuna trials are left
+    out; ``parents``: keep only their children. ``client``: default, the current store's.
     """
-    client = client or mlflow_client()
+    client = client or mlflow.MlflowClient()
     experiment = client.get_experiment_by_name(experiment_name)
     if experiment is None:
         return []
@@ -198,21 +174,10 @@ def select_sweeps(
     experts: Sequence[int],
     baseline: tuple[int, int],
 ) -> dict[str, dict[int, RunPoint | None]]:
-    """The run of each sweep point: the newest matching run of its smallest seed, or None.
+    """``{"hidden": {d: run}, "experts": {M: run}}``: each point's newest run of its smallest seed.
 
-    Parameters
-    ----------
-    points : sequence of RunPoint
-        Newest first (as :func:`runs_from_mlflow` returns them).
-    hidden, experts : sequence of int
-        The values of d (at the baseline M) and of M (at the baseline d).
-    baseline : (int, int)
-        The baseline's d and M.
-
-    Returns
-    -------
-    dict
-        ``{"hidden": {d: RunPoint | None}, "experts": {M: RunPoint | None}}``.
+    ``hidden`` are the values of d at the baseline's M, ``experts`` those of M at its d; a
+    point without a run maps to None.
     """
     base_d, base_m = baseline
     order = sorted(points, key=lambda p: (p.seed is None, p.seed or 0, -p.start_time))
@@ -239,32 +204,6 @@ def unique_points(sweeps: Mapping[str, Mapping[int, RunPoint | None]]) -> list[R
 def point_label(sweep: str, value: int) -> str:
     """``d=32`` or ``M=5``: a sweep point as the figures label it."""
     return f"{SWEEPS[sweep]}={value}"
-
-
-def mse_frame(
-    sweeps: Mapping[str, Mapping[int, RunPoint | None]], plants: Sequence[str]
-) -> pd.DataFrame:
-    """Per-plant closed-loop MSE of every sweep point, long form.
-
-    Returns
-    -------
-    DataFrame
-        Columns ``sweep, value, label, plant, mse, status, run_id``; ``status`` is ``ok``,
-        ``no run`` or ``no score`` (diverged, or not trained on the plant).
-    """
-    rows = []
-    for sweep, by_value in sweeps.items():
-        for value, p in by_value.items():
-            for plant in plants:
-                mse = p.mse.get(plant) if p is not None else None
-                status = NO_RUN if p is None else ("ok" if mse is not None else NOT_AVAILABLE)
-                rows.append(
-                    (sweep, value, point_label(sweep, value), plant, mse, status, p and p.run_id)
-                )
-    cols = ["sweep", "value", "label", "plant", "mse", "status", "run_id"]
-    df = pd.DataFrame(rows, columns=cols)
-    df["mse"] = df["mse"].astype(float)
-    return df
 
 
 def run_label(p: RunPoint) -> str:

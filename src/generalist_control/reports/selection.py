@@ -20,8 +20,8 @@ from generalist_control.reports.runs import (
     seed_runs,
     select_sweeps,
 )
-from generalist_control.tracking.experiments import experiment_name
-from generalist_control.tracking.parents import ROLE_TAG
+from generalist_control.tracking.mlflow_utils import experiment_name
+from generalist_control.tracking.parents import find_parents
 
 __all__ = [
     "SWEPT_KEYS",
@@ -44,20 +44,9 @@ class MixedRunsError(ValueError):
     """The runs the report would compare differ in more than the swept keys."""
 
 
-def _parents_in(client: Any, exp_id: str, limit: int = 1000) -> list[Any]:
-    """The parent runs (sweeps and studies) of an experiment, newest first."""
-    runs = client.search_runs(
-        [exp_id],
-        filter_string=f"tags.`{ROLE_TAG}` != ''",
-        order_by=["attributes.start_time DESC"],
-        max_results=limit,
-    )
-    return [r for r in runs if r.data.tags.get(ROLE_TAG)]
-
-
 def parents_hint(client: Any, exp_id: str, limit: int = 5) -> str:
     """The newest parent runs of the experiment, ``<id> '<name>'``, for messages."""
-    found = _parents_in(client, exp_id)[:limit]
+    found = find_parents(client, exp_id)[::-1][:limit]
     if not found:
         return "none"
     return ", ".join(f"{r.info.run_id} {r.info.run_name!r}" for r in found)
@@ -75,7 +64,7 @@ def resolve_parents(
     """
     if not parent_run:
         return None
-    parents = _parents_in(client, exp_id)
+    parents = find_parents(client, exp_id)[::-1]
     ids = []
     for item in parent_run:
         match = next((r for r in parents if item in (r.info.run_id, r.info.run_name)), None)
@@ -124,22 +113,11 @@ def check_comparable(
     allow_mixed: bool = False,
     parents: str = "none",
 ) -> dict[str, dict[str, list[str]]]:
-    """Refuse (or warn) when the runs to compare differ in more than the swept keys.
+    """Refuse (or warn, ``allow_mixed``) runs that differ in more than the swept keys.
 
-    Parameters
-    ----------
-    points : sequence of RunPoint
-    identity : sequence of str
-        ``report.identity_keys``: glob patterns of params that may differ.
-    allow_mixed : bool
-        ``report.allow_mixed``: warn instead of refusing.
-    parents : str
-        The experiment's parent runs, quoted in the fix (:func:`parents_hint`).
-
-    Returns
-    -------
-    dict
-        ``{key: {value: [run ids]}}`` of the differences let through (empty when none).
+    ``identity``: glob patterns of params that may differ (``report.identity_keys``);
+    ``parents``: the experiment's parent runs, quoted in the fix (:func:`parents_hint`).
+    Returns ``{key: {value: [run ids]}}`` of the differences let through.
 
     Raises
     ------

@@ -21,7 +21,7 @@ from generalist_control.common.secrets import redact
 from generalist_control.common.sections import as_dict
 from generalist_control.sweeps import stop_signals
 from generalist_control.tracking import mlflow_utils
-from generalist_control.tracking.experiments import experiment_name
+from generalist_control.tracking.mlflow_utils import experiment_name
 from generalist_control.tracking.parents import (
     create_parent_run,
     named_parent,

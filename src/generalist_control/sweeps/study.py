@@ -24,8 +24,7 @@ from optuna.trial import FrozenTrial, TrialState
 
 from generalist_control.common.secrets import redact
 from generalist_control.sweeps import stop_signals
-from generalist_control.sweeps.fixed_config import check_fixed_config
-from generalist_control.sweeps.search_settings import Param, SearchSettings
+from generalist_control.sweeps.search_settings import Param, SearchSettings, check_fixed_config
 from generalist_control.sweeps.storage import (
     StaleTrialHandler,
     end_trial_run,
@@ -34,8 +33,13 @@ from generalist_control.sweeps.storage import (
 )
 from generalist_control.sweeps.trial_callbacks import active_trial
 from generalist_control.tracking import mlflow_utils
-from generalist_control.tracking.experiments import experiment_name
-from generalist_control.tracking.parents import ROLE_TAG, create_parent_run, parent_run
+from generalist_control.tracking.mlflow_utils import experiment_name
+from generalist_control.tracking.parents import (
+    ROLE_TAG,
+    create_parent_run,
+    find_parents,
+    parent_run,
+)
 
 __all__ = ["PARENT_ATTR", "Objective", "TrainPoint", "run_study", "tune_logger"]
 
@@ -143,9 +147,8 @@ def _oldest_parent(study: optuna.Study, logger: Mapping[str, Any], storage: str)
     """
     exp_id = mlflow_utils.experiment_id(logger, kind="tune")
     query = f"tags.`{ROLE_TAG}` = 'study' and tags.`optuna.study` = '{study.study_name}'"
-    found = mlflow.MlflowClient().search_runs([exp_id], filter_string=query, max_results=1000)
+    found = find_parents(mlflow.MlflowClient(), exp_id, query)
     runs = [r for r in found if r.data.tags.get("optuna.storage") == storage]
-    runs.sort(key=lambda r: (r.info.start_time, r.info.run_id))
     return runs[0].info.run_id if runs else None
 
 
@@ -292,10 +295,8 @@ def run_study(
 ) -> optuna.Study:
     """Run (or continue) the study; return it, loaded with every worker's trials.
 
-    ``fixed`` is the study's fixed config
-    (:func:`~generalist_control.sweeps.fixed_config.fixed_config`), ``logger`` names its
-    experiment (:func:`tune_logger`), ``train_point`` trains one trial in
-    ``<trials_dir>/trial_<n>``.
+    ``fixed``: the study's fixed config; ``logger`` names its experiment (:func:`tune_logger`);
+    ``train_point`` trains one trial in ``<trials_dir>/trial_<n>``.
 
     Raises
     ------

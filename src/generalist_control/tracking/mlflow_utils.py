@@ -1,7 +1,9 @@
-"""MLflow: the store, its experiments, runs of work other than training, and safety.
+"""MLflow: the store, its experiments (one per kind of work), runs other than training, safety.
 
 The default store is SQLite (``mlflow.db``); a fresh one is initialised under a file lock,
-params are redacted, and a run whose process is gone is ended by the next run.
+params are redacted, and a run whose process is gone is ended by the next run. Experiments are
+named ``<logger.experiment_prefix>/<kind>`` (docs/sweeps.md) and tagged as model development,
+so that ``mlflow ui`` opens them on their runs, not on MLflow's GenAI overview.
 """
 
 from __future__ import annotations
@@ -23,18 +25,23 @@ import yaml
 
 from generalist_control.common.atomic import pid_alive, process_start
 from generalist_control.common.secrets import redact
-from generalist_control.tracking.experiments import KIND_TAG, experiment_name
 
 if TYPE_CHECKING:
     import mlflow
 
 __all__ = [
+    "DEFAULT_PREFIX",
+    "KINDS",
+    "KIND_TAG",
     "PARENT_RUN_ENV",
+    "POLICY_HASH_TAG",
     "SWEEP_ENV",
     "check_store",
     "dvc_data_version",
     "end_stale_runs",
     "experiment_id",
+    "experiment_name",
+    "find_training_run",
     "flatten_params",
     "init_store",
     "mlflow_run",
@@ -50,6 +57,18 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+DEFAULT_PREFIX = "generalist-control"
+#: The kinds of work, each with its own experiment.
+KINDS = (
+    "train", "sweep", "tune", "report", "ablation", "tag-free", "variants", "adapt", "unseen",
+    "evaluate",
+)  # fmt: skip
+#: MLflow 3's experiment type tag and its value for model training (not GenAI).
+KIND_TAG = ("mlflow.experimentKind", "custom_model_development")
+#: The tag that names the policy file a run wrote, by its hash: a policy file holds no run id,
+#: so that the same training writes the same bytes (and ``dvc repro`` keeps ``dvc.lock``).
+POLICY_HASH_TAG = "policy.sha256"
 
 #: Config subtrees left out of the params: the plant models (fixed by the data hash) and Hydra's.
 EXCLUDED = ("systems.plants", "hydra")
@@ -104,8 +123,7 @@ def _sqlite_file(uri: str) -> Path | None:
 def store_lock(uri: str) -> Iterator[None]:
     """An exclusive lock on an SQLite store (``<db>.lock`` beside it); a no-op for others.
 
-    Held while a new database's schema is made (two processes must not do it at once) and
-    while an experiment is looked up or created.
+    Held while a new database's schema is made and while an experiment is found or made.
     """
     db = _sqlite_file(uri)
     if db is None or not db.parent.is_dir():
@@ -172,8 +190,8 @@ def dvc_data_version(data_dir: str | Path, lock: str | Path = "dvc.lock") -> str
 def mlflow_run(logger: Mapping[str, Any], kind: str = "train") -> Iterator[mlflow.ActiveRun]:
     """A new fluent run for work other than training, in the experiment of ``kind``.
 
-    The run is nested under the parent run the environment names (:func:`parent_run_tags`)
-    and tagged with this process; stale runs of this host are ended first.
+    Nested under the environment's parent (:func:`parent_run_tags`), tagged with this process;
+    stale runs of this host are ended first.
     """
     import mlflow
 
@@ -201,8 +219,7 @@ _ONE_TRY = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT
 def check_store(logger: Mapping[str, Any]) -> str:
     """Point MLflow at ``logger``'s store and refuse one that does not answer; its URI.
 
-    One request, without MLflow's minutes of retries: call it before any work, so that
-    nothing is written for a run that could not be logged.
+    One request without MLflow's minutes of retries, before any work is written.
 
     Raises
     ------
@@ -221,6 +238,23 @@ def check_store(logger: Mapping[str, Any]) -> str:
     finally:
         swap_env(saved)
     return uri
+
+
+def experiment_name(logger: Mapping[str, Any], kind: str) -> str:
+    """``logger.experiment_name`` if set, else ``<logger.experiment_prefix>/<kind>``.
+
+    Raises
+    ------
+    ValueError
+        If ``kind`` is not one of :data:`KINDS`.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"unknown kind of work {kind!r}; expected one of {', '.join(KINDS)}")
+    explicit = logger.get("experiment_name")
+    if explicit:
+        return str(explicit)
+    prefix = str(logger.get("experiment_prefix") or DEFAULT_PREFIX)
+    return f"{prefix}/{kind}"
 
 
 def experiment_id(logger: Mapping[str, Any], kind: str = "train") -> str:
@@ -283,9 +317,8 @@ def process_tags() -> dict[str, str]:
 def end_stale_runs(exp_id: str) -> list[str]:
     """Set ``KILLED`` the ``RUNNING`` runs of ``exp_id`` whose process on this host is gone.
 
-    A training killed outright (SIGKILL, out of memory) cannot end its run; its ``gc.host``
-    and ``gc.pid`` tags name its process. Each ended run gets the tag ``gc.killed_reason``.
-    Returns their ids.
+    A run killed outright (SIGKILL, out of memory) cannot end itself; its ``gc.host`` and
+    ``gc.pid`` tags name its process. Each gets the tag ``gc.killed_reason``; returns their ids.
     """
     import mlflow
 
@@ -332,10 +365,8 @@ def parent_run_tags() -> dict[str, str]:
 def retry_on_clash(call: Any, *args: Any, attempts: int = 6, **kwargs: Any) -> Any:
     """``call(*args, **kwargs)``, again after a short random wait when a row insert clashed.
 
-    MLflow's SQL store inserts a missing row (a dataset, a tag, a latest metric) after a read,
-    without a lock: two processes that write together can both insert, and one fails on the
-    unique key. Once more finds the row. Any other error, or a clash ``attempts`` times, is
-    raised.
+    MLflow's SQL store inserts a missing row after an unlocked read: of two writers, one fails
+    on the unique key, and once more finds the row. Other errors, or ``attempts`` clashes, raise.
     """
     from mlflow.exceptions import MlflowException
 
@@ -349,3 +380,17 @@ def retry_on_clash(call: Any, *args: Any, attempts: int = 6, **kwargs: Any) -> A
             log.info("a row another process wrote at the same time: trying again")
             time.sleep(random.uniform(0.05, 0.3) * attempt)
     return None
+
+
+def find_training_run(sha256: str) -> str | None:
+    """The newest finished run that wrote the policy ``sha256`` (tag :data:`POLICY_HASH_TAG`)."""
+    import mlflow
+
+    runs = mlflow.search_runs(
+        search_all_experiments=True,
+        filter_string=f"tags.`{POLICY_HASH_TAG}` = '{sha256}' and attributes.status = 'FINISHED'",
+        order_by=["attributes.start_time DESC"],
+        max_results=1,
+        output_format="list",
+    )
+    return runs[0].info.run_id if runs else None

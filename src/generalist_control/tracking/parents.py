@@ -19,6 +19,7 @@ __all__ = [
     "GROUP_ROLE",
     "ROLE_TAG",
     "create_parent_run",
+    "find_parents",
     "named_parent",
     "parent_env",
     "parent_run",
@@ -50,15 +51,17 @@ def create_parent_run(
     return run.info.run_id
 
 
+def find_parents(client: Any, exp_id: str, where: str = f"tags.`{ROLE_TAG}` != ''") -> list[Any]:
+    """The parent runs of an experiment that match the MLflow filter ``where``, oldest first."""
+    runs = client.search_runs([exp_id], filter_string=where, max_results=1000)
+    runs = [r for r in runs if r.data.tags.get(ROLE_TAG)]
+    return sorted(runs, key=lambda r: (r.info.start_time, r.info.run_id))
+
+
 def _named(client: Any, exp_id: str, name: str) -> list[Any]:
     """The group parents of an experiment called ``name``, oldest first."""
-    runs = client.search_runs(
-        [exp_id],
-        filter_string=f"tags.`{ROLE_TAG}` = '{GROUP_ROLE}' and attributes.run_name = '{name}'",
-        order_by=["attributes.start_time ASC"],
-        max_results=100,
-    )
-    return sorted(runs, key=lambda r: (r.info.start_time, r.info.run_id))
+    where = f"tags.`{ROLE_TAG}` = '{GROUP_ROLE}' and attributes.run_name = '{name}'"
+    return find_parents(client, exp_id, where)
 
 
 def named_parent(logger: Mapping[str, Any], name: str, kind: str = "train") -> str:

@@ -35,7 +35,7 @@ from generalist_control.model.policy import (
 from generalist_control.plants.catalog import tag_count
 from generalist_control.plants.definition import Plant
 from generalist_control.tracking import training_run
-from generalist_control.tracking.policy_runs import POLICY_HASH_TAG
+from generalist_control.tracking.mlflow_utils import POLICY_HASH_TAG
 from generalist_control.training import outputs
 from generalist_control.training.callbacks import (
     DAggerCallback,
