@@ -26,6 +26,8 @@ from helpers import compose_cfg, tiny_train_overrides, untrained_policy
 REPO = Path(__file__).resolve().parents[1]
 STAGE = yaml.safe_load((REPO / "beyond" / "dvc.yaml").read_text())["stages"]["unseen"]
 CONFIG = yaml.safe_load((REPO / "conf" / "unseen.yaml").read_text())
+#: The adapted rows' bar, as the stage reads it (conf/unseen.yaml).
+BAR = CONFIG["unseen"]["bar"]
 
 
 def test_plant_class_against_hand_values():
@@ -183,33 +185,34 @@ def _entry(ise, rmse, diverged=0, wall=60.0):
 
 def test_the_bar_allows_one_plant_over_the_tight_limits_and_none_over_the_loose_one():
     good = {f"p{i}": _entry(1.0, 1.0) for i in range(4)}
-    one_over = judge({**good, "x": _entry(1.2, 1.0)})  # ISE over 1.10, under 1.5
+    one_over = judge({**good, "x": _entry(1.2, 1.0)}, BAR)  # ISE over 1.10, under 1.5
     assert one_over["pass"] and one_over["bars"]["most_within"]["over"] == ["x"]
-    two_over = judge({**good, "x": _entry(1.2, 1.0), "y": _entry(1.0, 1.3)})
+    two_over = judge({**good, "x": _entry(1.2, 1.0), "y": _entry(1.0, 1.3)}, BAR)
     assert not two_over["bars"]["most_within"]["pass"] and not two_over["pass"]
     assert two_over["bars"]["all_within"]["pass"]  # 1.3 <= 1.5
-    loose = judge({**good, "x": _entry(1.0, 1.51)})
+    loose = judge({**good, "x": _entry(1.0, 1.51)}, BAR)
     assert not loose["bars"]["all_within"]["pass"] and loose["bars"]["most_within"]["pass"]
 
 
 def test_the_bar_fails_on_a_divergence_a_missing_ratio_or_a_slow_adaptation():
     good = {f"p{i}": _entry(1.0, 1.0) for i in range(4)}
-    assert judge(good)["pass"]
-    diverged = judge({**good, "x": _entry(1.0, 1.0, diverged=2)})
+    assert judge(good, BAR)["pass"]
+    diverged = judge({**good, "x": _entry(1.0, 1.0, diverged=2)}, BAR)
     assert diverged["bars"]["no_divergence"]["GC_diverged_runs"] == 2 and not diverged["pass"]
-    missing = judge({**good, "x": _entry(None, None)})  # every step run diverged: no ratio
+    missing = judge({**good, "x": _entry(None, None)}, BAR)  # every step run diverged: no ratio
     assert missing["bars"]["all_within"]["value"] == float("inf") and not missing["pass"]
-    slow = judge({**good, "x": _entry(1.0, 1.0, wall=181.0)})
+    slow = judge({**good, "x": _entry(1.0, 1.0, wall=181.0)}, BAR)
     assert not slow["bars"]["adaptation_wall_s"]["pass"]
-    assert judge({**good, "x": _entry(1.0, 1.0, wall=181.0)}, {"wall_s": 200})["pass"]
+    assert judge({**good, "x": _entry(1.0, 1.0, wall=181.0)}, {**BAR, "wall_s": 200})["pass"]
 
 
 def test_the_stage_reads_its_config_once_into_settings():
     from generalist_control.unseen import read_unseen
 
-    cfg = compose_cfg("+unseen.bar.ISE_ratio=2.0", "unseen.family_draw=null", config="unseen")
+    cfg = compose_cfg("unseen.bar.ISE_ratio=2.0", "unseen.family_draw=null", config="unseen")
     settings = read_unseen(cfg)
-    assert settings.bar == {"ISE_ratio": 2.0} and settings.routes_bar == {}
+    assert settings.bar == {**BAR, "ISE_ratio": 2.0}  # every limit from conf/unseen.yaml
+    assert settings.routes_bar == CONFIG["unseen"]["routes_bar"] and BAR["ISE_ratio"] == 1.1
     assert settings.family_draw is None and settings.routes is True
     assert settings.models == Path("models/unseen") and settings.evaluation.scenarios
     assert settings.trained_with == Path("models/policy.ckpt")
