@@ -28,17 +28,18 @@ results: setup
 	$(VENV)/python -m generalist_control.reports.results_page
 
 ## Lint, type check and the whole test suite (what CI runs), on PYTEST_WORKERS processes
-## (pytest-xdist; whole test files per worker, so a file's fixtures are built once). One
+## (pytest-xdist; whole test files per worker, so a file's fixtures are built once; the
+## longest files first, tests/conftest.py's order: xdist's own reorders by test count). One
 ## process took 14.5-16 min on 2 cores; CI has 2. PYTEST_WORKERS=0 runs in this process.
 PYTEST_WORKERS ?= 2
 test: setup
 	$(VENV)/ruff check src analysis tests benchmarks scripts train.py tune.py adapt.py
 	$(VENV)/mypy
-	$(VENV)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile --durations=25
+	$(VENV)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=25
 
 ## The fast tests only (no whole-stage runs: those are marked slow), a minute or two.
 test-fast: setup
-	$(VENV)/python -m pytest -q -m "not slow" -n $(PYTEST_WORKERS) --dist loadfile
+	$(VENV)/python -m pytest -q -m "not slow" -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 lint: setup
 	$(VENV)/ruff check src analysis tests benchmarks scripts train.py tune.py adapt.py

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import signal
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,6 +24,9 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 # One thread: the tiny batches gain nothing from two, and on a shared 2-core machine a second
 # OpenMP thread that waits for a busy core can stall every step by orders of magnitude.
 torch.set_num_threads(1)
+
+#: Each test file's measured seconds (scripts/test_durations.py), to hand out the longest first.
+DURATIONS = Path(__file__).with_name("durations.json")
 
 #: Two plants of order 2 and 3, eight step amplitudes each, 2 s (40 samples) per trajectory.
 TINY_PLANTS = ("cstr", "hydraulic_actuator")
@@ -77,15 +81,21 @@ def postgres_url() -> Iterator[str]:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Files with the most slow tests first, the rest in their order: the workers
-    (``--dist loadfile``) then end on small files, not with one waiting for a long one."""
+    """Files longest first (tests/durations.json, measured: scripts/test_durations.py), then
+    those with the most slow tests, then the rest in their order: the workers (``--dist
+    loadfile --no-loadscope-reorder``) then end on short files, not one on a long one."""
+    seconds = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
     slow: dict[str, int] = {}
     for item in items:
-        slow[item.nodeid.split("::")[0]] = slow.get(item.nodeid.split("::")[0], 0) + (
+        slow[_file(item)] = slow.get(_file(item), 0) + (
             item.get_closest_marker("slow") is not None
         )
-    order = {f: i for i, f in enumerate(dict.fromkeys(i.nodeid.split("::")[0] for i in items))}
-    items.sort(key=lambda i: (-slow[i.nodeid.split("::")[0]], order[i.nodeid.split("::")[0]]))
+    order = {f: i for i, f in enumerate(dict.fromkeys(_file(i) for i in items))}
+    items.sort(key=lambda i: (-seconds.get(_file(i), 0.0), -slow[_file(i)], order[_file(i)]))
+
+
+def _file(item: pytest.Item) -> str:
+    return item.nodeid.split("::")[0]
 
 
 @pytest.fixture(autouse=True)
