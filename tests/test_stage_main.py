@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import sys
 from pathlib import Path
 
@@ -31,10 +32,19 @@ def _main(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, *args: str) -> tuple[
     where = [f"hydra.run.dir={tmp_path / 'run'}", f"hydra.sweep.dir={tmp_path / 'multi'}"]
     monkeypatch.setattr(sys, "argv", ["stage", *args, *where, "hydra.output_subdir=null"])
     GlobalHydra.instance().clear()
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
     try:
         task()
-    finally:
+    finally:  # Hydra's run configured logging for the process: the tests after it get theirs
         GlobalHydra.instance().clear()
+        for handler in set(root.handlers) - set(handlers):
+            root.removeHandler(handler)
+            handler.close()
+        for handler in handlers:
+            if handler not in root.handlers:
+                root.addHandler(handler)
+        root.setLevel(level)
     return calls, composed[0]
 
 
