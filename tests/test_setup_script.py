@@ -8,6 +8,7 @@ machine's configured sources, where the CPU wheel lies on local disk.
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -106,10 +107,11 @@ def test_dry_run_prints_the_commands_and_installs_nothing(installer):
     """The project's requirements go through uv where the environment has it, else pip."""
     out = _dry_run(GC_INSTALLER=installer)
     assert out.returncode == 0, out.stderr
-    venv_python = REPO / ".venv" / "bin" / "python"
-    has_uv = subprocess.run([venv_python, "-m", "uv", "--version"], capture_output=True)
+    venv = REPO / ".venv" / "bin" / "python"  # the script's python: the venv's, else PATH's
+    python = str(venv) if venv.is_file() else shutil.which("python")
+    has_uv = subprocess.run([python, "-m", "uv", "--version"], capture_output=True)
     if installer == "uv" and has_uv.returncode == 0:
-        assert UV_LINE.format(REPO / ".venv" / "bin" / "python") in out.stdout
+        assert UV_LINE.format(python) in out.stdout
         assert PIP_LINE not in out.stdout
     else:
         assert PIP_LINE in out.stdout and "uv pip" not in out.stdout
