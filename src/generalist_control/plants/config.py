@@ -62,9 +62,9 @@ def _import(path: str, plant: str, key: str) -> Dynamics:
         ) from exc
 
 
-def _matrix(cfg: Mapping[str, Any], key: str, plant: str, shape: tuple[int, int]) -> np.ndarray:
+def _matrix(spec: Mapping[str, Any], key: str, plant: str, shape: tuple[int, int]) -> np.ndarray:
     try:
-        m = np.atleast_2d(np.asarray(cfg[key], dtype=float))
+        m = np.atleast_2d(np.asarray(spec[key], dtype=float))
     except KeyError:
         raise PlantConfigError(f"plant '{plant}': missing field '{key}'") from None
     except (TypeError, ValueError) as exc:
@@ -89,9 +89,9 @@ def _sane(m: np.ndarray, key: str, plant: str) -> np.ndarray:
     return m
 
 
-def _number(cfg: Mapping[str, Any], key: str, plant: str, default: float | None = None) -> float:
+def _number(spec: Mapping[str, Any], key: str, plant: str, default: float | None = None) -> float:
     """The field ``key``: a finite real number (``default`` when absent, if given)."""
-    value = cfg.get(key, default) if default is not None else cfg[key]
+    value = spec.get(key, default) if default is not None else spec[key]
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise PlantConfigError(f"plant '{plant}': field '{key}' must be a number, got {value!r}")
     return float(_sane(np.array([value], dtype=float), key, plant)[0])
@@ -118,8 +118,8 @@ def _weight(value: Any, n: int, key: str, plant: str) -> np.ndarray:
     return w
 
 
-def _signals(cfg: Mapping[str, Any], key: str, plant: str) -> tuple[Signal, ...]:
-    items = cfg.get(key)
+def _signals(spec: Mapping[str, Any], key: str, plant: str) -> tuple[Signal, ...]:
+    items = spec.get(key)
     if items is None:
         raise PlantConfigError(f"plant '{plant}': missing field '{key}'")
     if isinstance(items, Mapping):
@@ -132,9 +132,9 @@ def _signals(cfg: Mapping[str, Any], key: str, plant: str) -> tuple[Signal, ...]
         ) from exc
 
 
-def _nonlinear_model(name: str, cfg: Mapping[str, Any], n: int) -> dict[str, Any]:
+def _nonlinear_model(name: str, spec: Mapping[str, Any], n: int) -> dict[str, Any]:
     """``f``, ``h``, parameters, operating point and the linearisation of a nonlinear plant."""
-    dyn = cfg["dynamics"]
+    dyn = spec["dynamics"]
     f = _import(str(dyn.get("f", "")), name, "dynamics.f")
     params = dyn.get("params") or {}
     params = {str(k): _number(params, k, name) for k in params}
@@ -149,7 +149,7 @@ def _nonlinear_model(name: str, cfg: Mapping[str, Any], n: int) -> dict[str, Any
             f"plant '{name}': 'dynamics.x_op', 'dynamics.u_op' is not an equilibrium "
             f"(f = {np.array2string(f0, precision=3)})"
         )
-    C = C_lin if C_lin is not None else _matrix(cfg, "C", name, (1, n))
+    C = C_lin if C_lin is not None else _matrix(spec, "C", name, (1, n))
     y_op = float(h(x_op[None, :], **params)[0]) if h is not None else float(C[0] @ x_op)
     return {
         "A": A, "B": B, "C": C, "f": f, "h": h, "params": params,
@@ -157,14 +157,14 @@ def _nonlinear_model(name: str, cfg: Mapping[str, Any], n: int) -> dict[str, Any
     }  # fmt: skip
 
 
-def _model(name: str, cfg: Mapping[str, Any], n: int) -> dict[str, Any]:
+def _model(name: str, spec: Mapping[str, Any], n: int) -> dict[str, Any]:
     """The plant's model fields: matrices (linear) or dynamics and linearisation."""
-    if cfg.get("dynamics") is not None:
-        return _nonlinear_model(name, cfg, n)
+    if spec.get("dynamics") is not None:
+        return _nonlinear_model(name, spec, n)
     return {
-        "A": _matrix(cfg, "A", name, (n, n)),
-        "B": _matrix(cfg, "B", name, (n, 1)),
-        "C": _matrix(cfg, "C", name, (1, n)),
+        "A": _matrix(spec, "A", name, (n, n)),
+        "B": _matrix(spec, "B", name, (n, 1)),
+        "C": _matrix(spec, "C", name, (1, n)),
         "x_op": np.zeros(n),
     }
 
@@ -182,15 +182,15 @@ def _lqi_weights(name: str, lqi: Mapping[str, Any], n: int) -> tuple[np.ndarray,
     return Q, R
 
 
-def _settings(name: str, cfg: Mapping[str, Any]) -> dict[str, Any]:
+def _settings(name: str, spec: Mapping[str, Any]) -> dict[str, Any]:
     """Sample time, amplitude scale and RK4 sub-steps, each checked."""
-    dt = _number(cfg, "dt", name)
+    dt = _number(spec, "dt", name)
     if not dt > 0:
         raise PlantConfigError(f"plant '{name}': field 'dt' must be positive, got {dt}")
-    scale = _number(cfg, "amplitude_scale", name, 1.0)
+    scale = _number(spec, "amplitude_scale", name, 1.0)
     if not scale > 0:
         raise PlantConfigError(f"plant '{name}': field 'amplitude_scale' must be positive")
-    substeps = cfg.get("substeps", 10)
+    substeps = spec.get("substeps", 10)
     if isinstance(substeps, bool) or not isinstance(substeps, numbers.Integral) or substeps < 1:
         raise PlantConfigError(
             f"plant '{name}': field 'substeps' must be an integer >= 1, got {substeps!r}"
@@ -198,11 +198,11 @@ def _settings(name: str, cfg: Mapping[str, Any]) -> dict[str, Any]:
     return {"dt": dt, "amplitude_scale": scale, "substeps": int(substeps)}
 
 
-def _identity(name: str, cfg: Any) -> int:
+def _identity(name: str, spec: Any) -> int:
     """The file is a mapping, the name a Hydra key, the tag a non-negative integer."""
-    if not isinstance(cfg, Mapping):
+    if not isinstance(spec, Mapping):
         raise PlantConfigError(
-            f"plant '{name}': the file holds a {type(cfg).__name__}, not the mapping of a "
+            f"plant '{name}': the file holds a {type(spec).__name__}, not the mapping of a "
             "plant's fields (tag, dt, states, ...; conf/plants/README.md)"
         )
     if not _NAME.fullmatch(name):
@@ -212,9 +212,9 @@ def _identity(name: str, cfg: Any) -> int:
             f"underscores (Hydra splits keys at dots); rename the file, e.g. {plain}.yaml"
         )
     for key in ("tag", "description", "source", "dt", "lqi"):
-        if key not in cfg:
+        if key not in spec:
             raise PlantConfigError(f"plant '{name}': missing field '{key}'")
-    tag = cfg["tag"]
+    tag = spec["tag"]
     if isinstance(tag, bool) or not isinstance(tag, numbers.Integral) or tag < 0:
         raise PlantConfigError(
             f"plant '{name}': field 'tag' must be a non-negative integer (the policy's row "
@@ -223,10 +223,10 @@ def _identity(name: str, cfg: Any) -> int:
     return int(tag)
 
 
-def plant_from_config(name: str, cfg: Any, source: str | Path | None = None) -> Plant:
-    """Build and validate a :class:`Plant` named ``name`` from its configuration mapping.
+def plant_from_config(name: str, spec: Any, source: str | Path | None = None) -> Plant:
+    """Build and validate a :class:`Plant` named ``name`` from its spec (a plant file's mapping).
 
-    ``cfg`` follows ``conf/plants/README.md``; ``source``, the file it was read from, is
+    ``spec`` follows ``conf/plants/README.md``; ``source``, the file it was read from, is
     named first in every refusal.
 
     Raises
@@ -237,31 +237,31 @@ def plant_from_config(name: str, cfg: Any, source: str | Path | None = None) -> 
         malformed ``variants`` block.
     """
     try:
-        return _plant(name, cfg)
+        return _plant(name, spec)
     except PlantConfigError as exc:
         if source is None:
             raise
         raise PlantConfigError(f"{source}: {exc}") from None
 
 
-def _plant(name: str, cfg: Any) -> Plant:
-    tag = _identity(name, cfg)
-    states = _signals(cfg, "states", name)
-    (inp,) = _signals(cfg, "input", name)
-    (out,) = _signals(cfg, "output", name)
+def _plant(name: str, spec: Any) -> Plant:
+    tag = _identity(name, spec)
+    states = _signals(spec, "states", name)
+    (inp,) = _signals(spec, "input", name)
+    (out,) = _signals(spec, "output", name)
     n = len(states)
     if not 1 <= n <= MAX_ORDER:
         raise PlantConfigError(
             f"plant '{name}': {n} states listed in 'states'; orders 1..{MAX_ORDER} are supported"
         )
-    settings = _settings(name, cfg)
-    model = _model(name, cfg, n)
-    Q, R = _lqi_weights(name, cfg["lqi"], n)
+    settings = _settings(name, spec)
+    model = _model(name, spec, n)
+    Q, R = _lqi_weights(name, spec["lqi"], n)
     plant = Plant(
         name=name,
         tag=tag,
-        description=str(cfg["description"]),
-        source=str(cfg["source"]),
+        description=str(spec["description"]),
+        source=str(spec["source"]),
         states=states,
         input_signal=inp,
         output_signal=out,
@@ -270,7 +270,7 @@ def _plant(name: str, cfg: Any) -> Plant:
         **settings,
         **model,
     )
-    register_spec(plant, cfg.get("variants"))
+    register_spec(plant, spec.get("variants"))
     return plant
 
 
@@ -301,7 +301,7 @@ def plant_from_model(model: Mapping[str, Any], name: str | None = None) -> Plant
         raise PlantConfigError(
             f"{where}: field 'A' must be a square matrix (a list of rows)"
         ) from None
-    cfg = {
+    spec = {
         **_DEFAULTS,
         "dt": model["dt"],
         "states": [{"name": f"x{i + 1}", "unit": "-"} for i in range(n)],
@@ -310,7 +310,7 @@ def plant_from_model(model: Mapping[str, Any], name: str | None = None) -> Plant
         **{k: model[k] for k in ("A", "B", "C")},
         "lqi": {"Q": model["Q"], "R": model["R"]},
     }
-    return plant_from_config(label, cfg)
+    return plant_from_config(label, spec)
 
 
 def read_plant_file(path: Path) -> Any:
@@ -340,10 +340,10 @@ def plant_from_file(path: str | Path) -> Plant:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no plant file at {path}")
-    cfg = read_plant_file(path)
-    if not isinstance(cfg, dict) or not ({"A", "dynamics"} & set(cfg)):
+    spec = read_plant_file(path)
+    if not isinstance(spec, dict) or not ({"A", "dynamics"} & set(spec)):
         raise PlantConfigError(
             f"{path} is not a plant file: a plant YAML is a mapping with the model (A, B, C "
             "or dynamics), dt, states, input, output and lqi (conf/plants/README.md)"
         )
-    return plant_from_config(path.stem, {**_DEFAULTS, **cfg})
+    return plant_from_config(path.stem, {**_DEFAULTS, **spec})
