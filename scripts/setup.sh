@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up a machine: a virtual environment in .venv with the CPU build of torch first, then the
-# package in editable mode with its dev extras (which include the notebooks extra: JupyterLab
-# and the notebook runner).
+# package in editable mode with its dev extras (the notebook runner; JupyterLab is the
+# `notebooks` extra).
 #
 # torch is always the CPU build, asked for by name (torch==2.13.0+cpu): on Linux a plain
 # `pip install torch` fetches the CUDA build and several GB of NVIDIA libraries. Where pip's
@@ -10,8 +10,8 @@
 # CPU index, $TORCH_CPU_INDEX. macOS: PyPI's torch has no CUDA, so plain torch==2.13.0.
 #
 # The rest of the requirements go through uv (from PyPI, itself installed with pip) where it
-# installs, else pip: uv downloads and installs in parallel, about 3 times faster on a fresh
-# machine (docs/development.md); GC_INSTALLER=pip forces pip. Debian's PostgreSQL and Compose
+# installs, else pip: uv downloads and installs in parallel (a fresh set-up 45 s against 108 s,
+# idle: docs/development.md); GC_INSTALLER=pip forces pip. Debian's PostgreSQL and Compose
 # client install in the background meanwhile.
 #
 # GC_SETUP_DRY_RUN=1 prints the install commands instead of running them. Sourced
