@@ -13,7 +13,6 @@ from omegaconf import DictConfig
 
 from generalist_control.common.sections import as_dict
 from generalist_control.common.stage_main import stage_main
-from generalist_control.training.fit import train
 from generalist_control.training.settings import read_training
 
 __all__ = ["main", "run"]
@@ -21,6 +20,10 @@ __all__ = ["main", "run"]
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Train the policy ``cfg`` describes; return its metrics."""
+    # Lightning and MLflow load here, after the config is read: ``--help`` and a refused
+    # config answer in a second or two, not after their imports.
+    from generalist_control.training.fit import train
+
     metrics, _ = train(read_training(as_dict(cfg)))
     return metrics
 

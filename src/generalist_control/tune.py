@@ -23,9 +23,6 @@ from generalist_control.common.sections import as_dict, read_section
 from generalist_control.common.stage_main import stage_main
 from generalist_control.sweeps.search_settings import SearchSettings, fixed_config, parse_space
 from generalist_control.sweeps.stop_signals import Stopped
-from generalist_control.sweeps.study import run_study, tune_logger
-from generalist_control.sweeps.trial_callbacks import TrialRunLink, trial_pruning
-from generalist_control.training.fit import train
 from generalist_control.training.settings import read_training
 
 __all__ = ["main", "run", "trial_config"]
@@ -41,6 +38,8 @@ def trial_config(
     The run goes to the study's ``experiment``; the callbacks get the trial's pruning (on
     ``monitor``) and its link to the run.
     """
+    from generalist_control.sweeps.trial_callbacks import TrialRunLink, trial_pruning
+
     tcfg = copy.deepcopy(cfg)
     with open_dict(tcfg):
         tcfg.pop("hparams_search", None)
@@ -77,6 +76,10 @@ def run(cfg: DictConfig) -> optuna.Study:
 
     The settings and the search space are checked before the storage or MLflow is touched.
     """
+    # Lightning loads here, after the config is read: ``--help`` answers without it
+    from generalist_control.sweeps.study import run_study, tune_logger
+    from generalist_control.training.fit import train
+
     if cfg.get("hparams_search") is None:
         raise ValueError("no search configured: choose one, e.g. hparams_search=default")
     search = read_section(SearchSettings, as_dict(cfg.hparams_search), "hparams_search")
