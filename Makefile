@@ -31,11 +31,16 @@ results: setup
 ## (pytest-xdist; whole test files per worker, so a file's fixtures are built once; the
 ## longest files first, tests/conftest.py's order: xdist's own reorders by test count). One
 ## process took 14.5-16 min on 2 cores; CI has 2. PYTEST_WORKERS=0 runs in this process.
+## mypy runs beside the tests (its report after theirs): its half a minute on one core
+## overlaps the waits of the tests' servers and commands. Either failing fails the target.
 PYTEST_WORKERS ?= 2
 test: setup
 	$(VENV)/ruff check src analysis tests benchmarks scripts train.py tune.py adapt.py
-	$(VENV)/mypy
-	$(VENV)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=25
+	@typing=$$(mktemp); trap 'rm -f "$$typing"' EXIT; \
+	$(VENV)/mypy >"$$typing" 2>&1 & mypy=$$!; trap 'kill $$mypy 2>/dev/null; exit 130' INT TERM; \
+	$(VENV)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=25; \
+	tests=$$?; wait $$mypy; typed=$$?; echo "mypy:"; cat "$$typing"; \
+	[ $$tests -ne 0 ] && exit $$tests; exit $$typed
 
 ## The fast tests only (no whole-stage runs: those are marked slow), a minute or two.
 test-fast: setup

@@ -1,4 +1,5 @@
-"""The suite hands out its files longest first (tests/conftest.py, tests/durations.json)."""
+"""The suite hands out its files longest first (tests/conftest.py, tests/durations.json),
+and `make test` runs mypy beside it."""
 
 from __future__ import annotations
 
@@ -52,3 +53,33 @@ def test_a_report_without_durations_is_refused(tmp_path):
     proc = subprocess.run([sys.executable, str(script), str(report)], capture_output=True,
                           text=True)  # fmt: skip
     assert proc.returncode == 1 and "run pytest with --durations=0" in proc.stderr
+
+
+def _fake_venv(folder: Path, mypy_rc: int, pytest_rc: int) -> Path:
+    """A venv's bin/ whose ruff passes, mypy and pytest exit as told."""
+    folder.mkdir()
+    scripts = {
+        "ruff": "exit 0",
+        "mypy": f"echo 'src/x.py:1: error: a type error'; exit {mypy_rc}",
+        "python": f"echo 'pytest ran'; exit {pytest_rc}",
+    }
+    for name, body in scripts.items():
+        (folder / name).write_text(f"#!/bin/sh\n{body}\n")
+        (folder / name).chmod(0o755)
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("mypy_rc", "pytest_rc", "rc"), [(1, 0, 1), (0, 3, 3), (1, 3, 3), (0, 0, 0)]
+)
+def test_make_test_fails_when_mypy_or_the_tests_fail(tmp_path, mypy_rc, pytest_rc, rc):
+    """mypy runs beside the tests; its report follows theirs and its failure fails the target."""
+    venv = _fake_venv(tmp_path / "bin", mypy_rc, pytest_rc)
+    proc = subprocess.run(
+        ["make", "-s", "-o", "setup", "test", f"VENV={venv}"],
+        cwd=REPO, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == (2 if rc else 0), proc.stderr  # make's own status on a failure
+    assert f"Error {rc}" in proc.stderr if rc else proc.stderr == ""
+    out = proc.stdout
+    assert out.index("pytest ran") < out.index("mypy:") < out.index("a type error")
