@@ -18,8 +18,10 @@ import yaml
 from generalist_control.common.sections import as_dict
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import available_plants, load_plant
+from generalist_control.reports import held_out
 from generalist_control.reports.explore import plant_class
 from generalist_control.reports.held_out import POLICIES, ROUTES, judge
+from generalist_control.simulation.family_draw import read_families
 from generalist_control.training.settings import read_training
 from helpers import compose_cfg, tiny_train_overrides, untrained_policy
 
@@ -216,3 +218,16 @@ def test_the_stage_reads_its_config_once_into_settings():
     assert settings.family_draw is None and settings.routes is True
     assert settings.models == Path("models/unseen") and settings.evaluation.scenarios
     assert settings.trained_with == Path("models/policy.ckpt")
+
+
+def test_a_family_draw_of_a_family_file_with_a_defaults_list_composes_it():
+    """``unseen.family_draw.family: heldout``: its file extends ``default`` (Hydra's defaults
+    list), which a plain YAML load left out ("must name a plant family")."""
+    spec = {"family": "heldout", "seed": 7, "checks": None}
+    node = held_out._family_node(spec, {"duration": 2.0})
+    default = yaml.safe_load((REPO / "conf/families/default.yaml").read_text())
+    assert node["generator"]["_target_"] == default["generator"]["_target_"]
+    assert node["generator"]["seed"] == 7 and node["count"] == 200  # the spec's, heldout's
+    assert node["checks"]["duration"] == 2.0  # ${data.duration}
+    family, _ = read_families(node)
+    assert family.seed == 7

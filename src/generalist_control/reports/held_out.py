@@ -17,6 +17,8 @@ import mlflow
 import numpy as np
 import pandas as pd
 import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from generalist_control.adaptation import adapt
@@ -233,10 +235,19 @@ def zero_shot(
 
 
 def _family_node(spec: Mapping[str, Any], data: Mapping[str, Any]) -> dict[str, Any]:
-    """``conf/families/<family>.yaml`` at ``spec.seed``, ``spec.checks`` (if any) merged in."""
+    """``conf/families/<family>.yaml`` at ``spec.seed``, ``spec.checks`` (if any) merged in.
+
+    Hydra composes the file, so its defaults list counts (``heldout`` extends ``default``).
+    """
+    name = f"families/{spec['family']}"
+    if GlobalHydra.instance().is_initialized():  # inside a stage: its own search path
+        family = compose(name).families
+    else:
+        with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+            family = compose(name).families
     node = OmegaConf.merge(
         {"data": dict(data)},
-        {"f": OmegaConf.load(conf_dir() / "families" / f"{spec['family']}.yaml")},
+        {"f": family},
         {"f": {"generator": {"seed": int(spec["seed"])}, "checks": spec["checks"] or {}}},
     )
     tree = cast(dict[str, Any], OmegaConf.to_container(node, resolve=True))
