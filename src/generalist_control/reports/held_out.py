@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Mapping
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, cast
 
@@ -239,12 +240,9 @@ def _family_node(spec: Mapping[str, Any], data: Mapping[str, Any]) -> dict[str, 
 
     Hydra composes the file, so its defaults list counts (``heldout`` extends ``default``).
     """
-    name = f"families/{spec['family']}"
-    if GlobalHydra.instance().is_initialized():  # inside a stage: its own search path
-        family = compose(name).families
-    else:
-        with initialize_config_dir(str(conf_dir()), version_base="1.3"):
-            family = compose(name).families
+    inside = GlobalHydra.instance().is_initialized()  # in a stage: the stage's search path
+    with nullcontext() if inside else initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        family = compose(f"families/{spec['family']}").families
     node = OmegaConf.merge(
         {"data": dict(data)},
         {"f": family},
