@@ -31,8 +31,9 @@ results: setup
 ## (pytest-xdist; whole test files per worker, so a file's fixtures are built once; the
 ## longest files first, tests/conftest.py's order: xdist's own reorders by test count). One
 ## process took 14.5-16 min on 2 cores; CI has 2. PYTEST_WORKERS=0 runs in this process.
-## mypy runs beside the tests (its report after theirs): its half a minute on one core
-## overlaps the waits of the tests' servers and commands. Either failing fails the target.
+## mypy runs beside the tests, its report after theirs; either failing fails the target.
+## The suite keeps both cores 97-98 % busy (a fresh clone, idle), so this saves little, and
+## more pytest workers than cores would not help (docs/development.md).
 PYTEST_WORKERS ?= 2
 test: setup
 	$(VENV)/ruff check src analysis tests benchmarks scripts train.py tune.py adapt.py
