@@ -332,3 +332,35 @@ def test_files_dvc_exp_run_edits_hold_no_interpolation(name):
     """`dvc exp run -S <file>:<key>=<value>` loads the file alone: a ${...} there fails it."""
     code = [line.split("#", 1)[0] for line in (conf_dir() / name).read_text().splitlines()]
     assert not [line for line in code if "${" in line], name
+
+
+#: A refused config, in a process of its own: is Lightning loaded when the error comes?
+_REFUSED = """
+import sys
+from hydra import compose, initialize_config_dir
+from generalist_control.common.paths import conf_dir
+from generalist_control import {stage}
+with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+    cfg = compose("{config}", overrides={overrides!r})
+try:
+    {stage}.run(cfg)
+except ValueError as e:
+    print("refused:", e, "| lightning loaded:", "lightning" in sys.modules)
+"""
+
+
+@pytest.mark.parametrize(
+    ("stage", "config", "override", "message"),
+    [
+        ("train", "config", "trainer.max_epochs=1.5", "trainer.max_epochs"),
+        ("tune", "tune", "hparams_search.direction=sideways", "minimize or maximize"),
+    ],
+)
+def test_a_refused_config_answers_before_lightning_loads(stage, config, override, message):
+    """train.py and tune.py import their work (Lightning) only once the config is read."""
+    code = _REFUSED.format(stage=stage, config=config, overrides=[override])
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "refused:" in proc.stdout and message in proc.stdout, proc.stdout
+    assert proc.stdout.rstrip().endswith("lightning loaded: False"), proc.stdout

@@ -20,11 +20,12 @@ __all__ = ["main", "run"]
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Train the policy ``cfg`` describes; return its metrics."""
-    # Lightning and MLflow load here, after the config is read: ``--help`` and a refused
-    # config answer in a second or two, not after their imports.
+    settings = read_training(as_dict(cfg))
+    # Lightning and MLflow load once the config is read: ``--help`` and a refused config
+    # answer in a second or two, not after their imports.
     from generalist_control.training.fit import train
 
-    metrics, _ = train(read_training(as_dict(cfg)))
+    metrics, _ = train(settings)
     return metrics
 
 

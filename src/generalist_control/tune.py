@@ -76,16 +76,16 @@ def run(cfg: DictConfig) -> optuna.Study:
 
     The settings and the search space are checked before the storage or MLflow is touched.
     """
-    # Lightning loads here, after the config is read: ``--help`` answers without it
-    from generalist_control.sweeps.study import run_study, tune_logger
-    from generalist_control.training.fit import train
-
     if cfg.get("hparams_search") is None:
         raise ValueError("no search configured: choose one, e.g. hparams_search=default")
     search = read_section(SearchSettings, as_dict(cfg.hparams_search), "hparams_search")
     space = parse_space(search.params, cast(dict, OmegaConf.to_container(cfg, resolve=False)))
     tree = {k: v for k, v in as_dict(cfg).items() if k != "hparams_search"}
     fixed = fixed_config(tree, search.metric, [p.key for p in space], search.identity_keys)
+    # Lightning loads once the search is read: ``--help`` and a refused search answer without it
+    from generalist_control.sweeps.study import run_study, tune_logger
+    from generalist_control.training.fit import train
+
     logger = tune_logger(as_dict(cfg.logger))
 
     def train_point(values: Mapping[str, Any], trial_dir: Path) -> Mapping[str, Any]:
