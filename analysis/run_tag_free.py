@@ -19,7 +19,6 @@ import logging
 from pathlib import Path
 from typing import Any
 
-import hydra
 import pandas as pd
 from omegaconf import DictConfig
 
@@ -27,8 +26,8 @@ from analysis.handover import handover_table
 from analysis.identity import identity_trace
 from analysis.local_gains import local_gains
 from analysis.tag_free import write_tag_free_report
-from generalist_control.common.paths import HYDRA_CONFIG_PATH
 from generalist_control.common.sections import as_dict
+from generalist_control.common.stage_main import stage_main
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.evaluation.runner import evaluate
@@ -87,7 +86,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return verdict
 
 
-@hydra.main(version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name="config")
+@stage_main("config")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point of the tag-free analyses."""
     run(cfg)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import shutil
 import sys
 from pathlib import Path
 
@@ -11,11 +12,18 @@ from hydra._internal.hydra import Hydra
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 
+from generalist_control.common.paths import conf_dir
 from generalist_control.common.stage_main import stage_main
 
 
-def _main(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, *args: str) -> tuple[list, int]:
-    """Run a stage-shaped task with ``args`` on the command line: (its calls, compositions)."""
+def _main(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, *args: str, conf: Path | None = None
+) -> tuple[list, int]:
+    """Run a stage-shaped task with ``args`` on the command line: (its calls, compositions).
+
+    ``conf``: ``GC_CONF_DIR``, set once the task is defined (as a command sets it before it
+    runs a stage whose module was imported earlier).
+    """
     calls: list = []
     composed = [0]
     original = Hydra.compose_config
@@ -29,6 +37,8 @@ def _main(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, *args: str) -> tuple[
         calls.append((cfg.seed, str(HydraConfig.get().mode)))
 
     monkeypatch.setattr(Hydra, "compose_config", counting)
+    if conf is not None:
+        monkeypatch.setenv("GC_CONF_DIR", str(conf))
     where = [f"hydra.run.dir={tmp_path / 'run'}", f"hydra.sweep.dir={tmp_path / 'multi'}"]
     monkeypatch.setattr(sys, "argv", ["stage", *args, *where, "hydra.output_subdir=null"])
     GlobalHydra.instance().clear()
@@ -53,6 +63,15 @@ def test_a_run_composes_the_config_once(monkeypatch, tmp_path):
     assert calls == [(7, "RunMode.RUN")]
     assert composed == 1  # Hydra's hydra.main alone composes twice (get_mode, then run)
     assert Hydra.get_mode.__module__ == "hydra._internal.hydra"  # put back afterwards
+
+
+def test_the_config_folder_is_the_one_named_when_the_stage_runs(monkeypatch, tmp_path):
+    conf = tmp_path / "conf"
+    shutil.copytree(conf_dir(), conf)
+    text = (conf / "config.yaml").read_text()
+    (conf / "config.yaml").write_text(text.replace("\nseed: 42", "\nseed: 5", 1))
+    calls, _ = _main(monkeypatch, tmp_path, conf=conf)
+    assert calls == [(5, "RunMode.RUN")]  # 42 from the folder of the import
 
 
 def test_a_multirun_by_flag_or_by_override_runs_every_point(monkeypatch, tmp_path):

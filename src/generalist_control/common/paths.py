@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["CONF_DIR", "GENERATE_COMMAND", "HYDRA_CONFIG_PATH", "TRAIN_COMMAND", "conf_dir"]
+__all__ = ["CONF_DIR", "GENERATE_COMMAND", "TRAIN_COMMAND", "conf_dir"]
 
 #: ``conf/`` beside ``src/`` in the source tree.
 CONF_DIR = Path(__file__).resolve().parents[3] / "conf"
@@ -15,10 +15,6 @@ GENERATE_COMMAND = "python -m generalist_control.generate  (or: dvc repro genera
 
 #: The command that trains the default policy (quoted in missing-model errors).
 TRAIN_COMMAND = "python train.py  (or: dvc repro train)"
-
-#: ``config_path`` of every ``@hydra.main``; absolute, since a relative one resolves against
-#: the package when ``main`` is imported (the root shims, the console scripts).
-HYDRA_CONFIG_PATH = os.environ.get("GC_CONF_DIR", str(CONF_DIR))
 
 
 def conf_dir() -> Path:

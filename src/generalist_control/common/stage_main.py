@@ -15,7 +15,7 @@ import hydra
 from hydra._internal.hydra import Hydra
 from omegaconf import DictConfig
 
-from generalist_control.common.paths import HYDRA_CONFIG_PATH
+from generalist_control.common.paths import conf_dir
 
 __all__ = ["stage_main"]
 
@@ -55,14 +55,13 @@ def stage_main(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Call
     """
 
     def decorate(task: Callable[[DictConfig], Any]) -> Callable[..., Any]:
-        hydra_main = hydra.main(
-            version_base="1.3", config_path=HYDRA_CONFIG_PATH, config_name=config_name
-        )(task)
-
         @functools.wraps(task)
         def main(cfg_passthrough: DictConfig | None = None) -> Any:
+            # the folder as the command starts (GC_CONF_DIR then), not as it was imported
+            path = str(conf_dir())
+            hydra_main = hydra.main(version_base="1.3", config_path=path, config_name=config_name)
             with _mode_from_the_command_line():
-                return hydra_main(cfg_passthrough)
+                return hydra_main(task)(cfg_passthrough)
 
         return main
 
