@@ -10,8 +10,9 @@ from hydra import compose, initialize_config_dir
 from generalist_control.common.paths import conf_dir
 from generalist_control.common.sections import as_dict
 
-#: Composed configs by (folder, its files and their times of change, config, overrides):
-#: Hydra takes about 0.8 s a composition, a copy 0.03 s, and the suite composes hundreds of times.
+#: Composed configs by (folder, its files and their times of change, config, the overrides
+#: that choose configs): Hydra takes about 0.8 s a composition, a copy 0.03 s, and the suite
+#: composes hundreds of times.
 _COMPOSED: dict[tuple, object] = {}
 
 
@@ -27,15 +28,36 @@ def _files(folder: str) -> int:
     )
 
 
+def _sets_a_value(override, folder: str) -> bool:
+    """Whether Hydra applies ``override`` to the composed config (not to the defaults list)."""
+    if override.is_sweep_override() or override.is_hydra_override():
+        return False
+    group = os.path.isdir(os.path.join(folder, override.key_or_group))
+    return isinstance(override.value(), dict) or not group
+
+
 def compose_cfg(*overrides: str, config: str = "config"):
     """The project's primary config (or ``config``, e.g. ``adapt``) with ``overrides`` applied
-    (a fresh copy each call; composed again whenever a file of the config folder changed)."""
+    (a fresh copy each call; composed again whenever a file of the config folder changed).
+
+    As Hydra's ``compose`` does, and with its messages: the overrides that choose configs
+    compose the config (cached), then the value overrides are applied to a copy in order
+    (``ConfigLoaderImpl._apply_overrides_to_config``, what ``compose`` itself calls).
+    """
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
     folder = str(conf_dir())
-    key = (folder, _files(folder), config, overrides)
+    parsed = OverridesParser.create().parse_overrides(list(overrides))
+    values = [o for o in parsed if _sets_a_value(o, folder)]
+    choices = tuple(o.input_line for o in parsed if not _sets_a_value(o, folder))
+    key = (folder, _files(folder), config, choices)
     if key not in _COMPOSED:
         with initialize_config_dir(folder, version_base="1.3"):
-            _COMPOSED[key] = compose(config, overrides=list(overrides))
-    return copy.deepcopy(_COMPOSED[key])
+            _COMPOSED[key] = compose(config, overrides=list(choices))
+    cfg = copy.deepcopy(_COMPOSED[key])
+    ConfigLoaderImpl._apply_overrides_to_config(values, cfg)
+    return cfg
 
 
 def config_section(cls, key: str, **changes):
@@ -285,3 +307,120 @@ def adapt_request(policy, run_dir, uri: str, plant: str = "mass_spring_damper", 
     cfg = compose_cfg(f"plant={plant}", f"policy={policy}", f"logger.tracking_uri={uri}", where,
                       *TINY_ADAPT, *extra, config="adapt")  # fmt: skip
     return read_request(OmegaConf.to_container(cfg, resolve=True), run_dir)
+
+
+# --- the project's commands, run through a fork server (tests/zygote.py) ---
+
+#: Set to run every command as a real process (the zygote's faithfulness, checked whole).
+REAL_PROCESSES_ENV = "GC_TEST_REAL_PROCESSES"
+_ZYGOTES: dict = {}  # the worker's fork servers by their start-up environment, started on use
+
+#: Read once, as an interpreter or its libraries start (OpenMP's and BLAS's thread pools, hash
+#: seeds, ...): a command whose environment sets them differently needs a server started so.
+_AT_START = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+def _start_env(env: dict[str, str]) -> tuple:
+    """What of ``env`` a process reads as it starts (PYTHONPATH aside: sys.path is set later)."""
+    return tuple(
+        sorted(
+            (k, v)
+            for k, v in env.items()
+            if k in _AT_START or (k.startswith("PYTHON") and k != "PYTHONPATH")
+        )
+    )
+
+
+def _runs_in_zygote(cmd: list[str], cwd: str, env: dict[str, str]) -> bool:
+    """Whether ``cmd`` is a project command the fork server runs as it is on disk."""
+    import sys
+    from pathlib import Path
+
+    import generalist_control
+
+    if os.environ.get(REAL_PROCESSES_ENV) or len(cmd) < 2 or cmd[0] != sys.executable:
+        return False
+    src = Path(generalist_control.__file__).resolve().parents[1]
+    for entry in filter(None, env.get("PYTHONPATH", "").split(os.pathsep)):
+        other = Path(entry).resolve()
+        if other != src and (other / "generalist_control").exists():
+            return False  # another copy of the package: only a fresh process imports it
+    if cmd[1] == "-m":
+        return len(cmd) > 2 and cmd[2].startswith("generalist_control.")
+    script = Path(cwd, cmd[1]).resolve()
+    return script.suffix == ".py" and src.parent in script.parents
+
+
+def _zygote(env: dict[str, str]):
+    """The fork server for ``env`` (started, its imports done), or None where it cannot fork."""
+    import atexit
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    key = _start_env(env)
+    if key in _ZYGOTES and _ZYGOTES[key].poll() is None:
+        return _ZYGOTES[key]
+    start = {k: v for k, v in os.environ.items() if (k, v) not in _start_env(os.environ)}
+    start.update(key)
+    server = Path(__file__).with_name("zygote.py")
+    proc = subprocess.Popen([sys.executable, str(server)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, env=start, bufsize=0)  # fmt: skip
+    if not _answer(proc).get("ready"):
+        proc.kill()
+        proc.wait()
+        return None
+    atexit.register(lambda: (proc.stdin.close(), proc.wait(timeout=30)))
+    _ZYGOTES[key] = proc
+    return proc
+
+
+def _answer(server) -> dict:
+    """The server's next line (read a byte at a time: nothing waits in a buffer of ours)."""
+    import json
+
+    line = b""
+    while not line.endswith(b"\n"):
+        byte = os.read(server.stdout.fileno(), 1)
+        if not byte:
+            return {}
+        line += byte
+    return json.loads(line)
+
+
+def run_command(cmd, *, cwd, env=None, timeout=None, check=False):
+    """``subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, ...)``.
+
+    A project command (``python train.py``, ``python -m generalist_control.<x>``, a script
+    of this repository, with this checkout's package) runs in a child of the fork server
+    (tests/zygote.py): its own process, without the 3-7 s of imports; any other command, or
+    every one with ``GC_TEST_REAL_PROCESSES=1``, as a real process.
+    """
+    import json
+    import select
+    import signal
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    cmd, cwd = [str(c) for c in cmd], str(cwd)
+    env = dict(os.environ if env is None else env)
+    server = _zygote(env) if _runs_in_zygote(cmd, cwd, env) else None
+    if server is None:
+        return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True,
+                              timeout=timeout, check=check)  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        out, err = Path(tmp, "stdout"), Path(tmp, "stderr")
+        request = {"argv": cmd[1:], "cwd": cwd, "env": env, "stdout": str(out), "stderr": str(err)}
+        server.stdin.write((json.dumps(request) + "\n").encode())
+        pid = _answer(server)["pid"]
+        ready, _, _ = select.select([server.stdout], [], [], timeout)
+        if not ready:
+            os.kill(pid, signal.SIGKILL)
+        rc = _answer(server)["rc"]
+        proc = subprocess.CompletedProcess(cmd, rc, out.read_text(), err.read_text())
+    if not ready:
+        raise subprocess.TimeoutExpired(cmd, timeout, proc.stdout, proc.stderr)
+    if check:
+        proc.check_returncode()
+    return proc

@@ -7,7 +7,6 @@ controls. ``test_adapted_tiny_policy_closes_the_loop`` (slow) trains a tiny poli
 
 from __future__ import annotations
 
-import subprocess
 import sys
 from pathlib import Path
 
@@ -36,6 +35,7 @@ from helpers import (
     TINY_DATA,
     adapt_request,
     compose_cfg,
+    run_command,
     tiny_train_overrides,
     untrained_policy,
 )
@@ -342,7 +342,7 @@ def test_command_line_adapts_a_registered_version(tiny_data_dir, tmp_path, mlflo
         f"logger.artifact_location={tmp_path / 'mlruns'}",
         "adapt.epochs=1", "adapt.rounds=1", *TINY_ADAPT[-3:],
     ]  # fmt: skip
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
+    proc = run_command(cmd, cwd=REPO, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     last = proc.stdout.strip().splitlines()  # Hydra's log: the command's last lines
     assert last[-1].endswith(f"policy written to {tmp_path / 'run' / 'policy.ckpt'}")

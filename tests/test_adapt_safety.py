@@ -37,7 +37,7 @@ from generalist_control.model.bank import ROWS, start_rows
 from generalist_control.model.policy import load_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.definition import PlantConfigError
-from helpers import TINY_ADAPT, TINY_DATA, adapt_request, untrained_policy
+from helpers import TINY_ADAPT, TINY_DATA, adapt_request, run_command, untrained_policy
 
 REPO = Path(__file__).resolve().parents[1]
 #: An adaptation reduced to one fit of one epoch.
@@ -192,7 +192,7 @@ def test_a_refused_command_exits_non_zero_and_leaves_no_folder(base, tmp_path):
     cmd = [sys.executable, "-m", "generalist_control.adapt", f"plant={cstr}", f"policy={base}",
            f"logger.tracking_uri=sqlite:///{tmp_path / 'refused.db'}", *TINY_ADAPT]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
-    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    proc = run_command(cmd, cwd=tmp_path, env=env, timeout=300)
     assert proc.returncode == 1
     assert f"{cstr}: the file's stem 'cstr' is the name of a catalogue plant" in proc.stderr
     assert [p.name for p in tmp_path.iterdir()] == ["cstr.yaml"]  # no outputs/adapt/<time>

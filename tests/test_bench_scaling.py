@@ -9,7 +9,6 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
-import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -20,7 +19,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from generalist_control.plants.catalog import load_plant
-from helpers import compose_cfg
+from helpers import compose_cfg, run_command
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "benchmarks" / "bench_scaling.py"
@@ -80,9 +79,9 @@ def test_plant_set_adds_distinct_variants_with_their_own_tags():
 def test_smoke_run_writes_the_json(tmp_path):
     out = tmp_path / "results" / "scaling.json"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "src"), str(REPO)])}
-    proc = subprocess.run(
+    proc = run_command(
         [sys.executable, str(SCRIPT), "--smoke", "--out", str(out)],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
+        cwd=tmp_path, env=env, timeout=600,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "growth exponent" in proc.stdout and f"wrote {out}" in proc.stdout

@@ -41,7 +41,7 @@ from generalist_control.training.datamodule import (
     split_by_trajectory,
 )
 from generalist_control.training.settings import LoaderSettings, read_training
-from helpers import compose_cfg, config_section, tiny_train_overrides, train
+from helpers import compose_cfg, config_section, run_command, tiny_train_overrides, train
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -134,7 +134,7 @@ def test_train_py_with_a_fractional_size_fails_and_logs_nothing(tiny_data_dir, t
     overrides = tiny_train_overrides(tiny_data_dir, tmp_path, uri)
     cmd = [sys.executable, "train.py", "model.hidden=32.9", *overrides]
     cmd.append(f"hydra.run.dir={tmp_path / 'hydra'}")
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=_env(), timeout=300)
+    proc = run_command(cmd, cwd=REPO, env=_env(), timeout=300)
     assert proc.returncode != 0
     assert "model.hidden must be an integer, got 32.9 (float)" in proc.stderr
     assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "models").exists()
@@ -228,7 +228,7 @@ def test_generate_command_with_a_new_plant_whose_tag_wastes_or_takes_a_row_write
     cmd += ["+plants@systems.plants.my_plant=my_plant", "data.duration=1.0"]
     cmd += [f"paths.data_dir={out}", f"hydra.run.dir={tmp_path / 'hydra'}"]
     env = {**_env(), "GC_CONF_DIR": str(conf)}
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
+    proc = run_command(cmd, cwd=REPO, env=env, timeout=300)
     assert proc.returncode != 0
     assert message in proc.stderr
     assert not out.exists()

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -31,7 +30,7 @@ from generalist_control.simulation.comparison import (
     output_mse,
 )
 from generalist_control.simulation.lqi import LQIController
-from helpers import tiny_train_overrides, train
+from helpers import run_command, tiny_train_overrides, train
 
 REPO = Path(__file__).resolve().parents[1]
 PLANTS = ("cstr", "hydraulic_actuator")
@@ -179,7 +178,7 @@ def test_entry_point_writes_csv_tables_plots_and_logs_a_run_of_its_own(
     )
     mlflow.set_tracking_uri(mlflow_uri)
     (training,) = mlflow.search_runs(experiment_names=[tmp_path.name], output_format="list")
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
+    proc = run_command(cmd, cwd=REPO, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"evaluation written to {reports}" in proc.stdout
     assert f"evaluation written to {reports}" in (tmp_path / "hydra" / "evaluate.log").read_text()
@@ -230,10 +229,10 @@ def test_entry_point_writes_csv_tables_plots_and_logs_a_run_of_its_own(
     assert "eval/metrics.csv" in names and "eval/table2.md" in names
 
     # the same policy through its MLflow URI gives the same closed loops
-    proc = subprocess.run(
+    proc = run_command(
         [*cmd[:3], f"policy=runs:/{training.info.run_id}", *cmd[4:-1],
          "evaluation.plots=false", f"hydra.run.dir={tmp_path / 'hydra2'}"],
-        cwd=REPO, capture_output=True, text=True, env=env, timeout=300,
+        cwd=REPO, env=env, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     pd.testing.assert_frame_equal(pd.read_csv(reports / "metrics.csv"), df)
@@ -254,7 +253,7 @@ def test_a_failed_entry_point_says_why_and_writes_nothing(tmp_path):
         f"logger.tracking_uri=sqlite:///{tmp_path / 'mlflow.db'}",
         f"hydra.run.dir={tmp_path / 'hydra'}",
     )
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
+    proc = run_command(cmd, cwd=REPO, env=env, timeout=300)
     assert proc.returncode == 1
     assert f"no policy at '{tmp_path / 'missing.ckpt'}'" in proc.stderr
     assert not (tmp_path / "reports").exists()

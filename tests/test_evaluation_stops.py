@@ -1,7 +1,8 @@
 """An evaluation stopped by a signal: no process left, nothing half-published, its run ended.
 
 The command runs for real (the LQI law as the policy, a few plants, figures on) and is
-signalled while a forked child of it works (a share of the plants, or of the figures).
+signalled while a forked child of it works (a share of the plants, or of the figures); the
+whole evaluations around it run through the tests' fork server (``helpers.run_command``).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import pytest
 
 from generalist_control.model.policy import save_policy
 from generalist_control.simulation.lqi import design_lqi
-from helpers import lqi_law_policy
+from helpers import lqi_law_policy, run_command
 
 REPO = Path(__file__).resolve().parents[1]
 PLANTS = ["cstr", "two_tank", "dc_motor_speed", "unstable", "hydraulic_actuator"]
@@ -113,8 +114,7 @@ def _gone(pids: list[int], seconds: float = 10) -> bool:
 def test_a_signal_ends_the_evaluation_non_zero_its_run_killed_nothing_left(tmp_path, sig):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     cmd, env = _command(tmp_path, uri)
-    done = subprocess.run([*cmd, "evaluation.plots=false"], cwd=REPO, env=env,
-                          capture_output=True, timeout=600)  # fmt: skip
+    done = run_command([*cmd, "evaluation.plots=false"], cwd=REPO, env=env, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     before = {p.name: p.read_bytes() for p in (tmp_path / "eval").iterdir()}
     code, children = _signal_once_forked(cmd, env, sig)
@@ -138,8 +138,7 @@ def test_sigkill_leaves_no_process_and_the_next_evaluation_cleans_up(tmp_path):
     code, children = _signal_once_forked(cmd, env, signal.SIGKILL)
     assert code == -signal.SIGKILL
     assert _gone(children), "a forked child outlived the evaluation"
-    done = subprocess.run([*cmd, "evaluation.plots=false"], cwd=REPO, env=env,
-                          capture_output=True, timeout=600)  # fmt: skip
+    done = run_command([*cmd, "evaluation.plots=false"], cwd=REPO, env=env, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     assert not [p.name for p in tmp_path.iterdir() if ".tmp-" in p.name]
     client = mlflow.MlflowClient(uri)

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from helpers import run_command
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -21,9 +22,7 @@ COMMANDS = [
 
 
 def _help(*args: str) -> str:
-    out = subprocess.run(
-        [sys.executable, *args, "--help"], cwd=REPO, capture_output=True, text=True, timeout=120
-    )
+    out = run_command([sys.executable, *args, "--help"], cwd=REPO, timeout=120)
     assert out.returncode == 0, out.stderr
     return out.stdout
 

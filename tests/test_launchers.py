@@ -26,7 +26,7 @@ from omegaconf import OmegaConf
 
 from generalist_control.common.paths import conf_dir
 from generalist_control.tracking import mlflow_utils, parents
-from helpers import quick_overrides, sweep_callback
+from helpers import quick_overrides, run_command, sweep_callback
 
 REPO = Path(__file__).resolve().parents[1]
 ENV_KEYS = (mlflow_utils.PARENT_RUN_ENV, mlflow_utils.SWEEP_ENV)
@@ -47,7 +47,7 @@ def _multirun(tmp_path: Path, data_dir: Path, uri: str, *extra: str) -> list:
         "logger.experiment_name=null", f"++logger.experiment_prefix={tmp_path.name}",
         f"hydra.sweep.dir={tmp_path / 'multirun'}", *extra,
     ]  # fmt: skip
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=_env(), timeout=540)
+    proc = run_command(cmd, cwd=REPO, env=_env(), timeout=540)
     assert proc.returncode == 0, proc.stderr[-3000:]
     mlflow.set_tracking_uri(uri)
     return mlflow.search_runs(experiment_names=[f"{tmp_path.name}/sweep"], output_format="list")

@@ -10,7 +10,6 @@ from __future__ import annotations
 import filecmp
 import os
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import pytest
 from generalist_control.common.paths import conf_dir
 from generalist_control.data.demos import read_manifest
 from generalist_control.model.policy import load_policy
+from helpers import run_command
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -56,7 +56,7 @@ def _changed(a: Path, b: Path) -> list[str]:
 def _run(module: str, tmp: Path, env: dict[str, str], *overrides: str) -> str:
     cmd = [sys.executable, "-m", f"generalist_control.{module}", *overrides]
     cmd.append(f"hydra.run.dir={tmp / 'hydra' / module}")
-    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+    proc = run_command(cmd, cwd=REPO, env=env, timeout=900)
     assert proc.returncode == 0, (module, proc.stderr[-3000:])
     return proc.stdout + proc.stderr
 

@@ -26,7 +26,7 @@ import torch
 import yaml
 
 from generalist_control.tracking import mlflow_utils
-from helpers import compose_cfg, tiny_train_overrides, train
+from helpers import compose_cfg, run_command, tiny_train_overrides, train
 
 REPO = Path(__file__).resolve().parents[1]
 SECRET = "hunter2"
@@ -103,7 +103,7 @@ def test_credentials_are_redacted_everywhere(tiny_data_dir, tmp_path):
     overrides.append(f"logger.tracking_uri='{secret_uri}'")  # quoted: the URI holds an "="
     extra = [f"+logger.extra_uri=postgresql://gc:{SECRET}@db:5432/x", f"hydra.run.dir={hydra_dir}"]
     cmd = [sys.executable, "train.py", *overrides, *extra]
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=_env(), timeout=600)
+    proc = run_command(cmd, cwd=REPO, env=_env(), timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     log = proc.stdout + proc.stderr
     assert "password=***" in log and SECRET not in log  # the "MLflow run ..." line
@@ -284,7 +284,7 @@ def test_only_the_dvc_stage_publishes_to_models(tiny_data_dir, tmp_path, mlflow_
         _overrides(tiny_data_dir, tmp_path / "stage", mlflow_uri), "paths.published_dir"
     )
     cmd = [sys.executable, *words[1:], *overrides, f"hydra.run.dir={tmp_path / 'hydra'}"]
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=_env(), timeout=600)
+    proc = run_command(cmd, cwd=REPO, env=_env(), timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert published.is_file() and (published.parent / "metrics.json").is_file()
     assert not (tmp_path / "stage" / "run" / "models").exists()

@@ -14,7 +14,6 @@ import io
 import json
 import logging
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -28,7 +27,7 @@ from generalist_control.common.hydra_redact import RedactSecrets, redact_log_rec
 from generalist_control.common.paths import conf_dir
 from generalist_control.common.secrets import RedactedError, redact, redact_exception
 from generalist_control.tracking import mlflow_utils, parents, training_run
-from helpers import sweep_callback
+from helpers import run_command, sweep_callback
 
 REPO = Path(__file__).resolve().parents[1]
 SECRET = "Zq7-s3cr3t-PW"  # found nowhere else in the project's output
@@ -233,11 +232,9 @@ def _run(cmd: list[str], run_dir: Path, *where: str) -> str:
     """Run ``cmd`` (it fails); no secret in its output or any file under ``run_dir``."""
     env = {**os.environ, "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "OMP_NUM_THREADS": "1"}
     env.pop("MLFLOW_TRACKING_URI", None)
-    proc = subprocess.run(
+    proc = run_command(
         [*cmd, *(where or [f"hydra.run.dir={run_dir}"])],
         cwd=REPO,
-        capture_output=True,
-        text=True,
         env=env,
         timeout=300,
     )

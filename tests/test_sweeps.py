@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -17,7 +16,7 @@ from omegaconf import OmegaConf
 from generalist_control.sweeps.hydra_callback import sweep_overrides
 from generalist_control.sweeps.stop_signals import Stopped
 from generalist_control.tracking import mlflow_utils
-from helpers import quick_overrides, sweep_callback
+from helpers import quick_overrides, run_command, sweep_callback
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -46,7 +45,7 @@ def test_multirun_makes_one_parent_with_a_child_per_point(tiny_data_dir, tmp_pat
         f"++logger.experiment_prefix={tmp_path.name}",
         f"hydra.sweep.dir={sweep_dir}",
     ]
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=_env(), timeout=300)
+    proc = run_command(cmd, cwd=REPO, env=_env(), timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
 
     mlflow.set_tracking_uri(mlflow_uri)

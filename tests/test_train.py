@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -20,7 +19,7 @@ from generalist_control.data.demos import MissingDataError, content_hash, load_d
 from generalist_control.deploy.policy_source import resolve
 from generalist_control.model.policy import FlatPolicy, load_policy, policy_sha256
 from generalist_control.tracking.mlflow_utils import find_training_run
-from helpers import tiny_train_overrides, train
+from helpers import run_command, tiny_train_overrides, train
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -44,7 +43,7 @@ def test_exact_command_logs_an_mlflow_run(tiny_data_dir, tmp_path, mlflow_uri):
     cmd = [sys.executable, "train.py", "model.hidden=64", "experts=5", *overrides]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     env.pop("MLFLOW_TRACKING_URI", None)
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
+    proc = run_command(cmd, cwd=REPO, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
 
     mlflow.set_tracking_uri(mlflow_uri)

@@ -6,7 +6,6 @@ import json
 import os
 import shlex
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -23,7 +22,7 @@ from generalist_control.reports.explore import plant_class
 from generalist_control.reports.held_out import POLICIES, ROUTES, judge
 from generalist_control.simulation.family_draw import read_families
 from generalist_control.training.settings import read_training
-from helpers import compose_cfg, tiny_train_overrides, untrained_policy
+from helpers import compose_cfg, run_command, tiny_train_overrides, untrained_policy
 
 REPO = Path(__file__).resolve().parents[1]
 STAGE = yaml.safe_load((REPO / "beyond" / "dvc.yaml").read_text())["stages"]["unseen"]
@@ -148,13 +147,13 @@ def test_the_stage_runs_on_tiny_data(tiny_data_dir, tmp_path, mlflow_uri):
     env["PYTHONPATH"] = os.pathsep.join([str(REPO / "src"), env.get("PYTHONPATH", "")])
     family = [sys.executable, "-m", "generalist_control.generate_families", "families.count=4",
               "data.duration=2.0", "families.checks.duration=10.0"]  # fmt: skip
-    proc = subprocess.run(family, cwd=tmp_path, env=env, capture_output=True, text=True)
+    proc = run_command(family, cwd=tmp_path, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     for cmd in _commands():
         tiny = TINY_UNSEEN if cmd[-1] == "generalist_control.unseen" else TINY_TRAIN
         tiny += TINY_FAMILY if any("experiment=family" in c for c in cmd) else ()
         argv = [sys.executable, *cmd[1:], *tiny]
-        proc = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True,
+        proc = run_command(argv, cwd=tmp_path, env=env,
                               timeout=900)  # fmt: skip
         assert proc.returncode == 0, (cmd, proc.stderr[-3000:])
     base, meta = load_policy(tmp_path / "models/unseen/default/policy.ckpt")
