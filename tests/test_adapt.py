@@ -310,10 +310,10 @@ def test_adapted_tiny_policy_closes_the_loop(tiny_data_dir, tmp_path, mlflow_uri
 
     out = tmp_path / "train"
     over = tiny_train_overrides(tiny_data_dir, out, mlflow_uri, "trainer.max_epochs=15",
-                                "loader.batch_size=32", "dagger.start_epoch=3", "dagger.every=3",
+                                "loader.batch_size=32", "dagger.start_epoch=5", "dagger.every=5",
                                 "logger.log_model=false")  # fmt: skip
     _, trained = train(compose_cfg(*over))
-    common = ("mass_spring_damper", "adapt.batch_size=32", "adapt.epochs=20", "adapt.rounds=3")
+    common = ("mass_spring_damper", "adapt.batch_size=32", "adapt.epochs=10", "adapt.rounds=2")
     policy = trained["policy_path"]
     _, mean_row = _adapt(policy, tmp_path / "mean", mlflow_uri, *common, "adapt.learn=false",
                          "adapt.init=mean")  # fmt: skip
