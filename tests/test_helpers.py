@@ -24,6 +24,12 @@ from helpers import REAL_PROCESSES_ENV, compose_cfg, run_command
 PROBE = Path(__file__).with_name("zygote_probe.py")
 
 
+@pytest.fixture(autouse=True)
+def the_fork_server_on(monkeypatch):
+    """These tests are the fork server's, whatever ``GC_TEST_REAL_PROCESSES`` says."""
+    monkeypatch.delenv(REAL_PROCESSES_ENV, raising=False)
+
+
 def _both(*args: str, tmp_path: Path, **extra: str) -> tuple:
     """The probe run through the fork server and as a real process, from ``tmp_path``."""
     env = {**os.environ, "GC_PROBE": "seen", **extra}
