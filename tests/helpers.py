@@ -359,8 +359,8 @@ def _zygote(env: dict[str, str]):
     from pathlib import Path
 
     key = _start_env(env)
-    if key in _ZYGOTES and _ZYGOTES[key].poll() is None:
-        return _ZYGOTES[key]
+    if key in _ZYGOTES and (_ZYGOTES[key] is None or _ZYGOTES[key].poll() is None):
+        return _ZYGOTES[key]  # None: it could not fork here, real processes run instead
     start = {k: v for k, v in os.environ.items() if (k, v) not in _start_env(os.environ)}
     start.update(key)
     server = Path(__file__).with_name("zygote.py")
@@ -369,6 +369,7 @@ def _zygote(env: dict[str, str]):
     if not _answer(proc).get("ready"):
         proc.kill()
         proc.wait()
+        _ZYGOTES[key] = None
         return None
     atexit.register(lambda: (proc.stdin.close(), proc.wait(timeout=30)))
     _ZYGOTES[key] = proc
