@@ -87,10 +87,10 @@ def _become(request: dict) -> int:
 
 def serve() -> None:
     """Answer requests on stdin until it closes; one child at a time."""
-    for name in PRELOAD:
-        __import__(name)
     channel = os.fdopen(os.dup(1), "w", buffering=1)
     os.dup2(os.open(os.devnull, os.O_WRONLY), 1)  # nothing the imports print reaches the channel
+    for name in PRELOAD:
+        __import__(name)
     alone = threading.active_count() == 1
     channel.write(json.dumps({"ready": alone}) + "\n")
     for line in sys.stdin:
