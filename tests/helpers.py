@@ -49,12 +49,14 @@ def compose_cfg(*overrides: str, config: str = "config"):
 
     folder = str(conf_dir())
     parsed = OverridesParser.create().parse_overrides(list(overrides))
-    values = [o for o in parsed if _sets_a_value(o, folder)]
-    choices = tuple(o.input_line for o in parsed if not _sets_a_value(o, folder))
-    key = (folder, _files(folder), config, choices)
+    values, choices = [], []
+    for o in parsed:  # each override is Hydra's to apply to the config or to its defaults list
+        (values if _sets_a_value(o, folder) else choices).append(o)
+    lines = [o.input_line for o in choices]
+    key = (folder, _files(folder), config, tuple(lines))
     if key not in _COMPOSED:
         with initialize_config_dir(folder, version_base="1.3"):
-            _COMPOSED[key] = compose(config, overrides=list(choices))
+            _COMPOSED[key] = compose(config, overrides=lines)
     cfg = copy.deepcopy(_COMPOSED[key])
     ConfigLoaderImpl._apply_overrides_to_config(values, cfg)
     return cfg
