@@ -1,12 +1,25 @@
 """Evaluation scenarios: reference shapes, initial states, perturbations and config errors."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
 from generalist_control.plants.catalog import load_plant
-from generalist_control.simulation.references import FAMILIES, state_envelope
-from generalist_control.simulation.scenarios import ScenarioError, perturbation, references
+from generalist_control.simulation.references import (
+    FAMILIES,
+    family_references,
+    family_spec,
+    state_envelope,
+    visited_moment,
+)
+from generalist_control.simulation.scenarios import (
+    ScenarioError,
+    perturbation,
+    references,
+    with_state_draw,
+)
 from generalist_control.simulation.simulate import Perturbation
 
 
@@ -158,3 +171,47 @@ def _check_family(spec, p, r, x0, t, where):
     again, x0_again = references("again", spec, p)
     np.testing.assert_array_equal(again, r, err_msg=where)  # seeded
     np.testing.assert_array_equal(x0_again, x0, err_msg=where)
+
+
+def test_visited_initial_states_are_the_same_in_any_state_coordinates():
+    """``x0_draw: visited`` draws with the visited states' second moment, so a plant in other
+    coordinates ``x' = T x`` gets ``T``'s image of the same distribution (a box would not)."""
+    p = load_plant("two_mass_spring")
+    n = p.order
+    T = np.eye(n) + 0.8 * np.random.default_rng(3).standard_normal((n, n))
+    Ti = np.linalg.inv(T)
+    Q = p.Q.copy()
+    Q[:n, :n], Q[:n, n:], Q[n:, :n] = Ti.T @ p.Q[:n, :n] @ Ti, Ti.T @ p.Q[:n, n:], p.Q[n:, :n] @ Ti
+    moved = replace(p, name="moved", A=T @ p.A @ Ti, B=T @ p.B, C=p.C @ Ti, Q=Q)
+    m, m_moved = visited_moment(p, 3.0), visited_moment(moved, 3.0)
+    np.testing.assert_allclose(m_moved, T @ m @ T.T, rtol=1e-6, atol=1e-9 * np.abs(m_moved).max())
+    spec = {"kind": "hold", "count": 20000, "x0_draw": "visited", "x0_scale": 0.5}
+    _, x0 = family_references(moved, spec, 10)
+    sample = x0.T @ x0 / len(x0)
+    assert np.linalg.norm(sample - 0.25 * m_moved) < 0.05 * np.linalg.norm(0.25 * m_moved)
+    _, again = family_references(moved, spec, 10)
+    np.testing.assert_array_equal(x0, again)  # seeded
+    with pytest.raises(ValueError, match="x0_draw must be one of box, visited, got 'ball'"):
+        family_spec({"kind": "hold", "x0_draw": "ball"})
+    noisy = {"kind": "step", "perturbation": {"noise_rel": 0.01, "seed": 0}}
+    drawn = with_state_draw({"s": {"kind": "step"}, "h": {"kind": "hold"}, "n": noisy}, "visited")
+    assert drawn == {
+        "s": {"kind": "step"},
+        "h": {"kind": "hold", "x0_draw": "visited"},
+        "n": {
+            "kind": "step",
+            "perturbation": {"noise_rel": 0.01, "seed": 0, "noise_draw": "visited"},
+        },
+    }
+    # relative state noise in drawn coordinates: covariance 0.01^2 x the unit-step moment
+    for plant, moment in ((p, visited_moment(p, 1.0)), (moved, visited_moment(moved, 1.0))):
+        pert = perturbation("n", drawn["n"], plant)
+        assert pert is not None and np.shape(pert.noise_std) == (n, n)
+        root = np.array(pert.noise_std)
+        np.testing.assert_allclose(root @ root.T, 1e-4 * moment, atol=1e-12 * np.abs(moment).max())
+        z = np.random.default_rng(0).standard_normal((5, n))
+        np.testing.assert_allclose(pert.noise(z), z @ root.T)
+    np.testing.assert_allclose(visited_moment(moved, 1.0), T @ visited_moment(p, 1.0) @ T.T,
+                               rtol=1e-6)  # fmt: skip
+    with pytest.raises(ScenarioError, match="noise_draw must be one of box, visited"):
+        perturbation("n", {"perturbation": {"noise_rel": 0.01, "noise_draw": "ball"}}, p)

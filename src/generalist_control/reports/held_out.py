@@ -43,6 +43,7 @@ from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.definition import Plant
 from generalist_control.reports.explore import plant_class
 from generalist_control.simulation.family_draw import draw_family, read_families
+from generalist_control.simulation.scenarios import with_state_draw
 from generalist_control.tracking import mlflow_utils
 
 __all__ = [
@@ -279,7 +280,7 @@ def family_draw(
     rt = PolicyRuntime(policy, meta)
     for p in draw.plants:
         rt.add_plant(p)
-    df, _ = evaluate(rt, draw.plants, scenarios)
+    df, _ = evaluate(rt, draw.plants, with_state_draw(scenarios, spec["state_draw"]))
     df.insert(0, "policy", "card")
     return df, _draw_summary(df, draw.plants, spec)
 

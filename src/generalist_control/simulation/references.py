@@ -1,7 +1,9 @@
 """Randomised reference families and random initial states, for data, DAgger and evaluation.
 
-Draws come from ``default_rng(seed + 1000 * plant.tag)``; a random initial state lies within
-the plant's :func:`state_envelope`, a state it visits in operation.
+Draws come from ``default_rng(seed + 1000 * plant.tag)``; a random initial state is one the
+plant visits in operation: within its :func:`state_envelope` (``x0_draw: box``, for physical
+state coordinates) or a Gaussian with its visited states' second moment (``visited``, the
+same in any state coordinates: drawn plants, docs/notes/plant-families.md).
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ __all__ = [
     "family_spec",
     "state_envelope",
     "state_envelopes",
+    "visited_moment",
+    "visited_root",
 ]
 
 
@@ -101,7 +105,9 @@ FAMILY_PARAMETERS: dict[str, dict[str, Any]] = {
     "ramps": {"count": 6, "offset": 2.0, "slope": [0.05, 1.0]},
     "hold": {"count": 8, "limit": 5.0},
 }
-_COMMON = {"seed": 0, "x0_amplitude": 3.0, "x0_scale": 1.0, "x0_fraction": 0.0}
+_COMMON = {"seed": 0, "x0_amplitude": 3.0, "x0_scale": 1.0, "x0_fraction": 0.0, "x0_draw": "box"}
+#: How a random initial state is drawn (``x0_draw``).
+X0_DRAWS = ("box", "visited")
 
 
 def family_spec(spec: Mapping[str, Any], extra: tuple[str, ...] = ()) -> dict[str, Any]:
@@ -121,17 +127,33 @@ def family_spec(spec: Mapping[str, Any], extra: tuple[str, ...] = ()) -> dict[st
     unknown = sorted(set(spec) - set(defaults) - {"kind", *extra})
     if unknown:
         raise ValueError(f"{unknown} are not parameters of a '{kind}' family: {sorted(defaults)}")
-    return {**defaults, **spec}
+    out = {**defaults, **spec}
+    if out["x0_draw"] not in X0_DRAWS:
+        raise ValueError(f"x0_draw must be one of {', '.join(X0_DRAWS)}, got '{out['x0_draw']}'")
+    return out
 
 
-_ENVELOPES: weakref.WeakKeyDictionary[Plant, dict[tuple[float, float], np.ndarray]] = (
-    weakref.WeakKeyDictionary()
-)
+#: Per plant and (amplitude, duration): the visited states' envelope (n,) and second moment.
+_VISITED: weakref.WeakKeyDictionary[
+    Plant, dict[tuple[float, float], tuple[np.ndarray, np.ndarray]]
+] = weakref.WeakKeyDictionary()
 
 
 def state_envelope(plant: Plant, amplitude: float = 3.0, duration: float = 10.0) -> np.ndarray:
     """Largest ``|x_i|`` (n,) along the LQI expert's responses to scaled steps of +-amplitude."""
     return state_envelopes([(plant, amplitude)], duration)[0]
+
+
+def visited_moment(plant: Plant, amplitude: float = 3.0, duration: float = 10.0) -> np.ndarray:
+    """Second moment ``E[x x']`` (n, n) of the states along :func:`state_envelope`'s responses."""
+    state_envelopes([(plant, amplitude)], duration)
+    return _VISITED[plant][float(amplitude), float(duration)][1].copy()
+
+
+def visited_root(plant: Plant, amplitude: float = 3.0) -> np.ndarray:
+    """A root ``S`` (n, n) of :func:`visited_moment` (``S S^T``): ``S z`` is a visited state."""
+    w, v = np.linalg.eigh(visited_moment(plant, amplitude))
+    return v * np.sqrt(np.clip(w, 0.0, None))
 
 
 def state_envelopes(
@@ -140,7 +162,7 @@ def state_envelopes(
     """:func:`state_envelope` of many ``(plant, amplitude)``, the missing ones in one loop."""
     missing = list(dict.fromkeys(
         (p, float(a)) for p, a in requests
-        if (float(a), float(duration)) not in _ENVELOPES.get(p, {})
+        if (float(a), float(duration)) not in _VISITED.get(p, {})
     ))  # fmt: skip
     by_dt: dict[float, list[tuple[Plant, float]]] = {}
     for p, a in missing:
@@ -152,8 +174,12 @@ def state_envelopes(
             runs.append(Run(p, np.array([[amp] * steps, [-amp] * steps])))
         (trajs,) = simulate_stacked([Segment(PerPlantController(LQIController), runs)])
         for (p, a), tr in zip(todo, trajs, strict=True):
-            _ENVELOPES.setdefault(p, {})[a, float(duration)] = np.abs(tr.x).max(axis=(0, 1))
-    return [_ENVELOPES[p][float(a), float(duration)].copy() for p, a in requests]
+            x = tr.x.reshape(-1, p.order)
+            _VISITED.setdefault(p, {})[a, float(duration)] = (
+                np.abs(tr.x).max(axis=(0, 1)),
+                x.T @ x / len(x),
+            )
+    return [_VISITED[p][float(a), float(duration)][0].copy() for p, a in requests]
 
 
 def family_references(
@@ -161,7 +187,7 @@ def family_references(
 ) -> tuple[np.ndarray, np.ndarray]:
     """References (B, steps) and initial states (B, n) of one family for ``plant``.
 
-    A share ``x0_fraction`` of the initial states is random within the state envelope.
+    A share ``x0_fraction`` of the initial states is random (``x0_draw``, the module's note).
 
     Raises
     ------
@@ -172,8 +198,12 @@ def family_references(
     rng = np.random.default_rng(int(spec["seed"]) + 1000 * plant.tag)
     t = np.arange(steps) * plant.dt
     r = FAMILIES[spec["kind"]](spec, t, rng) * plant.amplitude_scale
-    env = state_envelope(plant, float(spec["x0_amplitude"]))
-    x0 = rng.uniform(-1.0, 1.0, size=(r.shape[0], plant.order)) * float(spec["x0_scale"])
-    x0 *= env
+    amplitude = float(spec["x0_amplitude"])
+    if spec["x0_draw"] == "box":
+        x0 = rng.uniform(-1.0, 1.0, size=(r.shape[0], plant.order)) * float(spec["x0_scale"])
+        x0 *= state_envelope(plant, amplitude)
+    else:  # a Gaussian with the visited states' second moment: coordinate-free
+        root = visited_root(plant, amplitude) * float(spec["x0_scale"])
+        x0 = rng.standard_normal((r.shape[0], plant.order)) @ root.T
     x0[int(round(float(spec["x0_fraction"]) * r.shape[0])) :] = 0.0
     return r, x0

@@ -13,13 +13,22 @@ import numpy as np
 from generalist_control.plants.definition import Plant
 from generalist_control.simulation.references import (
     FAMILIES,
+    X0_DRAWS,
     family_references,
     family_spec,
     state_envelope,
+    visited_root,
 )
 from generalist_control.simulation.simulate import Perturbation
 
-__all__ = ["KINDS", "ScenarioError", "envelope_amplitudes", "perturbation", "references"]
+__all__ = [
+    "KINDS",
+    "ScenarioError",
+    "envelope_amplitudes",
+    "perturbation",
+    "references",
+    "with_state_draw",
+]
 
 #: Each scenario kind's parameters and their defaults, the one place they live.
 PARAMETERS: dict[str, dict[str, Any]] = {
@@ -104,6 +113,19 @@ def scenario_spec(name: str, spec: Mapping[str, Any]) -> dict[str, Any]:
     return {**SCENARIO, **PARAMETERS[kind], **spec}
 
 
+def with_state_draw(
+    scenarios: Mapping[str, Mapping[str, Any]], draw: str
+) -> dict[str, Mapping[str, Any]]:
+    """``scenarios`` whose random states (initial states, relative noise) are drawn by ``draw``."""
+    out: dict[str, Mapping[str, Any]] = {}
+    for name, spec in scenarios.items():
+        noise = dict(spec.get("perturbation") or {})
+        if "noise_rel" in noise:
+            spec = {**spec, "perturbation": {**noise, "noise_draw": draw}}
+        out[name] = {**spec, "x0_draw": draw} if spec["kind"] in FAMILIES else spec
+    return out
+
+
 def envelope_amplitudes(name: str, spec: Mapping[str, Any]) -> list[float]:
     """The step amplitudes of the state envelopes the scenario's runs ask for."""
     spec = scenario_spec(name, spec)
@@ -118,16 +140,23 @@ def perturbation(
 ) -> Perturbation | None:
     """The scenario's :class:`~generalist_control.simulation.simulate.Perturbation`, if any.
 
-    ``noise_rel`` (with ``plant``): ``noise_std`` as that fraction of the unit-step envelope.
+    ``noise_rel`` (with ``plant``): ``noise_std`` as that fraction of the unit-step envelope
+    per state (``noise_draw: box``) or of the visited states' root (``visited``, any
+    coordinates: :mod:`~generalist_control.simulation.references`).
     """
     fields = dict(spec.get("perturbation") or {})
     if not fields:
         return None
-    rel = fields.pop("noise_rel", None)
+    rel, draw = fields.pop("noise_rel", None), fields.pop("noise_draw", "box")
+    if draw not in X0_DRAWS:
+        raise ScenarioError(f"scenario '{name}': noise_draw must be one of {', '.join(X0_DRAWS)}")
     if rel is not None:
         if plant is None:
             raise ScenarioError(f"scenario '{name}': noise_rel needs the plant")
-        fields["noise_std"] = tuple(float(rel) * state_envelope(plant, 1.0))
+        if draw == "box":
+            fields["noise_std"] = tuple(float(rel) * state_envelope(plant, 1.0))
+        else:
+            fields["noise_std"] = tuple(map(tuple, float(rel) * visited_root(plant, 1.0)))
     kwargs: dict[str, Any] = {
         k: (tuple(v) if isinstance(v, list) else v) for k, v in fields.items()
     }

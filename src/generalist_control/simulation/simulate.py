@@ -48,19 +48,25 @@ class Controller(Protocol):
 class Perturbation:
     """Conditions the controller was not trained for, applied inside the loop.
 
-    Amplitude and rate (per second) limits; white state noise (per entry, from
-    ``noise_start``, seeded); an input disturbance from ``disturbance_start``; the plant
-    receives ``actuator_gain`` times the delivered (recorded) control.
+    Amplitude and rate (per second) limits; white state noise (``noise_std`` per entry, or
+    (n, n): a square root of its covariance; from ``noise_start``, seeded); an input
+    disturbance from ``disturbance_start``; the plant receives ``actuator_gain`` times the
+    delivered (recorded) control.
     """
 
     u_limit: float | None = None
     rate_limit: float | None = None
-    noise_std: float | tuple[float, ...] | None = None
+    noise_std: float | tuple[float, ...] | tuple[tuple[float, ...], ...] | None = None
     noise_start: float = 0.0
     disturbance: float = 0.0
     disturbance_start: float = 0.0
     actuator_gain: float = 1.0
     seed: int = 0
+
+    def noise(self, z: np.ndarray) -> np.ndarray:
+        """The state noise of standard normal draws ``z`` (..., n)."""
+        std = np.asarray(self.noise_std, dtype=float)
+        return z @ std.T if std.ndim == 2 else z * np.broadcast_to(std, z.shape[-1:])
 
     def actuate(self, u_cmd: np.ndarray, u_prev: np.ndarray, dt: float) -> np.ndarray:
         """The control the actuator delivers for command ``u_cmd`` after ``u_prev``."""
@@ -162,8 +168,7 @@ class _Group:
             and pert.noise_std is not None
             and k * self.plant.dt >= pert.noise_start
         ):
-            std = np.broadcast_to(pert.noise_std, (self.plant.order,))
-            xm = xm + self.rng.normal(size=xm.shape) * std
+            xm = xm + pert.noise(self.rng.normal(size=xm.shape))
         return xm
 
     def apply(self, k: int, u_cmd: np.ndarray) -> None:

@@ -157,8 +157,7 @@ def _noise(rows: slice, run: Run, k0: int) -> tuple[slice, np.ndarray, int]:
     assert pert is not None and pert.noise_std is not None
     b, steps = np.atleast_2d(run.r).shape
     rng = np.random.default_rng(pert.seed)
-    std = np.broadcast_to(pert.noise_std, (plant.order,))
-    return rows, rng.normal(size=(max(steps - k0, 0), b, plant.order)) * std, k0
+    return rows, pert.noise(rng.normal(size=(max(steps - k0, 0), b, plant.order))), k0
 
 
 def _initial(layout: _Layout, segments: Sequence[Segment]) -> np.ndarray:
