@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from generalist_control.common.jsonsafe import write_json
 from generalist_control.data.demos import read_manifest
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
@@ -23,12 +24,7 @@ from generalist_control.evaluation.eval_run import EvalRun
 from generalist_control.evaluation.runner import metric_rows
 from generalist_control.evaluation.setpoint import setpoint_stability, setpoint_summary
 from generalist_control.evaluation.variant_summary import plot_variants, summarise_variants
-from generalist_control.evaluation.writer import (
-    Record,
-    check_reports_dir,
-    publish_snapshot,
-    write_json,
-)
+from generalist_control.evaluation.writer import Record, check_reports_dir, publish_snapshot
 from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.scenarios import perturbation, references

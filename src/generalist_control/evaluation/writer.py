@@ -6,7 +6,6 @@ the MLflow run gets the files of the snapshot it publishes.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from functools import partial
@@ -18,7 +17,7 @@ from generalist_control.common.atomic import (
     publish_directory,
     staging_directory,
 )
-from generalist_control.common.jsonsafe import strict
+from generalist_control.common.jsonsafe import write_json
 from generalist_control.evaluation import result_tables
 from generalist_control.evaluation.eval_config import QualityBar
 from generalist_control.evaluation.eval_run import EvalRun
@@ -34,7 +33,6 @@ __all__ = [
     "check_reports_dir",
     "headline_scores",
     "publish_snapshot",
-    "write_json",
     "write_reports",
 ]
 
@@ -83,11 +81,6 @@ def headline_scores(summary: Mapping[str, Any]) -> dict[str, Any]:
 def check_reports_dir(out_dir: str | Path, owned: Mapping[str, str | None] = OWNED) -> None:
     """Refuse (before any work) a ``paths.reports_dir`` that holds other files."""
     check_replaceable(out_dir, owned, "paths.reports_dir")
-
-
-def write_json(path: Path, content: Any) -> None:
-    """``content`` as strict JSON (NaN and inf as null), indented, one trailing newline."""
-    path.write_text(json.dumps(strict(content), indent=2) + "\n")
 
 
 @contextmanager
