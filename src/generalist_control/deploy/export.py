@@ -27,9 +27,11 @@ from generalist_control.deploy.onnx_graph import (
 )
 from generalist_control.model.policy import Policy
 
-__all__ = ["Backend", "backend", "export_onnx", "export_torchscript", "onnx_bytes"]
+__all__ = ["BACKENDS", "Backend", "backend", "export_onnx", "export_torchscript", "onnx_bytes"]
 
 _INPUTS = ("state", "mask", "ref", "tag")
+#: The backends :func:`backend` builds.
+BACKENDS = ("torch", "torchscript", "onnx")
 
 Run = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 PlantRun = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -196,4 +198,4 @@ def backend(policy: Policy, name: str) -> Backend:
         return Backend(run)
     if name == "onnx":
         return OnnxBackend(policy)
-    raise ValueError(f"unknown backend '{name}'; choose torch, torchscript or onnx")
+    raise ValueError(f"unknown backend '{name}'; choose one of {', '.join(BACKENDS)}")

@@ -284,21 +284,6 @@ class PolicyRuntime:
         self._screen("output", y, self._lim["output"])
         return y
 
-    def _actuated(self, u: np.ndarray) -> np.ndarray:
-        """The control the actuator applies for command ``u``: ``u`` without known limits."""
-        if self.limits is None:
-            return u
-        return self.limits.actuate(u, self._u_prev, self.dt)
-
-    def _next_integral(
-        self, u: np.ndarray, applied: np.ndarray, r: np.ndarray, y: np.ndarray
-    ) -> np.ndarray:
-        """Error integral after command ``u`` (``applied`` by the actuator); nothing kept."""
-        dz = self.dt * (r - y)
-        if self._direction is not None and self.limits is not None:
-            dz = conditional_increment(dz, u, applied, self._direction)
-        return self.z + dz
-
     def step(self, x: Any, r: Any, y: Any = None) -> float | np.ndarray:
         """Control for the current sample (the first of the predicted sequence).
 
@@ -341,9 +326,13 @@ class PolicyRuntime:
             raise RuntimeError(f"the backend returned controls of shape {plan.shape}")
         self._screen("network output", plan, self._lim["network output"])
         u = plan[:, 0].astype(np.float64)
-        applied = self._actuated(u)
+        # the command as the actuator applies it, and the integral's anti-windup by it
+        applied = u if self.limits is None else self.limits.actuate(u, self._u_prev, self.dt)
         if self.integral:
-            z = self._next_integral(u, applied, r, y)
+            dz = self.dt * (r - y)
+            if self._direction is not None and self.limits is not None:
+                dz = conditional_increment(dz, u, applied, self._direction)
+            z = self.z + dz
             self._screen("error integral", z, self._lim["error integral"])
             self.z = z
         self._u_prev = applied

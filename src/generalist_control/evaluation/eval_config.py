@@ -10,9 +10,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from generalist_control.common.sections import SettingError, positive, read_section
+from generalist_control.deploy.export import BACKENDS
 
 __all__ = [
-    "BACKENDS",
     "CrazyflieSettings",
     "EvaluationSettings",
     "QualityBar",
@@ -22,9 +22,6 @@ __all__ = [
     "VariantValidation",
     "read_evaluation",
 ]
-
-#: The policy runtime's backends (:class:`~generalist_control.deploy.runtime.PolicyRuntime`).
-BACKENDS = ("torch", "torchscript", "onnx")
 
 
 @dataclass(frozen=True)

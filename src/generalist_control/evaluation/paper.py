@@ -64,7 +64,7 @@ TABLE2: dict[str, dict[str, dict[str, float]]] = {
     for i, ctrl in enumerate(("LQI", "GC"))
 }
 
-#: Section 7 figures: final training loss per configuration, parameter counts, MSEs.
+#: Section 7 figures: final training loss per configuration, parameter counts.
 ABLATION: dict[str, dict[str, Any]] = {
     "final_train_loss": {
         "d=32,M=3": 9.43e-4,
@@ -73,12 +73,4 @@ ABLATION: dict[str, dict[str, Any]] = {
         "d=32,M=5": 5.87e-4,
     },
     "parameters": {"d=32,M=3": 59_180, "d=64,M=3": 232_000},
-    "crazyflie_mse": {"d=32,M=3": 5.9e-2, "d=16,M=3": 1.35, "d=64,M=3": 1.44e-1, "d=32,M=1": 3.98},
-    "hvac_mse": {"d=32,M=5": 5.18e-4},
-    "gate_weights_m5": {
-        "cstr": {"expert_1": 0.45},
-        "damped_oscillator": {"expert_1": 0.46},
-        "boeing747": {"expert_4": 0.98},
-        "crazyflie_altitude": {"expert_4": 0.95},
-    },
 }

@@ -33,54 +33,57 @@ def _step_means(df: pd.DataFrame, scenario: str = "step") -> pd.Series:
     return d.groupby(["controller", "system", "metric"])["value"].mean()
 
 
+def _table(head: list[str], rows: list[list[str]], rule: str = "---:") -> list[str]:
+    """Markdown table lines: the first column left-aligned, the others ``rule``."""
+    return [f"| {' | '.join(r)} |" for r in (head, ["---"] + [rule] * (len(head) - 1), *rows)]
+
+
+def _worst_random_ess(gc: pd.DataFrame) -> pd.Series:
+    """Per system, GC's worst relative steady-state error over the random steps."""
+    rel = gc[(gc.scenario == "random_steps") & (gc.metric == "relative_steady_state_error")]
+    return rel.groupby("system")["value"].max()
+
+
 def table2_markdown(df: pd.DataFrame) -> str:
     """The paper's Table 2 layout for the paper systems present: paper values beside ours."""
     means = _step_means(df)
     systems = [s for s in TABLE2_COLUMNS if ("GC", s, "ISE") in means.index]
     if not systems:
         return "No system of the paper's Table 2 was evaluated.\n"
-    head = ["Metric", *(TABLE2_COLUMNS[s] for s in systems)]
+    rows = []
+    for metric, symbol in TABLE2_METRICS.items():
+        for ctrl in ("LQI", "GC"):
+            ours = [
+                "diverged"
+                if means.get((ctrl, s, "diverged"), 0) > 0
+                else _fmt(means.get((ctrl, s, metric), np.nan))
+                for s in systems
+            ]
+            rows.append(
+                [f"{symbol} ({ctrl}) paper", *(_fmt(TABLE2[ctrl][s][metric]) for s in systems)]
+            )
+            rows.append([f"{symbol} ({ctrl}) ours", *ours])
     lines = [
         "# Unit-step metrics: the paper's Table 2 beside ours",
         "",
         "Unit step from rest, dt = 0.05 s. *paper*: Agyei & Sarhadi 2026, Table 2. "
         "A diverged run shows as `diverged`.",
         "",
-        "| " + " | ".join(head) + " |",
-        "| " + " | ".join(["---"] + ["---:"] * len(systems)) + " |",
+        *_table(["Metric", *(TABLE2_COLUMNS[s] for s in systems)], rows),
     ]
-    for metric, symbol in TABLE2_METRICS.items():
-        for ctrl in ("LQI", "GC"):
-            paper = [_fmt(TABLE2[ctrl][s][metric]) for s in systems]
-            ours = []
-            for s in systems:
-                if means.get((ctrl, s, "diverged"), 0) > 0:
-                    ours.append("diverged")
-                else:
-                    ours.append(_fmt(means.get((ctrl, s, metric), np.nan)))
-            lines.append(f"| {symbol} ({ctrl}) paper | " + " | ".join(paper) + " |")
-            lines.append(f"| {symbol} ({ctrl}) ours | " + " | ".join(ours) + " |")
     return "\n".join(lines) + "\n"
 
 
 def table_all_markdown(df: pd.DataFrame) -> str:
     """Every plant: GC and LQI unit-step metrics, ratios, and random-step results."""
-    means = _step_means(df)
-    rnd = _step_means(df, "random_steps")
-    systems = sorted(df.system.unique())
-    cols = ["t_r", "M_p", "t_s", "e_ss", "ISE", "ITAE", "u_max"]
-    head = ["system", *(f"{c} GC/LQI" for c in cols), "ISE ratio", "ITAE ratio"]
-    head += ["random: ISE ratio", "random: max rel. e_ss GC", "diverged GC"]
-    lines = [
-        "# Unit-step and random-step metrics, all plants (GC / LQI)",
-        "",
-        "| " + " | ".join(head) + " |",
-        "| " + " | ".join(["---"] + ["---:"] * (len(head) - 1)) + " |",
-    ]
-    d = df[(df.controller == "GC") & (df.metric == "diverged")].groupby("system")["value"].sum()
-    gc_rel = df[(df.controller == "GC") & (df.metric == "relative_steady_state_error")]
-    rel = gc_rel[gc_rel.scenario == "random_steps"].groupby("system")["value"].max()
-    for s in systems:
+    means, rnd = _step_means(df), _step_means(df, "random_steps")
+    head = ["system", *(f"{c} GC/LQI" for c in TABLE2_METRICS.values()), "ISE ratio"]
+    head += ["ITAE ratio", "random: ISE ratio", "random: max rel. e_ss GC", "diverged GC"]
+    gc = df[df.controller == "GC"]
+    div = gc[gc.metric == "diverged"].groupby("system")["value"].sum()
+    rel = _worst_random_ess(gc)
+    rows = []
+    for s in sorted(df.system.unique()):
 
         def get(c: str, m: str, src: pd.Series = means, s: str = s) -> float:
             return src.get((c, s, m), np.nan)
@@ -88,10 +91,9 @@ def table_all_markdown(df: pd.DataFrame) -> str:
         cells = [f"{_fmt(get('GC', m))} / {_fmt(get('LQI', m))}" for m in TABLE2_METRICS]
         cells += [_fmt(get("GC", k) / get("LQI", k)) for k in ("ISE", "ITAE")]
         cells.append(_fmt(get("GC", "ISE", rnd) / get("LQI", "ISE", rnd)))
-        cells.append(_fmt(rel.get(s, np.nan)))
-        cells.append(str(int(d.get(s, 0))))
-        lines.append(f"| {s} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+        rows.append([s, *cells, _fmt(rel.get(s, np.nan)), str(int(div.get(s, 0)))])
+    title = "# Unit-step and random-step metrics, all plants (GC / LQI)"
+    return "\n".join([title, "", *_table(head, rows)]) + "\n"
 
 
 def recipes_markdown(results: Mapping[str, pd.DataFrame]) -> str:
@@ -102,12 +104,8 @@ def recipes_markdown(results: Mapping[str, pd.DataFrame]) -> str:
         head += [f"{what} {label}" for label in labels]
     per: dict[str, dict[str, pd.Series]] = {}
     for label, df in results.items():
-        gc = df[df.controller == "GC"]
-        means = _step_means(df)
+        gc, means = df[df.controller == "GC"], _step_means(df)
         step_rel = gc[(gc.scenario == "step") & (gc.metric == "relative_steady_state_error")]
-        rnd_rel = gc[
-            (gc.scenario == "random_steps") & (gc.metric == "relative_steady_state_error")
-        ]
         div = gc[(gc.metric == "diverged") & gc.scenario.isin(["step", "random_steps"])]
         ours = means.get("GC", pd.Series(dtype=float))
         per[label] = {
@@ -115,22 +113,18 @@ def recipes_markdown(results: Mapping[str, pd.DataFrame]) -> str:
             for m in ("ISE", "ITAE")
         } | {
             "ess": step_rel.groupby("system")["value"].mean(),
-            "rnd": rnd_rel.groupby("system")["value"].max(),
+            "rnd": _worst_random_ess(gc),
             "div": div.groupby("system")["value"].sum(),
         }
-    systems = sorted(set().union(*(set(df.system) for df in results.values())))
-    lines = [
-        "| " + " | ".join(head) + " |",
-        "| " + " | ".join(["---"] + ["---:"] * (len(head) - 1)) + " |",
-    ]
-    for s in systems:
+    rows = []
+    for s in sorted(set().union(*(set(df.system) for df in results.values()))):
         cells = [s]
         for key in ("ISE", "ITAE", "ess", "rnd", "div"):
             for label in labels:
                 v = per[label][key].get(s, np.nan)
                 cells.append(str(int(v)) if key == "div" else _fmt(v))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+        rows.append(cells)
+    return "\n".join(_table(head, rows)) + "\n"
 
 
 def responses_csv(trajs: Mapping[str, Mapping[str, Mapping[str, Trajectory]]]) -> pd.DataFrame:
@@ -166,17 +160,13 @@ def scenarios_markdown(results: Mapping[str, pd.DataFrame]) -> str:
     summaries = {label: summarise(df) for label, df in results.items()}
     scenarios = list(dict.fromkeys(s for df in results.values() for s in df.scenario))
     labels = list(results)
-    lines = [
-        "| scenario | measure | " + " | ".join(labels) + " |",
-        "| --- | --- | " + " | ".join("---" for _ in labels) + " |",
-    ]
+    rows = []
     for scen in scenarios:
         tracking = any(scen in s["tracking"] for s in summaries.values())
         measure = "worst RMSE ratio" if tracking else "worst ISE ratio"
-        cells = [_scenario_cell(summaries[label], scen) for label in labels]
-        lines.append(f"| `{scen}` | {measure} | " + " | ".join(cells) + " |")
+        rows.append([f"`{scen}`", measure, *(_scenario_cell(summaries[k], scen) for k in labels)])
     bars = list(dict.fromkeys(k for s in summaries.values() for k in s["quality_bar"]))
     for key in bars:
         cells = [str(summaries[label]["quality_bar"].get(key)) for label in labels]
-        lines.append(f"| quality bar | `{key}` | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+        rows.append(["quality bar", f"`{key}`", *cells])
+    return "\n".join(_table(["scenario", "measure", *labels], rows, "---")) + "\n"

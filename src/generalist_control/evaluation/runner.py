@@ -107,8 +107,7 @@ class _Share:
 
     rows: dict[Key, list[tuple]]
     trajs: dict[Key, Trajectory]
-    held: pd.DataFrame | None = None
-    radii: pd.DataFrame | None = None
+    setpoint: pd.DataFrame | None = None
     flight: Evaluation | None = None
 
 
@@ -158,8 +157,8 @@ class _Suite:
             assert isinstance(gc, RuntimeAdapter)
             z = np.array([gc.z_end[local[s][i].start] for s, i in layout.held["GC"]])
             trajs = {c: [results[s][i] for s, i in layout.held[c]] for c in ("GC", "LQI")}
-            out.held = tail_table(plants, trajs, z, reference, tail)
-            out.radii = rest_radii(self.runtime, plants, reference, z)
+            held = tail_table(plants, trajs, z, reference, tail)
+            out.setpoint = rest_radii(self.runtime, plants, reference, z).merge(held, on="system")
         out.flight = crazyflie_flight(self.runtime, plants, self.crazyflie)
         return out
 
@@ -203,16 +202,9 @@ def _merge(plants: Sequence[Plant], suite: _Suite, shares: Sequence[_Share]) -> 
             trajs[name][ctrl] = {k[2]: trajs_by[k] for k in keys}
             rows += [row for k in keys for row in rows_by[k]]
     setpoint = None
-    if suite.setpoint is not None:
-        order = [p.name for p in plants]
-
-        def joined(tables: list[pd.DataFrame]) -> pd.DataFrame:
-            df = pd.concat(tables, ignore_index=True).set_index("system").loc[order]
-            return df.reset_index()
-
-        held = joined([sh.held for sh in shares if sh.held is not None])
-        radii = joined([sh.radii for sh in shares if sh.radii is not None])
-        setpoint = radii.merge(held, on="system")
+    if suite.setpoint is not None:  # in the plants' order
+        tables = pd.concat([sh.setpoint for sh in shares if sh.setpoint is not None])
+        setpoint = tables.set_index("system").loc[[p.name for p in plants]].reset_index()
     ev = Evaluation(pd.DataFrame(rows, columns=COLUMNS), trajs, setpoint)
     for flight in (sh.flight for sh in shares if sh.flight is not None):
         metrics = pd.concat([ev.metrics, flight.metrics], ignore_index=True)

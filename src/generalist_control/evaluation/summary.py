@@ -16,7 +16,7 @@ from generalist_control.common.sections import read_section
 from generalist_control.evaluation.eval_config import QualityBar
 from generalist_control.evaluation.runner import CONTROLLERS, GC_ANTI_WINDUP, STEP_KINDS
 
-__all__ = ["DEFAULT_BAR", "summarise"]
+__all__ = ["DEFAULT_BAR", "LEARNED", "summarise", "worst_errors"]
 
 #: The quality bar of ``conf/evaluation/default.yaml``, for readers of evaluations that
 #: have no config of their own (the ablation report).
@@ -88,11 +88,17 @@ def _at_most(values: list[float], limit: float) -> bool | None:
     return None if not values else bool(max(values) <= limit)
 
 
+def worst_errors(out: Mapping[str, Any]) -> tuple[list[float], list[float]]:
+    """GC's worst relative e_ss per step scenario, and the worst RMSE ratio per tracking one."""
+    ratios = out["ratios"]
+    ess = [ratios[s]["worst_relative_ess_GC"] for s in STEP_KINDS if s in ratios]
+    return ess, [v["worst_RMSE_ratio"] for v in out["tracking"].values()]
+
+
 def _quality_bar(out: Mapping[str, Any], bar: QualityBar) -> dict[str, bool | None]:
     """The bar's verdicts (None: not measured by this evaluation's scenarios)."""
-    ratios, step = out["ratios"], out["ratios"].get("step")
-    ess = [ratios[s]["worst_relative_ess_GC"] for s in STEP_KINDS if s in ratios]
-    rmse = [v["worst_RMSE_ratio"] for v in out["tracking"].values()]
+    step = out["ratios"].get("step")
+    ess, rmse = worst_errors(out)
     aw = [v["worst_ISE_ratio"] for v in out["anti_windup"].values()]
     return {
         "stable_everywhere": not any(out["diverged"].get(c) for c in LEARNED),

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from generalist_control.common.jsonsafe import write_json
 from generalist_control.data.demos import read_manifest
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
@@ -23,12 +24,7 @@ from generalist_control.evaluation.eval_run import EvalRun
 from generalist_control.evaluation.runner import metric_rows
 from generalist_control.evaluation.setpoint import setpoint_stability, setpoint_summary
 from generalist_control.evaluation.variant_summary import plot_variants, summarise_variants
-from generalist_control.evaluation.writer import (
-    Record,
-    check_reports_dir,
-    publish_snapshot,
-    write_json,
-)
+from generalist_control.evaluation.writer import Record, check_reports_dir, publish_snapshot
 from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.scenarios import perturbation, references
@@ -50,7 +46,6 @@ __all__ = [
     "OWNED",
     "TrainingDraws",
     "check_disjoint",
-    "draw_eval_variants",
     "evaluate_variants",
     "run_variants",
 ]
@@ -86,18 +81,6 @@ class TrainingDraws:
     data_tries: int
     dagger_seeds: range
     dagger_fresh: int
-
-
-def draw_eval_variants(
-    plants: Sequence[Plant], spec: VariantEvalSettings, steps: int, held_out: bool = False
-) -> dict[str, VariantDraw]:
-    """``spec``'s variants per plant (``held_out``: ``spec.validation``'s count and seed)."""
-    val = spec.validation if held_out else None
-    seed, n = (spec.seed, spec.count) if val is None else (val.seed, val.count)
-    return {
-        p.name: sample_variants(p, n, seed, spec.range, (1.0, -1.0), steps, spec.max_tries)
-        for p in plants
-    }
 
 
 def _candidates(
@@ -237,15 +220,16 @@ def _judge(
     spec: VariantEvalSettings,
     scenarios: Mapping[str, Mapping[str, Any]],
     training: TrainingDraws,
-    held_out: bool = False,
+    draw: tuple[int, int, str],
 ) -> tuple[dict[str, VariantDraw], pd.DataFrame, dict[str, Any]]:
-    """The draws, metrics and summary of ``scenarios`` (the bars judge the first)."""
+    """The ``draw`` (seed, count, its key), metrics and summary (the bars judge the first)."""
+    seed, count, key = draw
     first = next(iter(scenarios.values()))
     steps = int(round(float(first["duration"]) / plants[0].dt))
-    val = spec.validation if held_out else None
-    seed = val.seed if val is not None else spec.seed
-    key = "evaluation.variants.validation.seed" if held_out else "evaluation.variants.seed"
-    draws = draw_eval_variants(plants, spec, steps, held_out)
+    draws = {
+        p.name: sample_variants(p, count, seed, spec.range, (1.0, -1.0), steps, spec.max_tries)
+        for p in plants
+    }
     disjoint = check_disjoint(draws, plants, training, seed, key)
     df = evaluate_variants(runtime, draws, scenarios)
     summary = summarise_variants(df, next(iter(scenarios)), spec.bar)
@@ -266,14 +250,15 @@ def run_variants(
     check_reports_dir(out_dir, OWNED)
     spec = settings.variants
     scen = {n: settings.scenarios[n] for n in spec.scenarios}
-    draws, df, summary = _judge(runtime, plants, spec, scen, training)
+    test = (spec.seed, spec.count, "evaluation.variants.seed")
+    draws, df, summary = _judge(runtime, plants, spec, scen, training, test)
     summary["rejected"] = {n: d.rejected for n, d in draws.items() if d.rejected}
-    val = None
-    if spec.validation is not None:  # the held-out check: the judged scenario on a second draw
+    val, held_out = None, spec.validation
+    if held_out is not None:  # the held-out check: the judged scenario on a second draw
         judged = {spec.scenarios[0]: scen[spec.scenarios[0]]}
-        _, val, held = _judge(runtime, plants, spec, judged, training, held_out=True)
-        summary["validation"] = {**held, "seed": spec.validation.seed,
-                                 "count": spec.validation.count}  # fmt: skip
+        draw = (held_out.seed, held_out.count, "evaluation.variants.validation.seed")
+        _, val, held = _judge(runtime, plants, spec, judged, training, draw)
+        summary["validation"] = {**held, "seed": held_out.seed, "count": held_out.count}
     setpoint = None
     if settings.setpoint is not None and runtime.integral:  # the nominal plants' set points
         s = settings.setpoint

@@ -6,7 +6,6 @@ the MLflow run gets the files of the snapshot it publishes.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from functools import partial
@@ -18,15 +17,15 @@ from generalist_control.common.atomic import (
     publish_directory,
     staging_directory,
 )
-from generalist_control.common.jsonsafe import strict
+from generalist_control.common.jsonsafe import write_json
 from generalist_control.evaluation import result_tables
 from generalist_control.evaluation.eval_config import QualityBar
 from generalist_control.evaluation.eval_run import EvalRun
 from generalist_control.evaluation.forked_shares import fork_map
 from generalist_control.evaluation.plots import plot_all
-from generalist_control.evaluation.runner import STEP_KINDS, Evaluation
+from generalist_control.evaluation.runner import Evaluation
 from generalist_control.evaluation.setpoint import setpoint_summary
-from generalist_control.evaluation.summary import summarise
+from generalist_control.evaluation.summary import LEARNED, summarise, worst_errors
 
 __all__ = [
     "OWNED",
@@ -34,7 +33,6 @@ __all__ = [
     "check_reports_dir",
     "headline_scores",
     "publish_snapshot",
-    "write_json",
     "write_reports",
 ]
 
@@ -57,20 +55,17 @@ Record = Mapping[str, Mapping[str, Any]]
 
 
 def headline_scores(summary: Mapping[str, Any]) -> dict[str, Any]:
-    """``scores.json``: the headline figures of a ``summarise`` result (None: not measured).
+    """``scores.json``: the headline figures of a :func:`.summarise` result (None: not measured).
 
     ``diverged`` (GC and GC-AW runs), ``bar_passed`` / ``bar_checked``, the worst ratios, and
     ``ess_ppm``: GC's worst relative steady-state error in parts per million, so that errors
     down to 1e-11 do not round to 0.0 at ``dvc metrics show``'s 5 decimals.
     """
-    ratios, tracking = summary.get("ratios", {}), summary.get("tracking", {})
-    step = ratios.get("step", {})
-    ess = [ratios[s]["worst_relative_ess_GC"] for s in STEP_KINDS if s in ratios]
-    rmse = [v["worst_RMSE_ratio"] for v in tracking.values()]
-    verdicts = [v for v in summary.get("quality_bar", {}).values() if v is not None]
-    diverged = summary.get("diverged", {})
+    step = summary["ratios"].get("step", {})
+    ess, rmse = worst_errors(summary)
+    verdicts = [v for v in summary["quality_bar"].values() if v is not None]
     return {
-        "diverged": sum(sum(diverged.get(c, {}).values()) for c in ("GC", "GC-AW")),
+        "diverged": sum(sum(summary["diverged"].get(c, {}).values()) for c in LEARNED),
         "bar_passed": sum(bool(v) for v in verdicts),
         "bar_checked": len(verdicts),
         "ISE_ratio": step.get("worst_ISE_ratio"),
@@ -83,11 +78,6 @@ def headline_scores(summary: Mapping[str, Any]) -> dict[str, Any]:
 def check_reports_dir(out_dir: str | Path, owned: Mapping[str, str | None] = OWNED) -> None:
     """Refuse (before any work) a ``paths.reports_dir`` that holds other files."""
     check_replaceable(out_dir, owned, "paths.reports_dir")
-
-
-def write_json(path: Path, content: Any) -> None:
-    """``content`` as strict JSON (NaN and inf as null), indented, one trailing newline."""
-    path.write_text(json.dumps(strict(content), indent=2) + "\n")
 
 
 @contextmanager
