@@ -19,8 +19,10 @@ from typing import Any, TypeVar, Union
 from omegaconf import DictConfig, OmegaConf
 
 __all__ = [
+    "ConfigTree",
     "SettingError",
     "as_dict",
+    "lookup",
     "positive",
     "read_section",
     "require_int",
@@ -30,6 +32,19 @@ __all__ = [
 ]
 
 T = TypeVar("T")
+
+#: A config as a plain tree of dicts and lists, interpolations resolved (:func:`as_dict`).
+ConfigTree = Mapping[str, Any]
+
+
+def lookup(tree: ConfigTree, key: str) -> tuple[bool, Any]:
+    """``(found, value)`` of the dotted ``key`` in ``tree``."""
+    node: Any = tree
+    for part in key.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return False, None
+        node = node[part]
+    return True, node
 
 
 class SettingError(ValueError):

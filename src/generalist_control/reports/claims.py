@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import pandas as pd
 
 from generalist_control.reports.report_settings import Tolerance
-from generalist_control.reports.runs import RunPoint
+from generalist_control.reports.runs import NO_RUN, NOT_AVAILABLE, RunPoint
 
 __all__ = [
     "CLAIMS",
@@ -27,7 +27,7 @@ __all__ = [
 Config = tuple[int, int]
 Runs = Mapping[Config, Sequence[RunPoint]]
 REPRODUCES, FAILS, SEEDS = "reproduces", "does not reproduce", "seed-dependent"
-NOT_COMPARABLE, NO_RUN, NO_SCORE = "not comparable", "no run", "no score"
+NOT_COMPARABLE = "not comparable"
 
 #: The rule of each kind of claim, as the report states it.
 RULES = {
@@ -187,9 +187,9 @@ def _absent(claim: Claim, by_config: Runs) -> str | None:
 
 def _judge_values(claim: Claim, by_config: Runs, tol: Tolerance) -> tuple[str, str]:
     values = _values(claim, by_config)
-    ours = ", ".join(f"{NO_SCORE if v is None else _fmt(v)} ({s})" for s, v in values)
+    ours = ", ".join(f"{NOT_AVAILABLE if v is None else _fmt(v)} ({s})" for s, v in values)
     if any(v is None for _, v in values):
-        return NO_SCORE, ours
+        return NOT_AVAILABLE, ours
     return _verdict([_within(claim, v, tol) for _, v in values if v is not None]), ours
 
 
@@ -197,7 +197,7 @@ def _judge_order(claim: Claim, by_config: Runs) -> tuple[str, str]:
     best, *others = ([p.mse.get(str(claim.plant)) for p in by_config[c]] for c in claim.configs)
     rivals = [v for group in others for v in group]
     if any(v is None for v in [*best, *rivals]):
-        return NO_SCORE, "a run has no score"
+        return NOT_AVAILABLE, "a run has no score"
     pairs = [all(b < r for r in rivals) for b in best]  # type: ignore[operator]
     ours = "; ".join(
         f"d={d}, M={m}: " + ", ".join(_fmt(p.mse[str(claim.plant)]) for p in by_config[(d, m)])
@@ -219,13 +219,13 @@ def _judge_gates(claim: Claim, gates: pd.DataFrame | None, tol: Tolerance) -> tu
     if claim.kind == "share":
         dom = _dominant(gates, str(claim.plant))
         if dom is None:
-            return NO_SCORE, "not trained on it"
+            return NOT_AVAILABLE, "not trained on it"
         ok = abs(dom[1] - float(claim.paper)) <= tol.share_points
         return (REPRODUCES if ok else FAILS), f"{dom[0]}: {dom[1]:.0%}"
     pairs = (("cstr", "damped_oscillator"), ("boeing747", "crazyflie_altitude"))
     doms = [[_dominant(gates, p) for p in pair] for pair in pairs]
     if any(d is None for pair in doms for d in pair):
-        return NO_SCORE, "not trained on every plant"
+        return NOT_AVAILABLE, "not trained on every plant"
     names = [[d[0] for d in pair if d] for pair in doms]
     ours = "; ".join(f"{'/'.join(p)}: {'/'.join(n)}" for p, n in zip(pairs, names, strict=True))
     ok = names[0][0] == names[0][1] and names[1][0] == names[1][1] and names[0][0] != names[1][0]
@@ -263,7 +263,7 @@ def judge_claims(
     for claim in claims:
         verdict, ours = _judge(claim, by_config, gates, tolerance)
         note = claim.note
-        if recipe != "paper" and claim.default_reason and verdict not in (NO_RUN, NO_SCORE):
+        if recipe != "paper" and claim.default_reason and verdict not in (NO_RUN, NOT_AVAILABLE):
             verdict, note = NOT_COMPARABLE, claim.default_reason
         if claim.kind == "share":
             paper = f"{float(claim.paper):.0%}"

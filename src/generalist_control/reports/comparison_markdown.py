@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import pandas as pd
@@ -15,13 +15,19 @@ from generalist_control.reports.runs import SWEEPS, RunPoint
 __all__ = ["comparison_markdown"]
 
 
+def _section(
+    title: str, header: Sequence[str], rows: Sequence[Sequence[Any]], note: str = ""
+) -> list[str]:
+    """A section of the report: its heading, a note if any, its table."""
+    return ["", f"## {title}", "", *([note, ""] if note else []), *table(header, rows)]
+
+
 def _claims(claims: pd.DataFrame, recipe: str) -> list[str]:
     tally = ", ".join(f"{n} {v}" for v, n in verdict_counts(claims).items())
     rows = claims[["claim", "paper", "ours", "verdict", "rule", "note"]].to_numpy().tolist()
+    header = ["claim", "paper", "ours (per seed)", "verdict", "rule", "note"]
     return [
-        f"## The paper's claims ({recipe} recipe): {tally}",
-        "",
-        *table(["claim", "paper", "ours (per seed)", "verdict", "rule", "note"], rows),
+        *_section(f"The paper's claims ({recipe} recipe): {tally}", header, rows),
         "",
         "A verdict needs every seed: `seed-dependent` when some seeds reproduce the figure and "
         "others do not. `not comparable`: the figures differ in definition for this recipe.",
@@ -42,7 +48,7 @@ def _runs(points: pd.DataFrame) -> list[str]:
              fmt_value(r.get("mse_mean")), bar, f"`{str(r['run_id'])[:8]}`"]
         )  # fmt: skip
     header = ["run", "parameters", "final train loss", "final val loss", "mean closed-loop MSE"]
-    return ["", "## Every run", "", *table([*header, "quality bar", "MLflow run"], rows)]
+    return _section("Every run", [*header, "quality bar", "MLflow run"], rows)
 
 
 def _verdicts(points: pd.DataFrame) -> list[str]:
@@ -54,12 +60,7 @@ def _verdicts(points: pd.DataFrame) -> list[str]:
     for col in cols:
         cells = ["n/a" if pd.isna(v) else ("pass" if v else "**fail**") for v in points[col]]
         rows.append([f"`{col[4:]}`", *cells])
-    return [
-        "",
-        "## Quality bar per run (docs/evaluation.md)",
-        "",
-        *table(["verdict", *runs], rows),
-    ]
+    return _section("Quality bar per run (docs/evaluation.md)", ["verdict", *runs], rows)
 
 
 def _scenarios(worst: pd.DataFrame, separating: Mapping[str, str]) -> list[str]:
@@ -79,13 +80,9 @@ def _scenarios(worst: pd.DataFrame, separating: Mapping[str, str]) -> list[str]:
             cells.append(text + (f", {r['GC_diverged']} diverged" if r["GC_diverged"] else ""))
         kind = "ISE" if part["kind"].iloc[0] == "step" else "RMSE"
         rows.append([f"`{scen}`", kind, *cells, "yes" if scen in separating else ""])
-    lines = [
-        "",
-        "## Scenarios: the worst plant's GC/LQI ratio per run (per-plant: `scenarios.csv`)",
-        "",
-        *table(["scenario", "ratio of", *[f"`{r}`" for r in runs], "separates"], rows),
-        "",
-    ]
+    title = "Scenarios: the worst plant's GC/LQI ratio per run (per-plant: `scenarios.csv`)"
+    header = ["scenario", "ratio of", *[f"`{r}`" for r in runs], "separates"]
+    lines = [*_section(title, header, rows), ""]
     if not separating:
         return [*lines, "No scenario separates the runs."]
     return [*lines, "Scenarios that separate the runs:", ""] + [
@@ -99,12 +96,12 @@ def _gates(gates: pd.DataFrame | None, gate_run: RunPoint | None) -> list[str]:
     rows = [
         [p, str(r.idxmax()).replace("expert_", ""), f"{r.max():.0%}"] for p, r in gates.iterrows()
     ]
-    title = f"## Gate weights of {gate_run.label} (run `{gate_run.run_id[:8]}`), every plant"
+    title = f"Gate weights of {gate_run.label} (run `{gate_run.run_id[:8]}`), every plant"
     note = (
         "Mean gate weight over a closed-loop unit step (`gate_weights.csv`, "
         "`gate_weights.png`). Expert numbers are arbitrary: compare shares, not numbers."
     )
-    return ["", title, "", note, "", *table(["plant", "dominant expert", "its share"], rows)]
+    return _section(title, ["plant", "dominant expert", "its share"], rows, note)
 
 
 def _mse_tables(runs: pd.DataFrame, points: pd.DataFrame) -> list[str]:
@@ -124,8 +121,8 @@ def _mse_tables(runs: pd.DataFrame, points: pd.DataFrame) -> list[str]:
             ]
             for plant in plants
         ]
-        title = f"## Output MSE by {symbol} (figure `mse_{sweep}.png`)"
-        lines += ["", title, "", *table(["plant", *part["label"]], rows)]
+        title = f"Output MSE by {symbol} (figure `mse_{sweep}.png`)"
+        lines += _section(title, ["plant", *part["label"]], rows)
     return lines
 
 
@@ -143,7 +140,6 @@ def comparison_markdown(
         'their evaluations. "no run": no finished run of that configuration; "no score": the '
         "run has no such figure (a diverged closed loop, a plant it was not trained on). MSE "
         "is GC against LQI, unit step, the ablation set (`closed_loop.systems`).",
-        "",
         *_claims(tables["claims"], recipe),
         *_runs(tables["points"]),
         *_verdicts(tables["points"]),

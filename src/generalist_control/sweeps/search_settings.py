@@ -16,7 +16,7 @@ from typing import Any
 
 import optuna
 
-from generalist_control.common.sections import SettingError, positive
+from generalist_control.common.sections import SettingError, lookup, positive
 from generalist_control.tracking import mlflow_utils
 
 __all__ = [
@@ -154,10 +154,8 @@ def parse_space(params: Mapping[str, Any], tree: Mapping[str, Any]) -> list[Para
         raise ValueError("hparams_search.params is empty: nothing to search")
     space = []
     for key, spec in specs.items():
-        node: Any = tree
-        for part in key.split("."):
-            node = node.get(part, KeyError) if isinstance(node, Mapping) else KeyError
-        if node is KeyError:
+        found, node = lookup(tree, key)
+        if not found:
             leaves = list(mlflow_utils.flatten_params(tree, exclude=()))
             close = difflib.get_close_matches(key, leaves, n=3)
             hint = f"; did you mean {', '.join(close)}?" if close else ""

@@ -20,7 +20,7 @@ from generalist_control.common.secrets import redact
 from generalist_control.sweeps.search_settings import HeartbeatSettings
 from generalist_control.tracking import mlflow_utils
 
-__all__ = ["end_trial_run", "fail_stale_trials", "open_storage", "StaleTrialHandler"]
+__all__ = ["end_trial_run", "fail_lost_trial", "fail_stale_trials", "open_storage"]
 
 log = logging.getLogger(__name__)
 
@@ -94,26 +94,21 @@ def open_storage(
     raise AssertionError("unreachable")
 
 
-class StaleTrialHandler:
-    """Heartbeat-stale trial (its worker died): log it, end its MLflow run, maybe retry."""
-
-    def __init__(self, logger: Mapping[str, Any], max_retry: int) -> None:
-        self.logger = dict(logger)
-        self.max_retry = max_retry
-
-    def __call__(self, study: optuna.Study, trial: FrozenTrial) -> None:
-        """Fail the trial's MLflow run; retry the trial if configured."""
-        log.warning(
-            "trial %d of study %r lost its worker (no heartbeat within the grace period): FAIL",
-            trial.number,
-            study.study_name,
-        )
-        end_trial_run(trial, "FAIL", "FAILED", self.logger)
-        if self.max_retry > 0:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-                retry = optuna.storages.RetryHeartbeatStaleTrialCallback(self.max_retry)
-            retry(study, trial)
+def fail_lost_trial(
+    logger: Mapping[str, Any], max_retry: int, study: optuna.Study, trial: FrozenTrial
+) -> None:
+    """A heartbeat-stale trial (its worker died): log it, fail its MLflow run, maybe retry it."""
+    log.warning(
+        "trial %d of study %r lost its worker (no heartbeat within the grace period): FAIL",
+        trial.number,
+        study.study_name,
+    )
+    end_trial_run(trial, "FAIL", "FAILED", logger)
+    if max_retry > 0:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            retry = optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry)
+        retry(study, trial)
 
 
 def fail_stale_trials(study: optuna.Study) -> None:

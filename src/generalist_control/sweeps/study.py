@@ -6,6 +6,7 @@ the study's MLflow parent run groups every worker's trials (docs/sweeps.md).
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import logging
@@ -26,8 +27,8 @@ from generalist_control.common.secrets import redact
 from generalist_control.sweeps import stop_signals
 from generalist_control.sweeps.search_settings import Param, SearchSettings, check_fixed_config
 from generalist_control.sweeps.storage import (
-    StaleTrialHandler,
     end_trial_run,
+    fail_lost_trial,
     fail_stale_trials,
     open_storage,
 )
@@ -232,7 +233,7 @@ def _open_study(search: SearchSettings, logger: Mapping[str, Any]) -> optuna.Stu
     if search.pruner is not None:  # a bad pruner or sampler fails before the storage is opened
         pruner = hydra.utils.instantiate(search.pruner)
     _sampler(search, 0)
-    handler = StaleTrialHandler(logger, search.heartbeat.max_retry)
+    handler = functools.partial(fail_lost_trial, dict(logger), search.heartbeat.max_retry)
     storage = open_storage(search.storage, search.heartbeat, handler)
     direction: Any = search.direction
     study = optuna.create_study(

@@ -25,6 +25,7 @@ import yaml
 
 from generalist_control.common.atomic import pid_alive, process_start
 from generalist_control.common.secrets import redact
+from generalist_control.common.sections import ConfigTree
 
 if TYPE_CHECKING:
     import mlflow
@@ -148,8 +149,8 @@ def init_store(uri: str) -> None:
     _INITIALISED.add(uri)
 
 
-def flatten_params(cfg: Mapping[str, Any], exclude: tuple[str, ...] = EXCLUDED) -> dict[str, str]:
-    """Flatten a (resolved) config into ``{"a.b.c": "value"}``; lists become JSON; redacted.
+def flatten_params(tree: ConfigTree, exclude: tuple[str, ...] = EXCLUDED) -> dict[str, str]:
+    """Flatten ``tree`` into ``{"a.b.c": "value"}``; lists become JSON; redacted.
 
     Examples
     --------
@@ -168,7 +169,7 @@ def flatten_params(cfg: Mapping[str, Any], exclude: tuple[str, ...] = EXCLUDED) 
             text = json.dumps(node) if isinstance(node, list | tuple) else str(node)
             out[prefix] = redact(text)[:MAX_VALUE]
 
-    walk(cfg, "")
+    walk(tree, "")
     return out
 
 

@@ -22,6 +22,7 @@ from lightning.pytorch.loggers import MLFlowLogger
 from mlflow.exceptions import MlflowException
 
 from generalist_control.common.secrets import redact
+from generalist_control.common.sections import ConfigTree, lookup
 from generalist_control.tracking import mlflow_utils
 
 __all__ = [
@@ -39,43 +40,28 @@ log = logging.getLogger(__name__)
 EPOCH_METRICS = ("train/", "val/", "dagger/")
 
 
-def _select(cfg: Mapping[str, Any], key: str) -> tuple[bool, Any]:
-    """``(found, value)`` of the dotted ``key`` in a nested mapping."""
-    node: Any = cfg
-    for part in key.split("."):
-        if not isinstance(node, Mapping) or part not in node:
-            return False, None
-        node = node[part]
-    return True, node
-
-
-def training_params(cfg: Mapping[str, Any], keys: Sequence[str]) -> dict[str, str]:
-    """The params of a training run: the config ``keys`` (each with its subtree), flattened.
+def training_params(tree: ConfigTree, keys: Sequence[str]) -> dict[str, str]:
+    """The params of a training run: the ``keys`` of the resolved config ``tree``, flattened.
 
     A part (a node with ``_target_``) is logged as its class name, then its non-null settings.
 
     Examples
     --------
-    >>> cfg = {"model": {"_target_": "pkg.Net", "hidden": 64, "skip": None}, "dagger": None}
-    >>> training_params(cfg, ["model", "dagger", "nowhere"])
+    >>> tree = {"model": {"_target_": "pkg.Net", "hidden": 64, "skip": None}, "dagger": None}
+    >>> training_params(tree, ["model", "dagger", "nowhere"])
     {'model': 'Net', 'model.hidden': '64', 'dagger': 'None'}
     """
     out: dict[str, str] = {}
     for key in keys:
-        found, node = _select(cfg, key)
-        if not found:
-            continue
-        if node is None:
+        found, node = lookup(tree, key)
+        if found and node is None:
             out[key] = "None"
-            continue
-        flat = mlflow_utils.flatten_params({"_": node}, exclude=())
-        for name, value in flat.items():
-            if name.endswith("._partial_") or value == "None":
-                continue
-            if name.endswith("._target_"):
-                out[key + name[1 : -len("._target_")]] = value.rsplit(".", 1)[-1]
-            else:
-                out[key + name[1:]] = value
+        elif found:
+            for name, value in mlflow_utils.flatten_params({key: node}, ()).items():
+                if name.endswith("._target_"):
+                    out[name[: -len("._target_")]] = value.rsplit(".", 1)[-1]
+                elif not name.endswith("._partial_") and value != "None":
+                    out[name] = value
     return out
 
 
