@@ -44,7 +44,7 @@ from generalist_control.plants.definition import Plant
 from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.simulation.simulate import simulate_many
 from generalist_control.tracking import mlflow_utils
-from generalist_control.training.callbacks import dagger_round, rollout_sampler
+from generalist_control.training.callbacks import dagger_round
 from generalist_control.training.datamodule import WindowTensors
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
@@ -233,10 +233,10 @@ def _windows(request: AdaptRequest, new: NewPlant, policy: Policy) -> tuple[Wind
 
 def _dagger(request: AdaptRequest, new: NewPlant, policy: Policy) -> tuple | None:
     """The training's sampler (on the new plant alone) and labeller; None without rounds."""
-    spec, data = request.dagger, rollout_data(request.data)
+    spec = request.dagger
     if spec is None or request.demos is not None or not request.adapt.rounds:
         return None  # a recorded controller cannot label the states the policy visits
-    sampler = rollout_sampler([new.plant], spec, data, request.seed)
+    sampler = RolloutSampler([new.plant], spec.sampler, rollout_data(request.data), request.seed)
     return sampler, ExpertLabeller(spec.labeller, policy.history, policy.horizon, policy.channels)
 
 

@@ -22,7 +22,7 @@ from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.training.datamodule import WindowTensors
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
-from generalist_control.training.settings import DaggerSettings, RolloutData, TrainingSettings
+from generalist_control.training.settings import DaggerSettings, TrainingSettings
 
 __all__ = [
     "ClosedLoopValidation",
@@ -32,7 +32,6 @@ __all__ = [
     "dagger_callback",
     "dagger_plants",
     "dagger_round",
-    "rollout_sampler",
 ]
 
 log = logging.getLogger(__name__)
@@ -139,25 +138,6 @@ def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
     return out
 
 
-def rollout_sampler(
-    plants: Sequence[Plant], spec: DaggerSettings, data: RolloutData, seed: int, **rounds: Any
-) -> RolloutSampler:
-    """DAgger's rollout sampler on ``plants`` from the data recipe's rollout facts.
-
-    ``rounds``: a family's ``rotating`` plants and how many join each round (``per_round``).
-    """
-    return RolloutSampler(
-        plants,
-        spec.sampler,
-        limit=data.amplitude_limit,
-        families=data.families,
-        seed=seed,
-        variant_range=data.variant_range,
-        variant_tries=data.variant_tries,
-        **rounds,
-    )
-
-
 def dagger_callback(
     settings: TrainingSettings,
     plants: list[Plant],
@@ -172,8 +152,8 @@ def dagger_callback(
     spec = settings.dagger
     if spec is None:
         return None
-    sampler = rollout_sampler(
-        plants, spec, settings.rollout_data, settings.seed, rotating=rotating, per_round=per_round
+    sampler = RolloutSampler(
+        plants, spec.sampler, settings.rollout_data, settings.seed, rotating, per_round
     )
     labeller = ExpertLabeller(spec.labeller, settings.history, settings.horizon, channels)
     return DAggerCallback(sampler, labeller, spec)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
@@ -19,7 +18,7 @@ from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.references import family_references, family_spec
 from generalist_control.simulation.simulate import Run, Trajectory, row_slices, simulate_many
 from generalist_control.simulation.variant_sampling import sample_variants
-from generalist_control.training.settings import SamplerSettings
+from generalist_control.training.settings import RolloutData, SamplerSettings
 
 __all__ = ["Actuator", "MixedController", "RolloutSampler", "Rollouts", "lag_mix", "run_rollouts"]
 
@@ -198,28 +197,23 @@ def run_rollouts(
 class RolloutSampler:
     """The rollouts of each DAgger round (``dagger.sampler``) of ``plants`` and their variants.
 
-    ``limit``, ``families``, ``variant_range`` and ``variant_tries`` come from the data recipe;
-    ``seed`` seeds round ``i``'s draws (``seed + i``); ``rotating`` plants (a family's) join
-    ``per_round`` at a time, in turn.
+    ``data``: the data recipe's rollout facts; ``seed`` seeds round ``i``'s draws (``seed + i``);
+    ``rotating`` plants (a family's) join ``per_round`` at a time, in turn.
     """
 
     def __init__(
         self,
         plants: Sequence[Plant],
         settings: SamplerSettings,
-        limit: float,
-        families: Mapping[str, Mapping[str, Any]],
+        data: RolloutData,
         seed: int,
-        variant_range: float,
-        variant_tries: int,
         rotating: Sequence[Plant] = (),
         per_round: int = 0,
     ) -> None:
-        self.plants, self.settings = list(plants), settings
+        self.plants, self.settings, self.data = list(plants), settings, data
         self.rotating, self.per_round = list(rotating), min(int(per_round), len(rotating))
-        self.limit, self.seed = float(limit), int(seed)
-        self.families = {k: dict(v) for k, v in families.items()} if settings.families else {}
-        self.variant_range, self.variant_tries = float(variant_range), int(variant_tries)
+        self.limit, self.seed = data.amplitude_limit, int(seed)
+        self.families = data.families if settings.families else {}
         #: per plant name, the factors of every fresh variant rolled out so far
         self.fresh: dict[str, list[dict[str, float]]] = {}
 
@@ -255,8 +249,8 @@ class RolloutSampler:
             return out
         for nominal, *_ in self._versions():
             draw = sample_variants(
-                nominal, variants.fresh, variants.seed + round_index, self.variant_range,
-                (self.limit, -self.limit), self.steps(), self.variant_tries,
+                nominal, variants.fresh, variants.seed + round_index, self.data.variant_range,
+                (self.limit, -self.limit), self.steps(), self.data.variant_tries,
             )  # fmt: skip
             for v in draw.kept:
                 self.fresh.setdefault(v.plant.name, []).append(v.factors)
