@@ -179,15 +179,10 @@ def _stopped(exc: SystemExit, trainer: L.Trainer) -> int | None:
     return None
 
 
-def check_resume(ckpt_path: str, meta: dict[str, Any], max_epochs: int | None = None) -> None:
-    """Refuse to resume from a checkpoint of other data, other plants, or nothing left to do.
-
-    Raises
-    ------
-    ValueError
-        Other data (content hash), another plant set, or (given ``max_epochs``) all epochs
-        already run, so that a resume would only publish the old checkpoint.
-    """
+def _check_resume(
+    settings: TrainingSettings, ckpt_path: str, meta: dict[str, Any], lit: ImitationModule
+) -> None:
+    """Refuse a checkpoint of other data, plants or model, or with no epoch left to train."""
     blob = torch.load(ckpt_path, map_location="cpu", weights_only=True)
     old = blob.get("hyper_parameters", {}).get("meta", {})
     if old.get("content_hash") != meta["content_hash"]:
@@ -201,37 +196,31 @@ def check_resume(ckpt_path: str, meta: dict[str, Any], max_epochs: int | None = 
             f"this config's set is {sorted(meta['tags'])}: resume with the same systems "
             "(systems, systems.include), or drop ckpt_path to start a new run"
         )
-    done = int(blob.get("epoch", -1)) + 1
-    if max_epochs is not None and done >= max_epochs:
-        raise ValueError(
-            f"checkpoint {ckpt_path} has finished {done} epochs and trainer.max_epochs is "
-            f"{max_epochs}: there is nothing left to train; raise trainer.max_epochs, or "
-            "drop ckpt_path to start a new run"
-        )
-
-
-def _check_fits(settings: TrainingSettings, ckpt_path: str, lit: ImitationModule) -> None:
-    """Refuse, before any run is touched, a checkpoint whose weights do not fit ``lit``."""
-    blob = torch.load(ckpt_path, map_location="cpu", weights_only=True)
     saved, own = blob.get("state_dict", {}), lit.state_dict()
     bad = sorted(set(saved) ^ set(own))
     bad += [k for k in own if k in saved and tuple(saved[k].shape) != tuple(own[k].shape)]
-    if not bad:
-        return
-    old = blob.get("hyper_parameters", {}).get("model", {})
-    diff = {
-        f"model.{k}": (old[k], v)
-        for k, v in settings.model.items()
-        if isinstance(old, dict) and k in old and old[k] != v
-    }
-    shown = "; ".join(f"{k}: checkpoint {a}, config {b}" for k, (a, b) in diff.items())
-    fix = " ".join(f"{k}={a}" for k, (a, _) in diff.items()) or "the checkpoint's model config"
-    raise ValueError(
-        f"checkpoint {ckpt_path} does not fit the model this config builds"
-        f" ({shown or 'same model config'}); parameters that differ: {', '.join(bad[:6])}"
-        f"{' ...' if len(bad) > 6 else ''}. Resume with the checkpoint's settings ({fix}), "
-        "or drop ckpt_path to start a new run"
-    )
+    if bad:
+        old_model = blob.get("hyper_parameters", {}).get("model", {})
+        diff = {
+            f"model.{k}": (old_model[k], v)
+            for k, v in settings.model.items()
+            if isinstance(old_model, dict) and k in old_model and old_model[k] != v
+        }
+        shown = "; ".join(f"{k}: checkpoint {a}, config {b}" for k, (a, b) in diff.items())
+        fix = " ".join(f"{k}={a}" for k, (a, _) in diff.items()) or "the checkpoint's model config"
+        raise ValueError(
+            f"checkpoint {ckpt_path} does not fit the model this config builds"
+            f" ({shown or 'same model config'}); parameters that differ: {', '.join(bad[:6])}"
+            f"{' ...' if len(bad) > 6 else ''}. Resume with the checkpoint's settings ({fix}), "
+            "or drop ckpt_path to start a new run"
+        )
+    done = int(blob.get("epoch", -1)) + 1
+    if done >= settings.max_epochs:
+        raise ValueError(
+            f"checkpoint {ckpt_path} has finished {done} epochs and trainer.max_epochs is "
+            f"{settings.max_epochs}: there is nothing left to train; raise trainer.max_epochs, "
+            "or drop ckpt_path to start a new run"
+        )
 
 
 def _publish(
@@ -263,19 +252,15 @@ def _prepare(
     outputs.scrub_hydra_files()
     torch.set_num_threads(settings.threads)
     L.seed_everything(settings.seed, workers=True)
-    ckpt_path = settings.ckpt_path
     spec = read_family_training(settings.resolved["train_families"])  # null: none
     families = FamilySet.load(spec.dirs, tag_count(), spec) if spec else None
     settings = dataclasses.replace(settings, model=with_rows(settings.model, families))
     with torch.random.fork_rng():  # the model config checked before the data is read
         channels = Policy(settings.model).channels
     dm, meta = _data(settings, channels, families)
-    if ckpt_path:
-        check_resume(ckpt_path, meta)
     lit = _module(settings, dm, meta)
-    if ckpt_path:
-        _check_fits(settings, ckpt_path, lit)
-        check_resume(ckpt_path, meta, settings.max_epochs)
+    if settings.ckpt_path:
+        _check_resume(settings, settings.ckpt_path, meta, lit)
     return settings, dm, meta, lit
 
 
