@@ -9,6 +9,7 @@ from typing import Any
 
 from generalist_control.common.sections import (
     SettingError,
+    at_least,
     positive,
     read_section,
     require_int,
@@ -40,11 +41,8 @@ class AdaptSettings:
     def __post_init__(self) -> None:
         if self.init not in INITS:
             raise SettingError("init", f"must be one of {list(INITS)}, got {self.init!r}")
-        for name in ("epochs", "rounds"):
-            if getattr(self, name) < 0:
-                raise SettingError(name, f"must be >= 0, got {getattr(self, name)}")
-        if self.batch_size < 1:
-            raise SettingError("batch_size", f"must be >= 1, got {self.batch_size}")
+        at_least(0, self, "epochs", "rounds")
+        at_least(1, self, "batch_size")
         positive("lr", self.lr)
         unit_interval("beta", self.beta)
         unit_interval("beta_decay", self.beta_decay)

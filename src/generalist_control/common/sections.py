@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 __all__ = [
     "SettingError",
     "as_dict",
+    "at_least",
     "positive",
     "read_section",
     "require_int",
@@ -62,6 +63,14 @@ def positive(name: str, value: float, strict: bool = True) -> None:
         raise SettingError(
             name, f"must be a finite number {'>' if strict else '>='} 0, got {value}"
         )
+
+
+def at_least(low: int, section: Any, *names: str) -> None:
+    """Raise :class:`SettingError` for the first of ``section``'s ``names`` below ``low``."""
+    for name in names:
+        value = getattr(section, name)
+        if value is not None and value < low:
+            raise SettingError(name, f"must be >= {low}, got {value}")
 
 
 def _kind(value: Any) -> str:

@@ -19,6 +19,7 @@ from hydra.utils import instantiate
 from generalist_control.common.secrets import redact
 from generalist_control.common.sections import (
     SettingError,
+    at_least,
     positive,
     read_section,
     require_int,
@@ -57,9 +58,7 @@ class LoaderSettings:
     def __post_init__(self) -> None:
         if not 0.0 <= self.val_fraction < 1.0:
             raise SettingError("val_fraction", f"must lie in [0, 1), got {self.val_fraction}")
-        for name in ("batch_size", "val_batch_size"):
-            if getattr(self, name) < 1:
-                raise SettingError(name, f"must be a positive integer, got {getattr(self, name)}")
+        at_least(1, self, "batch_size", "val_batch_size")
 
 
 @dataclass(frozen=True)
@@ -83,10 +82,7 @@ class VariantSettings:
     seed: int  #: seed of round 0's fresh draw (round i: seed + i)
 
     def __post_init__(self) -> None:
-        for name in ("data", "fresh", "seed"):
-            value = getattr(self, name)
-            if value is not None and value < 0:
-                raise SettingError(name, f"must be a non-negative integer, got {value}")
+        at_least(0, self, "data", "fresh", "seed")
 
 
 @dataclass(frozen=True)
@@ -101,11 +97,7 @@ class SamplerSettings:
     variants: VariantSettings | None
 
     def __post_init__(self) -> None:
-        for name in ("rollouts", "families"):
-            if getattr(self, name) < 0:
-                raise SettingError(
-                    name, f"must be a non-negative integer, got {getattr(self, name)}"
-                )
+        at_least(0, self, "rollouts", "families")
         positive("duration", self.duration)
         positive("noise", self.noise, strict=False)
 
@@ -133,9 +125,8 @@ class DaggerSettings:
     labeller: LabellerSettings
 
     def __post_init__(self) -> None:
-        for name in ("start_epoch", "every", "rounds"):
-            if getattr(self, name) < (0 if name == "start_epoch" else 1):
-                raise SettingError(name, f"is out of range: {getattr(self, name)}")
+        at_least(0, self, "start_epoch")
+        at_least(1, self, "every", "rounds")
         unit_interval("beta", self.beta)
         unit_interval("beta_decay", self.beta_decay)
 
