@@ -17,7 +17,6 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from generalist_control.common.sections import require_int
 from generalist_control.data.demos import MissingDataError, load_demos
 from generalist_control.data.windows import Windows
 from generalist_control.training.family_set import FamilySet
@@ -123,8 +122,7 @@ class DemoDataModule(L.LightningDataModule):
         self.data_dir = Path(data_dir)
         self.integral = "integral" in channels
         self.controls = "previous_control" in channels
-        self.history = require_int("data.history", history)
-        self.horizon = require_int("data.horizon", horizon)
+        self.history, self.horizon = int(history), int(horizon)
         self.val_fraction = loader.val_fraction
         self.batch_size, self.val_batch_size = loader.batch_size, loader.val_batch_size
         self.seed = int(seed)
