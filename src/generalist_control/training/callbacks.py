@@ -22,14 +22,12 @@ from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.training.datamodule import WindowTensors
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
-from generalist_control.training.settings import DaggerSettings, TrainingSettings
+from generalist_control.training.settings import DaggerSettings
 
 __all__ = [
     "ClosedLoopValidation",
     "DAggerCallback",
-    "closed_loop_validation",
     "config_callbacks",
-    "dagger_callback",
     "dagger_plants",
     "dagger_round",
 ]
@@ -136,35 +134,6 @@ def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
         out.append(p)
         out.extend(make_variant(p, v["factors"]) for v in recorded.get(p.name, {}).get("kept", []))
     return out
-
-
-def dagger_callback(
-    settings: TrainingSettings,
-    plants: list[Plant],
-    channels: tuple[str, ...],
-    rotating: Sequence[Plant] = (),
-    per_round: int = 0,
-) -> L.Callback | None:
-    """The DAgger callback on ``plants`` (None when ``dagger`` is off).
-
-    ``rotating`` plants (a family's) join each round, ``per_round`` at a time, in turn.
-    """
-    spec = settings.dagger
-    if spec is None:
-        return None
-    sampler = RolloutSampler(
-        plants, spec.sampler, settings.rollout_data, settings.seed, rotating, per_round
-    )
-    labeller = ExpertLabeller(spec.labeller, settings.history, settings.horizon, channels)
-    return DAggerCallback(sampler, labeller, spec)
-
-
-def closed_loop_validation(settings: TrainingSettings, plants: list[Plant]) -> L.Callback | None:
-    """``val/closed_loop`` on ``plants`` (None when ``closed_loop_val`` is off)."""
-    spec = settings.closed_loop_val
-    if spec is None:
-        return None
-    return ClosedLoopValidation(ClosedLoopScore(plants, list(spec.amplitudes), spec.duration))
 
 
 def config_callbacks(nodes: Sequence[Mapping[str, Any]], run_dir: Path) -> list[L.Callback]:

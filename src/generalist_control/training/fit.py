@@ -34,19 +34,21 @@ from generalist_control.model.policy import (
 )
 from generalist_control.plants.catalog import tag_count
 from generalist_control.plants.definition import Plant
+from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.tracking import training_run
 from generalist_control.tracking.mlflow_utils import POLICY_HASH_TAG
 from generalist_control.training import outputs
 from generalist_control.training.callbacks import (
+    ClosedLoopValidation,
     DAggerCallback,
-    closed_loop_validation,
     config_callbacks,
-    dagger_callback,
     dagger_plants,
 )
 from generalist_control.training.datamodule import DemoDataModule, WindowTensors
 from generalist_control.training.family_set import FamilySet, read_family_training, with_rows
+from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.lit_module import ImitationModule
+from generalist_control.training.sampler import RolloutSampler
 from generalist_control.training.settings import TrainingSettings
 
 __all__ = ["METRICS_FILE", "train"]
@@ -108,18 +110,25 @@ def _trained(settings: TrainingSettings, dm: DemoDataModule) -> tuple[list[Plant
 def _callbacks(
     settings: TrainingSettings, lit: ImitationModule, dm: DemoDataModule
 ) -> tuple[list[L.Callback], L.pytorch.callbacks.ModelCheckpoint]:
-    """The config's callbacks, DAgger and the closed-loop validation."""
+    """The config's callbacks, then DAgger's and the closed-loop validation's (when on)."""
     callbacks = config_callbacks(settings.callbacks, settings.run_dir)
     ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
     plants, family = _trained(settings, dm)
-    channels = lit.policy.channels
     spec = dm.families.spec if dm.families else None
     turn, checked = (spec.dagger_plants, spec.closed_loop_plants) if spec else (0, 0)
-    own = [
-        dagger_callback(settings, dagger_plants(plants, dm.manifest), channels, family, turn),
-        closed_loop_validation(settings, plants + family[:checked]),
-    ]
-    return [*callbacks, *(c for c in own if c is not None)], ckpt_cb
+    if (dagger := settings.dagger) is not None:  # a family's plants join in turn
+        versions = dagger_plants(plants, dm.manifest)
+        sampler = RolloutSampler(
+            versions, dagger.sampler, settings.rollout_data, settings.seed, family, turn
+        )
+        labeller = ExpertLabeller(
+            dagger.labeller, settings.history, settings.horizon, lit.policy.channels
+        )
+        callbacks.append(DAggerCallback(sampler, labeller, dagger))
+    if (val := settings.closed_loop_val) is not None:
+        score = ClosedLoopScore(plants + family[:checked], list(val.amplitudes), val.duration)
+        callbacks.append(ClosedLoopValidation(score))
+    return callbacks, ckpt_cb
 
 
 def _trainer(
@@ -127,8 +136,7 @@ def _trainer(
 ) -> L.Trainer:
     """The Lightning trainer with ``callbacks``, logging to ``mlf``'s run."""
     recorder = training_run.RunRecorder(str(mlf.run_id))
-    dagger = any(isinstance(c, DAggerCallback) for c in callbacks)
-    extra = {"reload_dataloaders_every_n_epochs": 1} if dagger else {}
+    extra = {"reload_dataloaders_every_n_epochs": 1} if settings.dagger else {}
     trainer: L.Trainer = hydra.utils.instantiate(
         settings.trainer,
         callbacks=[*callbacks, recorder],
