@@ -153,13 +153,12 @@ def variants_config(data: Mapping[str, Any]) -> dict[str, Any] | None:
     return {"count": count, "seed": seed, "range": rng, "max_tries": tries}
 
 
-def hashed_config(config: Mapping[str, Any]) -> dict[str, Any]:
-    """``config`` without the variant keys when variants are off (they change nothing then)."""
+def _hashed_config(config: Mapping[str, Any], variants: bool) -> dict[str, Any]:
+    """``config`` without the variant keys when ``variants`` are off (they change nothing then)."""
     out = copy.deepcopy(dict(config))
-    data = out.get("data") or {}
-    if variants_config(data) is not None:
+    if variants:
         return out
-    data.pop("variants", None)
+    (out.get("data") or {}).pop("variants", None)
     for plant in ((out.get("systems") or {}).get("plants") or {}).values():
         if isinstance(plant, dict):
             plant.pop("variants", None)
@@ -286,13 +285,13 @@ def build_manifest(
 
     With ``data.variants`` enabled, also each plant's variants (drawn again) and rejections.
     """
-    config = hashed_config(config)
+    vcfg = variants_config(data)
+    config = _hashed_config(config, vcfg is not None)
     history, horizon = int(data["history"]), int(data["horizon"])
     steps = demos.r.shape[1]
     per_traj = windows_per_trajectory(steps, horizon)
     n_traj = {p.name: int(np.sum(demos.plant == p.name)) for p in plants}
     fams = {str(f): int(np.sum(demos.family == f)) for f in dict.fromkeys(demos.family.tolist())}
-    vcfg = variants_config(data)
     extra = {}
     if vcfg is not None:
         draws = training_variants(plants, vcfg, amplitude_grid(data["amplitudes"]), steps)
