@@ -190,20 +190,21 @@ class DemoDataModule(L.LightningDataModule):
             "n_val": len(self.val_set or ()),
         }
 
-    def _loaded(self, windows: WindowTensors | None) -> WindowTensors:
-        """``windows``, or an error saying :meth:`setup` comes first."""
+    def split(self, name: str) -> WindowTensors:
+        """The ``train`` or ``val`` windows (an error before :meth:`setup`)."""
+        windows = self.train_set if name == "train" else self.val_set
         if windows is None:
-            raise RuntimeError("DemoDataModule: call setup() before asking for a dataloader")
+            raise RuntimeError("DemoDataModule: call setup() before asking for its windows")
         return windows
 
     def train_dataloader(self) -> DataLoader:
         """Shuffled index batches over the training windows."""
-        train_set = self._loaded(self.train_set)
+        train_set = self.split("train")
         sampler = BatchIndexSampler(len(train_set), self.batch_size, True, self.seed)
         return DataLoader(train_set, sampler=sampler, batch_size=None)
 
     def val_dataloader(self) -> DataLoader:
         """Validation windows in order."""
-        val_set = self._loaded(self.val_set)
+        val_set = self.split("val")
         sampler = BatchIndexSampler(len(val_set), self.val_batch_size, False)
         return DataLoader(val_set, sampler=sampler, batch_size=None)

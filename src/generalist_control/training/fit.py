@@ -44,7 +44,7 @@ from generalist_control.training.callbacks import (
     config_callbacks,
     dagger_plants,
 )
-from generalist_control.training.datamodule import DemoDataModule, WindowTensors
+from generalist_control.training.datamodule import DemoDataModule
 from generalist_control.training.family_set import FamilySet, read_family_training, with_rows
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.lit_module import ImitationModule
@@ -78,13 +78,6 @@ def _data(
     return dm, {**dm.meta(), **facts, **trained}
 
 
-def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
-    """The tensors of a split of the set-up data module."""
-    if split is None:
-        raise RuntimeError("the data module is not set up")
-    return split.tensors
-
-
 def _module(
     settings: TrainingSettings, dm: DemoDataModule, meta: dict[str, Any]
 ) -> ImitationModule:
@@ -95,7 +88,7 @@ def _module(
         scheduler=settings.scheduler,
         meta=meta,
     )
-    lit.policy.normaliser.fit(**_tensors(dm.train_set))
+    lit.policy.normaliser.fit(**dm.split("train").tensors)
     plants, family = _trained(settings, dm)
     fit_model_rows(lit.policy, plants + family)
     return lit
@@ -320,7 +313,7 @@ def train(settings: TrainingSettings) -> tuple[dict[str, Any], dict[str, Any]]:
         name = logger["registered_model_name"]
         version = None
         if logger["log_model"]:
-            version = outputs.log_model(policy, _tensors(dm.val_set), name)
+            version = outputs.log_model(policy, dm.split("val").tensors, name)
     experiment = mlflow.MlflowClient().get_experiment(run.info.experiment_id).name
     log.info(outputs.end_message(policy_path, run_id, experiment, uri, version, str(name)))
     objects = dict(trainer=trainer, model=lit, datamodule=dm, policy=policy, run_id=run_id)

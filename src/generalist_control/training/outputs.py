@@ -187,9 +187,7 @@ def log_inputs(settings: TrainingSettings, dm: DemoDataModule, n_params: int) ->
     for path in sorted((settings.run_dir / ".hydra").glob("*.yaml")):
         mlflow.log_text(redact(path.read_text()), f"config/hydra/{path.name}")
     mlflow.log_dict(dm.manifest, "data/manifest.json")
-    if dm.train_set is None:
-        raise RuntimeError("the data module is not set up")
-    t = dm.train_set.tensors  # the training windows' schema: the run's dataset input
+    t = dm.split("train").tensors  # the training windows' schema: the run's dataset input
     with warnings.catch_warnings():
         # a local path matches two artifact-source classes of MLflow's registry alike
         warnings.filterwarnings("ignore", message=".*can be interpreted in multiple ways.*")
