@@ -20,6 +20,7 @@ import torch
 from lightning.pytorch.loggers import MLFlowLogger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
+from generalist_control.common.hydra_redact import scrub_hydra_files
 from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.secrets import redact
 from generalist_control.deploy.runtime_plants import integral_facts
@@ -250,7 +251,7 @@ def _prepare(
     settings: TrainingSettings,
 ) -> tuple[TrainingSettings, DemoDataModule, dict[str, Any], ImitationModule]:
     """Threads and seed set, data loaded, module built, resume checked; nothing logged yet."""
-    outputs.scrub_hydra_files()
+    scrub_hydra_files()
     torch.set_num_threads(settings.threads)
     L.seed_everything(settings.seed, workers=True)
     spec = read_family_training(settings.resolved["train_families"])  # null: none

@@ -16,7 +16,6 @@ from mlflow.data.numpy_dataset import from_numpy
 from mlflow.models import infer_signature
 from omegaconf import OmegaConf
 
-from generalist_control.common.hydra_redact import scrub_hydra_files
 from generalist_control.common.secrets import redact
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
@@ -41,7 +40,6 @@ __all__ = [
     "check_models_dir",
     "log_inputs",
     "log_model",
-    "scrub_hydra_files",
 ]
 
 #: ``metrics.json``: its key -> (the training's metric, whether stored as log10).
