@@ -153,9 +153,8 @@ class DemoDataModule(L.LightningDataModule):
         kept = kept_traj[windows.traj]
         self.train_set = WindowTensors(windows, kept & ~is_val)
         self.val_set = WindowTensors(windows, kept & is_val)
-        rows = zip(demos.plant.tolist(), demos.tag, demos.order, strict=True)
-        wanted = set(self.plants) if self.plants is not None else None
-        kept_rows = [(str(p), int(t), int(n)) for p, t, n in rows if wanted is None or p in wanted]
+        rows = zip(demos.plant.tolist(), demos.tag, demos.order, kept_traj, strict=True)
+        kept_rows = [(str(p), int(t), int(n)) for p, t, n, kept in rows if kept]
         self.tags = {p: t for p, t, _ in kept_rows}
         self.orders = {p: n for p, _, n in kept_rows}
         self.dt = float(demos.dt)
