@@ -28,7 +28,6 @@ from hydra import compose, initialize_config_dir
 
 from generalist_control.common.paths import conf_dir
 from generalist_control.common.sections import as_dict
-from generalist_control.data.generation import enabled_families
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import load_policy
@@ -72,12 +71,10 @@ def main() -> None:
         t_first = _median_time(first, args.repeats)
         score(RuntimeAdapter(runtime))
         t_val = _median_time(lambda: score(RuntimeAdapter(runtime)), args.repeats)
-    d = read_training(as_dict(cfg)).dagger
+    settings = read_training(as_dict(cfg))
+    d = settings.dagger
     assert d is not None, "the default config runs DAgger"
-    sampler = RolloutSampler(
-        plants, d.sampler, float(cfg.data.amplitudes.limit),
-        enabled_families(as_dict(cfg.data)), 0, 0.25, 10,
-    )  # fmt: skip
+    sampler = RolloutSampler(plants, d.sampler, settings.rollout_data, 0)
     labeller = ExpertLabeller(d.labeller, int(meta["history"]), int(meta["horizon"]),
                               policy.channels)  # fmt: skip
     bounds = {p.name: np.full(p.order, np.inf) for p in plants}

@@ -25,6 +25,7 @@ from generalist_control.training.sampler import MixedController, RolloutSampler,
 from generalist_control.training.settings import (
     DaggerSettings,
     LabellerSettings,
+    RolloutData,
     SamplerSettings,
     VariantSettings,
 )
@@ -278,7 +279,7 @@ def _sampler(plants, **settings):
     sampler_settings = config_section(
         SamplerSettings, "dagger.sampler", **{"families": 0, **settings}
     )
-    return RolloutSampler(plants, sampler_settings, 20.0, {}, 0, 0.25, 10)
+    return RolloutSampler(plants, sampler_settings, RolloutData(20.0, {}, 0.25, 10), 0)
 
 
 def test_the_sampler_takes_each_plant_s_data_variants_in_turn():
@@ -345,7 +346,7 @@ def test_fresh_variants_are_new_each_round_fit_and_labelled_by_their_own_expert(
             duration=5.0,
             variants=VariantSettings(data=0, fresh=2, seed=3001),
         )
-        return RolloutSampler(plants, settings, 20.0, {}, 0, 0.2, 10)
+        return RolloutSampler(plants, settings, RolloutData(20.0, {}, 0.2, 10), 0)
 
     cb = fresh([servo, unstable])
     first = cb.round_plants(0)[2:]
@@ -450,7 +451,7 @@ def test_sampler_noise_and_actuator_scale_with_each_plant_s_control_scale(monkey
         SamplerSettings, "dagger.sampler", rollouts=1, duration=1.0, families=0, noise=0.1,
         actuator=ActuatorSettings(lag=0.5, offset=0.2),
     )  # fmt: skip
-    RolloutSampler(plants, settings, 20.0, {}, 5, 0.25, 10).run(2, runtime, 0.3)
+    RolloutSampler(plants, settings, RolloutData(20.0, {}, 0.25, 10), 5).run(2, runtime, 0.3)
     assert captured["noise"] == pytest.approx({p.name: 0.1 * (1.0 + p.tag) for p in plants})
     for p in plants:
         assert captured["actuator"][p.name] == pytest.approx((0.5, 0.2 * (1.0 + p.tag)))

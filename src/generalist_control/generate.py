@@ -5,9 +5,9 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from generalist_control.common.sections import as_dict
 from generalist_control.common.stage_main import stage_main
@@ -22,7 +22,8 @@ log = logging.getLogger(__name__)
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Validate the config (tags the policy takes too), generate and write; the manifest."""
-    plants = plants_from_config(as_dict(cfg.systems))
+    systems, data = as_dict(cfg.systems), as_dict(cfg.data)
+    plants = plants_from_config(systems)
     check_tags(plants, cfg.model.plant.n_tags)
     if "OPENBLAS_CORETYPE" not in os.environ:
         log.warning(
@@ -31,10 +32,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         )
     out_dir = Path(cfg.paths.data_dir)
     check_data_dir(out_dir)  # refuse a folder of someone else's files before any work
-    data = cast(dict[str, Any], OmegaConf.to_container(cfg.data, resolve=True))
-    config = {"systems": OmegaConf.to_container(cfg.systems, resolve=True), "data": data}
     demos = generate_demos(plants, data)
-    manifest = build_manifest(plants, demos, data, config)
+    manifest = build_manifest(plants, demos, data, {"systems": systems, "data": data})
     write_demos(out_dir, demos, manifest)
     log.info(
         "wrote %d demonstrations (%d trajectories, %d plants) to %s, %s",

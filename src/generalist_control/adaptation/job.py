@@ -7,6 +7,7 @@ row included. A tag-free policy is only named for the plant (its scales on a fre
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -44,7 +45,7 @@ from generalist_control.plants.definition import Plant
 from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.simulation.simulate import simulate_many
 from generalist_control.tracking import mlflow_utils
-from generalist_control.training.callbacks import dagger_round, rollout_sampler
+from generalist_control.training.callbacks import dagger_round
 from generalist_control.training.datamodule import WindowTensors
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
@@ -200,11 +201,6 @@ class AdaptJob:
     score: LoopScore  #: picks the row kept
     base_sha256: str  #: the base policy file's hash: how its training run is found
 
-    @property
-    def settings(self) -> AdaptSettings:
-        """The ``adapt`` section."""
-        return self.request.adapt
-
 
 def _free_row(policy: Policy, meta: dict[str, Any], new: NewPlant) -> int:
     """A normaliser row no trained plant holds (tag-free): its file's tag if free."""
@@ -233,10 +229,10 @@ def _windows(request: AdaptRequest, new: NewPlant, policy: Policy) -> tuple[Wind
 
 def _dagger(request: AdaptRequest, new: NewPlant, policy: Policy) -> tuple | None:
     """The training's sampler (on the new plant alone) and labeller; None without rounds."""
-    spec, data = request.dagger, rollout_data(request.data)
+    spec = request.dagger
     if spec is None or request.demos is not None or not request.adapt.rounds:
         return None  # a recorded controller cannot label the states the policy visits
-    sampler = rollout_sampler([new.plant], spec, data, request.seed)
+    sampler = RolloutSampler([new.plant], spec.sampler, rollout_data(request.data), request.seed)
     return sampler, ExpertLabeller(spec.labeller, policy.history, policy.horizon, policy.channels)
 
 
@@ -277,10 +273,10 @@ def _start(job: AdaptJob, tensors: dict[str, torch.Tensor]) -> tuple[Policy, dic
     candidates = {**start_rows(job.policy, tags.values()), **{n: rows[t] for n, t in tags.items()}}
     grown = grow_policy(job.policy, candidates["mean"], scales)
     chosen, losses = "mean", dict[str, float]()
-    if job.settings.init == "nearest":
+    if job.request.adapt.init == "nearest":
         chosen, losses = nearest_row(grown, job.new.plant.tag, tensors, candidates)
         set_row(grown, job.new.plant.tag, candidates[chosen])
-    return grown, {"mode": job.settings.init, "chosen": chosen, "losses": losses}
+    return grown, {"mode": job.request.adapt.init, "chosen": chosen, "losses": losses}
 
 
 def _meta(job: AdaptJob, record: dict[str, Any]) -> dict[str, Any]:
@@ -295,19 +291,13 @@ def _meta(job: AdaptJob, record: dict[str, Any]) -> dict[str, Any]:
     return plant_meta(job.meta, job.new.plant, facts)
 
 
-def _snapshot(policy: Policy, tag: int, learned: dict[str, torch.nn.Parameter]) -> dict:
-    """The row ``tag`` and the ``learned`` parameters, copied."""
-    keep = {"row": policy.state_dict()[ROWS][tag].clone()}
-    return keep | {k: p.detach().clone() for k, p in learned.items()}
-
-
 def _fit(
     job: AdaptJob, policy: Policy, meta: dict[str, Any], data: WindowTensors, start: float
 ) -> dict[str, Any]:
-    """The fit, then each DAgger round and fit; the lowest-scoring row (later on a tie) kept."""
-    s, tag = job.settings, job.new.plant.tag
+    """The fit, then each DAgger round and fit; the lowest-scoring state (later on a tie) kept."""
+    s, tag = job.request.adapt, job.new.plant.tag
     learned = learned_parameters(policy, s.unfreeze)
-    best, kept, keep = start, "start", _snapshot(policy, tag, learned)
+    best, kept, keep = start, "start", copy.deepcopy(policy.state_dict())
     scores, losses, added = [], [], 0
     for i in range(1 + (s.rounds if job.dagger else 0)):
         if i:  # DAgger round i: roll out, label, add, fit again
@@ -318,15 +308,9 @@ def _fit(
         losses += fit_row(policy, tag, data.tensors, s, learned, job.request.seed + i)
         scores.append(job.score(policy, meta))
         if scores[-1] <= best:
-            best, kept, keep = (
-                scores[-1],
-                f"round {i}" if i else "fit",
-                _snapshot(policy, tag, learned),
-            )
-    set_row(policy, tag, keep["row"])
-    with torch.no_grad():
-        for k, p in learned.items():
-            p.copy_(keep[k])
+            best, kept = scores[-1], f"round {i}" if i else "fit"
+            keep = copy.deepcopy(policy.state_dict())
+    policy.load_state_dict(keep)
     loop = {
         "start": start,
         "fit": scores[0],
@@ -342,11 +326,11 @@ def learn(job: AdaptJob) -> tuple[Policy, dict[str, Any], dict[str, Any]]:
     data = WindowTensors(job.windows)
     plant, tag = job.new.plant, job.new.plant.tag
     policy, init = _start(job, data.tensors)
-    learning = job.settings.learn and policy.net.plant.reads_tag
+    learning = job.request.adapt.learn and policy.net.plant.reads_tag
     record: dict[str, Any] = {
         "plant": plant.name, "tag": tag, "file_tag": job.new.file_tag,
         "plant_file": str(job.new.path), "demonstrations": dict(job.demos),
-        "learned": [f"{ROWS}[{tag}]", *job.settings.unfreeze] if learning else [],
+        "learned": [f"{ROWS}[{tag}]", *job.request.adapt.unfreeze] if learning else [],
         "init": init,
     }  # fmt: skip
     meta = _meta(job, record)

@@ -9,6 +9,7 @@ from typing import Any
 
 from generalist_control.common.sections import (
     SettingError,
+    at_least,
     positive,
     read_section,
     require_int,
@@ -40,11 +41,8 @@ class AdaptSettings:
     def __post_init__(self) -> None:
         if self.init not in INITS:
             raise SettingError("init", f"must be one of {list(INITS)}, got {self.init!r}")
-        for name in ("epochs", "rounds"):
-            if getattr(self, name) < 0:
-                raise SettingError(name, f"must be >= 0, got {getattr(self, name)}")
-        if self.batch_size < 1:
-            raise SettingError("batch_size", f"must be >= 1, got {self.batch_size}")
+        at_least(0, self, "epochs", "rounds")
+        at_least(1, self, "batch_size")
         positive("lr", self.lr)
         unit_interval("beta", self.beta)
         unit_interval("beta_decay", self.beta_decay)
@@ -72,8 +70,11 @@ class AdaptRequest:
     listed: tuple[str, ...]  #: the plants of ``systems`` (the evaluate command adds others)
 
 
-def read_request(cfg: Mapping[str, Any], run_dir: Path) -> AdaptRequest:
-    """The composed ``conf/adapt.yaml`` (plain types, resolved), checked and typed.
+def read_request(config: Mapping[str, Any], run_dir: Path) -> AdaptRequest:
+    """The adapt command's settings, checked and typed.
+
+    ``config`` is the whole of ``conf/adapt.yaml`` composed and resolved to plain types (not a
+    ``DictConfig``); ``run_dir`` the run folder the command writes.
 
     Raises
     ------
@@ -81,32 +82,32 @@ def read_request(cfg: Mapping[str, Any], run_dir: Path) -> AdaptRequest:
         Naming the key: no ``plant``, a bad ``adapt`` setting, ``closed_loop_val=null``,
         DAgger rounds with ``dagger=null``.
     """
-    if not cfg["plant"]:
+    if not config["plant"]:
         raise ValueError("plant= is required: a catalogue name or the path of a plant YAML")
-    settings = read_section(AdaptSettings, cfg["adapt"], "adapt")
-    if cfg["closed_loop_val"] is None:
+    settings = read_section(AdaptSettings, config["adapt"], "adapt")
+    if config["closed_loop_val"] is None:
         raise ValueError(
             "closed_loop_val=null: adapt scores each row's closed loop with it to keep the "
             "best; leave closed_loop_val as configured"
         )
-    dagger = cfg["dagger"]
-    if dagger is None and settings.learn and settings.rounds and not cfg["demos"]:
+    dagger = config["dagger"]
+    if dagger is None and settings.learn and settings.rounds and not config["demos"]:
         raise ValueError(
             f"adapt.rounds={settings.rounds} needs DAgger's sampler and labeller, which "
             "dagger=null turns off: set adapt.rounds=0, or leave dagger as configured"
         )
-    default_policy = Path(cfg["paths"]["models_dir"]) / POLICY_FILE
+    default_policy = Path(config["paths"]["models_dir"]) / POLICY_FILE
     return AdaptRequest(
-        plant=str(cfg["plant"]),
-        policy=str(cfg["policy"] or default_policy),
-        demos=str(cfg["demos"]) if cfg["demos"] else None,
+        plant=str(config["plant"]),
+        policy=str(config["policy"] or default_policy),
+        demos=str(config["demos"]) if config["demos"] else None,
         run_dir=Path(run_dir),
-        seed=require_int("seed", cfg["seed"], minimum=0),
-        threads=require_int("threads", cfg["threads"]),
+        seed=require_int("seed", config["seed"], minimum=0),
+        threads=require_int("threads", config["threads"]),
         adapt=settings,
         dagger=None if dagger is None else read_section(DaggerSettings, dagger, "dagger"),
-        scoring=read_section(ClosedLoopValSettings, cfg["closed_loop_val"], "closed_loop_val"),
-        data=cfg["data"],
-        logger=cfg["logger"],
-        listed=tuple(cfg["systems"]["plants"]),
+        scoring=read_section(ClosedLoopValSettings, config["closed_loop_val"], "closed_loop_val"),
+        data=config["data"],
+        logger=config["logger"],
+        listed=tuple(config["systems"]["plants"]),
     )

@@ -116,7 +116,7 @@ def _log(
     job: AdaptJob, record: Mapping[str, Any], policy: Policy, base: str | None, base_run: str
 ) -> None:
     """The run's params, tags and metrics."""
-    settings = {f"adapt.{k}": str(v) for k, v in dataclasses.asdict(job.settings).items()}
+    settings = {f"adapt.{k}": str(v) for k, v in dataclasses.asdict(job.request.adapt).items()}
     mlflow.log_params({
         "plant": job.new.name, "plant.file": str(job.new.path),
         "policy": redact(job.request.policy), "demos": str(job.demos["source"]),

@@ -22,6 +22,7 @@ __all__ = [
     "ConfigTree",
     "SettingError",
     "as_dict",
+    "at_least",
     "lookup",
     "positive",
     "read_section",
@@ -79,6 +80,19 @@ def positive(name: str, value: float, strict: bool = True) -> None:
         )
 
 
+def _integer_at_least(low: int) -> str:
+    """What an integer setting must be: ``a positive integer`` for ``low`` 1, ..."""
+    return {0: "a non-negative integer", 1: "a positive integer"}.get(low, f"an integer >= {low}")
+
+
+def at_least(low: int, section: Any, *names: str) -> None:
+    """Raise :class:`SettingError` for the first of ``section``'s ``names`` below ``low``."""
+    for name in names:
+        value = getattr(section, name)
+        if value is not None and value < low:
+            raise SettingError(name, f"must be {_integer_at_least(low)}, got {value}")
+
+
 def _kind(value: Any) -> str:
     """``value`` and its type, for an error message."""
     return f"{value!r} ({type(value).__name__})"
@@ -104,10 +118,7 @@ def require_int(key: str, value: Any, minimum: int = 1) -> int:
     if not _SCALARS[int][1](value):
         raise ValueError(f"{key} must be an integer, got {_kind(value)}")
     if value < minimum:
-        what = {0: "a non-negative integer", 1: "a positive integer"}.get(
-            minimum, f"an integer >= {minimum}"
-        )
-        raise ValueError(f"{key} must be {what}, got {value}")
+        raise ValueError(f"{key} must be {_integer_at_least(minimum)}, got {value}")
     return int(value)
 
 

@@ -24,7 +24,7 @@ from generalist_control.plants.definition import MAX_ORDER, Plant, pad_states
 from generalist_control.plants.variants import variant_range
 from generalist_control.simulation.lqi import LQIController, design_lqi
 from generalist_control.simulation.references import FAMILIES, family_references
-from generalist_control.simulation.simulate import Trajectory, simulate
+from generalist_control.simulation.simulate import simulate
 from generalist_control.simulation.variant_sampling import VariantDraw, sample_variants
 
 __all__ = [
@@ -46,8 +46,8 @@ class DataConfigError(ValueError):
     """The ``data`` config is invalid; the message names the field."""
 
 
-def amplitude_grid(cfg: Mapping[str, Any]) -> np.ndarray:
-    """The sorted step-amplitude grid of ``data.amplitudes``, without zero.
+def amplitude_grid(amplitudes: Mapping[str, Any]) -> np.ndarray:
+    """The sorted step-amplitude grid of the ``data.amplitudes`` node, without zero.
 
     Each segment ``{start, stop, step}`` gives ``start, start + step, ..., stop``;
     ``symmetric`` adds the negatives.
@@ -57,9 +57,9 @@ def amplitude_grid(cfg: Mapping[str, Any]) -> np.ndarray:
     DataConfigError
         If a segment is malformed or reaches outside ``+-limit``.
     """
-    limit = float(cfg["limit"])
+    limit = float(amplitudes["limit"])
     values: list[np.ndarray] = []
-    segments = cfg.get("segments") or []
+    segments = amplitudes["segments"] or []
     if not segments:
         raise DataConfigError("data.amplitudes.segments is empty: give at least one segment")
     for i, seg in enumerate(segments):
@@ -81,7 +81,7 @@ def amplitude_grid(cfg: Mapping[str, Any]) -> np.ndarray:
         count = int(np.floor((stop - start) / step + 1e-9)) + 1
         values.append(np.round(start + step * np.arange(count), 10))
     grid = np.concatenate(values)
-    if cfg["symmetric"]:
+    if amplitudes["symmetric"]:
         grid = np.concatenate([grid, -grid])
     grid = np.unique(grid[grid != 0.0])
     return grid
@@ -153,13 +153,12 @@ def variants_config(data: Mapping[str, Any]) -> dict[str, Any] | None:
     return {"count": count, "seed": seed, "range": rng, "max_tries": tries}
 
 
-def hashed_config(config: Mapping[str, Any]) -> dict[str, Any]:
-    """``config`` without the variant keys when variants are off (they change nothing then)."""
+def _hashed_config(config: Mapping[str, Any], variants: bool) -> dict[str, Any]:
+    """``config`` without the variant keys when ``variants`` are off (they change nothing then)."""
     out = copy.deepcopy(dict(config))
-    data = out.get("data") or {}
-    if variants_config(data) is not None:
+    if variants:
         return out
-    data.pop("variants", None)
+    (out.get("data") or {}).pop("variants", None)
     for plant in ((out.get("systems") or {}).get("plants") or {}).values():
         if isinstance(plant, dict):
             plant.pop("variants", None)
@@ -177,29 +176,6 @@ def training_variants(
         )
         for p in plants
     }
-
-
-def simulate_assigned(
-    draw: VariantDraw,
-    ctrl: LQIController,
-    r: np.ndarray,
-    x0: np.ndarray | None,
-    start: int,
-) -> tuple[Trajectory, np.ndarray]:
-    """Row ``j`` of ``r`` run on slot ``(start + j) mod (count + 1)``; trajectories and slots."""
-    slots = (start + np.arange(len(r))) % (len(draw.kept) + 1)
-    plants = [(draw.nominal, ctrl)] + [(v.plant, LQIController(v.plant)) for v in draw.kept]
-    n, steps = draw.nominal.order, r.shape[1]
-    x = np.zeros((len(r), steps + 1, n))
-    y, u = np.zeros((len(r), steps + 1)), np.zeros((len(r), steps))
-    diverged = np.zeros(len(r), bool)
-    for slot, (plant, c) in enumerate(plants):
-        rows = np.flatnonzero(slots == slot)
-        if rows.size:
-            tr = simulate(plant, c, r[rows], None if x0 is None else x0[rows])
-            x[rows], y[rows], u[rows], diverged[rows] = tr.x, tr.y, tr.u, tr.diverged
-    t = np.arange(steps + 1) * draw.nominal.dt
-    return Trajectory(t=t, x=x, u=u, r=r, y=y, diverged=diverged), slots
 
 
 def _plant_runs(
@@ -227,19 +203,27 @@ def _run(
     r: np.ndarray,
     x0: np.ndarray | None,
     done: int,
-) -> tuple[Trajectory, np.ndarray]:
-    """One family's runs of a plant (dealt to its variants, if any) and each run's slot."""
-    if draw is None:
-        traj, slots = simulate(plant, ctrl, r, x0), np.zeros(len(r), dtype=np.int64)
-    else:
-        traj, slots = simulate_assigned(draw, ctrl, r, x0, done)
-    if traj.diverged.any():
-        which = sorted({int(v) for v in slots[traj.diverged]})
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One family's runs of a plant: states, controls, outputs and each run's slot.
+
+    Row ``j`` runs on slot ``(done + j) mod (variants + 1)``: the plant (0) or one of its variants.
+    """
+    variants = [(v.plant, LQIController(v.plant)) for v in draw.kept] if draw else []
+    slots = (done + np.arange(len(r))) % (len(variants) + 1)
+    x, u = np.zeros((len(r), r.shape[1] + 1, plant.order)), np.zeros(r.shape)
+    y, diverged = np.zeros((len(r), r.shape[1] + 1)), np.zeros(len(r), bool)
+    for slot, (version, c) in enumerate([(plant, ctrl), *variants]):
+        rows = np.flatnonzero(slots == slot)
+        if rows.size:
+            tr = simulate(version, c, r[rows], None if x0 is None else x0[rows])
+            x[rows], y[rows], u[rows], diverged[rows] = tr.x, tr.y, tr.u, tr.diverged
+    if diverged.any():
+        which = sorted({int(v) for v in slots[diverged]})
         raise RuntimeError(
             f"plant '{plant.name}': LQI closed loop diverged in the data stage "
             f"(family '{family}'" + (f", variants {which})" if draw else ")")
         )
-    return traj, slots
+    return x, u, y, slots
 
 
 def generate_demos(
@@ -267,13 +251,13 @@ def generate_demos(
         done = 0
         for family, r, x0 in _plant_runs(plant, grid, families, steps):
             draw = None if draws is None else draws[plant.name]
-            traj, slots = _run(plant, ctrl, draw, family, r, x0, done)
+            x, u, y, slots = _run(plant, ctrl, draw, family, r, x0, done)
             parts["variant"].append(slots)
             done += len(r)
-            parts["x"].append(pad_states(traj.x[:, :steps]))
-            parts["r"].append(traj.r)
-            parts["u"].append(traj.u)
-            parts["y"].append(traj.y[:, :steps])
+            parts["x"].append(pad_states(x[:, :steps]))
+            parts["r"].append(r)
+            parts["u"].append(u)
+            parts["y"].append(y[:, :steps])
             parts["fam"].append(np.full(len(r), family))
             parts["plant"].append(np.full(len(r), plant.tag))
     tags = np.concatenate(parts["plant"]).astype(np.int64)
@@ -301,13 +285,13 @@ def build_manifest(
 
     With ``data.variants`` enabled, also each plant's variants (drawn again) and rejections.
     """
-    config = hashed_config(config)
+    vcfg = variants_config(data)
+    config = _hashed_config(config, vcfg is not None)
     history, horizon = int(data["history"]), int(data["horizon"])
     steps = demos.r.shape[1]
     per_traj = windows_per_trajectory(steps, horizon)
     n_traj = {p.name: int(np.sum(demos.plant == p.name)) for p in plants}
     fams = {str(f): int(np.sum(demos.family == f)) for f in dict.fromkeys(demos.family.tolist())}
-    vcfg = variants_config(data)
     extra = {}
     if vcfg is not None:
         draws = training_variants(plants, vcfg, amplitude_grid(data["amplitudes"]), steps)

@@ -22,17 +22,14 @@ from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.training.datamodule import WindowTensors
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
-from generalist_control.training.settings import DaggerSettings, RolloutData, TrainingSettings
+from generalist_control.training.settings import DaggerSettings
 
 __all__ = [
     "ClosedLoopValidation",
     "DAggerCallback",
-    "closed_loop_validation",
     "config_callbacks",
-    "dagger_callback",
     "dagger_plants",
     "dagger_round",
-    "rollout_sampler",
 ]
 
 log = logging.getLogger(__name__)
@@ -137,54 +134,6 @@ def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
         out.append(p)
         out.extend(make_variant(p, v["factors"]) for v in recorded.get(p.name, {}).get("kept", []))
     return out
-
-
-def rollout_sampler(
-    plants: Sequence[Plant], spec: DaggerSettings, data: RolloutData, seed: int, **rounds: Any
-) -> RolloutSampler:
-    """DAgger's rollout sampler on ``plants`` from the data recipe's rollout facts.
-
-    ``rounds``: a family's ``rotating`` plants and how many join each round (``per_round``).
-    """
-    return RolloutSampler(
-        plants,
-        spec.sampler,
-        limit=data.amplitude_limit,
-        families=data.families,
-        seed=seed,
-        variant_range=data.variant_range,
-        variant_tries=data.variant_tries,
-        **rounds,
-    )
-
-
-def dagger_callback(
-    settings: TrainingSettings,
-    plants: list[Plant],
-    channels: tuple[str, ...],
-    rotating: Sequence[Plant] = (),
-    per_round: int = 0,
-) -> L.Callback | None:
-    """The DAgger callback on ``plants`` (None when ``dagger`` is off).
-
-    ``rotating`` plants (a family's) join each round, ``per_round`` at a time, in turn.
-    """
-    spec = settings.dagger
-    if spec is None:
-        return None
-    sampler = rollout_sampler(
-        plants, spec, settings.rollout_data, settings.seed, rotating=rotating, per_round=per_round
-    )
-    labeller = ExpertLabeller(spec.labeller, settings.history, settings.horizon, channels)
-    return DAggerCallback(sampler, labeller, spec)
-
-
-def closed_loop_validation(settings: TrainingSettings, plants: list[Plant]) -> L.Callback | None:
-    """``val/closed_loop`` on ``plants`` (None when ``closed_loop_val`` is off)."""
-    spec = settings.closed_loop_val
-    if spec is None:
-        return None
-    return ClosedLoopValidation(ClosedLoopScore(plants, list(spec.amplitudes), spec.duration))
 
 
 def config_callbacks(nodes: Sequence[Mapping[str, Any]], run_dir: Path) -> list[L.Callback]:

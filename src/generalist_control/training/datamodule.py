@@ -17,7 +17,6 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from generalist_control.common.sections import require_int
 from generalist_control.data.demos import MissingDataError, load_demos
 from generalist_control.data.windows import Windows
 from generalist_control.training.family_set import FamilySet
@@ -123,8 +122,7 @@ class DemoDataModule(L.LightningDataModule):
         self.data_dir = Path(data_dir)
         self.integral = "integral" in channels
         self.controls = "previous_control" in channels
-        self.history = require_int("data.history", history)
-        self.horizon = require_int("data.horizon", horizon)
+        self.history, self.horizon = int(history), int(horizon)
         self.val_fraction = loader.val_fraction
         self.batch_size, self.val_batch_size = loader.batch_size, loader.val_batch_size
         self.seed = int(seed)
@@ -155,9 +153,8 @@ class DemoDataModule(L.LightningDataModule):
         kept = kept_traj[windows.traj]
         self.train_set = WindowTensors(windows, kept & ~is_val)
         self.val_set = WindowTensors(windows, kept & is_val)
-        rows = zip(demos.plant.tolist(), demos.tag, demos.order, strict=True)
-        wanted = set(self.plants) if self.plants is not None else None
-        kept_rows = [(str(p), int(t), int(n)) for p, t, n in rows if wanted is None or p in wanted]
+        rows = zip(demos.plant.tolist(), demos.tag, demos.order, kept_traj, strict=True)
+        kept_rows = [(str(p), int(t), int(n)) for p, t, n, kept in rows if kept]
         self.tags = {p: t for p, t, _ in kept_rows}
         self.orders = {p: n for p, _, n in kept_rows}
         self.dt = float(demos.dt)
@@ -192,20 +189,21 @@ class DemoDataModule(L.LightningDataModule):
             "n_val": len(self.val_set or ()),
         }
 
-    def _loaded(self, windows: WindowTensors | None) -> WindowTensors:
-        """``windows``, or an error saying :meth:`setup` comes first."""
+    def split(self, name: str) -> WindowTensors:
+        """The ``train`` or ``val`` windows (an error before :meth:`setup`)."""
+        windows = self.train_set if name == "train" else self.val_set
         if windows is None:
-            raise RuntimeError("DemoDataModule: call setup() before asking for a dataloader")
+            raise RuntimeError("DemoDataModule: call setup() before asking for its windows")
         return windows
 
     def train_dataloader(self) -> DataLoader:
         """Shuffled index batches over the training windows."""
-        train_set = self._loaded(self.train_set)
+        train_set = self.split("train")
         sampler = BatchIndexSampler(len(train_set), self.batch_size, True, self.seed)
         return DataLoader(train_set, sampler=sampler, batch_size=None)
 
     def val_dataloader(self) -> DataLoader:
         """Validation windows in order."""
-        val_set = self._loaded(self.val_set)
+        val_set = self.split("val")
         sampler = BatchIndexSampler(len(val_set), self.val_batch_size, False)
         return DataLoader(val_set, sampler=sampler, batch_size=None)

@@ -20,6 +20,7 @@ import torch
 from lightning.pytorch.loggers import MLFlowLogger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
+from generalist_control.common.hydra_redact import scrub_hydra_files
 from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.secrets import redact
 from generalist_control.deploy.runtime_plants import integral_facts
@@ -34,19 +35,21 @@ from generalist_control.model.policy import (
 )
 from generalist_control.plants.catalog import tag_count
 from generalist_control.plants.definition import Plant
+from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.tracking import training_run
 from generalist_control.tracking.mlflow_utils import POLICY_HASH_TAG
 from generalist_control.training import outputs
 from generalist_control.training.callbacks import (
+    ClosedLoopValidation,
     DAggerCallback,
-    closed_loop_validation,
     config_callbacks,
-    dagger_callback,
     dagger_plants,
 )
-from generalist_control.training.datamodule import DemoDataModule, WindowTensors
+from generalist_control.training.datamodule import DemoDataModule
 from generalist_control.training.family_set import FamilySet, read_family_training, with_rows
+from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.lit_module import ImitationModule
+from generalist_control.training.sampler import RolloutSampler
 from generalist_control.training.settings import TrainingSettings
 
 __all__ = ["METRICS_FILE", "train"]
@@ -76,13 +79,6 @@ def _data(
     return dm, {**dm.meta(), **facts, **trained}
 
 
-def _tensors(split: WindowTensors | None) -> dict[str, torch.Tensor]:
-    """The tensors of a split of the set-up data module."""
-    if split is None:
-        raise RuntimeError("the data module is not set up")
-    return split.tensors
-
-
 def _module(
     settings: TrainingSettings, dm: DemoDataModule, meta: dict[str, Any]
 ) -> ImitationModule:
@@ -93,7 +89,7 @@ def _module(
         scheduler=settings.scheduler,
         meta=meta,
     )
-    lit.policy.normaliser.fit(**_tensors(dm.train_set))
+    lit.policy.normaliser.fit(**dm.split("train").tensors)
     plants, family = _trained(settings, dm)
     fit_model_rows(lit.policy, plants + family)
     return lit
@@ -108,18 +104,25 @@ def _trained(settings: TrainingSettings, dm: DemoDataModule) -> tuple[list[Plant
 def _callbacks(
     settings: TrainingSettings, lit: ImitationModule, dm: DemoDataModule
 ) -> tuple[list[L.Callback], L.pytorch.callbacks.ModelCheckpoint]:
-    """The config's callbacks, DAgger and the closed-loop validation."""
+    """The config's callbacks, then DAgger's and the closed-loop validation's (when on)."""
     callbacks = config_callbacks(settings.callbacks, settings.run_dir)
     ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
     plants, family = _trained(settings, dm)
-    channels = lit.policy.channels
     spec = dm.families.spec if dm.families else None
     turn, checked = (spec.dagger_plants, spec.closed_loop_plants) if spec else (0, 0)
-    own = [
-        dagger_callback(settings, dagger_plants(plants, dm.manifest), channels, family, turn),
-        closed_loop_validation(settings, plants + family[:checked]),
-    ]
-    return [*callbacks, *(c for c in own if c is not None)], ckpt_cb
+    if (dagger := settings.dagger) is not None:  # a family's plants join in turn
+        versions = dagger_plants(plants, dm.manifest)
+        sampler = RolloutSampler(
+            versions, dagger.sampler, settings.rollout_data, settings.seed, family, turn
+        )
+        labeller = ExpertLabeller(
+            dagger.labeller, settings.history, settings.horizon, lit.policy.channels
+        )
+        callbacks.append(DAggerCallback(sampler, labeller, dagger))
+    if (val := settings.closed_loop_val) is not None:
+        score = ClosedLoopScore(plants + family[:checked], list(val.amplitudes), val.duration)
+        callbacks.append(ClosedLoopValidation(score))
+    return callbacks, ckpt_cb
 
 
 def _trainer(
@@ -127,8 +130,7 @@ def _trainer(
 ) -> L.Trainer:
     """The Lightning trainer with ``callbacks``, logging to ``mlf``'s run."""
     recorder = training_run.RunRecorder(str(mlf.run_id))
-    dagger = any(isinstance(c, DAggerCallback) for c in callbacks)
-    extra = {"reload_dataloaders_every_n_epochs": 1} if dagger else {}
+    extra = {"reload_dataloaders_every_n_epochs": 1} if settings.dagger else {}
     trainer: L.Trainer = hydra.utils.instantiate(
         settings.trainer,
         callbacks=[*callbacks, recorder],
@@ -179,15 +181,10 @@ def _stopped(exc: SystemExit, trainer: L.Trainer) -> int | None:
     return None
 
 
-def check_resume(ckpt_path: str, meta: dict[str, Any], max_epochs: int | None = None) -> None:
-    """Refuse to resume from a checkpoint of other data, other plants, or nothing left to do.
-
-    Raises
-    ------
-    ValueError
-        Other data (content hash), another plant set, or (given ``max_epochs``) all epochs
-        already run, so that a resume would only publish the old checkpoint.
-    """
+def _check_resume(
+    settings: TrainingSettings, ckpt_path: str, meta: dict[str, Any], lit: ImitationModule
+) -> None:
+    """Refuse a checkpoint of other data, plants or model, or with no epoch left to train."""
     blob = torch.load(ckpt_path, map_location="cpu", weights_only=True)
     old = blob.get("hyper_parameters", {}).get("meta", {})
     if old.get("content_hash") != meta["content_hash"]:
@@ -201,37 +198,31 @@ def check_resume(ckpt_path: str, meta: dict[str, Any], max_epochs: int | None = 
             f"this config's set is {sorted(meta['tags'])}: resume with the same systems "
             "(systems, systems.include), or drop ckpt_path to start a new run"
         )
-    done = int(blob.get("epoch", -1)) + 1
-    if max_epochs is not None and done >= max_epochs:
-        raise ValueError(
-            f"checkpoint {ckpt_path} has finished {done} epochs and trainer.max_epochs is "
-            f"{max_epochs}: there is nothing left to train; raise trainer.max_epochs, or "
-            "drop ckpt_path to start a new run"
-        )
-
-
-def _check_fits(settings: TrainingSettings, ckpt_path: str, lit: ImitationModule) -> None:
-    """Refuse, before any run is touched, a checkpoint whose weights do not fit ``lit``."""
-    blob = torch.load(ckpt_path, map_location="cpu", weights_only=True)
     saved, own = blob.get("state_dict", {}), lit.state_dict()
     bad = sorted(set(saved) ^ set(own))
     bad += [k for k in own if k in saved and tuple(saved[k].shape) != tuple(own[k].shape)]
-    if not bad:
-        return
-    old = blob.get("hyper_parameters", {}).get("model", {})
-    diff = {
-        f"model.{k}": (old[k], v)
-        for k, v in settings.model.items()
-        if isinstance(old, dict) and k in old and old[k] != v
-    }
-    shown = "; ".join(f"{k}: checkpoint {a}, config {b}" for k, (a, b) in diff.items())
-    fix = " ".join(f"{k}={a}" for k, (a, _) in diff.items()) or "the checkpoint's model config"
-    raise ValueError(
-        f"checkpoint {ckpt_path} does not fit the model this config builds"
-        f" ({shown or 'same model config'}); parameters that differ: {', '.join(bad[:6])}"
-        f"{' ...' if len(bad) > 6 else ''}. Resume with the checkpoint's settings ({fix}), "
-        "or drop ckpt_path to start a new run"
-    )
+    if bad:
+        old_model = blob.get("hyper_parameters", {}).get("model", {})
+        diff = {
+            f"model.{k}": (old_model[k], v)
+            for k, v in settings.model.items()
+            if isinstance(old_model, dict) and k in old_model and old_model[k] != v
+        }
+        shown = "; ".join(f"{k}: checkpoint {a}, config {b}" for k, (a, b) in diff.items())
+        fix = " ".join(f"{k}={a}" for k, (a, _) in diff.items()) or "the checkpoint's model config"
+        raise ValueError(
+            f"checkpoint {ckpt_path} does not fit the model this config builds"
+            f" ({shown or 'same model config'}); parameters that differ: {', '.join(bad[:6])}"
+            f"{' ...' if len(bad) > 6 else ''}. Resume with the checkpoint's settings ({fix}), "
+            "or drop ckpt_path to start a new run"
+        )
+    done = int(blob.get("epoch", -1)) + 1
+    if done >= settings.max_epochs:
+        raise ValueError(
+            f"checkpoint {ckpt_path} has finished {done} epochs and trainer.max_epochs is "
+            f"{settings.max_epochs}: there is nothing left to train; raise trainer.max_epochs, "
+            "or drop ckpt_path to start a new run"
+        )
 
 
 def _publish(
@@ -260,22 +251,18 @@ def _prepare(
     settings: TrainingSettings,
 ) -> tuple[TrainingSettings, DemoDataModule, dict[str, Any], ImitationModule]:
     """Threads and seed set, data loaded, module built, resume checked; nothing logged yet."""
-    outputs.scrub_hydra_files()
+    scrub_hydra_files()
     torch.set_num_threads(settings.threads)
     L.seed_everything(settings.seed, workers=True)
-    ckpt_path = settings.ckpt_path
     spec = read_family_training(settings.resolved["train_families"])  # null: none
     families = FamilySet.load(spec.dirs, tag_count(), spec) if spec else None
     settings = dataclasses.replace(settings, model=with_rows(settings.model, families))
     with torch.random.fork_rng():  # the model config checked before the data is read
         channels = Policy(settings.model).channels
     dm, meta = _data(settings, channels, families)
-    if ckpt_path:
-        check_resume(ckpt_path, meta)
     lit = _module(settings, dm, meta)
-    if ckpt_path:
-        _check_fits(settings, ckpt_path, lit)
-        check_resume(ckpt_path, meta, settings.max_epochs)
+    if settings.ckpt_path:
+        _check_resume(settings, settings.ckpt_path, meta, lit)
     return settings, dm, meta, lit
 
 
@@ -327,7 +314,7 @@ def train(settings: TrainingSettings) -> tuple[dict[str, Any], dict[str, Any]]:
         name = logger["registered_model_name"]
         version = None
         if logger["log_model"]:
-            version = outputs.log_model(policy, _tensors(dm.val_set), name)
+            version = outputs.log_model(policy, dm.split("val").tensors, name)
     experiment = mlflow.MlflowClient().get_experiment(run.info.experiment_id).name
     log.info(outputs.end_message(policy_path, run_id, experiment, uri, version, str(name)))
     objects = dict(trainer=trainer, model=lit, datamodule=dm, policy=policy, run_id=run_id)

@@ -47,12 +47,6 @@ class ImitationModule(L.LightningModule):
         self._val_count = torch.zeros(n_tags, dtype=torch.float64)
         self._train_sum, self._train_count = torch.zeros((), dtype=torch.float64), 0
 
-    def forward(
-        self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """Controls in plant units and gate weights (see :meth:`Policy.forward`)."""
-        return self.policy(state, mask, ref, tag)
-
     def on_train_epoch_start(self) -> None:
         """Reset the epoch's loss sums."""
         self._train_sum = torch.zeros((), dtype=torch.float64, device=self.device)

@@ -16,7 +16,6 @@ from mlflow.data.numpy_dataset import from_numpy
 from mlflow.models import infer_signature
 from omegaconf import OmegaConf
 
-from generalist_control.common.hydra_redact import scrub_hydra_files
 from generalist_control.common.secrets import redact
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
@@ -39,10 +38,8 @@ __all__ = [
     "dvc_metrics",
     "end_message",
     "check_models_dir",
-    "log_dataset",
     "log_inputs",
     "log_model",
-    "scrub_hydra_files",
 ]
 
 #: ``metrics.json``: its key -> (the training's metric, whether stored as log10).
@@ -162,7 +159,7 @@ def log_model(
 
 
 def log_inputs(settings: TrainingSettings, dm: DemoDataModule, n_params: int) -> None:
-    """Params, tags and input artifacts of the active MLflow run; no password in any of them."""
+    """Params, tags, input artifacts and dataset of the active MLflow run; no password in them."""
     resolved = settings.resolved
     meta = dm.meta()
     params = {
@@ -188,23 +185,16 @@ def log_inputs(settings: TrainingSettings, dm: DemoDataModule, n_params: int) ->
     for path in sorted((settings.run_dir / ".hydra").glob("*.yaml")):
         mlflow.log_text(redact(path.read_text()), f"config/hydra/{path.name}")
     mlflow.log_dict(dm.manifest, "data/manifest.json")
-    log_dataset(dm)
-
-
-def log_dataset(dm: DemoDataModule) -> None:
-    """Log the training windows' schema as the run's dataset input (context ``training``)."""
-    meta = dm.meta()
-    if dm.train_set is None:
-        raise RuntimeError("the data module is not set up")
-    t = dm.train_set.tensors
-    features = {k: t[k].numpy() for k in ("state", "mask", "ref", "tag")}
-    source = str(Path(meta["data_dir"]).resolve())
-    digest = meta["content_hash"].removeprefix("sha256:")[:36]
+    t = dm.split("train").tensors  # the training windows' schema: the run's dataset input
     with warnings.catch_warnings():
         # a local path matches two artifact-source classes of MLflow's registry alike
         warnings.filterwarnings("ignore", message=".*can be interpreted in multiple ways.*")
         dataset = from_numpy(
-            features, source=source, targets=t["target"].numpy(), name="demos", digest=digest
+            {k: t[k].numpy() for k in ("state", "mask", "ref", "tag")},
+            source=str(Path(meta["data_dir"]).resolve()),
+            targets=t["target"].numpy(),
+            name="demos",
+            digest=meta["content_hash"].removeprefix("sha256:")[:36],
         )
     tags = {"content_hash": meta["content_hash"]}
     mlflow_utils.retry_on_clash(mlflow.log_input, dataset, context="training", tags=tags)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
@@ -19,7 +18,7 @@ from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.references import family_references, family_spec
 from generalist_control.simulation.simulate import Run, Trajectory, row_slices, simulate_many
 from generalist_control.simulation.variant_sampling import sample_variants
-from generalist_control.training.settings import SamplerSettings
+from generalist_control.training.settings import RolloutData, SamplerSettings
 
 __all__ = ["Actuator", "MixedController", "RolloutSampler", "Rollouts", "lag_mix", "run_rollouts"]
 
@@ -162,6 +161,12 @@ class MixedController:
         return np.stack(self._z, axis=1)
 
 
+def _in_turn(items: Sequence[Plant], k: int, round_index: int) -> list[Plant]:
+    """Round ``round_index``'s ``k`` of ``items`` (at most all), taken in turn."""
+    k = min(k, len(items))
+    return [items[(round_index * k + j) % len(items)] for j in range(k)]
+
+
 #: One plant's rollouts: references (B, steps) and initial states (B, n) or None (rest).
 RolloutSpec = tuple[np.ndarray, np.ndarray | None]
 
@@ -198,28 +203,23 @@ def run_rollouts(
 class RolloutSampler:
     """The rollouts of each DAgger round (``dagger.sampler``) of ``plants`` and their variants.
 
-    ``limit``, ``families``, ``variant_range`` and ``variant_tries`` come from the data recipe;
-    ``seed`` seeds round ``i``'s draws (``seed + i``); ``rotating`` plants (a family's) join
-    ``per_round`` at a time, in turn.
+    ``data``: the data recipe's rollout facts; ``seed`` seeds round ``i``'s draws (``seed + i``);
+    ``rotating`` plants (a family's) join ``per_round`` at a time, in turn.
     """
 
     def __init__(
         self,
         plants: Sequence[Plant],
         settings: SamplerSettings,
-        limit: float,
-        families: Mapping[str, Mapping[str, Any]],
+        data: RolloutData,
         seed: int,
-        variant_range: float,
-        variant_tries: int,
         rotating: Sequence[Plant] = (),
         per_round: int = 0,
     ) -> None:
-        self.plants, self.settings = list(plants), settings
-        self.rotating, self.per_round = list(rotating), min(int(per_round), len(rotating))
-        self.limit, self.seed = float(limit), int(seed)
-        self.families = {k: dict(v) for k, v in families.items()} if settings.families else {}
-        self.variant_range, self.variant_tries = float(variant_range), int(variant_tries)
+        self.plants, self.settings, self.data = list(plants), settings, data
+        self.rotating, self.per_round = list(rotating), int(per_round)
+        self.limit, self.seed = data.amplitude_limit, int(seed)
+        self.families = data.families if settings.families else {}
         #: per plant name, the factors of every fresh variant rolled out so far
         self.fresh: dict[str, list[dict[str, float]]] = {}
 
@@ -227,41 +227,26 @@ class RolloutSampler:
         """Samples per rollout."""
         return int(round(self.settings.duration / self.plants[0].dt))
 
-    def _versions(self) -> list[list[Plant]]:
-        """The plants grouped by name, each group its nominal version first."""
-        groups: dict[str, list[Plant]] = {}
-        for p in self.plants:
-            groups.setdefault(p.name, []).append(p)
-        return list(groups.values())
-
     def round_plants(self, round_index: int) -> list[Plant]:
         """The round's plant versions: the data's (all, or in turn), fresh variants, rotating."""
-        k = self.per_round
-        turn = [self.rotating[(round_index * k + j) % len(self.rotating)] for j in range(k)]
-        return self._versions_of_round(round_index) + turn
-
-    def _versions_of_round(self, round_index: int) -> list[Plant]:
-        """The data's versions (all, or in turn) and the round's fresh variants."""
-        variants = self.settings.variants
-        if variants is None or variants.data is None:
-            out = list(self.plants)
-        else:
+        groups: dict[str, list[Plant]] = {}  # by name, each its nominal version first
+        for p in self.plants:
+            groups.setdefault(p.name, []).append(p)
+        variants, out = self.settings.variants, list(self.plants)
+        if variants is not None and variants.data is not None:
             out = []
-            for nominal, *rest in self._versions():
-                k = min(variants.data, len(rest))
-                out.append(nominal)
-                out.extend(rest[(round_index * k + j) % len(rest)] for j in range(k))
-        if variants is None or not variants.fresh:
-            return out
-        for nominal, *_ in self._versions():
-            draw = sample_variants(
-                nominal, variants.fresh, variants.seed + round_index, self.variant_range,
-                (self.limit, -self.limit), self.steps(), self.variant_tries,
-            )  # fmt: skip
-            for v in draw.kept:
-                self.fresh.setdefault(v.plant.name, []).append(v.factors)
-                out.append(v.plant)
-        return out
+            for nominal, *rest in groups.values():
+                out += [nominal, *_in_turn(rest, variants.data, round_index)]
+        if variants is not None and variants.fresh:
+            for nominal, *_ in groups.values():
+                draw = sample_variants(
+                    nominal, variants.fresh, variants.seed + round_index, self.data.variant_range,
+                    (self.limit, -self.limit), self.steps(), self.data.variant_tries,
+                )  # fmt: skip
+                for v in draw.kept:
+                    self.fresh.setdefault(v.plant.name, []).append(v.factors)
+                    out.append(v.plant)
+        return out + _in_turn(self.rotating, self.per_round, round_index)
 
     def specs(self, round_index: int, plants: Sequence[Plant]) -> list[RolloutSpec]:
         """Per plant version, in order: the round's references and initial states."""

@@ -19,6 +19,7 @@ from hydra.utils import instantiate
 from generalist_control.common.secrets import redact
 from generalist_control.common.sections import (
     SettingError,
+    at_least,
     positive,
     read_section,
     require_int,
@@ -57,9 +58,7 @@ class LoaderSettings:
     def __post_init__(self) -> None:
         if not 0.0 <= self.val_fraction < 1.0:
             raise SettingError("val_fraction", f"must lie in [0, 1), got {self.val_fraction}")
-        for name in ("batch_size", "val_batch_size"):
-            if getattr(self, name) < 1:
-                raise SettingError(name, f"must be a positive integer, got {getattr(self, name)}")
+        at_least(1, self, "batch_size", "val_batch_size")
 
 
 @dataclass(frozen=True)
@@ -83,10 +82,7 @@ class VariantSettings:
     seed: int  #: seed of round 0's fresh draw (round i: seed + i)
 
     def __post_init__(self) -> None:
-        for name in ("data", "fresh", "seed"):
-            value = getattr(self, name)
-            if value is not None and value < 0:
-                raise SettingError(name, f"must be a non-negative integer, got {value}")
+        at_least(0, self, "data", "fresh", "seed")
 
 
 @dataclass(frozen=True)
@@ -101,11 +97,7 @@ class SamplerSettings:
     variants: VariantSettings | None
 
     def __post_init__(self) -> None:
-        for name in ("rollouts", "families"):
-            if getattr(self, name) < 0:
-                raise SettingError(
-                    name, f"must be a non-negative integer, got {getattr(self, name)}"
-                )
+        at_least(0, self, "rollouts", "families")
         positive("duration", self.duration)
         positive("noise", self.noise, strict=False)
 
@@ -133,9 +125,8 @@ class DaggerSettings:
     labeller: LabellerSettings
 
     def __post_init__(self) -> None:
-        for name in ("start_epoch", "every", "rounds"):
-            if getattr(self, name) < (0 if name == "start_epoch" else 1):
-                raise SettingError(name, f"is out of range: {getattr(self, name)}")
+        at_least(0, self, "start_epoch")
+        at_least(1, self, "every", "rounds")
         unit_interval("beta", self.beta)
         unit_interval("beta_decay", self.beta_decay)
 
@@ -213,16 +204,6 @@ class TrainingSettings:
         return [p.name for p in self.plants if p.name not in self.held_out]
 
 
-def _plain(config: Mapping[str, Any], key: str) -> Any:
-    """``config``'s value at the dotted ``key`` (None when absent or null)."""
-    node: Any = config
-    for part in key.split("."):
-        if not isinstance(node, Mapping) or part not in node:
-            return None
-        node = node[part]
-    return node
-
-
 def _optimizer(spec: Any, scheduler: Any, max_epochs: int) -> tuple[dict, dict | None]:
     """The optimiser and scheduler partials, tried on one parameter (lr < 0 fails here)."""
     if not isinstance(spec, dict) or "_target_" not in spec:
@@ -241,7 +222,7 @@ def _optimizer(spec: Any, scheduler: Any, max_epochs: int) -> tuple[dict, dict |
 
 def model_config(config: Mapping[str, Any]) -> dict[str, Any]:
     """The network's config, ``model`` resolved to plain types (``conf/model``)."""
-    model = _plain(config, "model")
+    model = config["model"]
     if not isinstance(model, dict):
         raise ValueError("model must be a network config (conf/model)")
     return model
@@ -250,7 +231,7 @@ def model_config(config: Mapping[str, Any]) -> dict[str, Any]:
 def _held_out(config: Mapping[str, Any], plants: list[Plant]) -> tuple[str, ...]:
     """``held_out``: plants of the set training never sees (the held-out protocol)."""
     names = [p.name for p in plants]
-    held = tuple(str(h) for h in (_plain(config, "held_out") or ()))
+    held = tuple(str(h) for h in config["held_out"] or ())
     unknown = [h for h in held if h not in names]
     if unknown:
         raise ValueError(
@@ -264,8 +245,8 @@ def _held_out(config: Mapping[str, Any], plants: list[Plant]) -> tuple[str, ...]
 
 def _run_dir(config: Mapping[str, Any]) -> Path:
     """Where the run's checkpoints go: ``run_dir``, Hydra's output dir, or a new one."""
-    if _plain(config, "run_dir"):
-        return Path(str(_plain(config, "run_dir")))
+    if config["run_dir"]:
+        return Path(str(config["run_dir"]))
     if HydraConfig.initialized():
         return Path(HydraConfig.get().runtime.output_dir)
     return Path("outputs/train") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
@@ -277,9 +258,9 @@ def _models_dir(config: Mapping[str, Any], run_dir: Path) -> Path:
     ``paths.published_dir`` only when it publishes (``publish=true``: the DVC stage); else
     ``paths.models_dir`` if that is another folder (an Optuna trial's), else ``<run_dir>/models``.
     """
-    published = _plain(config, "paths.published_dir")
-    models_dir = Path(str(_plain(config, "paths.models_dir")))
-    if _plain(config, "publish"):
+    published = config["paths"]["published_dir"]
+    models_dir = Path(str(config["paths"]["models_dir"]))
+    if config["publish"]:
         return Path(published) if published else models_dir
     if published is None or models_dir.resolve() != Path(published).resolve():
         return models_dir
@@ -299,7 +280,7 @@ def rollout_data(data: Mapping[str, Any]) -> RolloutData:
 
 def _callbacks(config: Mapping[str, Any]) -> tuple[dict[str, Any], ...]:
     """The ``callbacks`` nodes that name a class (a null one is switched off)."""
-    nodes = (_plain(config, "callbacks") or {}).values()
+    nodes = (config["callbacks"] or {}).values()
     return tuple(n for n in nodes if isinstance(n, dict) and "_target_" in n)
 
 
@@ -312,49 +293,46 @@ def read_training(config: Mapping[str, Any]) -> TrainingSettings:
         Naming the key: a wrong type or range, an unknown key, an optimiser that refuses its
         settings, sections that do not fit together, a plant the set does not hold.
     """
-    max_epochs = require_int("trainer.max_epochs", _plain(config, "trainer.max_epochs"))
-    monitor = _plain(config, "monitor")
+    max_epochs = require_int("trainer.max_epochs", config["trainer"]["max_epochs"])
+    monitor = config["monitor"]
     if monitor not in ("val/loss", "val/closed_loop"):
         raise ValueError(f"monitor must be val/loss or val/closed_loop, got {monitor!r}")
-    closed = _plain(config, "closed_loop_val")
+    closed, dagger = config["closed_loop_val"], config["dagger"]
     if monitor == "val/closed_loop" and closed is None:
         raise ValueError(
             "monitor=val/closed_loop needs the closed-loop validation, which closed_loop_val="
             "null turns off: set monitor=val/loss, or keep closed_loop_val"
         )
-    dagger = _plain(config, "dagger")
-    optimizer, scheduler = _optimizer(
-        _plain(config, "optimizer"), _plain(config, "scheduler"), max_epochs
-    )
-    plants = plants_from_config(_plain(config, "systems"))
+    optimizer, scheduler = _optimizer(config["optimizer"], config["scheduler"], max_epochs)
+    plants = plants_from_config(config["systems"])
     run_dir = _run_dir(config)
     return TrainingSettings(
-        seed=require_int("seed", _plain(config, "seed"), minimum=0),
-        threads=require_int("threads", _plain(config, "threads")),
+        seed=require_int("seed", config["seed"], minimum=0),
+        threads=require_int("threads", config["threads"]),
         max_epochs=max_epochs,
         monitor=str(monitor),
-        history=require_int("data.history", _plain(config, "data.history")),
-        horizon=require_int("data.horizon", _plain(config, "data.horizon")),
+        history=require_int("data.history", config["data"]["history"]),
+        horizon=require_int("data.horizon", config["data"]["horizon"]),
         model=model_config(config),
         optimizer=optimizer,
         scheduler=scheduler,
-        loader=read_section(LoaderSettings, _plain(config, "loader"), "loader"),
+        loader=read_section(LoaderSettings, config["loader"], "loader"),
         dagger=None if dagger is None else read_section(DaggerSettings, dagger, "dagger"),
         closed_loop_val=(
             None
             if closed is None
             else read_section(ClosedLoopValSettings, closed, "closed_loop_val")
         ),
-        closed_loop=read_section(ClosedLoopSettings, _plain(config, "closed_loop"), "closed_loop"),
-        rollout_data=rollout_data(_plain(config, "data")),
+        closed_loop=read_section(ClosedLoopSettings, config["closed_loop"], "closed_loop"),
+        rollout_data=rollout_data(config["data"]),
         plants=tuple(plants),
         held_out=_held_out(config, plants),
-        data_dir=Path(str(_plain(config, "paths.data_dir"))),
+        data_dir=Path(str(config["paths"]["data_dir"])),
         run_dir=run_dir,
         models_dir=_models_dir(config, run_dir),
-        ckpt_path=_plain(config, "ckpt_path") or None,
-        trainer=_plain(config, "trainer"),
+        ckpt_path=config["ckpt_path"] or None,
+        trainer=config["trainer"],
         callbacks=_callbacks(config),
-        logger=_plain(config, "logger") or {},
+        logger=config["logger"],
         resolved=redact(dict(config)),
     )
