@@ -11,8 +11,7 @@ import torch
 
 from generalist_control.model.bank import add_card, fit_cards
 from generalist_control.model.card import (
-    FREQUENCIES,
-    STEP_SAMPLES,
+    CARD_FEATURES,
     CardError,
     card_features,
     card_frame,
@@ -74,41 +73,25 @@ def test_frame_matches_python_control(name):
     np.testing.assert_allclose([frame.integral, frame.control], [sz, su], rtol=1e-7)
 
 
-@pytest.mark.parametrize("name", ["cstr", "hydraulic_actuator"])
-def test_descriptor_matches_hand_computation(name):
+@pytest.mark.parametrize("name", ["cstr", "hydraulic_actuator", "flexible_joint"])
+def test_descriptor_is_the_experts_gain_in_the_frame(name):
+    """The order mask, then asinh of python-control's LQI gain carried into the frame; that
+    gain on the frame's [q; z] gives the expert's control over its scale."""
     p = load_plant(name)
     frame = card_frame(p, DURATION)
     f = card_features(p, frame)
-    n, M, Mi = p.order, frame.map, np.linalg.inv(frame.map)
-    sysn = control.ss(M @ p.A @ Mi, M @ p.B / frame.control, p.C @ Mi, 0)
-    d = control.c2d(sysn, p.dt, "zoh")
-    Ad, Bd, Cd, _ = (np.asarray(a) for a in control.ssdata(d))
-    rates = np.zeros((MAX_ORDER, MAX_ORDER))
-    rates[:n, :n] = (Ad - np.eye(n)) / p.dt
-    b, c = np.zeros(MAX_ORDER), np.zeros(MAX_ORDER)
-    b[:n], c[:n] = Bd[:, 0] / p.dt, Cd[0]
-    # the open-loop step response from the Markov parameters C Ad^j Bd, summed by hand
-    markov = [float(Cd[0] @ np.linalg.matrix_power(Ad, j) @ Bd[:, 0]) for j in range(128)]
-    step = [sum(markov[:k]) for k in STEP_SAMPLES]
-    freq = []
-    for ratio in FREQUENCIES:
-        g = complex(np.asarray(control.evalfr(sysn, 1j * frame.omega * ratio)).item())
-        freq += [np.log10(abs(g)), np.cos(np.angle(g)), np.sin(np.angle(g))]
-    back = np.zeros((n + 1, n + 1))
-    back[:n, :n], back[n, n] = Mi, frame.integral
-    Qn = back.T @ p.Q @ back / (p.R[0, 0] * frame.control**2)
-    logd = np.zeros(MAX_ORDER + 1)
-    logd[:n], logd[MAX_ORDER] = np.log10(np.maximum(np.diag(Qn)[:n], 1e-8)), np.log10(Qn[n, n])
-    expect = np.concatenate(
-        [np.arcsinh(rates.ravel()), np.arcsinh(b), np.arcsinh(c), np.arcsinh(step), freq, logd]
-    )
-    np.testing.assert_allclose(f[: len(expect)], expect, rtol=1e-6, atol=1e-9)
-    corr_pad = np.zeros((MAX_ORDER + 1, MAX_ORDER + 1))
-    slots = [*range(n), MAX_ORDER]
-    corr_pad[np.ix_(slots, slots)] = Qn / np.sqrt(np.outer(np.diag(Qn), np.diag(Qn)))
-    corr = corr_pad[np.triu_indices(MAX_ORDER + 1, 1)]
-    np.testing.assert_allclose(f[len(expect) : len(expect) + len(corr)], corr, atol=1e-9)
-    np.testing.assert_array_equal(f[-MAX_ORDER:], (np.arange(MAX_ORDER) < n).astype(float))
+    n = p.order
+    assert f.shape == (CARD_FEATURES,) == (2 * MAX_ORDER + 1,)
+    np.testing.assert_array_equal(f[:MAX_ORDER], (np.arange(MAX_ORDER) < n).astype(float))
+    K, _, _ = control.lqr(control.ss(p.A, p.B, p.C, 0), p.Q, p.R, integral_action=p.C)
+    Kx, Ki = np.asarray(K)[0, :-1], -K[0, -1]  # python-control's integral flips sign
+    M_ref, _, s_z, s_u, _ = _reference_frame(p)
+    gain = np.zeros(MAX_ORDER + 1)
+    gain[[*range(n), MAX_ORDER]] = np.append(Kx @ np.linalg.inv(M_ref), Ki * s_z) / s_u
+    np.testing.assert_allclose(f[MAX_ORDER:], np.arcsinh(gain), rtol=1e-6, atol=1e-8)
+    x, z = np.random.default_rng(0).normal(size=(5, n)), np.linspace(-1.0, 1.0, 5)
+    w = np.hstack([x @ frame.map.T, z[:, None] / frame.integral])
+    np.testing.assert_allclose(-w @ frame.gain, -(x @ Kx + Ki * z) / frame.control, rtol=1e-6)
 
 
 def _transformed(p, S):

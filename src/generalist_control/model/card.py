@@ -1,7 +1,8 @@
 """The model card route: the plant reaches the network as a descriptor of its model.
 
-A plant's frame and its descriptor in that frame are computed from its card (A, B, C, dt, Q,
-R) by stated rules, never fitted, so a new plant needs no training (docs/notes/family-policy.md).
+A plant's frame and its descriptor in that frame (the expert's gain there) are computed from
+its card (A, B, C, dt, Q, R) by stated rules, never fitted, so a new plant needs no training
+(docs/notes/family-policy.md).
 """
 
 from __future__ import annotations
@@ -16,32 +17,18 @@ from generalist_control.common.sections import require_int, require_nonnegative
 from generalist_control.model.plant import PlantPart
 from generalist_control.plants.definition import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import design_lqi, sampled_closed_loop
-from generalist_control.simulation.simulate import discretise
 
 __all__ = [
     "CARD_FEATURES",
-    "FREQUENCIES",
-    "STEP_SAMPLES",
     "CardFrame",
     "CardPlant",
     "card_features",
     "card_frame",
 ]
 
-#: Samples at which the descriptor reads the open-loop unit-step response.
-STEP_SAMPLES = (1, 2, 4, 8, 16, 32, 64, 128)
-#: Frequencies (times the frame's ``w``) at which it reads the frequency response.
-FREQUENCIES = (0.1, 0.3, 1.0, 3.0, 10.0)
-
 _W = MAX_ORDER + 1  # the augmented state [x; z], the integral last
-#: Size of a descriptor (:func:`card_features`).
-CARD_FEATURES = (
-    MAX_ORDER * MAX_ORDER + 2 * MAX_ORDER + len(STEP_SAMPLES) + 3 * len(FREQUENCIES)
-    + _W + _W * (_W - 1) // 2 + MAX_ORDER
-)  # fmt: skip
-
-#: Weights of ``Q / R`` (frame units) below this count as zero in the log-diagonal.
-WEIGHT_FLOOR = 1e-8
+#: Size of a descriptor (:func:`card_features`): the order mask, the padded gain.
+CARD_FEATURES = MAX_ORDER + _W
 #: RMS below this (a signal the step leaves at rest) gives the scale 1, as the normaliser does.
 _TINY = 1e-12
 
@@ -59,6 +46,7 @@ class CardFrame:
     integral: float  #: RMS of ``z``
     control: float  #: RMS of ``u``
     omega: float  #: the frame's time scale ``w`` (rad/s)
+    gain: np.ndarray  #: (n + 1,): the expert's gain on the frame's ``[q; z]``, ``u = -gain w``
     reference: float = 1.0  #: the reference's scale (a unit step)
 
 
@@ -106,70 +94,25 @@ def card_frame(plant: Plant, duration: float) -> CardFrame:
         s = M @ s + drive
     rms = _rms(np.hstack([run, run[:, :n] @ T.T, -run @ gains.K.T]))
     sq = rms[n + 1 : 2 * n + 1]
+    gain = np.append(gains.Kx @ np.linalg.inv(T / sq[:, None]), gains.Ki * rms[n]) / rms[-1]
     return CardFrame(
         map=T / sq[:, None], state=rms[:n], integral=float(rms[n]),
-        control=float(rms[-1]), omega=omega,
+        control=float(rms[-1]), omega=omega, gain=gain,
     )  # fmt: skip
 
 
-def _step_response(Ad: np.ndarray, Bd: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """The discrete model's unit-step response at :data:`STEP_SAMPLES` (from rest)."""
-    x, out = np.zeros(Ad.shape[0]), []
-    for k in range(1, max(STEP_SAMPLES) + 1):
-        x = Ad @ x + Bd[:, 0]
-        if k in STEP_SAMPLES:
-            out.append(float(C[0] @ x))
-    return np.array(out)
-
-
-def _frequency_response(A: np.ndarray, B: np.ndarray, C: np.ndarray, omega: float) -> np.ndarray:
-    """``log10 |G|``, ``cos`` and ``sin`` of its phase at ``omega`` times :data:`FREQUENCIES`."""
-    out = []
-    for ratio in FREQUENCIES:
-        s = 1j * omega * ratio
-        g = complex(C[0] @ np.linalg.solve(s * np.eye(A.shape[0]) - A, B[:, 0]))
-        out += [np.log10(abs(g) + 1e-12), np.cos(np.angle(g)), np.sin(np.angle(g))]
-    return np.array(out)
-
-
-def _weights(plant: Plant, frame: CardFrame) -> np.ndarray:
-    """``log10`` of the diagonal of ``Q / R`` in the frame, then its correlations."""
-    n = plant.order
-    back = np.zeros((n + 1, n + 1))  # frame's [q; z] -> the plant's [x; z]
-    back[:n, :n] = np.linalg.inv(frame.map)
-    back[n, n] = frame.integral
-    slots = [*range(n), MAX_ORDER]
-    Q = np.zeros((_W, _W))
-    Q[np.ix_(slots, slots)] = back.T @ plant.Q @ back / (float(plant.R[0, 0]) * frame.control**2)
-    diag = np.diag(Q).copy()
-    logd = np.zeros(_W)
-    logd[slots] = np.log10(np.maximum(diag[slots], WEIGHT_FLOOR))
-    norm = np.sqrt(np.outer(np.maximum(diag, 0.0), np.maximum(diag, 0.0)))
-    corr = np.divide(Q, norm, out=np.zeros_like(Q), where=norm > 0)
-    return np.concatenate([logd, corr[np.triu_indices(_W, 1)]])
-
-
 def card_features(plant: Plant, frame: CardFrame) -> np.ndarray:
-    """The plant's descriptor (:data:`CARD_FEATURES`,) in ``frame``.
+    """The plant's descriptor (:data:`CARD_FEATURES`,) in ``frame``: mask and gain.
 
-    ``asinh`` of the padded rates ``(Ad - I) / dt``, input column and output row and of the
-    step response at :data:`STEP_SAMPLES`; the frequency response at :data:`FREQUENCIES`;
-    the weights (:func:`_weights`); the order mask.
+    The order mask, then ``asinh`` of the expert's gain on the frame's ``[q; z]``
+    (:attr:`CardFrame.gain`), padded. The gain alone: a descriptor of the model itself (its
+    rates, step and frequency responses, the weights) measured worse off the family
+    (docs/notes/family-policy.md, experiment 7).
     """
-    n, dt = plant.order, plant.dt
-    T, Ti = frame.map, np.linalg.inv(frame.map)
-    A, B, C = T @ plant.A @ Ti, T @ plant.B / frame.control, plant.C @ Ti / frame.reference
-    Ad, Bd = discretise(A, B, dt)
-    rates = np.zeros((MAX_ORDER, MAX_ORDER))
-    rates[:n, :n] = (Ad - np.eye(n)) / dt
-    b, c = np.zeros(MAX_ORDER), np.zeros(MAX_ORDER)
-    b[:n], c[:n] = Bd[:, 0] / dt, C[0]
-    mask = (np.arange(MAX_ORDER) < n).astype(float)
-    return np.concatenate([
-        np.arcsinh(rates.ravel()), np.arcsinh(b), np.arcsinh(c),
-        np.arcsinh(_step_response(Ad, Bd, C)), _frequency_response(A, B, C, frame.omega),
-        _weights(plant, frame), mask,
-    ])  # fmt: skip
+    n = plant.order
+    gain = np.zeros(_W)
+    gain[[*range(n), MAX_ORDER]] = frame.gain
+    return np.concatenate([(np.arange(MAX_ORDER) < n).astype(float), np.arcsinh(gain)])
 
 
 class CardPlant(PlantPart):
