@@ -126,6 +126,14 @@ def test_the_routes_bars_and_their_section():
         ROUTES_BAR,
     )
     assert not over["bars"]["card_all_within"]  # a missing ratio (every run diverged) fails
+    card_only = {n: {"policies": {"card": e["policies"]["card"]}} for n, e in entries.items()}
+    alone = judge_routes(card_only, None, ROUTES_BAR)  # unseen.routes=[card]
+    assert alone["not_run"] == ["in_context"] and not alone["pass"]
+    assert set(alone["bars"]) == {"card_no_divergence", "card_most_within", "card_all_within"}
+    assert all(alone["bars"].values()) and verdict["not_run"] == []
+    lines = routes_lines({"held_out": card_only, "routes": alone}, "x")
+    assert "`in_context` **not run** (no bars)" in lines[-2]
+    assert "| `b` | 1.2 / 1 / 0 | n/a / n/a / n/a |" in lines
     page = "\n".join(routes_lines({"held_out": entries, "routes": verdict, "family_draw": draw},
                                   "reports/unseen/summary.json"))  # fmt: skip
     assert "| `b` | 1.2 / 1 / 0 | 1.3 / 1 / 0 |" in page

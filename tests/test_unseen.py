@@ -214,9 +214,30 @@ def test_the_stage_reads_its_config_once_into_settings():
     settings = read_unseen(cfg)
     assert settings.bar == {**BAR, "ISE_ratio": 2.0}  # every limit from conf/unseen.yaml
     assert settings.routes_bar == CONFIG["unseen"]["routes_bar"] and BAR["ISE_ratio"] == 1.1
-    assert settings.family_draw is None and settings.routes is True
+    assert settings.family_draw is None and settings.routes == ("card", "in_context")
+    with pytest.raises(ValueError, match=r"unseen.routes names \['card_x'\]: the routes are"):
+        read_unseen(compose_cfg("unseen.routes=[card_x]", config="unseen"))
     assert settings.models == Path("models/unseen") and settings.evaluation.scenarios
     assert settings.trained_with == Path("models/policy.ckpt")
+
+
+def test_the_routes_named_are_the_policies_required(tmp_path):
+    from generalist_control.unseen import read_unseen
+
+    for folder in ("default", "tag_free"):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "policy.ckpt").touch()
+    (tmp_path / "with.ckpt").touch()
+    over = (f"unseen.models={tmp_path}", f"unseen.trained_with={tmp_path / 'with.ckpt'}")
+    settings = read_unseen(compose_cfg(*over, "unseen.routes=[]", config="unseen"))
+    assert held_out._paths(settings)[1] == {}  # no route: no family training needed
+    settings = read_unseen(compose_cfg(*over, "unseen.routes=[card]", config="unseen"))
+    missing = r"no card policy at .*family_card/policy.ckpt; make it with: dvc repro beyond"
+    with pytest.raises(FileNotFoundError, match=missing + r"/dvc.yaml:unseen \(its family"):
+        held_out._paths(settings)
+    (tmp_path / "family_card").mkdir()
+    (tmp_path / "family_card" / "policy.ckpt").touch()
+    assert set(held_out._paths(settings)[1]) == {"card"}  # in_context: not asked for
 
 
 def test_a_family_draw_of_a_family_file_with_a_defaults_list_composes_it():

@@ -17,7 +17,7 @@ from generalist_control.common.sections import as_dict
 from generalist_control.common.stage_main import stage_main
 from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.plants.catalog import available_plants
-from generalist_control.reports.held_out import UnseenSettings, run_unseen
+from generalist_control.reports.held_out import ROUTES, UnseenSettings, run_unseen
 
 __all__ = ["main", "read_unseen", "requests", "run"]
 
@@ -44,6 +44,17 @@ def requests(cfg: DictConfig) -> dict[str, AdaptRequest]:
     return {name: read_request({**plain, "plant": name}, adapted / name) for name in held}
 
 
+def _routes(names: list[str] | None) -> tuple[str, ...]:
+    """``unseen.routes`` checked against :data:`~generalist_control.reports.held_out.ROUTES`."""
+    chosen = tuple(str(n) for n in names or ())
+    unknown = sorted(set(chosen) - set(ROUTES))
+    if unknown:
+        raise ValueError(
+            f"unseen.routes names {unknown}: the routes are {list(ROUTES)} ([]: none)"
+        )
+    return chosen
+
+
 def read_unseen(cfg: DictConfig) -> UnseenSettings:
     """The stage's settings, read once (every key from ``conf/unseen.yaml``)."""
     unseen = as_dict(cfg.unseen)
@@ -51,7 +62,7 @@ def read_unseen(cfg: DictConfig) -> UnseenSettings:
         reports_dir=Path(cfg.paths.reports_dir),
         models=Path(unseen["models"]),
         trained_with=Path(unseen["trained_with"]),
-        routes=bool(unseen["routes"]),
+        routes=_routes(unseen["routes"]),
         family_draw=unseen["family_draw"],
         bar=unseen["bar"],
         routes_bar=unseen["routes_bar"],

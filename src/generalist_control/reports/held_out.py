@@ -1,8 +1,8 @@
 """The held-out protocol (``beyond/dvc.yaml:unseen``): plants the policy has never seen.
 
-Per held-out plant the :data:`POLICIES` (and with ``unseen.routes`` issue 50's zero-shot
-:data:`ROUTES`, with a held-out family draw) run every scenario against its LQI; then the bars
-(:func:`judge`, :func:`judge_routes`). docs/pipeline.md describes them and the files.
+Per held-out plant the :data:`POLICIES` (and ``unseen.routes``, issue 50's zero-shot
+:data:`ROUTES`; the card route's with a held-out family draw) run every scenario against its
+LQI; then the bars (:func:`judge`, :func:`judge_routes`). docs/pipeline.md has the files.
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ class UnseenSettings:
     reports_dir: Path
     models: Path
     trained_with: Path
-    routes: bool
+    routes: tuple[str, ...]  #: the :data:`ROUTES` evaluated
     family_draw: Mapping[str, Any] | None
     bar: Mapping[str, Any]
     routes_bar: Mapping[str, Any]
@@ -123,12 +123,11 @@ def judge(entries: Mapping[str, Any], bar: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _paths(settings: UnseenSettings) -> tuple[dict[str, Path], dict[str, Path]]:
-    """The three policies' files and the routes' (with ``unseen.routes``), checked to exist."""
-    family = "dvc repro beyond/dvc.yaml:unseen (its family trainings)"
+    """The three policies' files and those of ``unseen.routes``, checked to exist."""
     made = {k: (settings.models / v / POLICY_FILE, STAGE) for k, v in TRAININGS.items()}
     made["trained_with"] = (settings.trained_with, "dvc repro train (the pipeline's policy)")
-    if settings.routes:
-        made.update({k: (settings.models / v / POLICY_FILE, family) for k, v in ROUTES.items()})
+    for k in settings.routes:
+        made[k] = (settings.models / ROUTES[k] / POLICY_FILE, STAGE.replace("first two", "family"))
     for key, (path, make) in made.items():
         if not path.is_file():
             raise FileNotFoundError(f"no {key} policy at {path}; make it with: {make}")
@@ -237,10 +236,7 @@ def zero_shot(
 
 
 def _family_node(spec: Mapping[str, Any], data: Mapping[str, Any]) -> dict[str, Any]:
-    """``conf/families/<family>.yaml`` at ``spec.seed``, ``spec.checks`` (if any) merged in.
-
-    Hydra composes the file, so its defaults list counts (``heldout`` extends ``default``).
-    """
+    """``conf/families/<family>.yaml`` (composed) at ``spec.seed``, ``spec.checks`` merged in."""
     inside = GlobalHydra.instance().is_initialized()  # in a stage: the stage's search path
     with nullcontext() if inside else initialize_config_dir(str(conf_dir()), version_base="1.3"):
         family = compose(f"families/{spec['family']}").families
@@ -259,9 +255,7 @@ def family_draw(
     data: Mapping[str, Any],
     scenarios: Mapping[str, Mapping[str, Any]],
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
-    """The card route's metrics (``policy`` ``card``) and their summary on a family draw.
-
-    The draw: ``spec.count`` plants of family ``spec.family`` from ``spec.seed``.
+    """The card route's metrics (``policy`` ``card``) and summary on a draw of ``spec.family``.
 
     Raises
     ------
@@ -320,25 +314,30 @@ def ratio(value: Any) -> float:
 def judge_routes(
     entries: Mapping[str, Any], draw: Mapping[str, Any] | None, bar: Mapping[str, Any]
 ) -> dict[str, Any]:
-    """Issue 50's bars ``bar`` (``unseen.routes_bar``) on the routes' figures; ``pass`` of each."""
-    card = {n: e["policies"]["card"] for n, e in entries.items()}
+    """Issue 50's bars ``bar`` (``unseen.routes_bar``) on the routes' figures; ``pass`` of each.
+
+    A route not evaluated has no bars and is named in ``not_run``; the verdict then fails.
+    """
+    card, ctx = ({n: e["policies"][k] for n, e in entries.items() if k in e["policies"]}
+                 for k in ROUTES)  # fmt: skip
     worst = {n: max(ratio(f["ISE_ratio"]), ratio(f["RMSE_ratio_worst"])) for n, f in card.items()}
     over = sorted(n for n, v in worst.items() if v > bar["near"])
-    ctx = {n: e["policies"]["in_context"] for n, e in entries.items()}
     ctx_over = sorted(n for n, f in ctx.items() if ratio(f["ISE_ratio"]) > bar["context"])
-    bars = {
-        "card_no_divergence": sum(int(f["diverged_runs"]) for f in card.values()) == 0,
-        "card_most_within": len(over) <= int(bar["allowed_over"]),
-        "card_all_within": all(v <= bar["all"] for v in worst.values()),
-        "context_no_divergence": sum(int(f["diverged_runs"]) for f in ctx.values()) == 0,
-        "context_most_within": len(ctx_over) <= int(bar["allowed_over"]),
-    }
+    bars: dict[str, bool] = {}
+    if card:
+        bars["card_no_divergence"] = sum(int(f["diverged_runs"]) for f in card.values()) == 0
+        bars["card_most_within"] = len(over) <= int(bar["allowed_over"])
+        bars["card_all_within"] = all(v <= bar["all"] for v in worst.values())
+    if ctx:
+        bars["context_no_divergence"] = sum(int(f["diverged_runs"]) for f in ctx.values()) == 0
+        bars["context_most_within"] = len(ctx_over) <= int(bar["allowed_over"])
     if draw is not None:
         bars["draw_no_divergence"] = draw["diverged_runs"] == 0
         bars["draw_median"] = draw["ISE_ratio"]["median"] <= bar["median"]
         bars["draw_p95"] = draw["ISE_ratio"]["p95"] <= bar["p95"]
-    return {"bars": bars, "card_over": over, "context_over": ctx_over,
-            "pass": all(bars.values())}  # fmt: skip
+    not_run = [k for k, figures in zip(ROUTES, (card, ctx), strict=True) if not figures]
+    return {"bars": bars, "card_over": over, "context_over": ctx_over, "not_run": not_run,
+            "pass": all(bars.values()) and not not_run}  # fmt: skip
 
 
 def _write(out_dir: Path, df: pd.DataFrame, summary: Mapping[str, Any]) -> None:
@@ -388,7 +387,7 @@ def run_unseen(settings: UnseenSettings, requests: Mapping[str, AdaptRequest]) -
     }
     if routes:
         draw = None
-        if settings.family_draw is not None:
+        if settings.family_draw is not None and "card" in routes:
             spec, scenarios = settings.family_draw, settings.evaluation.scenarios
             df, draw = family_draw(routes["card"], spec, settings.data, scenarios)
             frames.append(df)

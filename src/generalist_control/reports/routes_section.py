@@ -54,6 +54,7 @@ def routes_lines(summary: Mapping[str, Any], source: str) -> list[str]:
     if isinstance(draw, Mapping):
         lines += _draw_lines(draw, source)
     cells = [f"`{k}` {'pass' if v else '**fail**'}" for k, v in (routes.get("bars") or {}).items()]
+    cells += [f"`{k}` **not run** (no bars)" for k in routes.get("not_run") or []]
     return [*lines, f"Issue 50's bars: {'; '.join(cells)}.", ""]
 
 
