@@ -156,6 +156,8 @@ def test_the_stage_runs_on_tiny_data(tiny_data_dir, tmp_path, mlflow_uri):
         proc = run_command(argv, cwd=tmp_path, env=env,
                               timeout=900)  # fmt: skip
         assert proc.returncode == 0, (cmd, proc.stderr[-3000:])
+    left = {p.name for p in tmp_path.iterdir()} & {"checkpoints", ".hydra", "train.log"}
+    assert not left, f"the stage's commands wrote {left} into the repository's root"
     base, meta = load_policy(tmp_path / "models/unseen/default/policy.ckpt")
     assert set(meta["tags"]) == {"cstr"}
     adapted, meta = load_policy(tmp_path / "models/unseen/adapted/hydraulic_actuator/policy.ckpt")
