@@ -140,6 +140,11 @@ def test_the_routes_bars_and_their_section():
     assert "median 1.01, 95th percentile 1.3, worst inf" in page and "`p7`" in page
     assert "`draw_p95` **fail**" in page
     assert routes_lines({"held_out": entries}, "x") == []
+    stored = {**draw, "ISE_ratio": {**draw["ISE_ratio"], "max": None},  # inf as JSON stores it
+              "worst": [{**worst[0], "ISE_ratio": None}]}  # fmt: skip
+    page = "\n".join(routes_lines({"held_out": entries, "routes": verdict, "family_draw": stored},
+                                  "x"))  # fmt: skip
+    assert "worst diverged." in page and "| `p7` | diverged | drawn: order 4 |" in page
 
 
 def test_bad_family_settings_and_data_are_refused(tiny_data_dir, family_dir, tmp_path):

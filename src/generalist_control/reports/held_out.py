@@ -35,6 +35,7 @@ from generalist_control.common.paths import conf_dir
 from generalist_control.data.generation import generate_demos
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.eval_config import EvaluationSettings
+from generalist_control.evaluation.eval_run import provenance
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.summary import summarise
 from generalist_control.model.bank import add_scales, plant_scales
@@ -314,10 +315,7 @@ def ratio(value: Any) -> float:
 def judge_routes(
     entries: Mapping[str, Any], draw: Mapping[str, Any] | None, bar: Mapping[str, Any]
 ) -> dict[str, Any]:
-    """Issue 50's bars ``bar`` (``unseen.routes_bar``) on the routes' figures; ``pass`` of each.
-
-    A route not evaluated has no bars and is named in ``not_run``; the verdict then fails.
-    """
+    """Issue 50's bars (``unseen.routes_bar``); a route not evaluated is in ``not_run`` (fails)."""
     card, ctx = ({n: e["policies"][k] for n, e in entries.items() if k in e["policies"]}
                  for k in ROUTES)  # fmt: skip
     worst = {n: max(ratio(f["ISE_ratio"]), ratio(f["RMSE_ratio_worst"])) for n, f in card.items()}
@@ -384,6 +382,7 @@ def run_unseen(settings: UnseenSettings, requests: Mapping[str, AdaptRequest]) -
         "held_out": entries,
         **judge(entries, settings.bar),
         "policies": {k: str(v) for k, v in {**paths, **routes}.items()},
+        "provenance": provenance(),
     }
     if routes:
         draw = None

@@ -13,6 +13,11 @@ __all__ = ["SECTIONS", "routes_lines"]
 _HEADER = ("held-out plant", "model card: ISE / RMSE / diverged", "in context")
 
 
+def _ratio(value: Any) -> str:
+    """A draw plant's ratio; none (JSON's ``null`` for ``inf``): a run diverged."""
+    return "diverged" if value is None else fmt(number(value))
+
+
 def _draw_lines(draw: Mapping[str, Any], source: str) -> list[str]:
     ise = draw.get("ISE_ratio") or {}
     lines = [
@@ -20,12 +25,12 @@ def _draw_lines(draw: Mapping[str, Any], source: str) -> list[str]:
         f"`{draw.get('family')}` drawn from seed {draw.get('seed')} (no training saw it), every "
         f"scenario: {fmt(draw.get('diverged_runs'))} diverged runs on "
         f"{fmt(draw.get('diverged_plants'))} plants; unit-step ISE ratio to each plant's LQI "
-        f"median {fmt(number(ise.get('median')))}, 95th percentile "
-        f"{fmt(number(ise.get('p95')))}, worst {fmt(number(ise.get('max')))}. The worst:",
+        f"median {_ratio(ise.get('median'))}, 95th percentile "
+        f"{_ratio(ise.get('p95'))}, worst {_ratio(ise.get('max'))}. The worst:",
         "",
     ]
     rows = [
-        [f"`{w.get('plant')}`", fmt(number(w.get("ISE_ratio"))), str(w.get("plant_is"))]
+        [f"`{w.get('plant')}`", _ratio(w.get("ISE_ratio")), str(w.get("plant_is"))]
         for w in draw.get("worst") or []
     ]
     return [*lines, *table(("plant", "ISE ratio", "what it is"), rows, source), ""]
