@@ -93,10 +93,10 @@ def card_frame(plant: Plant, duration: float) -> CardFrame:
         run[k] = s
         s = M @ s + drive
     rms = _rms(np.hstack([run, run[:, :n] @ T.T, -run @ gains.K.T]))
-    sq = rms[n + 1 : 2 * n + 1]
-    gain = np.append(gains.Kx @ np.linalg.inv(T / sq[:, None]), gains.Ki * rms[n]) / rms[-1]
+    frame_map = T / rms[n + 1 : 2 * n + 1, None]
+    gain = np.append(gains.Kx @ np.linalg.inv(frame_map), gains.Ki * rms[n]) / rms[-1]
     return CardFrame(
-        map=T / sq[:, None], state=rms[:n], integral=float(rms[n]),
+        map=frame_map, state=rms[:n], integral=float(rms[n]),
         control=float(rms[-1]), omega=omega, gain=gain,
     )  # fmt: skip
 

@@ -90,6 +90,7 @@ TRAININGS = {"adapted": "default", "zero_shot": "tag_free"}
 
 #: How each training is made (quoted when one is missing).
 STAGE = "dvc repro beyond/dvc.yaml:unseen (its first two commands train them)"
+FAMILY_STAGE = "dvc repro beyond/dvc.yaml:unseen (its family commands train them)"
 
 
 def judge(entries: Mapping[str, Any], bar: Mapping[str, Any]) -> dict[str, Any]:
@@ -127,8 +128,9 @@ def _paths(settings: UnseenSettings) -> tuple[dict[str, Path], dict[str, Path]]:
     """The three policies' files and those of ``unseen.routes``, checked to exist."""
     made = {k: (settings.models / v / POLICY_FILE, STAGE) for k, v in TRAININGS.items()}
     made["trained_with"] = (settings.trained_with, "dvc repro train (the pipeline's policy)")
-    for k in settings.routes:
-        made[k] = (settings.models / ROUTES[k] / POLICY_FILE, STAGE.replace("first two", "family"))
+    made.update(
+        {k: (settings.models / ROUTES[k] / POLICY_FILE, FAMILY_STAGE) for k in settings.routes}
+    )
     for key, (path, make) in made.items():
         if not path.is_file():
             raise FileNotFoundError(f"no {key} policy at {path}; make it with: {make}")
