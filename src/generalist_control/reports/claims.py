@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import pandas as pd
 
+from generalist_control.reports.figures import fmt_value
 from generalist_control.reports.report_settings import Tolerance
 from generalist_control.reports.runs import NO_RUN, NOT_AVAILABLE, RunPoint
 
@@ -124,15 +125,6 @@ CLAIMS: tuple[Claim, ...] = (
 )  # fmt: skip
 
 
-def _fmt(value: float) -> str:
-    """``1.02e-02``, ``0.144``, ``10.8``, ``59,180`` (as the report's other tables)."""
-    if not math.isfinite(value) or value == 0:
-        return str(value)
-    if abs(value) >= 1000:
-        return f"{value:,.0f}"
-    return f"{value:.2e}" if abs(value) < 0.1 else f"{value:.3g}"
-
-
 def _verdict(passed: Sequence[bool]) -> str:
     if all(passed):
         return REPRODUCES
@@ -187,7 +179,7 @@ def _absent(claim: Claim, by_config: Runs) -> str | None:
 
 def _judge_values(claim: Claim, by_config: Runs, tol: Tolerance) -> tuple[str, str]:
     values = _values(claim, by_config)
-    ours = ", ".join(f"{NOT_AVAILABLE if v is None else _fmt(v)} ({s})" for s, v in values)
+    ours = ", ".join(f"{fmt_value(v)} ({s})" for s, v in values)
     if any(v is None for _, v in values):
         return NOT_AVAILABLE, ours
     return _verdict([_within(claim, v, tol) for _, v in values if v is not None]), ours
@@ -200,7 +192,8 @@ def _judge_order(claim: Claim, by_config: Runs) -> tuple[str, str]:
         return NOT_AVAILABLE, "a run has no score"
     pairs = [all(b < r for r in rivals) for b in best]  # type: ignore[operator]
     ours = "; ".join(
-        f"d={d}, M={m}: " + ", ".join(_fmt(p.mse[str(claim.plant)]) for p in by_config[(d, m)])
+        f"d={d}, M={m}: "
+        + ", ".join(fmt_value(p.mse[str(claim.plant)]) for p in by_config[(d, m)])
         for d, m in claim.configs
     )
     return _verdict(pairs), ours
@@ -268,7 +261,7 @@ def judge_claims(
         if claim.kind == "share":
             paper = f"{float(claim.paper):.0%}"
         else:
-            paper = claim.paper if isinstance(claim.paper, str) else _fmt(claim.paper)
+            paper = claim.paper if isinstance(claim.paper, str) else fmt_value(claim.paper)
         rule = RULES[claim.kind].format(
             share_pp=100 * tolerance.share_points, **dataclasses.asdict(tolerance)
         )

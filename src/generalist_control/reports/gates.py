@@ -10,12 +10,7 @@ import mlflow
 import numpy as np
 import pandas as pd
 
-from generalist_control.data.windows import (
-    Windows,
-    history_windows,
-    integral_of_error,
-    previous_controls,
-)
+from generalist_control.data.windows import build_windows, integral_of_error
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
@@ -39,23 +34,12 @@ def policy_of_run(run_id: str, client: Any | None = None) -> tuple[Policy, dict[
 
 def _mean_gates(policy: Policy, tr: Trajectory, p: Plant, tag: int, history: int) -> np.ndarray:
     """Mean gate weights the policy gave the windows it saw along closed-loop runs ``tr``."""
-    steps = tr.r.shape[1]
+    B, steps = tr.r.shape
+    z = integral_of_error(tr.r, tr.y[:, :steps], p.dt) if "integral" in policy.channels else None
+    controls = "previous_control" in policy.channels
     x = pad_states(tr.x[:, :steps])
-    order = np.full(x.shape[0], p.order)
-    z = None
-    if "integral" in policy.channels:
-        z = integral_of_error(tr.r, tr.y[:, :steps], p.dt)
-    u_prev = previous_controls(tr.u) if "previous_control" in policy.channels else None
-    state, mask, ref = history_windows(x, tr.r, order, history, z, u_prev)
-    B, N = tr.r.shape
-    windows = Windows(
-        state=np.ascontiguousarray(state).reshape(B * N, history, -1),
-        mask=np.ascontiguousarray(mask).reshape(B * N, history, -1),
-        ref=np.ascontiguousarray(ref).reshape(B * N, history),
-        tag=np.full(B * N, tag, dtype=np.int64),
-        target=None,
-        traj=np.repeat(np.arange(B, dtype=np.int64), N),
-    )
+    tags, orders = np.full(B, tag), np.full(B, p.order)
+    windows = build_windows(x, tr.r, tr.u, tags, orders, history, 1, z, controls)
     _, gates = policy.predict_windows(windows)
     return gates.mean(axis=0)
 

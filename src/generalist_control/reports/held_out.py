@@ -24,6 +24,7 @@ from omegaconf import OmegaConf
 
 from generalist_control.adaptation import adapt
 from generalist_control.adaptation.job import learn, prepare
+from generalist_control.adaptation.new_plant import generated_windows
 from generalist_control.adaptation.request import AdaptRequest
 from generalist_control.common.atomic import (
     check_replaceable,
@@ -32,7 +33,6 @@ from generalist_control.common.atomic import (
 )
 from generalist_control.common.jsonsafe import write_json
 from generalist_control.common.paths import conf_dir
-from generalist_control.data.generation import generate_demos
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.eval_config import EvaluationSettings
 from generalist_control.evaluation.eval_run import provenance
@@ -208,15 +208,11 @@ ROUTES = {"card": "family_card", "in_context": "family_context"}
 def _scales(
     policy: Policy, meta: Mapping[str, Any], plant: Plant, data: Mapping[str, Any]
 ) -> dict[str, torch.Tensor]:
-    """The plant's normaliser row: the RMS of its demonstrations' windows."""
-    demos = generate_demos([plant], data, progress=False)
-    channels = policy.channels
-    w = demos.windows(
-        int(meta["history"]), int(meta["horizon"]),
-        "integral" in channels, "previous_control" in channels,
-    )  # fmt: skip
+    """The plant's normaliser row: the RMS of its demonstrations' windows (as ``adapt``'s)."""
+    history, horizon = int(meta["history"]), int(meta["horizon"])
+    w, _ = generated_windows(plant, data, history, horizon, policy.channels)
     state, mask, ref, target = (
-        torch.from_numpy(np.asarray(getattr(w, k))) for k in ("state", "mask", "ref", "target")
+        torch.from_numpy(getattr(w, k)) for k in ("state", "mask", "ref", "target")
     )
     return plant_scales(state, mask, ref, target, policy.normaliser.mapped)
 
