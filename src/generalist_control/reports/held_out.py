@@ -208,7 +208,7 @@ ROUTES = {"card": "family_card", "in_context": "family_context"}
 def _scales(
     policy: Policy, meta: Mapping[str, Any], plant: Plant, data: Mapping[str, Any]
 ) -> dict[str, torch.Tensor]:
-    """The plant's normaliser row: the RMS of its demonstrations' windows (as ``adapt``'s)."""
+    """The plant's normaliser row, fitted on the windows ``adapt`` generates for it."""
     history, horizon = int(meta["history"]), int(meta["horizon"])
     w, _ = generated_windows(plant, data, history, horizon, policy.channels)
     state, mask, ref, target = (
