@@ -1,4 +1,4 @@
-"""Backends of a trained policy (eager PyTorch, TorchScript, ONNX Runtime) and its exports.
+"""Backends of a trained policy (eager PyTorch, ONNX Runtime) and its ONNX export.
 
 A backend maps raw float32 windows to the ``horizon`` controls in plant units; with ONNX
 Runtime one plant stepped alone runs a shrunk batch-1 graph of its own (:func:`plant_model`).
@@ -27,11 +27,11 @@ from generalist_control.deploy.onnx_graph import (
 )
 from generalist_control.model.policy import Policy
 
-__all__ = ["BACKENDS", "Backend", "backend", "export_onnx", "export_torchscript", "onnx_bytes"]
+__all__ = ["BACKENDS", "Backend", "backend", "export_onnx", "onnx_bytes"]
 
 _INPUTS = ("state", "mask", "ref", "tag")
 #: The backends :func:`backend` builds.
-BACKENDS = ("torch", "torchscript", "onnx")
+BACKENDS = ("torch", "onnx")
 
 Run = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 PlantRun = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -63,18 +63,6 @@ def _example(policy: Policy, batch: int = 2) -> tuple[torch.Tensor, ...]:
         torch.zeros(batch, T),
         torch.zeros(batch, dtype=torch.long),
     )
-
-
-def _traced(policy: Policy) -> torch.jit.ScriptModule:
-    with torch.no_grad():
-        return torch.jit.trace(policy.eval(), _example(policy), check_trace=False)
-
-
-def export_torchscript(policy: Policy, path: str | Path) -> Path:
-    """Trace ``policy`` (raw windows in, ``(controls, gates)`` out) to a TorchScript file."""
-    path = Path(path)
-    _traced(policy).save(str(path))
-    return path
 
 
 def onnx_bytes(policy: Policy, batch: int | None = None) -> bytes:
@@ -128,30 +116,23 @@ class _BoundRun:
         import onnxruntime as ort  # optional and heavy: only for the ONNX backend
 
         self._value, self._sess = ort.OrtValue.ortvalue_from_numpy, sess
-        # the session's own run of a binding, without the Python wrapper's per-call checks
-        self._raw = getattr(getattr(sess, "_sess", None), "run_with_iobinding", None)
         self.out = np.zeros((1, horizon), np.float32)
-        self._bound: dict[tuple[int, int], tuple[Any, tuple, tuple]] = {}
+        self._bound: dict[tuple[int, int], tuple[Any, np.ndarray, np.ndarray]] = {}
 
-    def _bind(self, state: np.ndarray, ref: np.ndarray) -> tuple:
+    def _bind(self, state: np.ndarray, ref: np.ndarray) -> Any:
         if len(self._bound) >= 2:  # arrays of an earlier buffer: let them go
             self._bound.clear()
         binding = self._sess.io_binding()
         binding.bind_ortvalue_input("state", self._value(state))
         binding.bind_ortvalue_input("ref", self._value(ref))
         binding.bind_ortvalue_output("controls", self._value(self.out))
-        raw = getattr(binding, "_iobinding", None)
-        if self._raw is not None and raw is not None:
-            call: tuple[Any, tuple] = (self._raw, (raw, None))
-        else:
-            call = (self._sess.run_with_iobinding, (binding,))
-        entry = self._bound[id(state), id(ref)] = (*call, (binding, state, ref))  # kept alive
-        return entry
+        self._bound[id(state), id(ref)] = (binding, state, ref)  # the arrays kept alive
+        return binding
 
     def __call__(self, state: np.ndarray, ref: np.ndarray) -> np.ndarray:
         """Controls (1, horizon) for a C-contiguous float32 window (1, T, width), (1, T)."""
-        run, args, _ = self._bound.get((id(state), id(ref))) or self._bind(state, ref)
-        run(*args)
+        bound = self._bound.get((id(state), id(ref)))
+        self._sess.run_with_iobinding(bound[0] if bound else self._bind(state, ref))
         return self.out
 
 
@@ -182,18 +163,12 @@ class OnnxBackend(Backend):
 
 
 def backend(policy: Policy, name: str) -> Backend:
-    """Backend ``name`` (torch, torchscript or onnx) of ``policy``."""
-    if name in ("torch", "torchscript"):
-        module: Any = policy
-        if name == "torchscript":
-            buffer = io.BytesIO()
-            torch.jit.save(_traced(policy), buffer)
-            buffer.seek(0)
-            module = torch.jit.load(buffer)
+    """Backend ``name`` (torch or onnx) of ``policy``."""
+    if name == "torch":
 
         @torch.inference_mode()
         def run(*arrays: np.ndarray) -> np.ndarray:
-            return module(*(torch.from_numpy(a) for a in arrays))[0].numpy()
+            return policy(*(torch.from_numpy(a) for a in arrays))[0].numpy()
 
         return Backend(run)
     if name == "onnx":
