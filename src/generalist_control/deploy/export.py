@@ -33,26 +33,27 @@ _INPUTS = ("state", "mask", "ref", "tag")
 #: The backends :func:`backend` builds.
 BACKENDS = ("torch", "onnx")
 
-Run = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 PlantRun = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 class Backend:
-    """``backend(state, mask, ref, tag) -> controls (B, horizon)``, and one plant's run."""
+    """The policy in eager PyTorch: ``backend(state, mask, ref, tag) -> controls``."""
 
-    def __init__(self, run: Run) -> None:
-        self.run = run
+    def __init__(self, policy: Policy) -> None:
+        self.policy = policy
 
+    @torch.inference_mode()
     def __call__(
         self, state: np.ndarray, mask: np.ndarray, ref: np.ndarray, tag: np.ndarray
     ) -> np.ndarray:
         """Controls (B, horizon) in plant units for raw windows."""
-        return self.run(state, mask, ref, tag)
+        arrays = (state, mask, ref, tag)
+        return self.policy(*(torch.from_numpy(a) for a in arrays))[0].numpy()
 
     def plant(self, tag: int, mask: np.ndarray) -> PlantRun:
         """``run(state, ref) -> controls (1, horizon)`` of plant ``tag`` (mask (1, T, width))."""
         tags = np.array([tag], np.int64)
-        return lambda state, ref: self.run(state, mask, ref, tags)
+        return lambda state, ref: self(state, mask, ref, tags)
 
 
 def _example(policy: Policy, batch: int = 2) -> tuple[torch.Tensor, ...]:
@@ -140,14 +141,17 @@ class OnnxBackend(Backend):
     """The policy through ONNX Runtime: one session for any batch, one per plant at batch 1."""
 
     def __init__(self, policy: Policy) -> None:
-        super().__init__(self._general)
+        super().__init__(policy)
         self._sess = session(onnx_bytes(policy))
-        self._policy = policy
         self._batch_one: onnx.ModelProto | None = None
         self._plants: dict[tuple[int, bytes], _BoundRun] = {}
 
-    def _general(self, *arrays: np.ndarray) -> np.ndarray:
-        return self._sess.run(["controls"], dict(zip(_INPUTS, arrays, strict=True)))[0]
+    def __call__(
+        self, state: np.ndarray, mask: np.ndarray, ref: np.ndarray, tag: np.ndarray
+    ) -> np.ndarray:
+        """Controls (B, horizon) in plant units for raw windows."""
+        feeds = {"state": state, "mask": mask, "ref": ref, "tag": tag}
+        return self._sess.run(["controls"], feeds)[0]
 
     def plant(self, tag: int, mask: np.ndarray) -> PlantRun:
         """Plant ``tag``'s batch-1 session (:func:`plant_model`), made at its first use."""
@@ -155,22 +159,15 @@ class OnnxBackend(Backend):
         key = (int(tag), mask.tobytes())
         if key not in self._plants:
             if self._batch_one is None:
-                self._batch_one = onnx.load_from_string(onnx_bytes(self._policy, batch=1))
+                self._batch_one = onnx.load_from_string(onnx_bytes(self.policy, batch=1))
             fixed = {"tag": np.array([tag], np.int64), "mask": mask}
             sess = session(plant_model(self._batch_one, fixed), arena=False, disabled=_UNFUSED)
-            self._plants[key] = _BoundRun(sess, self._policy.horizon)
+            self._plants[key] = _BoundRun(sess, self.policy.horizon)
         return self._plants[key]
 
 
 def backend(policy: Policy, name: str) -> Backend:
     """Backend ``name`` (torch or onnx) of ``policy``."""
-    if name == "torch":
-
-        @torch.inference_mode()
-        def run(*arrays: np.ndarray) -> np.ndarray:
-            return policy(*(torch.from_numpy(a) for a in arrays))[0].numpy()
-
-        return Backend(run)
-    if name == "onnx":
-        return OnnxBackend(policy)
-    raise ValueError(f"unknown backend '{name}'; choose one of {', '.join(BACKENDS)}")
+    if name not in BACKENDS:
+        raise ValueError(f"unknown backend '{name}'; choose one of {', '.join(BACKENDS)}")
+    return OnnxBackend(policy) if name == "onnx" else Backend(policy)
