@@ -9,7 +9,7 @@ machine's speed falls on all of them alike, and the figures are the medians over
 ``--repeats`` of each repeat's p50 and p99. The paths: ``lqi_step``, the LQI law's step (the
 yardstick); ``onnx_step``, :meth:`PolicyRuntime.step` with the ONNX backend for one plant
 reset by name; ``onnx_batch_step``, the same plant as a batch of one (the general path);
-with ``--all-backends`` also ``torch_step`` and ``torchscript_step``. Prints p50, p99 and
+with ``--all-backends`` also ``torch_step``. Prints p50, p99 and
 the ratio of each p50 to the LQI step's, checks that ``onnx_step`` gives the general path's
 controls, and writes ``benchmarks/results/latency.json``. Goal (issue 49): p50 at most
 0.06 ms, idle. Without ``--policy`` an untrained policy of the default architecture is timed
@@ -137,7 +137,7 @@ def _loops(policy, meta, plant, all_backends: bool) -> dict[str, _Loop]:
     lqi = LQIController(plant)
     lqi.reset(1)
     loops = {"lqi_step": _Loop(lambda x, r: lqi.step(x[None, :], np.array([r]))[0], plant)}
-    for name in ("onnx", "torch", "torchscript") if all_backends else ("onnx",):
+    for name in ("onnx", "torch") if all_backends else ("onnx",):
         rt = PolicyRuntime(policy, meta, backend=name)
         rt.reset(plant.name)
         loops[f"{name}_step"] = _Loop(rt.step, plant, lambda rt=rt: rt.reset(plant.name))
@@ -181,7 +181,7 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=500)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--label", default="", help='conditions, e.g. "under load" or "idle"')
-    ap.add_argument("--all-backends", action="store_true", help="also torch and torchscript")
+    ap.add_argument("--all-backends", action="store_true", help="also the torch backend")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "latency.json"))
     args = ap.parse_args()
     torch.set_num_threads(1)

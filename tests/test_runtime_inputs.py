@@ -7,7 +7,7 @@
 * ``reset`` given no name (None, a number) says what it takes and which plants it knows;
 * a second thread entering a runtime another thread is inside is refused (two threads
   stepping one runtime raised "nothing staged" now and then);
-* building the TorchScript or ONNX backend leaves nothing in the temporary directory (each
+* building the ONNX backend leaves nothing in the temporary directory (each
   load left a ``tmp*/policy.*`` folder behind).
 """
 
@@ -105,7 +105,7 @@ def test_a_complex_batch_or_applied_control_is_refused(policy):
         rt.step(x + 0j, np.ones(2))
 
 
-@pytest.mark.parametrize("backend", ["torchscript", "onnx"])
+@pytest.mark.parametrize("backend", ["onnx"])
 def test_building_a_backend_leaves_nothing_in_the_temporary_directory(
     policy, backend, tmp_path, monkeypatch
 ):

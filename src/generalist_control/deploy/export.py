@@ -1,4 +1,4 @@
-"""Backends of a trained policy (eager PyTorch, TorchScript, ONNX Runtime) and its exports.
+"""Backends of a trained policy (eager PyTorch, ONNX Runtime) and its ONNX export.
 
 A backend maps raw float32 windows to the ``horizon`` controls in plant units; with ONNX
 Runtime one plant stepped alone runs a shrunk batch-1 graph of its own (:func:`plant_model`).
@@ -27,32 +27,33 @@ from generalist_control.deploy.onnx_graph import (
 )
 from generalist_control.model.policy import Policy
 
-__all__ = ["BACKENDS", "Backend", "backend", "export_onnx", "export_torchscript", "onnx_bytes"]
+__all__ = ["BACKENDS", "Backend", "backend", "export_onnx", "onnx_bytes"]
 
 _INPUTS = ("state", "mask", "ref", "tag")
 #: The backends :func:`backend` builds.
-BACKENDS = ("torch", "torchscript", "onnx")
+BACKENDS = ("torch", "onnx")
 
-Run = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 PlantRun = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 class Backend:
-    """``backend(state, mask, ref, tag) -> controls (B, horizon)``, and one plant's run."""
+    """The policy in eager PyTorch: ``backend(state, mask, ref, tag) -> controls``."""
 
-    def __init__(self, run: Run) -> None:
-        self.run = run
+    def __init__(self, policy: Policy) -> None:
+        self.policy = policy
 
+    @torch.inference_mode()
     def __call__(
         self, state: np.ndarray, mask: np.ndarray, ref: np.ndarray, tag: np.ndarray
     ) -> np.ndarray:
         """Controls (B, horizon) in plant units for raw windows."""
-        return self.run(state, mask, ref, tag)
+        arrays = (state, mask, ref, tag)
+        return self.policy(*(torch.from_numpy(a) for a in arrays))[0].numpy()
 
     def plant(self, tag: int, mask: np.ndarray) -> PlantRun:
         """``run(state, ref) -> controls (1, horizon)`` of plant ``tag`` (mask (1, T, width))."""
         tags = np.array([tag], np.int64)
-        return lambda state, ref: self.run(state, mask, ref, tags)
+        return lambda state, ref: self(state, mask, ref, tags)
 
 
 def _example(policy: Policy, batch: int = 2) -> tuple[torch.Tensor, ...]:
@@ -63,18 +64,6 @@ def _example(policy: Policy, batch: int = 2) -> tuple[torch.Tensor, ...]:
         torch.zeros(batch, T),
         torch.zeros(batch, dtype=torch.long),
     )
-
-
-def _traced(policy: Policy) -> torch.jit.ScriptModule:
-    with torch.no_grad():
-        return torch.jit.trace(policy.eval(), _example(policy), check_trace=False)
-
-
-def export_torchscript(policy: Policy, path: str | Path) -> Path:
-    """Trace ``policy`` (raw windows in, ``(controls, gates)`` out) to a TorchScript file."""
-    path = Path(path)
-    _traced(policy).save(str(path))
-    return path
 
 
 def onnx_bytes(policy: Policy, batch: int | None = None) -> bytes:
@@ -128,30 +117,23 @@ class _BoundRun:
         import onnxruntime as ort  # optional and heavy: only for the ONNX backend
 
         self._value, self._sess = ort.OrtValue.ortvalue_from_numpy, sess
-        # the session's own run of a binding, without the Python wrapper's per-call checks
-        self._raw = getattr(getattr(sess, "_sess", None), "run_with_iobinding", None)
         self.out = np.zeros((1, horizon), np.float32)
-        self._bound: dict[tuple[int, int], tuple[Any, tuple, tuple]] = {}
+        self._bound: dict[tuple[int, int], tuple[Any, np.ndarray, np.ndarray]] = {}
 
-    def _bind(self, state: np.ndarray, ref: np.ndarray) -> tuple:
+    def _bind(self, state: np.ndarray, ref: np.ndarray) -> Any:
         if len(self._bound) >= 2:  # arrays of an earlier buffer: let them go
             self._bound.clear()
         binding = self._sess.io_binding()
         binding.bind_ortvalue_input("state", self._value(state))
         binding.bind_ortvalue_input("ref", self._value(ref))
         binding.bind_ortvalue_output("controls", self._value(self.out))
-        raw = getattr(binding, "_iobinding", None)
-        if self._raw is not None and raw is not None:
-            call: tuple[Any, tuple] = (self._raw, (raw, None))
-        else:
-            call = (self._sess.run_with_iobinding, (binding,))
-        entry = self._bound[id(state), id(ref)] = (*call, (binding, state, ref))  # kept alive
-        return entry
+        self._bound[id(state), id(ref)] = (binding, state, ref)  # the arrays kept alive
+        return binding
 
     def __call__(self, state: np.ndarray, ref: np.ndarray) -> np.ndarray:
         """Controls (1, horizon) for a C-contiguous float32 window (1, T, width), (1, T)."""
-        run, args, _ = self._bound.get((id(state), id(ref))) or self._bind(state, ref)
-        run(*args)
+        bound = self._bound.get((id(state), id(ref)))
+        self._sess.run_with_iobinding(bound[0] if bound else self._bind(state, ref))
         return self.out
 
 
@@ -159,14 +141,17 @@ class OnnxBackend(Backend):
     """The policy through ONNX Runtime: one session for any batch, one per plant at batch 1."""
 
     def __init__(self, policy: Policy) -> None:
-        super().__init__(self._general)
+        super().__init__(policy)
         self._sess = session(onnx_bytes(policy))
-        self._policy = policy
         self._batch_one: onnx.ModelProto | None = None
         self._plants: dict[tuple[int, bytes], _BoundRun] = {}
 
-    def _general(self, *arrays: np.ndarray) -> np.ndarray:
-        return self._sess.run(["controls"], dict(zip(_INPUTS, arrays, strict=True)))[0]
+    def __call__(
+        self, state: np.ndarray, mask: np.ndarray, ref: np.ndarray, tag: np.ndarray
+    ) -> np.ndarray:
+        """Controls (B, horizon) in plant units for raw windows."""
+        feeds = {"state": state, "mask": mask, "ref": ref, "tag": tag}
+        return self._sess.run(["controls"], feeds)[0]
 
     def plant(self, tag: int, mask: np.ndarray) -> PlantRun:
         """Plant ``tag``'s batch-1 session (:func:`plant_model`), made at its first use."""
@@ -174,28 +159,15 @@ class OnnxBackend(Backend):
         key = (int(tag), mask.tobytes())
         if key not in self._plants:
             if self._batch_one is None:
-                self._batch_one = onnx.load_from_string(onnx_bytes(self._policy, batch=1))
+                self._batch_one = onnx.load_from_string(onnx_bytes(self.policy, batch=1))
             fixed = {"tag": np.array([tag], np.int64), "mask": mask}
             sess = session(plant_model(self._batch_one, fixed), arena=False, disabled=_UNFUSED)
-            self._plants[key] = _BoundRun(sess, self._policy.horizon)
+            self._plants[key] = _BoundRun(sess, self.policy.horizon)
         return self._plants[key]
 
 
 def backend(policy: Policy, name: str) -> Backend:
-    """Backend ``name`` (torch, torchscript or onnx) of ``policy``."""
-    if name in ("torch", "torchscript"):
-        module: Any = policy
-        if name == "torchscript":
-            buffer = io.BytesIO()
-            torch.jit.save(_traced(policy), buffer)
-            buffer.seek(0)
-            module = torch.jit.load(buffer)
-
-        @torch.inference_mode()
-        def run(*arrays: np.ndarray) -> np.ndarray:
-            return module(*(torch.from_numpy(a) for a in arrays))[0].numpy()
-
-        return Backend(run)
-    if name == "onnx":
-        return OnnxBackend(policy)
-    raise ValueError(f"unknown backend '{name}'; choose one of {', '.join(BACKENDS)}")
+    """Backend ``name`` (torch or onnx) of ``policy``."""
+    if name not in BACKENDS:
+        raise ValueError(f"unknown backend '{name}'; choose one of {', '.join(BACKENDS)}")
+    return OnnxBackend(policy) if name == "onnx" else Backend(policy)

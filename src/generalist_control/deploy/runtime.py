@@ -87,7 +87,7 @@ class PolicyRuntime:
     meta : dict
         The policy's metadata: ``tags`` (plant -> tag), ``orders`` (plant -> order),
         ``history``, ``horizon``, ``dt``.
-    backend : {"torch", "torchscript", "onnx"}
+    backend : {"torch", "onnx"}
     input_limit : float
         ``L`` above, a positive number: how many training RMS a signal may reach.
     """
