@@ -6,9 +6,7 @@ The search section is read here, once; the rest of the config is each trial's tr
 from __future__ import annotations
 
 import copy
-import logging
 import math
-import sys
 from collections.abc import Mapping
 from datetime import datetime
 from pathlib import Path
@@ -21,13 +19,11 @@ from optuna.trial import TrialState
 
 from generalist_control.common.sections import as_dict, read_section
 from generalist_control.common.stage_main import stage_main
+from generalist_control.common.stop_signals import exiting_on_signals
 from generalist_control.sweeps.search_settings import SearchSettings, fixed_config, parse_space
-from generalist_control.sweeps.stop_signals import Stopped
 from generalist_control.training.settings import read_training
 
 __all__ = ["main", "run", "trial_config"]
-
-log = logging.getLogger(__name__)
 
 
 def trial_config(
@@ -106,11 +102,8 @@ def _main(cfg: DictConfig) -> float:
 
 def main() -> None:
     """``python tune.py``: exit 128 + the signal's number when SIGTERM or SIGINT stops it."""
-    try:
+    with exiting_on_signals("the running trial failed, the study's run ended KILLED"):
         _main()
-    except Stopped as stop:
-        log.error("%s; the running trial failed, the study's run ended KILLED", stop)
-        sys.exit(128 + stop.signum)
 
 
 if __name__ == "__main__":

@@ -9,11 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
-import signal
-import sys
-import threading
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -38,11 +34,9 @@ from generalist_control.training.outputs import log_model
 
 __all__ = [
     "ADAPT_FILE",
-    "Stopped",
     "base_version",
     "check_run_dir",
     "end_message",
-    "exits_on_sigterm",
     "publish",
 ]
 
@@ -50,30 +44,6 @@ __all__ = [
 ADAPT_FILE = "adapt.json"
 #: The setting a run folder's marker names: ``run_dir`` of ``adapt``.
 SETTING = "run_dir"
-
-
-class Stopped(KeyboardInterrupt):
-    """SIGTERM, raised where the command was so that it unwinds (:func:`exits_on_sigterm`)."""
-
-
-@contextmanager
-def exits_on_sigterm(message: str) -> Iterator[None]:
-    """Inside, SIGTERM unwinds like SIGINT (:class:`Stopped`), then exits 143 with ``message``."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def stop(signum: int, frame: Any) -> None:
-        raise Stopped(signum)
-
-    old = signal.signal(signal.SIGTERM, stop)
-    try:
-        yield
-    except Stopped:
-        print(message, file=sys.stderr)
-        sys.exit(128 + signal.SIGTERM)
-    finally:
-        signal.signal(signal.SIGTERM, old)
 
 
 def check_run_dir(run_dir: Path) -> None:
