@@ -35,6 +35,7 @@ __all__ = [
     "ClosedLoopSettings",
     "ClosedLoopValSettings",
     "DaggerSettings",
+    "FamilyTraining",
     "LabellerSettings",
     "LoaderSettings",
     "RolloutData",
@@ -160,6 +161,22 @@ class ClosedLoopSettings:
 
 
 @dataclass(frozen=True)
+class FamilyTraining:
+    """``train_families``: the families trained on and how much of them each check sees."""
+
+    dirs: tuple[str, ...]  #: the families' data folders (``generate_families``' data_dir)
+    dagger_plants: int  #: family plants rolled out per DAgger round, in turn
+    closed_loop_plants: int  #: the first family plants in the closed-loop validation
+
+    def __post_init__(self) -> None:
+        if not self.dirs:
+            raise SettingError("dirs", "must name at least one family's data folder")
+        for name in ("dagger_plants", "closed_loop_plants"):
+            if getattr(self, name) < 0:
+                raise SettingError(name, f"must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
 class RolloutData:
     """What DAgger's rollouts take from the data recipe (``data``)."""
 
@@ -186,6 +203,7 @@ class TrainingSettings:
     dagger: DaggerSettings | None
     closed_loop_val: ClosedLoopValSettings | None
     closed_loop: ClosedLoopSettings
+    families: FamilyTraining | None  #: ``train_families``: null, the catalogue alone
     rollout_data: RolloutData
     plants: tuple[Plant, ...]  #: the set's plants (``systems``), by tag
     held_out: tuple[str, ...]  #: plants of the set training never sees
@@ -297,7 +315,11 @@ def read_training(config: Mapping[str, Any]) -> TrainingSettings:
     monitor = config["monitor"]
     if monitor not in ("val/loss", "val/closed_loop"):
         raise ValueError(f"monitor must be val/loss or val/closed_loop, got {monitor!r}")
-    closed, dagger = config["closed_loop_val"], config["dagger"]
+    closed, dagger, families = (
+        config["closed_loop_val"],
+        config["dagger"],
+        config["train_families"],
+    )
     if monitor == "val/closed_loop" and closed is None:
         raise ValueError(
             "monitor=val/closed_loop needs the closed-loop validation, which closed_loop_val="
@@ -324,6 +346,9 @@ def read_training(config: Mapping[str, Any]) -> TrainingSettings:
             else read_section(ClosedLoopValSettings, closed, "closed_loop_val")
         ),
         closed_loop=read_section(ClosedLoopSettings, config["closed_loop"], "closed_loop"),
+        families=(
+            None if families is None else read_section(FamilyTraining, families, "train_families")
+        ),
         rollout_data=rollout_data(config["data"]),
         plants=tuple(plants),
         held_out=_held_out(config, plants),
