@@ -8,15 +8,14 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Mapping
-from datetime import datetime
 from pathlib import Path
 from typing import Any, cast
 
 import optuna
-from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 from optuna.trial import TrialState
 
+from generalist_control.common.paths import stage_dir
 from generalist_control.common.sections import as_dict, read_section
 from generalist_control.common.stage_main import stage_main
 from generalist_control.common.stop_signals import exiting_on_signals
@@ -56,17 +55,6 @@ def trial_config(
     return tcfg
 
 
-def _trials_dir(search: SearchSettings) -> Path:
-    """``trials_dir``, else ``<Hydra output dir or outputs/tune/<time>>/<study_name>``."""
-    if search.trials_dir:
-        return Path(search.trials_dir)
-    if HydraConfig.initialized():
-        base = Path(HydraConfig.get().runtime.output_dir)
-    else:
-        base = Path("outputs/tune") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-    return base / search.study_name
-
-
 def run(cfg: DictConfig) -> optuna.Study:
     """Run (or continue) the study that ``cfg.hparams_search`` configures; return it.
 
@@ -89,7 +77,9 @@ def run(cfg: DictConfig) -> optuna.Study:
         tcfg = trial_config(cfg, values, trial_dir, search.monitor, experiment)
         return train(read_training(as_dict(tcfg)))[0]
 
-    return run_study(search, space, fixed, logger, train_point, _trials_dir(search))
+    # trials_dir, else <Hydra output dir or outputs/tune/<time>>/<study_name>
+    trials_dir = Path(search.trials_dir or stage_dir("tune") / search.study_name)
+    return run_study(search, space, fixed, logger, train_point, trials_dir)
 
 
 @stage_main("tune")

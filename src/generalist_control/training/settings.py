@@ -8,14 +8,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 import torch
-from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 
+from generalist_control.common.paths import stage_dir
 from generalist_control.common.secrets import redact
 from generalist_control.common.sections import (
     SettingError,
@@ -261,15 +260,6 @@ def _held_out(config: Mapping[str, Any], plants: list[Plant]) -> tuple[str, ...]
     return held
 
 
-def _run_dir(config: Mapping[str, Any]) -> Path:
-    """Where the run's checkpoints go: ``run_dir``, Hydra's output dir, or a new one."""
-    if config["run_dir"]:
-        return Path(str(config["run_dir"]))
-    if HydraConfig.initialized():
-        return Path(HydraConfig.get().runtime.output_dir)
-    return Path("outputs/train") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-
-
 def _models_dir(config: Mapping[str, Any], run_dir: Path) -> Path:
     """Where the run writes ``policy.ckpt`` and ``metrics.json``.
 
@@ -327,7 +317,7 @@ def read_training(config: Mapping[str, Any]) -> TrainingSettings:
         )
     optimizer, scheduler = _optimizer(config["optimizer"], config["scheduler"], max_epochs)
     plants = plants_from_config(config["systems"])
-    run_dir = _run_dir(config)
+    run_dir = Path(str(config["run_dir"])) if config["run_dir"] else stage_dir("train")
     return TrainingSettings(
         seed=require_int("seed", config["seed"], minimum=0),
         threads=require_int("threads", config["threads"]),
