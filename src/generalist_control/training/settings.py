@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 from hydra.utils import instantiate
@@ -41,10 +41,12 @@ __all__ = [
     "SamplerSettings",
     "TrainingSettings",
     "VariantSettings",
-    "model_config",
     "read_training",
     "rollout_data",
 ]
+
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -237,14 +239,6 @@ def _optimizer(spec: Any, scheduler: Any, max_epochs: int) -> tuple[dict, dict |
     return spec, scheduler
 
 
-def model_config(config: Mapping[str, Any]) -> dict[str, Any]:
-    """The network's config, ``model`` resolved to plain types (``conf/model``)."""
-    model = config["model"]
-    if not isinstance(model, dict):
-        raise ValueError("model must be a network config (conf/model)")
-    return model
-
-
 def _held_out(config: Mapping[str, Any], plants: list[Plant]) -> tuple[str, ...]:
     """``held_out``: plants of the set training never sees (the held-out protocol)."""
     names = [p.name for p in plants]
@@ -286,6 +280,11 @@ def rollout_data(data: Mapping[str, Any]) -> RolloutData:
     )
 
 
+def _optional(cls: type[T], config: Mapping[str, Any], key: str) -> T | None:
+    """Section ``key`` of ``config`` read as ``cls``; None where it is null (switched off)."""
+    return None if config[key] is None else read_section(cls, config[key], key)
+
+
 def _callbacks(config: Mapping[str, Any]) -> tuple[dict[str, Any], ...]:
     """The ``callbacks`` nodes that name a class (a null one is switched off)."""
     nodes = (config["callbacks"] or {}).values()
@@ -305,12 +304,9 @@ def read_training(config: Mapping[str, Any]) -> TrainingSettings:
     monitor = config["monitor"]
     if monitor not in ("val/loss", "val/closed_loop"):
         raise ValueError(f"monitor must be val/loss or val/closed_loop, got {monitor!r}")
-    closed, dagger, families = (
-        config["closed_loop_val"],
-        config["dagger"],
-        config["train_families"],
-    )
-    if monitor == "val/closed_loop" and closed is None:
+    if not isinstance(config["model"], dict):
+        raise ValueError("model must be a network config (conf/model)")
+    if monitor == "val/closed_loop" and config["closed_loop_val"] is None:
         raise ValueError(
             "monitor=val/closed_loop needs the closed-loop validation, which closed_loop_val="
             "null turns off: set monitor=val/loss, or keep closed_loop_val"
@@ -325,20 +321,14 @@ def read_training(config: Mapping[str, Any]) -> TrainingSettings:
         monitor=str(monitor),
         history=require_int("data.history", config["data"]["history"]),
         horizon=require_int("data.horizon", config["data"]["horizon"]),
-        model=model_config(config),
+        model=config["model"],
         optimizer=optimizer,
         scheduler=scheduler,
         loader=read_section(LoaderSettings, config["loader"], "loader"),
-        dagger=None if dagger is None else read_section(DaggerSettings, dagger, "dagger"),
-        closed_loop_val=(
-            None
-            if closed is None
-            else read_section(ClosedLoopValSettings, closed, "closed_loop_val")
-        ),
+        dagger=_optional(DaggerSettings, config, "dagger"),
+        closed_loop_val=_optional(ClosedLoopValSettings, config, "closed_loop_val"),
         closed_loop=read_section(ClosedLoopSettings, config["closed_loop"], "closed_loop"),
-        families=(
-            None if families is None else read_section(FamilyTraining, families, "train_families")
-        ),
+        families=_optional(FamilyTraining, config, "train_families"),
         rollout_data=rollout_data(config["data"]),
         plants=tuple(plants),
         held_out=_held_out(config, plants),
