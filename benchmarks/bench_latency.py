@@ -48,10 +48,9 @@ def _default_model() -> dict:
     from hydra import compose, initialize_config_dir
 
     from generalist_control.common.paths import conf_dir
-    from generalist_control.training.settings import model_config
 
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
-        return model_config(as_dict(compose("config")))
+        return as_dict(compose("config"))["model"]
 
 
 def _reference(k: int) -> float:

@@ -11,7 +11,7 @@ import torch
 from omegaconf import OmegaConf
 
 from generalist_control.common.paths import conf_dir
-from generalist_control.common.sections import as_dict
+from generalist_control.common.sections import as_dict, read_section
 from generalist_control.data.demos import load_demos
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.runner import evaluate
@@ -20,12 +20,8 @@ from generalist_control.model.card import card_features, card_frame
 from generalist_control.plants.catalog import load_plant, tag_count
 from generalist_control.reports.held_out import judge_routes, zero_shot
 from generalist_control.reports.routes_section import routes_lines
-from generalist_control.training.family_set import (
-    FamilySet,
-    join_demos,
-    read_family_training,
-    with_rows,
-)
+from generalist_control.training.family_set import FamilySet, join_demos, with_rows
+from generalist_control.training.settings import FamilyTraining
 from helpers import compose_cfg, tiny_train_overrides, train
 
 #: Four drawn plants, 2 s trajectories (the tiny catalogue data's), checked over 10 s.
@@ -149,10 +145,17 @@ def test_the_routes_bars_and_their_section():
 
 def test_bad_family_settings_and_data_are_refused(tiny_data_dir, family_dir, tmp_path):
     with pytest.raises(ValueError, match="train_families.dirs must name at least one"):
-        read_family_training({"dirs": [], "dagger_plants": 1, "closed_loop_plants": 1})
+        read_section(
+            FamilyTraining,
+            {"dirs": [], "dagger_plants": 1, "closed_loop_plants": 1},
+            "train_families",
+        )
     with pytest.raises(ValueError, match="train_families.dagger_plants must be >= 0"):
-        read_family_training({"dirs": ["x"], "dagger_plants": -1, "closed_loop_plants": 1})
-    assert read_family_training(None) is None
+        read_section(
+            FamilyTraining,
+            {"dirs": ["x"], "dagger_plants": -1, "closed_loop_plants": 1},
+            "train_families",
+        )
     with pytest.raises(ValueError, match="not a plant family's"):
         FamilySet.load([tiny_data_dir], 25)  # the catalogue's data: no plant_family block
     catalogue, _ = load_demos(tiny_data_dir)

@@ -22,7 +22,6 @@ from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.simulate import Run, simulate, simulate_many
-from generalist_control.training.settings import model_config
 from helpers import compose_cfg, tiny_train_overrides, train
 
 EPOCHS = 5
@@ -108,7 +107,7 @@ def test_short_training_imitates_the_expert_and_saves_the_best_checkpoint(
     trained, meta = load_policy(tmp_path / "models" / "policy.ckpt")
     u_trained, _ = trained.predict_windows(windows)
     torch.manual_seed(int(cfg.seed))
-    untrained = Policy(model_config(as_dict(cfg)))  # the same network untrained, same normaliser
+    untrained = Policy(as_dict(cfg)["model"])  # the same network untrained, same normaliser
     untrained.normaliser.fit(**objs["datamodule"].train_set.tensors)
     u_untrained, _ = untrained.predict_windows(windows)
     err_trained = _relative_mse(u_trained, target, windows.tag)

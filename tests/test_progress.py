@@ -16,7 +16,7 @@ from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.training.callbacks import ClosedLoopValidation
 from generalist_control.training.datamodule import DemoDataModule
 from generalist_control.training.lit_module import ImitationModule
-from generalist_control.training.settings import LoaderSettings, model_config
+from generalist_control.training.settings import LoaderSettings
 from helpers import compose_cfg
 
 
@@ -50,7 +50,7 @@ def fitted(tiny_data_dir):
     dm = DemoDataModule(tiny_data_dir, 8, 3, loader, channels=["integral"])
     dm.setup("fit")
     optimizer = OmegaConf.to_container(cfg.optimizer, resolve=True)
-    lit = ImitationModule(model=model_config(as_dict(cfg)), optimizer=optimizer, meta=dm.meta())
+    lit = ImitationModule(model=as_dict(cfg)["model"], optimizer=optimizer, meta=dm.meta())
     plants = [load_plant("cstr"), load_plant("hydraulic_actuator")]
     trainer = L.Trainer(
         max_epochs=1,

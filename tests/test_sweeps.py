@@ -13,8 +13,8 @@ import pytest
 from hydra.core.utils import JobReturn, JobStatus
 from omegaconf import OmegaConf
 
+from generalist_control.common.stop_signals import Stopped
 from generalist_control.sweeps.hydra_callback import sweep_overrides
-from generalist_control.sweeps.stop_signals import Stopped
 from generalist_control.tracking import mlflow_utils
 from helpers import quick_overrides, run_command, sweep_callback
 

@@ -13,8 +13,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.adaptation import adapt
 from generalist_control.adaptation.request import read_request
-from generalist_control.adaptation.run_folder import exits_on_sigterm
 from generalist_control.common.stage_main import stage_main
+from generalist_control.common.stop_signals import exiting_on_signals
 
 __all__ = ["main", "run"]
 
@@ -31,7 +31,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 @stage_main("adapt")
 def main(cfg: DictConfig) -> float:
     """Hydra entry point: adapt, return the kept closed-loop score; SIGTERM exits 143."""
-    with exits_on_sigterm("adapt: stopped by SIGTERM; nothing was published"):
+    with exiting_on_signals("adapt: nothing was published"):
         return float(run(cfg)["closed_loop"]["kept"])
 
 

@@ -9,9 +9,7 @@ from __future__ import annotations
 import gc
 import json
 import logging
-import signal
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 from omegaconf import DictConfig
@@ -20,6 +18,7 @@ from generalist_control.common.atomic import folder_lock
 from generalist_control.common.secrets import redact
 from generalist_control.common.sections import as_dict, read_section
 from generalist_control.common.stage_main import stage_main
+from generalist_control.common.stop_signals import exiting_on_signals
 from generalist_control.data.generation import variants_config
 from generalist_control.deploy.policy_source import resolve
 from generalist_control.deploy.runtime import PolicyRuntime
@@ -114,18 +113,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return summary
 
 
-def _stop(signum: int, frame: FrameType | None) -> None:
-    """SIGTERM: unwind (nothing published, the run KILLED) and exit with 128 + the signal."""
-    log.error("stopped by %s: nothing published", signal.Signals(signum).name)
-    raise SystemExit(128 + signum)
-
-
 @stage_main("config")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point of the ``evaluate`` stage."""
-    signal.signal(signal.SIGTERM, _stop)
     gc.freeze()  # no collection walks what the imports built (docs/notes/evaluation-speed.md)
-    run(cfg)
+    with exiting_on_signals("nothing published, the run KILLED"):
+        run(cfg)
 
 
 if __name__ == "__main__":

@@ -6,28 +6,23 @@ The search section is read here, once; the rest of the config is each trial's tr
 from __future__ import annotations
 
 import copy
-import logging
 import math
-import sys
 from collections.abc import Mapping
-from datetime import datetime
 from pathlib import Path
 from typing import Any, cast
 
 import optuna
-from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 from optuna.trial import TrialState
 
+from generalist_control.common.paths import stage_dir
 from generalist_control.common.sections import as_dict, read_section
 from generalist_control.common.stage_main import stage_main
+from generalist_control.common.stop_signals import exiting_on_signals
 from generalist_control.sweeps.search_settings import SearchSettings, fixed_config, parse_space
-from generalist_control.sweeps.stop_signals import Stopped
 from generalist_control.training.settings import read_training
 
 __all__ = ["main", "run", "trial_config"]
-
-log = logging.getLogger(__name__)
 
 
 def trial_config(
@@ -60,17 +55,6 @@ def trial_config(
     return tcfg
 
 
-def _trials_dir(search: SearchSettings) -> Path:
-    """``trials_dir``, else ``<Hydra output dir or outputs/tune/<time>>/<study_name>``."""
-    if search.trials_dir:
-        return Path(search.trials_dir)
-    if HydraConfig.initialized():
-        base = Path(HydraConfig.get().runtime.output_dir)
-    else:
-        base = Path("outputs/tune") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-    return base / search.study_name
-
-
 def run(cfg: DictConfig) -> optuna.Study:
     """Run (or continue) the study that ``cfg.hparams_search`` configures; return it.
 
@@ -93,7 +77,9 @@ def run(cfg: DictConfig) -> optuna.Study:
         tcfg = trial_config(cfg, values, trial_dir, search.monitor, experiment)
         return train(read_training(as_dict(tcfg)))[0]
 
-    return run_study(search, space, fixed, logger, train_point, _trials_dir(search))
+    # trials_dir, else <Hydra output dir or outputs/tune/<time>>/<study_name>
+    trials_dir = Path(search.trials_dir or stage_dir("tune") / search.study_name)
+    return run_study(search, space, fixed, logger, train_point, trials_dir)
 
 
 @stage_main("tune")
@@ -106,11 +92,8 @@ def _main(cfg: DictConfig) -> float:
 
 def main() -> None:
     """``python tune.py``: exit 128 + the signal's number when SIGTERM or SIGINT stops it."""
-    try:
+    with exiting_on_signals("the running trial failed, the study's run ended KILLED"):
         _main()
-    except Stopped as stop:
-        log.error("%s; the running trial failed, the study's run ended KILLED", stop)
-        sys.exit(128 + stop.signum)
 
 
 if __name__ == "__main__":

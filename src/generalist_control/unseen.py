@@ -12,9 +12,9 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from generalist_control.adaptation.request import AdaptRequest, read_request
-from generalist_control.adaptation.run_folder import exits_on_sigterm
 from generalist_control.common.sections import as_dict
 from generalist_control.common.stage_main import stage_main
+from generalist_control.common.stop_signals import exiting_on_signals
 from generalist_control.evaluation.eval_config import read_evaluation
 from generalist_control.plants.catalog import available_plants
 from generalist_control.reports.held_out import ROUTES, UnseenSettings, run_unseen
@@ -80,7 +80,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 @stage_main("unseen")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point of the held-out protocol's evaluation (SIGTERM: exit 143)."""
-    with exits_on_sigterm("unseen: stopped by SIGTERM"):
+    with exiting_on_signals("unseen: stopped"):
         run(cfg)
 
 

@@ -13,7 +13,7 @@ from typing import Any
 from generalist_control.adaptation import run_folder
 from generalist_control.adaptation.job import learn, prepare
 from generalist_control.adaptation.request import AdaptRequest
-from generalist_control.common.atomic import folder_lock
+from generalist_control.common.atomic import check_replaceable, folder_lock
 
 __all__ = ["AdaptationDiverged", "adapt"]
 
@@ -44,7 +44,7 @@ def adapt(request: AdaptRequest) -> tuple[dict[str, Any], dict[str, Any]]:
     """
     start = time.perf_counter()
     with folder_lock(request.run_dir, "adaptation", wait=False):
-        run_folder.check_run_dir(request.run_dir)
+        check_replaceable(request.run_dir, {}, run_folder.SETTING)
         job = prepare(request)
         policy, meta, record = learn(job)
         if job.score.diverges(policy, meta):

@@ -7,13 +7,8 @@ swapped in last, after the version is registered: a complete-looking folder has 
 from __future__ import annotations
 
 import dataclasses
-import json
 import shutil
-import signal
-import sys
-import threading
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -23,9 +18,6 @@ from mlflow.exceptions import MlflowException
 
 from generalist_control.adaptation.job import AdaptJob
 from generalist_control.common.atomic import (
-    MARKER,
-    ForeignDirectoryError,
-    check_replaceable,
     publish_directory,
     staging_directory,
 )
@@ -38,11 +30,8 @@ from generalist_control.training.outputs import log_model
 
 __all__ = [
     "ADAPT_FILE",
-    "Stopped",
     "base_version",
-    "check_run_dir",
     "end_message",
-    "exits_on_sigterm",
     "publish",
 ]
 
@@ -50,49 +39,6 @@ __all__ = [
 ADAPT_FILE = "adapt.json"
 #: The setting a run folder's marker names: ``run_dir`` of ``adapt``.
 SETTING = "run_dir"
-
-
-class Stopped(KeyboardInterrupt):
-    """SIGTERM, raised where the command was so that it unwinds (:func:`exits_on_sigterm`)."""
-
-
-@contextmanager
-def exits_on_sigterm(message: str) -> Iterator[None]:
-    """Inside, SIGTERM unwinds like SIGINT (:class:`Stopped`), then exits 143 with ``message``."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def stop(signum: int, frame: Any) -> None:
-        raise Stopped(signum)
-
-    old = signal.signal(signal.SIGTERM, stop)
-    try:
-        yield
-    except Stopped:
-        print(message, file=sys.stderr)
-        sys.exit(128 + signal.SIGTERM)
-    finally:
-        signal.signal(signal.SIGTERM, old)
-
-
-def check_run_dir(run_dir: Path) -> None:
-    """Refuse a ``run_dir`` that is not this command's: a file, another's outputs, user files.
-
-    Raises
-    ------
-    ForeignDirectoryError
-        Naming the foreign files or the other command's setting; nothing is changed.
-    """
-    check_replaceable(run_dir, {}, SETTING)
-    if (run_dir / MARKER).is_file():
-        setting = json.loads((run_dir / MARKER).read_text()).get("setting")
-        if setting != SETTING:
-            raise ForeignDirectoryError(
-                f"refusing to write run_dir '{run_dir}': it holds the outputs of another "
-                f"command ({setting}, {MARKER}). Nothing was changed; point run_dir at a new "
-                "or empty folder"
-            )
 
 
 def base_version(source: str, run_id: str | None, name: str | None) -> str | None:
@@ -194,7 +140,6 @@ def publish(
                 )
             _log(job, record, policy, base, base_run)
             version = _register(job, policy, name, base, base_run) if logger["log_model"] else None
-            check_run_dir(run_dir)  # nothing of the user's appeared meanwhile
             publish_directory(staging, run_dir, {}, SETTING)
         except KeyboardInterrupt:
             mlflow.end_run("KILLED")

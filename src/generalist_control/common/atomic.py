@@ -142,6 +142,7 @@ def check_replaceable(
 ) -> None:
     """Raise :class:`ForeignDirectoryError` unless ``out_dir`` may be replaced.
 
+    It may if it holds only outputs of the command whose ``setting`` names it (its marker).
     Call it before any work, so a refused run writes nothing. ``owned``: see :data:`Owned`.
     """
     if any(c in key for key in owned for c in "*?["):
@@ -163,6 +164,13 @@ def check_replaceable(
             f"write ({shown}; a stage lists what it wrote in the folder's {MARKER}). Nothing "
             f"was changed. Point {setting} at a new or empty folder (or one this stage wrote "
             "before), or move those files away yourself."
+        )
+    other = (_read_marker(out_dir) or {}).get("setting", setting)
+    if other != setting:
+        raise ForeignDirectoryError(
+            f"refusing to write {setting} '{out_dir}': it holds the outputs of another "
+            f"command ({other}, {MARKER}). Nothing was changed; point {setting} at a new or "
+            "empty folder"
         )
 
 

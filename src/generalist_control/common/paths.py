@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import os
+from datetime import datetime
 from pathlib import Path
 
-__all__ = ["CONF_DIR", "GENERATE_COMMAND", "TRAIN_COMMAND", "conf_dir"]
+from hydra.core.hydra_config import HydraConfig
+
+__all__ = ["CONF_DIR", "GENERATE_COMMAND", "TRAIN_COMMAND", "conf_dir", "stage_dir"]
 
 #: ``conf/`` beside ``src/`` in the source tree.
 CONF_DIR = Path(__file__).resolve().parents[3] / "conf"
@@ -26,3 +29,10 @@ def conf_dir() -> Path:
             "checkout (pip install -e .) or set GC_CONF_DIR to a copy of conf/"
         )
     return path
+
+
+def stage_dir(stage: str) -> Path:
+    """The command's output folder: Hydra's, else a new ``outputs/<stage>/<time>``."""
+    if HydraConfig.initialized():
+        return Path(HydraConfig.get().runtime.output_dir)
+    return Path("outputs") / stage / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")

@@ -17,9 +17,9 @@ from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from generalist_control.common import stop_signals
 from generalist_control.common.secrets import redact
 from generalist_control.common.sections import as_dict
-from generalist_control.sweeps import stop_signals
 from generalist_control.tracking import mlflow_utils
 from generalist_control.tracking.mlflow_utils import experiment_name
 from generalist_control.tracking.parents import (

@@ -23,8 +23,8 @@ import mlflow
 import optuna
 from optuna.trial import FrozenTrial, TrialState
 
+from generalist_control.common import stop_signals
 from generalist_control.common.secrets import redact
-from generalist_control.sweeps import stop_signals
 from generalist_control.sweeps.search_settings import Param, SearchSettings, check_fixed_config
 from generalist_control.sweeps.storage import (
     end_trial_run,

@@ -14,33 +14,12 @@ from typing import Any
 
 import numpy as np
 
-from generalist_control.common.sections import SettingError, read_section
 from generalist_control.data.demos import DemoSet, load_demos, read_manifest
 from generalist_control.plants.definition import Plant
 from generalist_control.plants.families import plant_from_record
+from generalist_control.training.settings import FamilyTraining
 
-__all__ = ["FamilySet", "FamilyTraining", "join_demos", "read_family_training", "with_rows"]
-
-
-@dataclass(frozen=True)
-class FamilyTraining:
-    """``train_families``: the families trained on and how much of them each check sees."""
-
-    dirs: tuple[str, ...]  #: the families' data folders (``generate_families``' data_dir)
-    dagger_plants: int  #: family plants rolled out per DAgger round, in turn
-    closed_loop_plants: int  #: the first family plants in the closed-loop validation
-
-    def __post_init__(self) -> None:
-        if not self.dirs:
-            raise SettingError("dirs", "must name at least one family's data folder")
-        for name in ("dagger_plants", "closed_loop_plants"):
-            if getattr(self, name) < 0:
-                raise SettingError(name, f"must be >= 0, got {getattr(self, name)}")
-
-
-def read_family_training(node: Any) -> FamilyTraining | None:
-    """``train_families`` (a mapping, or null: the catalogue alone) read and checked."""
-    return None if node is None else read_section(FamilyTraining, node, "train_families")
+__all__ = ["FamilySet", "join_demos", "with_rows"]
 
 
 def join_demos(first: DemoSet, second: DemoSet, offset: int) -> DemoSet:

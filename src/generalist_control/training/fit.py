@@ -46,7 +46,7 @@ from generalist_control.training.callbacks import (
     dagger_plants,
 )
 from generalist_control.training.datamodule import DemoDataModule
-from generalist_control.training.family_set import FamilySet, read_family_training, with_rows
+from generalist_control.training.family_set import FamilySet, with_rows
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.lit_module import ImitationModule
 from generalist_control.training.sampler import RolloutSampler
@@ -254,7 +254,7 @@ def _prepare(
     scrub_hydra_files()
     torch.set_num_threads(settings.threads)
     L.seed_everything(settings.seed, workers=True)
-    spec = read_family_training(settings.resolved["train_families"])  # null: none
+    spec = settings.families
     families = FamilySet.load(spec.dirs, tag_count(), spec) if spec else None
     settings = dataclasses.replace(settings, model=with_rows(settings.model, families))
     with torch.random.fork_rng():  # the model config checked before the data is read

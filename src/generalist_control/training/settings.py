@@ -8,14 +8,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
-from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 
+from generalist_control.common.paths import stage_dir
 from generalist_control.common.secrets import redact
 from generalist_control.common.sections import (
     SettingError,
@@ -35,16 +34,19 @@ __all__ = [
     "ClosedLoopSettings",
     "ClosedLoopValSettings",
     "DaggerSettings",
+    "FamilyTraining",
     "LabellerSettings",
     "LoaderSettings",
     "RolloutData",
     "SamplerSettings",
     "TrainingSettings",
     "VariantSettings",
-    "model_config",
     "read_training",
     "rollout_data",
 ]
+
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -160,6 +162,22 @@ class ClosedLoopSettings:
 
 
 @dataclass(frozen=True)
+class FamilyTraining:
+    """``train_families``: the families trained on and how much of them each check sees."""
+
+    dirs: tuple[str, ...]  #: the families' data folders (``generate_families``' data_dir)
+    dagger_plants: int  #: family plants rolled out per DAgger round, in turn
+    closed_loop_plants: int  #: the first family plants in the closed-loop validation
+
+    def __post_init__(self) -> None:
+        if not self.dirs:
+            raise SettingError("dirs", "must name at least one family's data folder")
+        for name in ("dagger_plants", "closed_loop_plants"):
+            if getattr(self, name) < 0:
+                raise SettingError(name, f"must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
 class RolloutData:
     """What DAgger's rollouts take from the data recipe (``data``)."""
 
@@ -186,6 +204,7 @@ class TrainingSettings:
     dagger: DaggerSettings | None
     closed_loop_val: ClosedLoopValSettings | None
     closed_loop: ClosedLoopSettings
+    families: FamilyTraining | None  #: ``train_families``: null, the catalogue alone
     rollout_data: RolloutData
     plants: tuple[Plant, ...]  #: the set's plants (``systems``), by tag
     held_out: tuple[str, ...]  #: plants of the set training never sees
@@ -220,14 +239,6 @@ def _optimizer(spec: Any, scheduler: Any, max_epochs: int) -> tuple[dict, dict |
     return spec, scheduler
 
 
-def model_config(config: Mapping[str, Any]) -> dict[str, Any]:
-    """The network's config, ``model`` resolved to plain types (``conf/model``)."""
-    model = config["model"]
-    if not isinstance(model, dict):
-        raise ValueError("model must be a network config (conf/model)")
-    return model
-
-
 def _held_out(config: Mapping[str, Any], plants: list[Plant]) -> tuple[str, ...]:
     """``held_out``: plants of the set training never sees (the held-out protocol)."""
     names = [p.name for p in plants]
@@ -241,15 +252,6 @@ def _held_out(config: Mapping[str, Any], plants: list[Plant]) -> tuple[str, ...]
     if not set(names) - set(held):
         raise ValueError(f"held_out={list(held)} leaves no plant of the set to train on")
     return held
-
-
-def _run_dir(config: Mapping[str, Any]) -> Path:
-    """Where the run's checkpoints go: ``run_dir``, Hydra's output dir, or a new one."""
-    if config["run_dir"]:
-        return Path(str(config["run_dir"]))
-    if HydraConfig.initialized():
-        return Path(HydraConfig.get().runtime.output_dir)
-    return Path("outputs/train") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
 
 
 def _models_dir(config: Mapping[str, Any], run_dir: Path) -> Path:
@@ -278,6 +280,11 @@ def rollout_data(data: Mapping[str, Any]) -> RolloutData:
     )
 
 
+def _optional(cls: type[T], config: Mapping[str, Any], key: str) -> T | None:
+    """Section ``key`` of ``config`` read as ``cls``; None where it is null (switched off)."""
+    return None if config[key] is None else read_section(cls, config[key], key)
+
+
 def _callbacks(config: Mapping[str, Any]) -> tuple[dict[str, Any], ...]:
     """The ``callbacks`` nodes that name a class (a null one is switched off)."""
     nodes = (config["callbacks"] or {}).values()
@@ -297,15 +304,16 @@ def read_training(config: Mapping[str, Any]) -> TrainingSettings:
     monitor = config["monitor"]
     if monitor not in ("val/loss", "val/closed_loop"):
         raise ValueError(f"monitor must be val/loss or val/closed_loop, got {monitor!r}")
-    closed, dagger = config["closed_loop_val"], config["dagger"]
-    if monitor == "val/closed_loop" and closed is None:
+    if not isinstance(config["model"], dict):
+        raise ValueError("model must be a network config (conf/model)")
+    if monitor == "val/closed_loop" and config["closed_loop_val"] is None:
         raise ValueError(
             "monitor=val/closed_loop needs the closed-loop validation, which closed_loop_val="
             "null turns off: set monitor=val/loss, or keep closed_loop_val"
         )
     optimizer, scheduler = _optimizer(config["optimizer"], config["scheduler"], max_epochs)
     plants = plants_from_config(config["systems"])
-    run_dir = _run_dir(config)
+    run_dir = Path(str(config["run_dir"])) if config["run_dir"] else stage_dir("train")
     return TrainingSettings(
         seed=require_int("seed", config["seed"], minimum=0),
         threads=require_int("threads", config["threads"]),
@@ -313,17 +321,14 @@ def read_training(config: Mapping[str, Any]) -> TrainingSettings:
         monitor=str(monitor),
         history=require_int("data.history", config["data"]["history"]),
         horizon=require_int("data.horizon", config["data"]["horizon"]),
-        model=model_config(config),
+        model=config["model"],
         optimizer=optimizer,
         scheduler=scheduler,
         loader=read_section(LoaderSettings, config["loader"], "loader"),
-        dagger=None if dagger is None else read_section(DaggerSettings, dagger, "dagger"),
-        closed_loop_val=(
-            None
-            if closed is None
-            else read_section(ClosedLoopValSettings, closed, "closed_loop_val")
-        ),
+        dagger=_optional(DaggerSettings, config, "dagger"),
+        closed_loop_val=_optional(ClosedLoopValSettings, config, "closed_loop_val"),
         closed_loop=read_section(ClosedLoopSettings, config["closed_loop"], "closed_loop"),
+        families=_optional(FamilyTraining, config, "train_families"),
         rollout_data=rollout_data(config["data"]),
         plants=tuple(plants),
         held_out=_held_out(config, plants),

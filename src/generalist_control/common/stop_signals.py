@@ -1,4 +1,4 @@
-"""SIGTERM and SIGINT stop a sweep or a study: non-zero exit, no further job, parent ``KILLED``.
+"""SIGTERM and SIGINT stop a command: it unwinds, its run ``KILLED``, and exits non-zero.
 
 The first signal becomes :class:`Stopped`, a ``KeyboardInterrupt``: joblib kills its workers,
 Optuna fails the running trial, and nothing takes it for a job's ordinary failure.
@@ -8,13 +8,21 @@ from __future__ import annotations
 
 import logging
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from types import FrameType
 from typing import Any
 
-__all__ = ["Stopped", "install", "received", "restore", "stopping_on_signals"]
+__all__ = [
+    "Stopped",
+    "exiting_on_signals",
+    "install",
+    "received",
+    "restore",
+    "stopping_on_signals",
+]
 
 log = logging.getLogger(__name__)
 
@@ -70,3 +78,17 @@ def stopping_on_signals() -> Iterator[None]:
     finally:
         if installed:
             restore()
+
+
+@contextmanager
+def exiting_on_signals(message: str) -> Iterator[None]:
+    """:func:`stopping_on_signals` for a command: :class:`Stopped` exits 128 + the signal's number.
+
+    ``message`` (what was left undone) is logged with the signal's name.
+    """
+    try:
+        with stopping_on_signals():
+            yield
+    except Stopped as stop:
+        log.error("%s: %s", stop, message)
+        sys.exit(128 + stop.signum)
