@@ -34,4 +34,3 @@ def f(
     q1 = _outflow(a1, x[:, 0], g)
     q2 = _outflow(a2, x[:, 1], g)
     return np.stack([(np.asarray(u, dtype=float) - q1) / A1, (q1 - q2) / A2], axis=1)
-

@@ -122,8 +122,7 @@ class Policy(nn.Module):
         super().__init__()
         self.config: dict[str, Any] = dict(model)
         net = build_network(self.config)
-        mapped = bool(getattr(net.plant, "maps_states", False))  # the card route's frame
-        self.normaliser = Normaliser(net.n_tags, net.width, mapped)
+        self.normaliser = Normaliser(net.n_tags, net.width, net.plant.maps_states)
         self.net = net
         self.history: int = net.history  #: samples per window (``T_h``)
         self.horizon: int = net.horizon  #: controls per window (``K``)
