@@ -54,23 +54,13 @@ class TransitionSet(nn.Module):
         code = torch.tanh(self.rho(self.phi(steps).mean(dim=1)))
         if self.models is None:
             return code
-        return torch.cat([code, self.evidence(state, mask, rows, steps)], dim=-1)
-
-    def evidence(
-        self,
-        state: Tensor,
-        mask: Tensor,
-        rows: Tensor | None,
-        steps: Tensor | None = None,
-    ) -> Tensor:
-        """Each plant's evidence (B, plants) on windows (B, history, width) (:attr:`models`)."""
-        if self.models is None or rows is None:
+        if rows is None:
             raise ValueError("the transition models need the plants' embedding rows")
-        steps = self.transitions(state, mask) if steps is None else steps
         n = self.state_dim
         x, dx, u = steps[..., :n], steps[..., n : 2 * n], steps[..., 2 * n]
         # the control that took sample j - 1 to j: the channel at sample j
-        return self.models(x, dx, u, rows, u_prev=state[:, :-1, -1])
+        evidence = self.models(x, dx, u, rows, u_prev=state[:, :-1, -1])
+        return torch.cat([code, evidence], dim=-1)
 
     def read(self, state: Tensor, mask: Tensor, rows: Tensor | None, noise: float = 0.0) -> Tensor:
         """The identifier's state of windows; with ``noise`` > 0, of noisy copies of them.

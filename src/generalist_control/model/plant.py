@@ -109,7 +109,6 @@ class InferredPlant(PlantPart):
         n_tags: int = 25,
         noise: float = 0.0,
         loss_weight: float = 1.0,
-        state_dim: int = MAX_ORDER,
     ) -> None:
         super().__init__()
         self.n_tags = require_int("model.plant.n_tags", n_tags)
@@ -121,7 +120,7 @@ class InferredPlant(PlantPart):
                 "is trained by this loss alone"
             )
         self.rows = nn.Embedding(self.n_tags, dim)
-        self.identifier = identifier(state_dim=state_dim, hidden=dim)
+        self.identifier = identifier(state_dim=MAX_ORDER, hidden=dim)
         evidence = self.n_tags if self.identifier.models is not None else 0
         self.summary_size = dim + evidence
         self.head = nn.Linear(dim + evidence, self.n_tags)
