@@ -254,7 +254,7 @@ def net_config(
 
 def build_net(**kwargs):
     """The :class:`GeneralistNetwork` of :func:`net_config`."""
-    from generalist_control.model.build import build_network
+    from generalist_control.model.policy import build_network
 
     return build_network(net_config(**kwargs))
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from generalist_control.model.bank import add_card, fit_cards
+from generalist_control.model.bank import add_plant, fit_model_rows
 from generalist_control.model.card import (
     CARD_FEATURES,
     CardError,
@@ -124,13 +124,13 @@ def test_bank_rows_and_a_plant_added_leave_every_trained_value_alone():
     torch.manual_seed(0)
     policy = Policy(card_config())
     trained = [load_plant(n) for n in ("cstr", "dc_servo", "unstable")]
-    fit_cards(policy, trained)
+    fit_model_rows(policy, trained)
     frame = card_frame(trained[0], DURATION)
     norm = policy.normaliser
     np.testing.assert_allclose(norm.state_map[trained[0].tag, :2, :2].numpy(), frame.map)
     assert float(norm.control_scale[trained[0].tag]) == pytest.approx(frame.control)
     assert float(norm.state_scale[trained[0].tag, MAX_ORDER]) == pytest.approx(frame.integral)
-    grown = add_card(policy, load_plant("magnetic_levitation"))
+    grown = add_plant(policy, load_plant("magnetic_levitation"))
     assert grown.net.n_tags == policy.net.n_tags + 1
     old = policy.state_dict()
     for key, value in grown.state_dict().items():
@@ -144,7 +144,7 @@ def test_bank_rows_and_a_plant_added_leave_every_trained_value_alone():
 def test_padded_state_entries_reach_the_network_as_zeros():
     policy = Policy(card_config())
     p = load_plant("cstr")
-    fit_cards(policy, [p])
+    fit_model_rows(policy, [p])
     x = torch.randn(2, 8, 5)
     mask = torch.ones(2, 8, 5)
     mask[..., p.order : MAX_ORDER] = 0

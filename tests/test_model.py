@@ -8,10 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from generalist_control.model.build import build_network
 from generalist_control.model.network import GeneralistNetwork, SummaryAttention, count_parameters
 from generalist_control.model.normalise import Normaliser
-from generalist_control.model.policy import FlatPolicy, Policy, load_policy, save_policy
+from generalist_control.model.policy import (
+    FlatPolicy,
+    Policy,
+    build_network,
+    load_policy,
+    save_policy,
+)
 from generalist_control.training.datamodule import BatchIndexSampler, split_by_trajectory
 from helpers import build_net, net_config, policy_meta
 

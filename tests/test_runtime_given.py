@@ -9,7 +9,7 @@ import yaml
 
 from generalist_control.common.paths import conf_dir
 from generalist_control.deploy.runtime import PolicyRuntime
-from generalist_control.model.bank import fit_cards
+from generalist_control.model.bank import fit_model_rows
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.definition import PlantConfigError
@@ -34,7 +34,7 @@ def _meta(names) -> dict:
 def card_policy() -> Policy:
     torch.manual_seed(0)
     policy = Policy(card_config())
-    fit_cards(policy, [load_plant(n) for n in TRAINED])
+    fit_model_rows(policy, [load_plant(n) for n in TRAINED])
     with torch.no_grad():  # a skip that acts, so that the controls depend on the card
         policy.net.skip.gains.weight.normal_(0, 0.1)
     return policy.eval()
@@ -63,7 +63,7 @@ def test_yaml_path_model_dict_and_plant_give_the_same_controls(card_policy):
     # the same plant in the bank from the start, named: what the runtime grows must equal it
     bank = Policy(card_policy.config)
     bank.load_state_dict(card_policy.state_dict())
-    fit_cards(bank, [load_plant(NEW)], standardise=False)
+    fit_model_rows(bank, [load_plant(NEW)], standardise=False)
     by_name = _controls(PolicyRuntime(bank.eval(), _meta([*TRAINED, NEW])), NEW)
     assert np.all(np.isfinite(by_file)) and np.ptp(by_file) > 0
     np.testing.assert_array_equal(by_dict, by_file)

@@ -91,6 +91,16 @@ def test_evidence_is_half_log_of_each_models_mean_squared_residual():
     assert fit == pytest.approx(want, rel=1e-3) and fit > 0
 
 
+def _predict(models: TransitionModels, x, u, rows, gain=None) -> torch.Tensor:
+    """The direct form: each plant's predicted change (B, T, plants, 4), ``b_p`` times ``gain``."""
+    z = torch.cat([x, u.unsqueeze(-1), torch.ones_like(u).unsqueeze(-1)], dim=-1)
+    theta = models.theta(rows)
+    change = torch.einsum("pik,btk->btpi", theta, z)
+    if gain is None:
+        return change
+    return change + torch.einsum("bp,pi,bt->btpi", gain - 1.0, theta[:, :, 4], u)
+
+
 def test_the_true_models_residual_vanishes_where_it_fits_exactly():
     """The moment form in float64: no rounding left where the residual is 0 (eps decides)."""
     plants = _plants(2, seed=5)
@@ -99,8 +109,8 @@ def test_the_true_models_residual_vanishes_where_it_fits_exactly():
     _set_models(models, plants, rows)
     # states and controls 30x the data's normalised ones: more energy to cancel
     x, dx, u = _transitions(plants, np.array([0, 1]), steps=23, seed=6, scale=30.0)
-    residual = models.residual(x, dx, u, rows)
-    direct = ((dx.unsqueeze(2) - models.predict(x, u, rows)) ** 2).sum(-1).mean(1)
+    residual = models.fit(x, dx, u, rows)[0]
+    direct = ((dx.unsqueeze(2) - _predict(models, x, u, rows)) ** 2).sum(-1).mean(1)
     torch.testing.assert_close(residual, direct, rtol=1e-4, atol=1e-3)
     assert float(residual[0, 0]) < 1e-3 * models.eps and float(residual[1, 1]) < 1e-3 * models.eps
 
@@ -199,8 +209,8 @@ def test_the_fitted_input_gain_is_the_least_squares_scale_within_its_range(actua
     _set_models(models, plants, rows)
     tags = np.array([0, 1, 2])
     x, dx, u = _transitions(_scaled(plants, actuator), tags, steps=9, seed=8, scale=3.0)
-    gain = models.gain(x, dx, u, rows).detach().numpy()
-    residual = models.residual(x, dx, u, rows).detach().numpy()
+    gain = models.fit(x, dx, u, rows)[1].detach().numpy()
+    residual = models.fit(x, dx, u, rows)[0].detach().numpy()
     for i in range(len(tags)):
         for p, (a, b, c) in enumerate(plants):
             d = dx[i].numpy() - x[i].numpy() @ a.T - c
@@ -209,9 +219,9 @@ def test_the_fitted_input_gain_is_the_least_squares_scale_within_its_range(actua
             assert gain[i, p] == pytest.approx(g, rel=1e-4)
             assert residual[i, p] == pytest.approx(((d - g * v) ** 2).sum(1).mean(), rel=1e-3)
     np.testing.assert_allclose(np.diag(gain), fitted, rtol=1e-4)
-    direct = (dx.unsqueeze(2) - models.predict(x, u, rows, models.gain(x, dx, u, rows))) ** 2
+    direct = (dx.unsqueeze(2) - _predict(models, x, u, rows, models.fit(x, dx, u, rows)[1])) ** 2
     torch.testing.assert_close(
-        models.residual(x, dx, u, rows), direct.sum(-1).mean(1), rtol=1e-4, atol=1e-4
+        models.fit(x, dx, u, rows)[0], direct.sum(-1).mean(1), rtol=1e-4, atol=1e-4
     )
 
 
@@ -227,8 +237,8 @@ def test_an_actuator_off_its_gain_leaves_the_plant_its_evidence():
     tags = np.repeat(np.arange(6), 20)
     x, dx, u = _transitions(_scaled(plants, 0.8), tags, steps=12, seed=10, noise=1e-3)
     true = np.arange(len(tags)), tags
-    res_fixed = fixed.residual(x, dx, u, rows).detach().numpy()[true]
-    res_fitted = fitted.residual(x, dx, u, rows).detach().numpy()[true]
+    res_fixed = fixed.fit(x, dx, u, rows)[0].detach().numpy()[true]
+    res_fitted = fitted.fit(x, dx, u, rows)[0].detach().numpy()[true]
     assert np.median(res_fitted) < 1e-5 < 1e-2 < np.median(res_fixed)
     assert (fitted(x, dx, u, rows).argmax(1).detach().numpy() == tags).all()
 
@@ -240,10 +250,10 @@ def test_a_window_without_control_leaves_the_gain_at_one():
     _set_models(models, plants, rows)
     x, dx, u = _transitions(plants, np.array([0, 1]), steps=6, seed=12)
     u = torch.zeros_like(u)
-    assert torch.equal(models.gain(x, dx, u, rows), torch.ones(2, 2))
+    assert torch.equal(models.fit(x, dx, u, rows)[1], torch.ones(2, 2))
     fixed = TransitionModels(state_dim=4, embedding=4)
     _set_models(fixed, plants, rows)
-    torch.testing.assert_close(models.residual(x, dx, u, rows), fixed.residual(x, dx, u, rows))
+    torch.testing.assert_close(models.fit(x, dx, u, rows)[0], fixed.fit(x, dx, u, rows)[0])
 
 
 def test_the_models_config_builds_fitted_models_and_refuses_a_bad_range():
@@ -307,8 +317,8 @@ def test_the_fitted_lag_and_offset_are_numpys_least_squares(lags, offset):
     tags = np.array([0, 1, 2, 0])
     x, dx, u, u_prev = _lagged(_scaled(plants, 1.4), tags, steps=10, seed=22, lag=0.35,
                                offset=0.5)  # fmt: skip
-    residual = models.residual(x, dx, u, rows, u_prev).detach().numpy()
-    gain = models.gain(x, dx, u, rows, u_prev).detach().numpy()
+    residual = models.fit(x, dx, u, rows, u_prev)[0].detach().numpy()
+    gain = models.fit(x, dx, u, rows, u_prev)[1].detach().numpy()
     for i in range(len(tags)):
         for p, plant in enumerate(plants):
             args = (x[i].numpy(), dx[i].numpy(), u[i].numpy(), u_prev[i].numpy(), plant)
@@ -332,12 +342,12 @@ def test_a_lagged_biased_actuator_leaves_the_plant_its_evidence():
     tags = np.repeat(np.arange(6), 20)
     x, dx, u, u_prev = _lagged(plants, tags, steps=12, seed=24, lag=0.4, offset=0.8)
     true = np.arange(len(tags)), tags
-    res_fixed = fixed.residual(x, dx, u, rows).detach().numpy()[true]
-    res_fitted = fitted.residual(x, dx, u, rows, u_prev).detach().numpy()[true]
+    res_fixed = fixed.fit(x, dx, u, rows)[0].detach().numpy()[true]
+    res_fitted = fitted.fit(x, dx, u, rows, u_prev)[0].detach().numpy()[true]
     assert np.median(res_fitted) < 1e-6 < 1e-1 < np.median(res_fixed)
     assert (fitted(x, dx, u, rows, u_prev).argmax(1).detach().numpy() == tags).all()
     with pytest.raises(ValueError, match="needs u_prev"):
-        fitted.residual(x, dx, u, rows)
+        fitted.fit(x, dx, u, rows)[0]
 
 
 def test_without_lag_or_offset_the_evidence_is_unchanged():
@@ -353,7 +363,7 @@ def test_without_lag_or_offset_the_evidence_is_unchanged():
     x, dx, u, u_prev = _lagged(plants, np.array([0, 1, 2]), steps=8, seed=26, lag=0.2,
                                offset=0.1)  # fmt: skip
     torch.testing.assert_close(
-        base.residual(x, dx, u, rows), explicit.residual(x, dx, u, rows, u_prev)
+        base.fit(x, dx, u, rows)[0], explicit.fit(x, dx, u, rows, u_prev)[0]
     )
     with pytest.raises(ValueError, match="lags must be"):
         TransitionModels(state_dim=4, embedding=4, lags=(0.0, 1.5))

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["equilibrium", "f"]
+__all__ = ["f"]
 
 
 def _outflow(a: float, h: np.ndarray, g: float) -> np.ndarray:
@@ -34,15 +34,3 @@ def f(
     q1 = _outflow(a1, x[:, 0], g)
     q2 = _outflow(a2, x[:, 1], g)
     return np.stack([(np.asarray(u, dtype=float) - q1) / A1, (q1 - q2) / A2], axis=1)
-
-
-def equilibrium(
-    h2: float, *, A1: float, A2: float, a1: float, a2: float, g: float = 981.0
-) -> tuple[np.ndarray, float]:
-    """Operating point ``(x_op, q_op)`` with lower-tank level ``h2`` (cm).
-
-    In equilibrium both orifice flows equal the pump flow, so ``h1 = h2 (a2 / a1)^2``.
-    """
-    del A1, A2  # the areas do not affect the steady state
-    h1 = h2 * (a2 / a1) ** 2
-    return np.array([h1, h2]), float(a2 * np.sqrt(2.0 * g * h2))

@@ -7,6 +7,7 @@ its card (A, B, C, dt, Q, R) by stated rules, never fitted, so a new plant needs
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,6 +21,7 @@ from generalist_control.simulation.lqi import design_lqi, sampled_closed_loop
 
 __all__ = [
     "CARD_FEATURES",
+    "STD_FLOOR",
     "CardFrame",
     "CardPlant",
     "card_features",
@@ -31,6 +33,8 @@ _W = MAX_ORDER + 1  # the augmented state [x; z], the integral last
 CARD_FEATURES = MAX_ORDER + _W
 #: RMS below this (a signal the step leaves at rest) gives the scale 1, as the normaliser does.
 _TINY = 1e-12
+#: Smallest spread of a descriptor entry (an entry every training card shares).
+STD_FLOOR = 1e-3
 
 
 class CardError(ValueError):
@@ -115,6 +119,30 @@ def card_features(plant: Plant, frame: CardFrame) -> np.ndarray:
     return np.concatenate([(np.arange(MAX_ORDER) < n).astype(float), np.arcsinh(gain)])
 
 
+def _frame_rows(frame: CardFrame, width: int) -> dict[str, Tensor]:
+    """The normaliser's buffers (one row each) for a card's frame, ``width`` window entries.
+
+    Entry ``MAX_ORDER`` is the error integral, a last entry beyond it the previous control;
+    padded state entries get the scale 1 and a zero row of the map.
+    """
+    n = len(frame.state)
+    state = torch.ones(1, width, dtype=torch.float64)
+    state[0, :n] = torch.as_tensor(frame.state)
+    if width > MAX_ORDER:
+        state[0, MAX_ORDER] = frame.integral
+    if width > MAX_ORDER + 1:
+        state[0, -1] = frame.control
+    state_map = torch.zeros(1, MAX_ORDER, MAX_ORDER, dtype=torch.float64)
+    state_map[0, :n, :n] = torch.as_tensor(frame.map)
+    return {
+        "normaliser.state_scale": state,
+        "normaliser.ref_scale": torch.tensor([frame.reference], dtype=torch.float64),
+        "normaliser.control_scale": torch.tensor([frame.control], dtype=torch.float64),
+        "normaliser.seen": torch.ones(1, dtype=torch.bool),
+        "normaliser.state_map": state_map,
+    }
+
+
 class CardPlant(PlantPart):
     """The plant's code from its model card: a bank of descriptors (buffers), encoded by an MLP.
 
@@ -148,7 +176,20 @@ class CardPlant(PlantPart):
         """The code (B, dim) of each row's card; nothing read from the window."""
         return self.encoder((self.cards[tag] - self.card_mean) / self.card_std), None
 
-    def card(self, plant: Plant) -> tuple[np.ndarray, CardFrame]:
-        """``plant``'s descriptor and frame by this part's rule."""
-        frame = card_frame(plant, self.duration)
-        return card_features(plant, frame), frame
+    def plant_rows(self, plants: Sequence[Plant], width: int) -> dict[str, Tensor]:
+        """Each plant's card and its frame's normaliser rows (:func:`_frame_rows`), stacked."""
+        rows: dict[str, list[Tensor]] = {}
+        for p in plants:
+            frame = card_frame(p, self.duration)
+            features = torch.as_tensor(card_features(p, frame))[None]
+            rows.setdefault("net.plant.cards", []).append(features)
+            for k, v in _frame_rows(frame, width).items():
+                rows.setdefault(k, []).append(v)
+        return {k: torch.cat(v) for k, v in rows.items()}
+
+    @torch.no_grad()
+    def fit_plants(self, plants: Sequence[Plant]) -> None:
+        """The training cards' mean and spread become the encoder's standardisation."""
+        cards = self.cards[torch.as_tensor([p.tag for p in plants], dtype=torch.long)].double()
+        self.card_mean.copy_(cards.mean(0))
+        self.card_std.copy_(cards.std(0, unbiased=False).clamp(min=STD_FLOOR))

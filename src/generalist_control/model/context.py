@@ -6,16 +6,16 @@ The code may also learn to predict the plant's card (a training target, never an
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor, nn
 
 from generalist_control.common.sections import require_int, require_nonnegative
-from generalist_control.model.card import CARD_FEATURES
+from generalist_control.model.card import CARD_FEATURES, STD_FLOOR, card_features, card_frame
 from generalist_control.model.identifier import TransitionSet
 from generalist_control.model.plant import PlantPart, PlantReading
-from generalist_control.plants.definition import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER, Plant
 
 __all__ = ["ContextPlant"]
 
@@ -67,6 +67,19 @@ class ContextPlant(PlantPart):
         noise = self.noise if self.training else 0.0
         code = self.identifier.read(state, mask, None, noise)
         return code, PlantReading(logits=None, summary=code, evidence=None)
+
+    @torch.no_grad()
+    def fit_plants(self, plants: Sequence[Plant]) -> None:
+        """The card targets (with :attr:`card_weight`): each plant's card, standardised."""
+        if self.card_weight == 0:
+            return
+        tags = torch.as_tensor([p.tag for p in plants], dtype=torch.long)
+        cards = torch.stack(
+            [torch.as_tensor(card_features(p, card_frame(p, self.duration))) for p in plants]
+        )
+        spread = cards.std(0, unbiased=False).clamp(min=STD_FLOOR) if len(plants) > 1 else 1.0
+        self.targets[tags] = ((cards - cards.mean(0)) / spread).to(self.targets.dtype)
+        self.has_target[tags] = True
 
     def loss(self, reading: PlantReading | None, tag: Tensor) -> tuple[Tensor, Tensor] | None:
         """The card-prediction MSE over windows of plants with a card, and it weighed."""

@@ -11,14 +11,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-__all__ = ["TransitionModels", "TransitionSet", "noisy_states"]
-
-
-def noisy_states(state: Tensor, mask: Tensor, std: float, state_dim: int) -> Tensor:
-    """Windows with white noise on their plant states, std per window uniform in ``[0, std]``."""
-    scale = std * torch.rand(state.shape[0], 1, 1, device=state.device, dtype=state.dtype)
-    noise = scale * torch.randn_like(state[..., :state_dim]) * mask[..., :state_dim]
-    return torch.cat([state[..., :state_dim] + noise, state[..., state_dim:]], dim=-1)
+__all__ = ["TransitionModels", "TransitionSet"]
 
 
 class TransitionSet(nn.Module):
@@ -61,28 +54,24 @@ class TransitionSet(nn.Module):
         code = torch.tanh(self.rho(self.phi(steps).mean(dim=1)))
         if self.models is None:
             return code
-        return torch.cat([code, self.evidence(state, mask, rows, steps)], dim=-1)
-
-    def evidence(
-        self,
-        state: Tensor,
-        mask: Tensor,
-        rows: Tensor | None,
-        steps: Tensor | None = None,
-    ) -> Tensor:
-        """Each plant's evidence (B, plants) on windows (B, history, width) (:attr:`models`)."""
-        if self.models is None or rows is None:
+        if rows is None:
             raise ValueError("the transition models need the plants' embedding rows")
-        steps = self.transitions(state, mask) if steps is None else steps
         n = self.state_dim
         x, dx, u = steps[..., :n], steps[..., n : 2 * n], steps[..., 2 * n]
         # the control that took sample j - 1 to j: the channel at sample j
-        return self.models(x, dx, u, rows, u_prev=state[:, :-1, -1])
+        evidence = self.models(x, dx, u, rows, u_prev=state[:, :-1, -1])
+        return torch.cat([code, evidence], dim=-1)
 
     def read(self, state: Tensor, mask: Tensor, rows: Tensor | None, noise: float = 0.0) -> Tensor:
-        """The identifier's state of windows; with ``noise`` > 0, of noisy copies of them."""
+        """The identifier's state of windows; with ``noise`` > 0, of noisy copies of them.
+
+        White noise on the plant states, its std per window uniform in ``[0, noise]``.
+        """
         if noise > 0:
-            state = noisy_states(state, mask, noise, self.state_dim)
+            n = self.state_dim
+            std = noise * torch.rand(state.shape[0], 1, 1, device=state.device, dtype=state.dtype)
+            noisy = state[..., :n] + std * torch.randn_like(state[..., :n]) * mask[..., :n]
+            state = torch.cat([noisy, state[..., n:]], dim=-1)
         return self(state, mask, rows)
 
 
@@ -129,39 +118,20 @@ class TransitionModels(nn.Module):
         a = theta[:, : n * n].reshape(-1, n, n)
         return torch.cat([a, theta[:, n * n :].reshape(-1, 2, n).transpose(1, 2)], dim=2)
 
-    def predict(self, x: Tensor, u: Tensor, rows: Tensor, gain: Tensor | None = None) -> Tensor:
-        """Each plant's predicted change (B, T, plants, state_dim) of states x (B, T, n).
-
-        ``gain`` (B, plants) multiplies each model's input column ``b_p`` (default 1).
-        """
-        z = torch.cat([x, u.unsqueeze(-1), torch.ones_like(u).unsqueeze(-1)], dim=-1)
-        theta = self.theta(rows)
-        change = torch.einsum("pik,btk->btpi", theta, z)
-        if gain is None:
-            return change
-        return change + torch.einsum("bp,pi,bt->btpi", gain - 1.0, theta[:, :, self.state_dim], u)
-
-    def residual(
+    def fit(
         self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None = None
-    ) -> Tensor:
-        """Each plant's mean squared residual (B, plants), at its best gain, lag and offset.
-
-        :attr:`lags` need ``u_prev``, the control one transition earlier.
-        """
-        return self._fit(x, dx, u, rows, u_prev)[0]
-
-    def gain(
-        self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None = None
-    ) -> Tensor:
-        """Each model's least-squares input gain (B, plants) within :attr:`input_gain` (else 1)."""
-        return self._fit(x, dx, u, rows, u_prev)[1]
-
-    def _fit(
-        self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None
     ) -> tuple[Tensor, Tensor]:
-        """Residual and gain (B, plants) at the best lag, from the window's second moments.
+        """Each plant's model fitted to the window's transitions, at its best gain, lag and offset.
 
-        In float64 (the sum cancels where a model fits); a fitted input in closed form.
+        From the window's second moments in float64 (the sum cancels where a model fits); a
+        fitted input in closed form. :attr:`lags` need ``u_prev``, the control one transition
+        earlier.
+
+        Returns
+        -------
+        residual, gain : Tensor
+            The mean squared residual and the least-squares input gain (within
+            :attr:`input_gain`, else 1), each (B, plants).
         """
         n = self.state_dim
         fitted_input = self.input_gain is not None or self.offset or self.lags != (0.0,)
@@ -230,7 +200,7 @@ class TransitionModels(nn.Module):
         self, x: Tensor, dx: Tensor, u: Tensor, rows: Tensor, u_prev: Tensor | None = None
     ) -> Tensor:
         """Evidence ``-1/2 log(residual + eps)`` (B, plants) of each plant's model."""
-        return -0.5 * torch.log(self.residual(x, dx, u, rows, u_prev) + self.eps)
+        return -0.5 * torch.log(self.fit(x, dx, u, rows, u_prev)[0] + self.eps)
 
     def fit_loss(self, evidence: Tensor, tag: Tensor) -> Tensor:
         """``1/2 log(1 + residual / eps)`` of the true plant's model, over a batch (>= 0)."""

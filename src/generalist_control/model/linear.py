@@ -11,55 +11,40 @@ from torch import Tensor, nn
 
 from generalist_control.common.sections import require_int, require_nonnegative
 
-__all__ = ["ContextSkip", "LinearSkip", "linear_features"]
-
-
-def linear_features(state: Tensor, ref: Tensor, samples: int) -> Tensor:
-    """The newest ``samples`` of the state ``[x; z]`` (B, T, w), flattened, then of ``ref``."""
-    return torch.cat([state[:, -samples:].flatten(1), ref[:, -samples:]], dim=1)
-
-
-def _samples(key: str, samples: int, history: int) -> int:
-    """``samples`` checked: at most the law's ``history``."""
-    n = require_int(key, samples)
-    if n > history:
-        raise ValueError(
-            f"{key} ({n}) exceeds the samples the law reads ({history}: model.law_history or "
-            "data.history): lower it"
-        )
-    return n
+__all__ = ["ContextSkip", "LinearSkip"]
 
 
 class LinearSkip(nn.Module):
     """``u += G(code) w``, gains ``G = A code + b`` (zero at first), ``w`` the newest ``samples``.
 
-    The sizes are given by the network (``summary``: read by :class:`ContextSkip` only).
+    ``w``: the newest ``samples`` of the state ``[x; z]``, flattened, then of ``ref``. The sizes
+    are given by the network (``summary``: read by :class:`ContextSkip` only).
     """
 
     def __init__(
         self, dim: int, horizon: int, width: int, history: int, summary: int = 0, samples: int = 1
     ) -> None:
         super().__init__()
-        self.samples = _samples("model.skip.samples", samples, history)
-        self.horizon = horizon
-        self.gains = nn.Linear(dim, horizon * self.samples * (width + 1))
+        self.samples = require_int("model.skip.samples", samples)
+        if self.samples > history:
+            raise ValueError(
+                f"model.skip.samples ({self.samples}) exceeds the samples the law reads "
+                f"({history}: model.law_history or data.history): lower it"
+            )
+        self.horizon, self.features = horizon, self.samples * (width + 1)
+        self.gains = nn.Linear(dim, horizon * self.features)
         nn.init.zeros_(self.gains.weight)
         nn.init.zeros_(self.gains.bias)
 
-    def gain_input(self, code: Tensor, summary: Tensor) -> Tensor:
-        """What the gains are computed from: the plant's code."""
-        return code
-
-    def scaled(self, gains: Tensor, source: Tensor) -> Tensor:
-        """The gains as they are applied (unscaled here)."""
-        return gains
+    def gain_rows(self, code: Tensor, summary: Tensor) -> Tensor:
+        """The gains (B, horizon, window), computed from the plant's code."""
+        return self.gains(code).view(-1, self.horizon, self.features)
 
     def forward(self, code: Tensor, state: Tensor, ref: Tensor, summary: Tensor) -> Tensor:
         """The path's controls (B, horizon) for the law's window ``state``, ``ref``."""
-        window = linear_features(state, ref, self.samples)
-        source = self.gain_input(code, summary)
-        gains = self.scaled(self.gains(source).view(-1, self.horizon, window.shape[1]), source)
-        return torch.einsum("bkf,bf->bk", gains, window)
+        n = self.samples
+        window = torch.cat([state[:, -n:].flatten(1), ref[:, -n:]], dim=1)
+        return torch.einsum("bkf,bf->bk", self.gain_rows(code, summary), window)
 
 
 class ContextSkip(LinearSkip):
@@ -88,11 +73,9 @@ class ContextSkip(LinearSkip):
         nn.init.zeros_(self.scale.bias)
         self.context = nn.Linear(summary, dim)
 
-    def gain_input(self, code: Tensor, summary: Tensor) -> Tensor:
-        """The plant's code plus a projection of the window's summary."""
-        return code + self.context(summary)
-
-    def scaled(self, gains: Tensor, source: Tensor) -> Tensor:
-        """The gains times ``exp(s)`` (:attr:`gain_range`)."""
+    def gain_rows(self, code: Tensor, summary: Tensor) -> Tensor:
+        """The gains from the code plus a projection of the summary, times ``exp(s)``."""
+        source = code + self.context(summary)
         exponent = self.gain_range * torch.tanh(self.scale(source) / self.gain_range)
+        gains = self.gains(source).view(-1, self.horizon, self.features)
         return gains * torch.exp(exponent).unsqueeze(-1)

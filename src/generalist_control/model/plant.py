@@ -6,7 +6,7 @@ the same rows by an identity head read from the window (the tag a training label
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -15,7 +15,7 @@ from torch import Tensor, nn
 
 from generalist_control.common.sections import require_int, require_nonnegative
 from generalist_control.model.identifier import TransitionSet
-from generalist_control.plants.definition import MAX_ORDER
+from generalist_control.plants.definition import MAX_ORDER, Plant
 
 __all__ = ["EVIDENCE_WEIGHT", "InferredPlant", "PlantPart", "PlantReading", "TagEmbedding"]
 
@@ -33,12 +33,18 @@ class PlantReading:
 
 
 class PlantPart(nn.Module):
-    """What every plant part offers: its code (``forward``), the tags it knows, its own loss."""
+    """What every plant part offers: its code (``forward``), its tags, its own loss, its fits.
+
+    The fits: rows computed from plants' models (:meth:`plant_rows`), and what it computes
+    from the training plants (:meth:`fit_plants`).
+    """
 
     needs: tuple[str, ...] = ()  #: window channels the part reads
     summary_size = 0  #: size of what it adds to a context skip's summary
     n_tags: int  #: system tags ``0 .. n_tags - 1``
     reads_tag = True  #: the code is the tag's row: a new plant needs a row (``adapt``)
+    learned_rows = False  #: that row is a learned parameter (``adapt`` learns a new plant's)
+    maps_states = False  #: the normaliser maps each plant's state into a frame of its own
 
     def loss(self, reading: PlantReading | None, tag: Tensor) -> tuple[Tensor, Tensor] | None:
         """The part's own training term: ``(logged, weighted)``, or None where it has none.
@@ -47,9 +53,24 @@ class PlantPart(nn.Module):
         """
         return None
 
+    def plant_rows(self, plants: Sequence[Plant], width: int) -> dict[str, Tensor] | None:
+        """Rows of ``plants`` from their models alone; None: the part cannot take a plant so.
+
+        Stacked per-tag entries keyed as in a policy's ``state_dict`` (windows ``width`` wide).
+        """
+        return None
+
+    def fit_plants(self, plants: Sequence[Plant]) -> None:
+        """What the part computes from the training ``plants`` (nothing here).
+
+        Training only, once the normaliser and the rows of :meth:`plant_rows` are in.
+        """
+
 
 class TagEmbedding(PlantPart):
     """The tag's row of a learned embedding, ``dim`` wide (the paper's system-tag input)."""
+
+    learned_rows = True
 
     def __init__(self, dim: int, n_tags: int = 25) -> None:
         super().__init__()
@@ -88,7 +109,6 @@ class InferredPlant(PlantPart):
         n_tags: int = 25,
         noise: float = 0.0,
         loss_weight: float = 1.0,
-        state_dim: int = MAX_ORDER,
     ) -> None:
         super().__init__()
         self.n_tags = require_int("model.plant.n_tags", n_tags)
@@ -100,7 +120,7 @@ class InferredPlant(PlantPart):
                 "is trained by this loss alone"
             )
         self.rows = nn.Embedding(self.n_tags, dim)
-        self.identifier = identifier(state_dim=state_dim, hidden=dim)
+        self.identifier = identifier(state_dim=MAX_ORDER, hidden=dim)
         evidence = self.n_tags if self.identifier.models is not None else 0
         self.summary_size = dim + evidence
         self.head = nn.Linear(dim + evidence, self.n_tags)

@@ -1,4 +1,4 @@
-"""The deployable policy (normaliser + network), its policy file and its flat view for MLflow.
+"""The deployable policy (normaliser + network built from its config), its file, its flat view.
 
 :class:`Policy` is the one preprocessing path: training, evaluation and deployment all call it.
 A policy file holds plain types and tensors only (``torch.load(..., weights_only=True)``):
@@ -10,17 +10,18 @@ from __future__ import annotations
 import hashlib
 import math
 import numbers
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
 import torch
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
 from torch import Tensor, nn
 from torch.func import functional_call
 
 from generalist_control.data.windows import Windows
-from generalist_control.model.build import build_network
 from generalist_control.model.network import GeneralistNetwork, NetOutput
 from generalist_control.model.normalise import Normaliser
 
@@ -29,8 +30,10 @@ __all__ = [
     "FlatPolicy",
     "POLICY_FORMAT_VERSION",
     "RETRAIN",
+    "TARGET_PREFIX",
     "Policy",
     "PolicyFileError",
+    "build_network",
     "check_meta",
     "flat_columns",
     "load_policy",
@@ -48,8 +51,68 @@ POLICY_FILE = "policy.ckpt"
 RETRAIN = "`dvc repro train` (the pipeline's models/policy.ckpt) or `python train.py` (any run)"
 
 
+#: Where every ``_target_`` of a network config must live: loading a policy file calls nothing
+#: else.
+TARGET_PREFIX = "generalist_control.model."
+
+
 class PolicyFileError(ValueError):
     """A file that is not a policy of this project (or of this version): nothing is loaded."""
+
+
+def _targets(config: Any, path: str = "model") -> Iterator[tuple[str, Mapping[str, Any]]]:
+    """Every mapping in ``config`` that names a ``_target_``, with its dotted path."""
+    if isinstance(config, Mapping):
+        if "_target_" in config:
+            yield path, config
+        for key, value in config.items():
+            yield from _targets(value, f"{path}.{key}")
+    elif isinstance(config, list | tuple):
+        for i, value in enumerate(config):
+            yield from _targets(value, f"{path}[{i}]")
+
+
+def build_network(config: Mapping[str, Any]) -> GeneralistNetwork:
+    """The :class:`GeneralistNetwork` that ``config`` (plain types, ``conf/model``) describes.
+
+    Raises
+    ------
+    ValueError
+        If the config names no network, a class outside :data:`TARGET_PREFIX`, a part not
+        marked ``_partial_``, or a value a part refuses (the message is the part's own,
+        naming the config key).
+    """
+    nodes = dict(_targets(config))
+    if "model" not in nodes:
+        raise ValueError(
+            "the model config names no network (model._target_ is missing): compose it from "
+            "conf/model (e.g. model=generalist)"
+        )
+    found = {path: str(node["_target_"]) for path, node in nodes.items()}
+    outside = {k: v for k, v in found.items() if not v.startswith(TARGET_PREFIX)}
+    if outside:
+        raise ValueError(
+            f"the model config names classes outside {TARGET_PREFIX[:-1]}: {outside}; a network "
+            "is built from the project's own parts only"
+        )
+    partial = [
+        p for p, node in nodes.items() if p != "model" and node.get("_partial_") is not True
+    ]
+    if partial:
+        raise ValueError(
+            f"{', '.join(partial)} must be a part the network builds: add `_partial_: true` "
+            "beside its _target_ (conf/model/plant/tag.yaml shows how)"
+        )
+    try:
+        net = instantiate(dict(config), _convert_="all")
+    except InstantiationException as exc:
+        cause = exc.__cause__
+        if isinstance(cause, ValueError | TypeError):
+            raise ValueError(str(cause)) from exc
+        raise ValueError(f"the model config could not be built: {exc}") from exc
+    if not isinstance(net, GeneralistNetwork):
+        raise ValueError(f"model._target_ must build a GeneralistNetwork, got {found['model']}")
+    return net
 
 
 class Policy(nn.Module):
@@ -59,8 +122,7 @@ class Policy(nn.Module):
         super().__init__()
         self.config: dict[str, Any] = dict(model)
         net = build_network(self.config)
-        mapped = bool(getattr(net.plant, "maps_states", False))  # the card route's frame
-        self.normaliser = Normaliser(net.n_tags, net.width, mapped)
+        self.normaliser = Normaliser(net.n_tags, net.width, net.plant.maps_states)
         self.net = net
         self.history: int = net.history  #: samples per window (``T_h``)
         self.horizon: int = net.horizon  #: controls per window (``K``)

@@ -166,13 +166,9 @@ class LinearFamily:
         except NoBandwidthError as exc:
             return Candidate(index, model, form, None, None, str(exc))
         A, B, C = scaled(A, B, C, weights.bandwidth, self.state_scale, rng)
-        Q, R = weights.matrices(B, C)
-        return Candidate(
-            index, model, form, weights, self._plant(index, model, form, A, B, C, Q, R)
-        )
-
-    def _plant(self, index: int, model: TransferModel, form: str, *mats: np.ndarray) -> Plant:
-        return _drawn_plant(self.name, self.seed, index, -1, model.classes, form, self.dt, *mats)
+        mats = (A, B, C, *weights.matrices(B, C))
+        plant = _drawn_plant(self.name, self.seed, index, -1, model.classes, form, self.dt, *mats)
+        return Candidate(index, model, form, weights, plant)
 
     def _model(self, rng: np.random.Generator) -> TransferModel:
         """Classes, then an order they fit in, then poles, zeros and gain."""
