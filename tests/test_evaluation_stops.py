@@ -118,7 +118,7 @@ def test_a_signal_ends_the_evaluation_non_zero_its_run_killed_nothing_left(tmp_p
     assert done.returncode == 0, done.stderr[-3000:]
     before = {p.name: p.read_bytes() for p in (tmp_path / "eval").iterdir()}
     code, children = _signal_once_forked(cmd, env, sig)
-    assert code in (128 + sig, -sig)  # SIGINT: Python's own exit, killed by it
+    assert code == 128 + sig  # 143 for SIGTERM, 130 for Ctrl-C
     assert _gone(children), "a forked child outlived the evaluation"
     assert {p.name: p.read_bytes() for p in (tmp_path / "eval").iterdir()} == before
     assert not [p.name for p in tmp_path.iterdir() if ".tmp-" in p.name]
@@ -127,9 +127,7 @@ def test_a_signal_ends_the_evaluation_non_zero_its_run_killed_nothing_left(tmp_p
     exp = client.get_experiment_by_name(f"{tmp_path.name}/evaluate")
     runs = client.search_runs([exp.experiment_id], order_by=["attributes.start_time DESC"])
     assert [r.info.status for r in runs] == ["KILLED", "FINISHED"]
-    if sig == signal.SIGTERM:
-        assert code == 143
-        assert "stopped by SIGTERM" in (tmp_path / "hydra" / "evaluate.log").read_text()
+    assert f"stopped by {sig.name}" in (tmp_path / "hydra" / "evaluate.log").read_text()
 
 
 def test_sigkill_leaves_no_process_and_the_next_evaluation_cleans_up(tmp_path):
