@@ -23,10 +23,10 @@ from generalist_control.simulation.lqi import (
     LQIController,
     design_lqi,
 )
+from generalist_control.simulation.perturbation import Perturbation
 from generalist_control.simulation.scenarios import perturbation, references
 from generalist_control.simulation.simulate import (
     PerPlantController,
-    Perturbation,
     Run,
     simulate_many,
 )

@@ -9,15 +9,17 @@ import pytest
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.crazyflie import fly, fly_many
 from generalist_control.simulation.lqi import AntiWindupLQIController, LQIController
+from generalist_control.simulation.perturbation import Perturbation
 from generalist_control.simulation.references import state_envelope, state_envelopes
 from generalist_control.simulation.simulate import (
     PerPlantController,
-    Perturbation,
     Run,
+    Segment,
+    controller_rows,
     simulate,
     simulate_many,
+    simulate_stacked,
 )
-from generalist_control.simulation.stacked import Segment, controller_rows, simulate_stacked
 
 #: Linear plants of orders 2 and 4 and a nonlinear one (RK4).
 PLANTS = ("cstr", "two_mass_spring", "two_tank")

@@ -28,8 +28,13 @@ from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.metrics import step_metrics, tracking_metrics
 from generalist_control.simulation.references import state_envelopes
 from generalist_control.simulation.scenarios import envelope_amplitudes, perturbation, references
-from generalist_control.simulation.simulate import Controller, Run, Trajectory
-from generalist_control.simulation.stacked import controller_rows, simulate_stacked
+from generalist_control.simulation.simulate import (
+    Controller,
+    Run,
+    Trajectory,
+    controller_rows,
+    simulate_stacked,
+)
 
 __all__ = [
     "CONTROLLERS",

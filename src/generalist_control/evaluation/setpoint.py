@@ -20,8 +20,15 @@ from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.rest_loop import closed_loop_matrix, equilibrium, rest_window
 from generalist_control.plants.definition import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi, sampled_closed_loop
-from generalist_control.simulation.simulate import PerPlantController, Run, Trajectory, discretise
-from generalist_control.simulation.stacked import Segment, controller_rows, simulate_stacked
+from generalist_control.simulation.simulate import (
+    PerPlantController,
+    Run,
+    Segment,
+    Trajectory,
+    controller_rows,
+    discretise,
+    simulate_stacked,
+)
 
 __all__ = [
     "closed_loop_matrix",
