@@ -1,6 +1,8 @@
-"""Closed-loop simulation of a plant under any controller, vectorised over runs.
+"""Closed-loop simulation of plants under any controllers, in one sampled loop.
 
 Linear plants advance by the exact zero-order hold, nonlinear ones by RK4; ``u[k]`` is held.
+:func:`simulate_stacked` runs many batches (plants, controllers, lengths) together;
+:func:`simulate_many` and :func:`simulate` are its one-controller cases.
 """
 
 from __future__ import annotations
@@ -21,13 +23,16 @@ __all__ = [
     "Controller",
     "PerPlantController",
     "Run",
+    "Segment",
     "Trajectory",
+    "controller_rows",
     "discretise",
     "plant_stepper",
     "rk4",
     "row_slices",
     "simulate",
     "simulate_many",
+    "simulate_stacked",
 ]
 
 #: A state whose magnitude exceeds this is treated as diverged.
@@ -320,7 +325,8 @@ def simulate_stacked(
     """Simulate every segment's runs (one sample time, any lengths) in one loop.
 
     ``on_end(k, [(segment, run), ...])`` is called after the runs of length ``k`` ended.
-    Returns per segment, per run, what ``simulate_many`` returns.
+    Returns per segment, per run, its :class:`Trajectory`: the numbers of a loop of its own
+    (to the last bit where its plant has as many rows in its segment).
     """
     if not any(seg.runs for seg in segments):
         return [[] for _ in segments]
