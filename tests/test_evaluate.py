@@ -26,7 +26,6 @@ from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation import comparison
 from generalist_control.simulation.comparison import (
     ClosedLoopScore,
-    closed_loop_score,
     output_mse,
 )
 from generalist_control.simulation.lqi import LQIController
@@ -260,23 +259,28 @@ def test_a_failed_entry_point_says_why_and_writes_nothing(tmp_path):
     assert not [p.name for p in tmp_path.iterdir() if ".tmp-" in p.name]
 
 
+def _closed_loop_score(controller, plants, duration: float) -> dict[str, float]:
+    """A fresh score's verdict on ``controller`` (LQI simulated for it)."""
+    return ClosedLoopScore(plants, duration=duration)(controller)
+
+
 def test_closed_loop_score_is_zero_for_the_expert_and_one_for_divergence():
     plants = [load_plant(n) for n in PLANTS]
-    assert closed_loop_score(RuntimeAdapter(LQIRuntime(PLANTS)), plants, duration=4.0) == {
+    assert _closed_loop_score(RuntimeAdapter(LQIRuntime(PLANTS)), plants, duration=4.0) == {
         "cstr": 0.0,
         "hydraulic_actuator": 0.0,
     }
-    assert closed_loop_score(
+    assert _closed_loop_score(
         RuntimeAdapter(LQIRuntime(PLANTS, gain=-25.0)), plants, duration=4.0
     ) == {
         "cstr": 1.0,
         "hydraulic_actuator": 1.0,
     }
-    half = closed_loop_score(RuntimeAdapter(LQIRuntime(PLANTS, gain=0.5)), plants, duration=4.0)
+    half = _closed_loop_score(RuntimeAdapter(LQIRuntime(PLANTS, gain=0.5)), plants, duration=4.0)
     assert all(0.0 < v < 1.0 for v in half.values())
 
 
-def test_a_kept_score_simulates_lqi_once_and_scores_as_the_function(monkeypatch):
+def test_a_kept_score_simulates_lqi_once_and_scores_as_a_fresh_one(monkeypatch):
     plants = [load_plant(n) for n in PLANTS]
     score = ClosedLoopScore(plants, duration=4.0)
     calls: list[str] = []
@@ -290,10 +294,10 @@ def test_a_kept_score_simulates_lqi_once_and_scores_as_the_function(monkeypatch)
     for gain in (0.5, 1.3):
         kept = score(RuntimeAdapter(LQIRuntime(PLANTS, gain=gain)))
         calls_before = len(calls)
-        fresh = closed_loop_score(RuntimeAdapter(LQIRuntime(PLANTS, gain=gain)), plants,
-                                  duration=4.0)  # fmt: skip
+        fresh = _closed_loop_score(RuntimeAdapter(LQIRuntime(PLANTS, gain=gain)), plants,
+                                   duration=4.0)  # fmt: skip
         assert kept == fresh and all(0.0 < v < 1.0 for v in kept.values())
-        assert calls[calls_before:].count("PerPlantController") == 1  # the function's own
+        assert calls[calls_before:].count("PerPlantController") == 1  # the fresh one's own
     assert calls.count("PerPlantController") == 1 + 2  # the kept score's, once
 
 

@@ -16,17 +16,17 @@ from generalist_control.evaluation.runner import (
     metric_rows,
     run_suite,
 )
-from generalist_control.evaluation.setpoint import hold_tail, setpoint_stability, tail_table
+from generalist_control.evaluation.setpoint import rest_radii, tail_table
 from generalist_control.plants.catalog import load_plant
 from generalist_control.simulation.lqi import (
     AntiWindupLQIController,
     LQIController,
     design_lqi,
 )
+from generalist_control.simulation.perturbation import Perturbation
 from generalist_control.simulation.scenarios import perturbation, references
 from generalist_control.simulation.simulate import (
     PerPlantController,
-    Perturbation,
     Run,
     simulate_many,
 )
@@ -103,10 +103,11 @@ def test_the_set_point_holds_in_the_loop_equal_their_own(runtime):
     assert table is not None and list(table.system) == list(NAMES)
     held = table[["system", "z_end_GC", *(c for c in table if c.startswith("tail_"))]]
     # the linearisation at rest, each share its plants: as the check does it in one process
-    alone = setpoint_stability(runtime, plants, 1.0, 4.0, 1.0, held=held)
+    alone = rest_radii(runtime, plants, 1.0, held["z_end_GC"]).merge(held, on="system")
     pd.testing.assert_frame_equal(table, alone, check_exact=True)
-    # hold_tail alone has one row per plant: BLAS's path for a single row, the last bits
-    pd.testing.assert_frame_equal(held, hold_tail(runtime, plants, 1.0, 4.0, 1.0), rtol=1e-6)
+    # the holds alone have one row per plant: BLAS's path for a single row, the last bits
+    holds = run_suite(runtime, plants, {}, setpoint=check, processes=1).setpoint
+    pd.testing.assert_frame_equal(held, holds[held.columns], rtol=1e-6)
     # a plain loop of its own with two rows per plant takes the path of several rows: exact
     runs = [Run(p, np.ones((2, 80))) for p in plants]
     adapter = RuntimeAdapter(runtime)

@@ -245,7 +245,8 @@ def test_an_integrating_policy_needs_an_output_it_can_integrate():
 def test_runtime_anti_windup_is_lqi_anti_windup_for_the_lqi_law(name, limits):
     """Told the actuator limits, the runtime integrates as AntiWindupLQIController does."""
     from generalist_control.simulation.lqi import AntiWindupLQIController
-    from generalist_control.simulation.simulate import PerPlantController, Perturbation
+    from generalist_control.simulation.perturbation import Perturbation
+    from generalist_control.simulation.simulate import PerPlantController
 
     pol, meta = _lqi_law_policy((name,))
     pert = Perturbation(**limits)

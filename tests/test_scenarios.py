@@ -7,6 +7,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from generalist_control.plants.catalog import load_plant
+from generalist_control.simulation.perturbation import Perturbation
 from generalist_control.simulation.references import (
     FAMILIES,
     family_references,
@@ -20,7 +21,6 @@ from generalist_control.simulation.scenarios import (
     references,
     with_state_draw,
 )
-from generalist_control.simulation.simulate import Perturbation
 
 
 def test_reference_shapes_and_values():

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from generalist_control.deploy.runtime import PolicyRuntime
+from generalist_control.evaluation.eval_config import SetpointSettings
+from generalist_control.evaluation.runner import run_suite
 from generalist_control.evaluation.setpoint import (
     closed_loop_matrix,
     equilibrium,
-    hold_tail,
-    setpoint_stability,
     setpoint_summary,
 )
 from generalist_control.model.policy import Policy
@@ -22,6 +22,12 @@ from generalist_control.simulation.lqi import design_lqi
 from helpers import lqi_law_policy, net_config, policy_meta
 
 PLANTS = ("cstr", "hydraulic_actuator", "two_tank")  # orders 2, 3 and a nonlinear plant
+
+
+def _setpoint_check(runtime: PolicyRuntime, names, hold: float = 12, tail: float = 4):
+    """The evaluation's set-point check alone: its holds of ``reference`` 1 and the radii."""
+    check = SetpointSettings(reference=1.0, hold=hold, tail=tail)
+    return run_suite(runtime, [load_plant(n) for n in names], {}, setpoint=check).setpoint
 
 
 def _radius(A: np.ndarray) -> float:
@@ -124,7 +130,7 @@ def test_equilibrium_of_a_linear_plant_holds_the_reference():
 
 def test_a_policy_that_is_the_lqi_law_settles_as_lqi_does():
     pol, meta = lqi_law_policy(PLANTS, design_lqi)
-    df = setpoint_stability(PolicyRuntime(pol, meta), [load_plant(n) for n in PLANTS], 1.0, 12, 4)
+    df = _setpoint_check(PolicyRuntime(pol, meta), PLANTS)
     assert list(df["system"]) == list(PLANTS)
     for name, row in df.set_index("system").iterrows():
         assert row["radius_GC"] == pytest.approx(_radius(_lqi_loop(str(name))), abs=1e-5)
@@ -140,7 +146,7 @@ def test_an_unstable_law_is_reported_and_its_hold_does_not_rest():
     """Gains times 12: python-control's sampled loop has radius > 1; the check says so."""
     names = ("cstr", "hydraulic_actuator")
     pol, meta = lqi_law_policy(names, _scaled(12.0))
-    df = setpoint_stability(PolicyRuntime(pol, meta), [load_plant(n) for n in names], 1.0, 12, 4)
+    df = _setpoint_check(PolicyRuntime(pol, meta), names)
     for name, row in df.set_index("system").iterrows():
         expected = _radius(_lqi_loop(str(name), 12.0))
         assert expected > 1.2
@@ -156,7 +162,6 @@ def test_bad_requests_are_refused_with_the_reason():
     pol = Policy(net_config(hidden=16, experts=2)).eval()
     rt = PolicyRuntime(pol, policy_meta(["cstr"]))
     with pytest.raises(ValueError, match="integral channel"):
-        setpoint_stability(rt, [load_plant("cstr")])
-    pol, meta = lqi_law_policy(("cstr",), design_lqi)
-    with pytest.raises(ValueError, match="0 < tail < hold"):
-        hold_tail(PolicyRuntime(pol, meta), [load_plant("cstr")], 1.0, hold=5.0, tail=5.0)
+        _setpoint_check(rt, ["cstr"], hold=60.0, tail=20.0)
+    with pytest.raises(ValueError, match=r"tail must lie in \(0, hold = 5.0\)"):
+        SetpointSettings(reference=1.0, hold=5.0, tail=5.0)

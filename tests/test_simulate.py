@@ -99,7 +99,7 @@ def test_x0_shape_error():
 
 
 def test_actuator_limits_are_respected():
-    from generalist_control.simulation.simulate import Perturbation
+    from generalist_control.simulation.perturbation import Perturbation
 
     p = load_plant("cstr")
     amp = simulate(
@@ -113,7 +113,7 @@ def test_actuator_limits_are_respected():
 
 
 def test_noise_is_seeded_and_starts_on_time():
-    from generalist_control.simulation.simulate import Perturbation
+    from generalist_control.simulation.perturbation import Perturbation
 
     p = load_plant("cstr")
     pert = Perturbation(noise_std=0.05, noise_start=2.0, seed=3)
@@ -127,7 +127,7 @@ def test_noise_is_seeded_and_starts_on_time():
 
 
 def test_integral_action_rejects_a_constant_input_disturbance():
-    from generalist_control.simulation.simulate import Perturbation
+    from generalist_control.simulation.perturbation import Perturbation
 
     p = load_plant("cstr")
     pert = Perturbation(disturbance=0.5, disturbance_start=5.0)
@@ -143,7 +143,7 @@ def test_integral_action_rejects_a_constant_input_disturbance():
 def test_anti_windup_equals_lqi_without_limits_and_helps_with_them():
     from generalist_control.simulation.lqi import AntiWindupLQIController
     from generalist_control.simulation.metrics import step_metrics
-    from generalist_control.simulation.simulate import Perturbation
+    from generalist_control.simulation.perturbation import Perturbation
 
     p = load_plant("cstr")
     free = Perturbation()
@@ -161,12 +161,8 @@ def test_anti_windup_equals_lqi_without_limits_and_helps_with_them():
 
 def test_simulate_many_equals_separate_runs():
     from generalist_control.simulation.lqi import AntiWindupLQIController
-    from generalist_control.simulation.simulate import (
-        PerPlantController,
-        Perturbation,
-        Run,
-        simulate_many,
-    )
+    from generalist_control.simulation.perturbation import Perturbation
+    from generalist_control.simulation.simulate import PerPlantController, Run, simulate_many
 
     plants = [load_plant(n) for n in ("cstr", "hydraulic_actuator", "two_mass_spring")]
     pert = Perturbation(u_limit=0.4, noise_std=0.01, seed=5)
@@ -189,7 +185,8 @@ def test_simulate_many_equals_separate_runs():
 
 
 def test_actuator_gain_scales_what_the_plant_receives_not_what_is_recorded():
-    from generalist_control.simulation.simulate import Perturbation, simulate
+    from generalist_control.simulation.perturbation import Perturbation
+    from generalist_control.simulation.simulate import simulate
 
     p = load_plant("two_mass_spring")
 

@@ -7,17 +7,19 @@ import numpy as np
 import pytest
 
 from generalist_control.plants.catalog import load_plant
-from generalist_control.simulation.crazyflie import fly, fly_many
+from generalist_control.simulation.crazyflie import fly_many
 from generalist_control.simulation.lqi import AntiWindupLQIController, LQIController
+from generalist_control.simulation.perturbation import Perturbation
 from generalist_control.simulation.references import state_envelope, state_envelopes
 from generalist_control.simulation.simulate import (
     PerPlantController,
-    Perturbation,
     Run,
+    Segment,
+    controller_rows,
     simulate,
     simulate_many,
+    simulate_stacked,
 )
-from generalist_control.simulation.stacked import Segment, controller_rows, simulate_stacked
 
 #: Linear plants of orders 2 and 4 and a nonlinear one (RK4).
 PLANTS = ("cstr", "two_mass_spring", "two_tank")
@@ -125,8 +127,8 @@ def test_the_crazyflie_flies_several_controllers_on_the_same_noise():
     p = load_plant("crazyflie_altitude")
     r = np.full((3, 300), 1.0)
     both = fly_many([LQIController(p), PerRowGain(LQIController(p), 0.7)], r, seed=2)
-    _same(both[0], fly(LQIController(p), r, seed=2))
-    _same(both[1], fly(PerRowGain(LQIController(p), 0.7), r, seed=2))
+    _same(both[0], fly_many([LQIController(p)], r, seed=2)[0])
+    _same(both[1], fly_many([PerRowGain(LQIController(p), 0.7)], r, seed=2)[0])
 
 
 class PerRowGain:

@@ -408,12 +408,12 @@ def _cstr_hand_case():
 
 def test_closed_loop_score_keys_variants_by_label_against_their_own_lqi():
     from generalist_control.deploy.adapter import RuntimeAdapter
-    from generalist_control.simulation.comparison import closed_loop_score
+    from generalist_control.simulation.comparison import ClosedLoopScore
 
     plant = load_plant("cstr")
     variant = make_variant(plant, {"A[1,0]": 0.8, "B[1]": 1.3})
     nominal_law = RuntimeAdapter(LQIRuntime(["cstr"]))  # the nominal LQI on every row
-    got = closed_loop_score(nominal_law, [plant, variant], [1.0], 6.0, labels=["cstr", "cstr/v1"])
+    got = ClosedLoopScore([plant, variant], [1.0], 6.0, labels=["cstr", "cstr/v1"])(nominal_law)
     A, B, C, k_nom, k_var = _cstr_hand_case()
     # 6 s = 120 steps: 121 samples, y(0) to y(6 s)
     _, y_gc = _discrete_lqi_step(A, B, C, k_nom, 0.05, 121)  # the nominal law on the variant
@@ -422,4 +422,4 @@ def test_closed_loop_score_keys_variants_by_label_against_their_own_lqi():
     assert got["cstr"] == pytest.approx(0.0, abs=1e-20)  # its own law: no error
     assert got["cstr/v1"] == pytest.approx(want, rel=1e-6) and 0.0 < want < 1.0
     with pytest.raises(ValueError, match="one distinct label per plant"):
-        closed_loop_score(nominal_law, [plant, variant], [1.0], 1.0)  # both named cstr
+        ClosedLoopScore([plant, variant], [1.0], 1.0)  # both named cstr

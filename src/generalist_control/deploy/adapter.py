@@ -13,7 +13,8 @@ import numpy as np
 
 from generalist_control.deploy.runtime import PolicyRuntime, RejectedStep
 from generalist_control.plants.definition import MAX_ORDER
-from generalist_control.simulation.simulate import Perturbation, row_slices
+from generalist_control.simulation.perturbation import Perturbation
+from generalist_control.simulation.simulate import row_slices
 
 __all__ = ["RuntimeAdapter", "SinglePlantAdapter", "step_live"]
 

@@ -36,7 +36,7 @@ from generalist_control.deploy.runtime_plants import (
 from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.definition import MAX_ORDER, Plant
 from generalist_control.simulation.lqi import conditional_increment
-from generalist_control.simulation.simulate import Perturbation
+from generalist_control.simulation.perturbation import Perturbation
 
 __all__ = ["INPUT_LIMIT", "PolicyRuntime", "RejectedStep"]
 

@@ -15,8 +15,8 @@ from tqdm.auto import tqdm
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.simulation.lqi import AntiWindupLQIController, LQIController
-from generalist_control.simulation.simulate import PerPlantController, Perturbation, Run
-from generalist_control.simulation.stacked import Segment
+from generalist_control.simulation.perturbation import Perturbation
+from generalist_control.simulation.simulate import PerPlantController, Run, Segment
 
 __all__ = ["GC_ANTI_WINDUP", "Key", "Plan", "Progress", "Slot", "limits", "plan"]
 

@@ -28,8 +28,13 @@ from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.metrics import step_metrics, tracking_metrics
 from generalist_control.simulation.references import state_envelopes
 from generalist_control.simulation.scenarios import envelope_amplitudes, perturbation, references
-from generalist_control.simulation.simulate import Controller, Run, Trajectory
-from generalist_control.simulation.stacked import controller_rows, simulate_stacked
+from generalist_control.simulation.simulate import (
+    Controller,
+    Run,
+    Trajectory,
+    controller_rows,
+    simulate_stacked,
+)
 
 __all__ = [
     "CONTROLLERS",
@@ -223,12 +228,23 @@ def run_suite(
 ) -> Evaluation:
     """Every scenario under every controller in one loop, the Crazyflie, the set point.
 
-    ``setpoint``: the set-point check (a policy with the ``integral`` channel), its holds in
-    the same loop. ``processes``: shares of the plants of about equal work, the others in
-    forked children (default 2 on 2 cores for a suite of :data:`SPLIT_WORK` or more); each
-    run's numbers do not depend on it. ``progress``: a bar (default: on a terminal).
+    ``setpoint``: the set-point check (:mod:`~.setpoint`), its holds in the same loop.
+    ``processes``: shares of the plants of about equal work, the others in forked children
+    (default 2 on 2 cores for a suite of :data:`SPLIT_WORK` or more); each run's numbers do
+    not depend on it. ``progress``: a bar (default: on a terminal).
+
+    Raises
+    ------
+    ValueError
+        A set-point check of a policy that does not integrate the tracking error (no
+        ``integral`` channel): without it a constant window need not be an equilibrium.
     """
     _check_known(runtime, plants)
+    if setpoint is not None and not runtime.integral:
+        raise ValueError(
+            "the set-point check needs a policy with the integral channel (model.channels; its "
+            "equilibrium is the error integral at which its control holds the plant at rest)"
+        )
     chosen = _plants_per_scenario(plants, scenarios)
     # the envelopes of random initial states and relative noise, all in one loop
     state_envelopes([(p, a) for n, ps in chosen.items() for p in ps

@@ -15,21 +15,21 @@ import pandas as pd
 import torch
 from scipy.optimize import brentq
 
-from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.rest_loop import closed_loop_matrix, equilibrium, rest_window
 from generalist_control.plants.definition import MAX_ORDER, Plant
-from generalist_control.simulation.lqi import LQIController, design_lqi, sampled_closed_loop
-from generalist_control.simulation.simulate import PerPlantController, Run, Trajectory, discretise
-from generalist_control.simulation.stacked import Segment, controller_rows, simulate_stacked
+from generalist_control.simulation.lqi import design_lqi, sampled_closed_loop
+from generalist_control.simulation.simulate import (
+    Run,
+    Trajectory,
+    discretise,
+)
 
 __all__ = [
     "closed_loop_matrix",
     "equilibrium",
     "hold_runs",
-    "hold_tail",
     "rest_radii",
-    "setpoint_stability",
     "setpoint_summary",
     "tail_table",
 ]
@@ -84,7 +84,7 @@ def _integral_at(
 
 
 def hold_runs(plants: Sequence[Plant], reference: float = 1.0, hold: float = 60.0) -> list[Run]:
-    """The long step of :func:`hold_tail`: ``reference`` for ``hold`` seconds, one per plant."""
+    """The set-point check's long step: ``reference`` for ``hold`` seconds, one per plant."""
     return [Run(p, np.full((1, int(round(hold / p.dt))), float(reference))) for p in plants]
 
 
@@ -95,7 +95,13 @@ def tail_table(
     reference: float = 1.0,
     tail: float = 20.0,
 ) -> pd.DataFrame:
-    """:func:`hold_tail`'s table from the holds' trajectories; ``z_end``: GC's integrals."""
+    """What is left of the motion over the holds' last ``tail`` seconds, per plant.
+
+    ``trajectories``: per controller, the holds of :func:`hold_runs` from rest. Columns
+    ``tail_error_<c>``: the tail's RMS tracking error relative to ``|reference|``;
+    ``tail_du_<c>``: the tail's RMS change of control per sample (NaN: diverged);
+    ``z_end_GC``: ``z_end``, the policy's error integral at the hold's end (NaN: refused).
+    """
     out = pd.DataFrame({"system": [p.name for p in plants]})
     for name, trajs in trajectories.items():
         if name == "GC":  # where the policy's integral ended (one row per plant)
@@ -110,30 +116,6 @@ def tail_table(
             dus.append(np.nan if bad else float(np.sqrt(np.mean(du**2))))
         out[f"tail_error_{name}"], out[f"tail_du_{name}"] = errs, dus
     return out
-
-
-def hold_tail(
-    runtime: PolicyRuntime,
-    plants: Sequence[Plant],
-    reference: float = 1.0,
-    hold: float = 60.0,
-    tail: float = 20.0,
-) -> pd.DataFrame:
-    """A long step from rest; what is left of the motion over its last ``tail`` seconds.
-
-    GC and LQI hold ``reference`` for ``hold`` seconds on every plant. Columns
-    ``tail_error_<c>``: the tail's RMS tracking error relative to ``|reference|``;
-    ``tail_du_<c>``: the tail's RMS change of control per sample (NaN: diverged);
-    ``z_end_GC``: the policy's error integral at the hold's end (NaN: refused).
-    """
-    if not 0.0 < tail < hold:
-        raise ValueError(f"need 0 < tail < hold; got tail={tail}, hold={hold}")
-    runs = hold_runs(plants, reference, hold)
-    gc = RuntimeAdapter(runtime)
-    segments = [Segment(gc, runs), Segment(PerPlantController(LQIController), runs)]
-    gc_trajs, lqi_trajs = simulate_stacked(segments)
-    rows = [sl.start for sl in controller_rows(segments)[0]]
-    return tail_table(plants, {"GC": gc_trajs, "LQI": lqi_trajs}, gc.z_end[rows], reference, tail)
 
 
 def _radius_row(
@@ -171,7 +153,10 @@ def rest_radii(
 ) -> pd.DataFrame:
     """Per plant, the spectral radii of the policy's and LQI's loops at the set point.
 
-    ``ends``: per plant, where the policy's own hold ended (the search for ``z*`` starts there).
+    Columns: ``system``, ``reference`` (0 for a nonlinear plant), ``z_LQI``, ``z_star``,
+    ``residual`` (``|u(z*) - u*|``), ``radius_GC`` (NaN: no equilibrium found),
+    ``radius_LQI``, ``settles`` (``radius_GC < 1``). ``ends``: per plant, where the policy's
+    own hold ended (the search for ``z*`` starts there).
     """
     policy = copy.deepcopy(runtime.policy).double().eval()
     with _one_thread():
@@ -181,38 +166,6 @@ def rest_radii(
     df = pd.DataFrame(rows, columns=cols)
     df["settles"] = df["radius_GC"] < 1.0
     return df
-
-
-def setpoint_stability(
-    runtime: PolicyRuntime,
-    plants: Sequence[Plant],
-    reference: float = 1.0,
-    hold: float = 60.0,
-    tail: float = 20.0,
-    held: pd.DataFrame | None = None,
-) -> pd.DataFrame:
-    """Per plant: the spectral radius of the policy's and LQI's loops at the set point.
-
-    Columns: ``system``, ``reference`` (0 for a nonlinear plant), ``z_LQI``, ``z_star``,
-    ``residual`` (``|u(z*) - u*|``), ``radius_GC`` (NaN: no equilibrium found),
-    ``radius_LQI``, ``settles`` (``radius_GC < 1``), then :func:`hold_tail`'s (``held``:
-    that table, already computed).
-
-    Raises
-    ------
-    ValueError
-        If the policy does not integrate the tracking error (no ``integral`` channel):
-        without it a constant window need not be an equilibrium.
-    """
-    if not runtime.integral:
-        raise ValueError(
-            "the set-point check needs a policy with the integral channel (model.channels; its "
-            "equilibrium is the error integral at which its control holds the plant at rest)"
-        )
-    if held is None:
-        held = hold_tail(runtime, plants, reference, hold, tail)
-    ends = held["z_end_GC"].to_numpy(dtype=float)
-    return rest_radii(runtime, plants, reference, ends).merge(held, on="system")
 
 
 def setpoint_summary(df: pd.DataFrame) -> dict[str, object]:

@@ -21,8 +21,8 @@ from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.eval_config import EvaluationSettings, VariantEvalSettings
 from generalist_control.evaluation.eval_run import EvalRun
-from generalist_control.evaluation.runner import metric_rows
-from generalist_control.evaluation.setpoint import setpoint_stability, setpoint_summary
+from generalist_control.evaluation.runner import metric_rows, run_suite
+from generalist_control.evaluation.setpoint import setpoint_summary
 from generalist_control.evaluation.variant_summary import plot_variants, summarise_variants
 from generalist_control.evaluation.writer import Record, check_reports_dir, publish_snapshot
 from generalist_control.plants.definition import Plant
@@ -261,8 +261,11 @@ def run_variants(
         summary["validation"] = {**held, "seed": held_out.seed, "count": held_out.count}
     setpoint = None
     if settings.setpoint is not None and runtime.integral:  # the nominal plants' set points
-        s = settings.setpoint
-        setpoint = setpoint_stability(runtime, plants, s.reference, s.hold, s.tail)
+        check = settings.setpoint  # its holds alone, in one loop in this process
+        setpoint = run_suite(
+            runtime, plants, {}, setpoint=check, progress=False, processes=1
+        ).setpoint
+    if setpoint is not None:
         summary["setpoint"] = setpoint_summary(setpoint)
     summary.update(record["summary"])
     with publish_snapshot(out_dir, OWNED, run) as (staging, logged):

@@ -17,7 +17,7 @@ from generalist_control.simulation.simulate import (
     simulate_many,
 )
 
-__all__ = ["ClosedLoopScore", "closed_loop_score", "output_mse"]
+__all__ = ["ClosedLoopScore", "output_mse"]
 
 
 def output_mse(
@@ -35,7 +35,18 @@ def output_mse(
 
 
 class ClosedLoopScore:
-    """:func:`closed_loop_score` for one set of plants and steps; LQI simulated once."""
+    """Per plant, a controller's output error against LQI on steps, relative to LQI's, capped at 1.
+
+    ``mean((y - y_LQI)**2) / mean(y_LQI**2)`` over steps of each amplitude (times the
+    plant's ``amplitude_scale``) from rest, 1 for a diverged run; LQI is simulated once, on
+    the first call. Keyed by ``labels`` (one per plant, distinct: variants share their plant's
+    name), else by the plants' names.
+
+    Raises
+    ------
+    ValueError
+        ``labels`` does not name each plant once.
+    """
 
     def __init__(
         self,
@@ -47,7 +58,7 @@ class ClosedLoopScore:
         self.keys = [p.name for p in plants] if labels is None else list(labels)
         if len(self.keys) != len(plants) or len(set(self.keys)) != len(self.keys):
             raise ValueError(
-                f"closed_loop_score needs one distinct label per plant, got {len(self.keys)} "
+                f"ClosedLoopScore needs one distinct label per plant, got {len(self.keys)} "
                 f"labels ({len(set(self.keys))} distinct) for {len(plants)} plants"
             )
         steps = int(round(duration / plants[0].dt)) if plants else 0
@@ -57,7 +68,7 @@ class ClosedLoopScore:
         self._lqi: list[Trajectory] | None = None
 
     def __call__(self, controller: BatchController) -> dict[str, float]:
-        """Per plant (or label), ``controller``'s score (see :func:`closed_loop_score`)."""
+        """Per plant (or label), ``controller``'s score."""
         ours = simulate_many(self.runs, controller)
         if self._lqi is None:
             self._lqi = simulate_many(self.runs, PerPlantController(LQIController))
@@ -69,24 +80,3 @@ class ClosedLoopScore:
             err = np.mean((a.y - b.y) ** 2, axis=1) / np.maximum(np.mean(b.y**2, axis=1), 1e-300)
             out[key] = float(min(1.0, err.mean()))
         return out
-
-
-def closed_loop_score(
-    controller: BatchController,
-    plants: Sequence[Plant],
-    amplitudes: Sequence[float] = (1.0, -3.0),
-    duration: float = 10.0,
-    labels: Sequence[str] | None = None,
-) -> dict[str, float]:
-    """Per plant, the output error against LQI on steps, relative to LQI's, capped at 1.
-
-    ``mean((y - y_LQI)**2) / mean(y_LQI**2)`` over steps of each amplitude (times the
-    plant's ``amplitude_scale``) from rest, 1 for a diverged run. Keyed by ``labels`` (one
-    per plant, distinct: variants share their plant's name), else by the plants' names.
-
-    Raises
-    ------
-    ValueError
-        ``labels`` does not name each plant once.
-    """
-    return ClosedLoopScore(plants, amplitudes, duration, labels)(controller)

@@ -13,7 +13,7 @@ import numpy as np
 
 from generalist_control.simulation.simulate import DIVERGENCE_BOUND, Controller, Trajectory, rk4
 
-__all__ = ["CrazyflieParams", "fly", "fly_many"]
+__all__ = ["CrazyflieParams", "fly_many"]
 
 
 @dataclass(frozen=True)
@@ -45,21 +45,6 @@ def _deriv(s: np.ndarray, t_cmd: np.ndarray, p: CrazyflieParams) -> np.ndarray:
     return out
 
 
-def fly(
-    controller: Controller,
-    r: np.ndarray,
-    control_dt: float = 0.05,
-    params: CrazyflieParams | None = None,
-    seed: int = 0,
-) -> Trajectory:
-    """Fly ``controller`` from hover for references ``r`` (B, N), sampled every ``control_dt``.
-
-    It commands the thrust deviation from the *nominal* hover thrust; the vehicle is heavier.
-    The trajectory, at the loop rate: true ``[z, w]``, delivered thrust deviation, altitude.
-    """
-    return fly_many([controller], r, control_dt, params, seed)[0]
-
-
 def fly_many(
     controllers: Sequence[Controller],
     r: np.ndarray,
@@ -67,7 +52,12 @@ def fly_many(
     params: CrazyflieParams | None = None,
     seed: int = 0,
 ) -> list[Trajectory]:
-    """:func:`fly` for several controllers in one loop, each equal to its own :func:`fly`."""
+    """Fly each controller from hover for references ``r`` (B, N), sampled every ``control_dt``.
+
+    A controller commands the thrust deviation from the *nominal* hover thrust; the vehicle is
+    heavier. All fly in one loop on the same noise, each as it would alone. Per controller,
+    the trajectory at the loop rate: true ``[z, w]``, delivered thrust deviation, altitude.
+    """
     p = params or CrazyflieParams()
     r = np.atleast_2d(np.asarray(r, dtype=float))
     batch, steps = r.shape

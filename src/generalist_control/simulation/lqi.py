@@ -13,7 +13,8 @@ import numpy as np
 from scipy.linalg import solve_continuous_are
 
 from generalist_control.plants.definition import Plant, PlantConfigError
-from generalist_control.simulation.simulate import Perturbation, discretise
+from generalist_control.simulation.perturbation import Perturbation
+from generalist_control.simulation.simulate import discretise
 
 __all__ = [
     "AntiWindupLQIController",

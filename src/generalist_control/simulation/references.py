@@ -16,8 +16,12 @@ import numpy as np
 
 from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController
-from generalist_control.simulation.simulate import PerPlantController, Run
-from generalist_control.simulation.stacked import Segment, simulate_stacked
+from generalist_control.simulation.simulate import (
+    PerPlantController,
+    Run,
+    Segment,
+    simulate_stacked,
+)
 
 __all__ = [
     "FAMILIES",

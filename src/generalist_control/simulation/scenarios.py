@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from generalist_control.plants.definition import Plant
+from generalist_control.simulation.perturbation import Perturbation
 from generalist_control.simulation.references import (
     FAMILIES,
     X0_DRAWS,
@@ -19,7 +20,6 @@ from generalist_control.simulation.references import (
     state_envelope,
     visited_root,
 )
-from generalist_control.simulation.simulate import Perturbation
 
 __all__ = [
     "KINDS",
@@ -138,7 +138,7 @@ def envelope_amplitudes(name: str, spec: Mapping[str, Any]) -> list[float]:
 def perturbation(
     name: str, spec: Mapping[str, Any], plant: Plant | None = None
 ) -> Perturbation | None:
-    """The scenario's :class:`~generalist_control.simulation.simulate.Perturbation`, if any.
+    """The scenario's :class:`~generalist_control.simulation.perturbation.Perturbation`, if any.
 
     ``noise_rel`` (with ``plant``): ``noise_std`` as that fraction of the unit-step envelope
     per state (``noise_draw: box``) or of the visited states' root (``visited``, any

@@ -1,6 +1,8 @@
-"""Closed-loop simulation of a plant under any controller, vectorised over runs.
+"""Closed-loop simulation of plants under any controllers, in one sampled loop.
 
 Linear plants advance by the exact zero-order hold, nonlinear ones by RK4; ``u[k]`` is held.
+:func:`simulate_stacked` runs many batches (plants, controllers, lengths) together;
+:func:`simulate_many` and :func:`simulate` are its one-controller cases.
 """
 
 from __future__ import annotations
@@ -13,21 +15,24 @@ from typing import Protocol
 import numpy as np
 from scipy.linalg import expm
 
-from generalist_control.plants.definition import Plant, pad_states
+from generalist_control.plants.definition import MAX_ORDER, Plant
+from generalist_control.simulation.perturbation import Perturbation, RowPerturbations
 
 __all__ = [
     "BatchController",
     "Controller",
     "PerPlantController",
-    "Perturbation",
     "Run",
+    "Segment",
     "Trajectory",
+    "controller_rows",
     "discretise",
     "plant_stepper",
     "rk4",
     "row_slices",
     "simulate",
     "simulate_many",
+    "simulate_stacked",
 ]
 
 #: A state whose magnitude exceeds this is treated as diverged.
@@ -42,41 +47,6 @@ class Controller(Protocol):
 
     def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Controls ``(batch,)`` for states ``(batch, n)`` and references ``(batch,)``."""
-
-
-@dataclass(frozen=True)
-class Perturbation:
-    """Conditions the controller was not trained for, applied inside the loop.
-
-    Amplitude and rate (per second) limits; white state noise (``noise_std`` per entry, or
-    (n, n): a square root of its covariance; from ``noise_start``, seeded); an input
-    disturbance from ``disturbance_start``; the plant receives ``actuator_gain`` times the
-    delivered (recorded) control.
-    """
-
-    u_limit: float | None = None
-    rate_limit: float | None = None
-    noise_std: float | tuple[float, ...] | tuple[tuple[float, ...], ...] | None = None
-    noise_start: float = 0.0
-    disturbance: float = 0.0
-    disturbance_start: float = 0.0
-    actuator_gain: float = 1.0
-    seed: int = 0
-
-    def noise(self, z: np.ndarray) -> np.ndarray:
-        """The state noise of standard normal draws ``z`` (..., n)."""
-        std = np.asarray(self.noise_std, dtype=float)
-        return z @ std.T if std.ndim == 2 else z * np.broadcast_to(std, z.shape[-1:])
-
-    def actuate(self, u_cmd: np.ndarray, u_prev: np.ndarray, dt: float) -> np.ndarray:
-        """The control the actuator delivers for command ``u_cmd`` after ``u_prev``."""
-        u = u_cmd
-        if self.rate_limit is not None:
-            du = self.rate_limit * dt
-            u = np.clip(u, u_prev - du, u_prev + du)
-        if self.u_limit is not None:
-            u = np.clip(u, -self.u_limit, self.u_limit)
-        return u
 
 
 @dataclass(frozen=True)
@@ -127,94 +97,13 @@ def rk4(
     return x
 
 
-class _Group:
-    """The state of a batch of runs on one plant while the loop advances."""
-
-    def __init__(
-        self, plant: Plant, r: np.ndarray, x0: np.ndarray | None, pert: Perturbation | None
-    ) -> None:
-        r = np.atleast_2d(np.asarray(r, dtype=float))
-        self.plant, self.r, self.pert = plant, r, pert
-        self.batch, self.steps = r.shape
-        n = plant.order
-        self.x = np.zeros((self.batch, self.steps + 1, n))
-        if x0 is not None:
-            x0 = np.asarray(x0, dtype=float)
-            if x0.shape != (self.batch, n):
-                raise ValueError(
-                    f"x0 has shape {x0.shape}; plant '{plant.name}' needs ({self.batch}, {n})"
-                )
-            self.x[:, 0] = x0
-        self.u = np.zeros((self.batch, self.steps))
-        self.u_prev = np.zeros(self.batch)
-        self.diverged = np.zeros(self.batch, dtype=bool)
-        self.rng = np.random.default_rng(pert.seed) if pert is not None else None
-        if plant.is_linear:
-            self.Ad, self.Bd = discretise(plant.A, plant.B, plant.dt)
-
-    def _advance(self, xk: np.ndarray, uk: np.ndarray) -> np.ndarray:
-        """One sample of the unperturbed plant."""
-        p = self.plant
-        if p.is_linear:
-            return xk @ self.Ad.T + uk[:, None] * self.Bd[:, 0]
-        return rk4(lambda x: p.deriv(x, uk), xk, p.dt / p.substeps, p.substeps)
-
-    def measure(self, k: int) -> np.ndarray:
-        """The state the controller sees at sample ``k`` (with noise, if any)."""
-        xm, pert = self.x[:, k], self.pert
-        if (
-            pert is not None
-            and self.rng is not None
-            and pert.noise_std is not None
-            and k * self.plant.dt >= pert.noise_start
-        ):
-            xm = xm + pert.noise(self.rng.normal(size=xm.shape))
-        return xm
-
-    def apply(self, k: int, u_cmd: np.ndarray) -> None:
-        """Pass the command through the actuator and advance one sample."""
-        uk = np.asarray(u_cmd, dtype=float).reshape(self.batch)
-        pert = self.pert
-        if pert is not None:
-            uk = pert.actuate(uk, self.u_prev, self.plant.dt)
-            self.u_prev = uk
-        self.u[:, k] = uk
-        if pert is not None and pert.actuator_gain != 1.0:
-            uk = uk * pert.actuator_gain
-        if pert is not None and pert.disturbance and k * self.plant.dt >= pert.disturbance_start:
-            uk = uk + pert.disturbance
-        nxt = self._advance(self.x[:, k], uk)
-        bad = ~np.all(np.isfinite(nxt) & (np.abs(nxt) < DIVERGENCE_BOUND), axis=1)
-        self.diverged |= bad
-        self.x[:, k + 1] = np.where(self.diverged[:, None], self.x[:, k], nxt)
-
-    def result(self) -> Trajectory:
-        """The runs as a :class:`Trajectory`."""
-        n = self.plant.order
-        y = self.plant.output(self.x.reshape(-1, n)).reshape(self.batch, self.steps + 1)
-        t = np.arange(self.steps + 1) * self.plant.dt
-        return Trajectory(t=t, x=self.x, u=self.u, r=self.r, y=y, diverged=self.diverged)
-
-
 def plant_stepper(plant: Plant) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-    """``advance(x, u) -> x_next``: the simulator's unperturbed sample of ``plant``, batched."""
-    return _Group(plant, np.zeros((1, 1)), None, None)._advance
-
-
-def simulate(
-    plant: Plant,
-    controller: Controller,
-    r: np.ndarray,
-    x0: np.ndarray | None = None,
-    perturbation: Perturbation | None = None,
-) -> Trajectory:
-    """Simulate ``controller`` on ``plant`` for references ``r`` (batch, N) from ``x0`` or rest."""
-    g = _Group(plant, r, x0, perturbation)
-    controller.reset(g.batch)
-    with np.errstate(all="ignore"):
-        for k in range(g.steps):
-            g.apply(k, controller.step(g.measure(k), g.r[:, k]))
-    return g.result()
+    """``advance(x, u) -> x_next``: one sample of ``plant`` unperturbed (ZOH or RK4), batched."""
+    if plant.is_linear:
+        Ad, Bd = discretise(plant.A, plant.B, plant.dt)
+        return lambda x, u: x @ Ad.T + u[:, None] * Bd[:, 0]
+    h = plant.dt / plant.substeps
+    return lambda x, u: rk4(lambda s: plant.deriv(s, u), x, h, plant.substeps)
 
 
 @dataclass(frozen=True)
@@ -235,27 +124,6 @@ class BatchController(Protocol):
 
     def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Controls ``(B,)`` for zero-padded states ``(B, MAX_ORDER)`` and references."""
-
-
-def simulate_many(runs: Sequence[Run], controller: BatchController) -> list[Trajectory]:
-    """Simulate runs on several plants in lockstep, one controller call per sample.
-
-    All runs must share the sample time and the number of samples. Rows are stacked in the
-    order of ``runs``; states reach the controller zero-padded to ``MAX_ORDER``.
-    """
-    groups = [_Group(run.plant, run.r, run.x0, run.perturbation) for run in runs]
-    if len({g.steps for g in groups}) != 1 or len({g.plant.dt for g in groups}) != 1:
-        raise ValueError("simulate_many needs runs of equal length and sample time")
-    controller.reset([g.plant for g in groups], [g.batch for g in groups])
-    splits = np.cumsum([g.batch for g in groups])[:-1]
-    with np.errstate(all="ignore"):
-        for k in range(groups[0].steps):
-            x = np.concatenate([pad_states(g.measure(k)) for g in groups])
-            r = np.concatenate([g.r[:, k] for g in groups])
-            u = np.asarray(controller.step(x, r), dtype=float)
-            for g, uk in zip(groups, np.split(u, splits), strict=True):
-                g.apply(k, uk)
-    return [g.result() for g in groups]
 
 
 def row_slices(counts: Sequence[int]) -> list[slice]:
@@ -285,3 +153,220 @@ class PerPlantController:
         for ctrl, n, rows in self._parts:
             u[rows] = ctrl.step(x[rows, :n], r[rows])
         return u
+
+
+@dataclass(frozen=True)
+class Segment:
+    """Runs one batch controller drives, reset with the segment's distinct plants' rows.
+
+    Ended runs' rows are commanded NaN; an optional ``finish(rows)`` is told which rows ended.
+    """
+
+    controller: BatchController
+    runs: Sequence[Run]
+
+
+class _Layout:
+    """Where every run's rows lie: grouped by plant, then segment, then run."""
+
+    def __init__(self, segments: Sequence[Segment]) -> None:
+        # by identity (a variant is another plant of the same name)
+        plants = list({id(run.plant): run.plant for seg in segments for run in seg.runs}.values())
+        self.plants = plants
+        self.rows: dict[tuple[int, int], slice] = {}  # per (segment, run): global rows
+        self.local: dict[tuple[int, int], slice] = {}  # and its rows in its segment's batch
+        # a linear plant's update per segment: BLAS's path depends on the number of rows
+        self.blocks: list[tuple[Plant, slice]] = []
+        order: list[list[int]] = [[] for _ in segments]
+        start = 0
+        for plant in plants:
+            first = start
+            for s, seg in enumerate(segments):
+                mine = start
+                for i, run in enumerate(seg.runs):
+                    if run.plant is plant:
+                        b = np.atleast_2d(run.r).shape[0]
+                        self.rows[s, i] = slice(start, start + b)
+                        order[s] += range(start, start + b)
+                        start += b
+                if plant.is_linear and start > mine:
+                    self.blocks.append((plant, slice(mine, start)))
+            if not plant.is_linear:
+                self.blocks.append((plant, slice(first, start)))
+        self.size = start
+        self.segment_rows = [np.asarray(o, dtype=np.int64) for o in order]
+        for (s, i), rows in self.rows.items():
+            at = int(np.searchsorted(self.segment_rows[s], rows.start))
+            self.local[s, i] = slice(at, at + rows.stop - rows.start)
+
+    def controller_groups(self, s: int, runs: Sequence[Run]) -> tuple[list[Plant], list[int]]:
+        """The distinct plants of segment ``s`` (global order) and each one's row count."""
+        counts = {id(p): 0 for p in self.plants}
+        for i, run in enumerate(runs):
+            rows = self.rows[s, i]
+            counts[id(run.plant)] += rows.stop - rows.start
+        plants = [p for p in self.plants if counts[id(p)]]
+        return plants, [counts[id(p)] for p in plants]
+
+
+def _initial(layout: _Layout, segments: Sequence[Segment]) -> np.ndarray:
+    """Every row's initial state, zero-padded."""
+    x = np.zeros((layout.size, MAX_ORDER))
+    for (s, i), rows in layout.rows.items():
+        run = segments[s].runs[i]
+        n = run.plant.order
+        if run.x0 is not None:
+            x0 = np.asarray(run.x0, dtype=float)
+            if x0.shape != (rows.stop - rows.start, n):
+                raise ValueError(
+                    f"x0 has shape {x0.shape}; plant '{run.plant.name}' needs "
+                    f"({rows.stop - rows.start}, {n})"
+                )
+            x[rows, :n] = x0
+    return x
+
+
+class _Loop:
+    """The state of every row while the loop advances."""
+
+    def __init__(self, segments: Sequence[Segment]) -> None:
+        self.segments, self.layout = segments, _Layout(segments)
+        runs = [(rows, segments[s].runs[i]) for (s, i), rows in self.layout.rows.items()]
+        if len({run.plant.dt for _, run in runs}) > 1:
+            raise ValueError("simulate_stacked needs runs of one sample time")
+        self.dt = runs[0][1].plant.dt
+        self.length = {key: np.atleast_2d(segments[key[0]].runs[key[1]].r).shape[1]
+                       for key in self.layout.rows}  # fmt: skip
+        self.steps = max(self.length.values())
+        self.ends: dict[int, list[tuple[int, int]]] = {}
+        for key in sorted(self.length):
+            self.ends.setdefault(self.length[key], []).append(key)
+        B = self.layout.size
+        self.r = np.zeros((B, self.steps))
+        for (s, i), rows in self.layout.rows.items():
+            r = np.atleast_2d(np.asarray(segments[s].runs[i].r, dtype=float))
+            self.r[rows, : r.shape[1]] = r
+            self.r[rows, r.shape[1] :] = r[:, -1:]
+        perts = [
+            (rows, run.perturbation, run.plant.order, np.atleast_2d(run.r).shape[1])
+            for rows, run in runs
+        ]
+        self.act = RowPerturbations(perts, self.steps, self.dt)
+        self.x = _initial(self.layout, segments)
+        self.xs = np.empty((self.steps + 1, B, MAX_ORDER))
+        self.xs[0] = self.x
+        self.u = np.empty((self.steps, B))
+        self.diverged = np.zeros(B, dtype=bool)
+        self.ended = np.zeros(B, dtype=bool)
+        self.final: dict[tuple[int, int], np.ndarray] = {}
+        self.advance = [(plant_stepper(p), p.order, rows) for p, rows in self.layout.blocks]
+
+    def end(self, k: int) -> list[tuple[int, int]]:
+        """Close the runs of length ``k``: their divergence as it stood, their rows dropped."""
+        done = self.ends.get(k, [])
+        for key in done:
+            rows = self.layout.rows[key]
+            self.final[key] = self.diverged[rows].copy()
+            self.ended[rows] = True
+        for s, seg in enumerate(self.segments):
+            finish = getattr(seg.controller, "finish", None)
+            mine = [self.layout.local[key] for key in done if key[0] == s]
+            if finish is not None and mine:
+                finish(np.concatenate([np.arange(sl.start, sl.stop) for sl in mine]))
+        return done
+
+    def control(self, k: int) -> np.ndarray:
+        """Every controller's controls at sample ``k`` (NaN for the runs that ended)."""
+        xm, rk = self.act.measure(self.x, k), self.r[:, k]
+        u = np.empty(self.layout.size)
+        for seg, rows in zip(self.segments, self.layout.segment_rows, strict=True):
+            if rows.size:
+                u[rows] = np.asarray(seg.controller.step(xm[rows], rk[rows]), dtype=float)
+        u[self.ended] = np.nan
+        return u
+
+    def step(self, k: int) -> None:
+        """Sample ``k``: every controller, the actuators, every plant, the divergence test."""
+        u = self.control(k)
+        u = self.act.actuate(u)
+        self.u[k] = u
+        ua = self.act.applied(u, k)
+        nxt = np.zeros_like(self.x)
+        for advance, n, rows in self.advance:
+            nxt[rows, :n] = advance(self.x[rows, :n], ua[rows])
+        bad = ~np.all(np.isfinite(nxt) & (np.abs(nxt) < DIVERGENCE_BOUND), axis=1)
+        self.diverged |= bad
+        self.x = np.where(self.diverged[:, None], self.x, nxt)
+        self.xs[k + 1] = self.x
+
+    def result(self, s: int, i: int) -> Trajectory:
+        """Run ``i`` of segment ``s`` as a :class:`Trajectory`."""
+        run, rows, n = self.segments[s].runs[i], self.layout.rows[s, i], self.length[s, i]
+        order = run.plant.order
+        x = np.ascontiguousarray(self.xs[: n + 1, rows, :order].transpose(1, 0, 2))
+        b = x.shape[0]
+        y = run.plant.output(x.reshape(-1, order)).reshape(b, n + 1)
+        r = np.atleast_2d(np.asarray(run.r, dtype=float))
+        u = np.ascontiguousarray(self.u[:n, rows].T)
+        t = np.arange(n + 1) * run.plant.dt
+        return Trajectory(t=t, x=x, u=u, r=r, y=y, diverged=self.final[s, i])
+
+
+def controller_rows(segments: Sequence[Segment]) -> list[list[slice]]:
+    """Per segment, per run: the run's rows in the batch its controller is reset with."""
+    local = _Layout(segments).local
+    return [[local[s, i] for i in range(len(seg.runs))] for s, seg in enumerate(segments)]
+
+
+def simulate_stacked(
+    segments: Sequence[Segment],
+    on_end: Callable[[int, list[tuple[int, int]]], None] | None = None,
+) -> list[list[Trajectory]]:
+    """Simulate every segment's runs (one sample time, any lengths) in one loop.
+
+    ``on_end(k, [(segment, run), ...])`` is called after the runs of length ``k`` ended.
+    Returns per segment, per run, its :class:`Trajectory`: the numbers of a loop of its own
+    (to the last bit where its plant has as many rows in its segment).
+    """
+    if not any(seg.runs for seg in segments):
+        return [[] for _ in segments]
+    loop = _Loop(segments)
+    for s, seg in enumerate(segments):
+        if seg.runs:  # a segment without runs is never stepped
+            seg.controller.reset(*loop.layout.controller_groups(s, seg.runs))
+    for k in range(loop.steps + 1):
+        done = loop.end(k)
+        if done and on_end is not None:
+            on_end(k, done)
+        if k < loop.steps:
+            with np.errstate(all="ignore"):
+                loop.step(k)
+    return [[loop.result(s, i) for i in range(len(seg.runs))] for s, seg in enumerate(segments)]
+
+
+def simulate_many(runs: Sequence[Run], controller: BatchController) -> list[Trajectory]:
+    """Simulate runs on several plants in lockstep, one controller call per sample.
+
+    All runs must share the sample time and the number of samples, each its own plant
+    object. Rows are stacked in the order of ``runs``; states reach the controller
+    zero-padded to ``MAX_ORDER``.
+    """
+    lengths = {np.atleast_2d(run.r).shape[1] for run in runs}
+    if len(lengths) > 1 or len({run.plant.dt for run in runs}) > 1:
+        raise ValueError("simulate_many needs runs of equal length and sample time")
+    if len({id(run.plant) for run in runs}) < len(runs):
+        raise ValueError("simulate_many needs each run on a plant object of its own")
+    (out,) = simulate_stacked([Segment(controller, runs)])
+    return out
+
+
+def simulate(
+    plant: Plant,
+    controller: Controller,
+    r: np.ndarray,
+    x0: np.ndarray | None = None,
+    perturbation: Perturbation | None = None,
+) -> Trajectory:
+    """Simulate ``controller`` on ``plant`` for references ``r`` (batch, N) from ``x0`` or rest."""
+    run = Run(plant, r, x0, perturbation)
+    return simulate_many([run], PerPlantController(lambda _: controller))[0]
