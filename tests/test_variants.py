@@ -423,3 +423,19 @@ def test_closed_loop_score_keys_variants_by_label_against_their_own_lqi():
     assert got["cstr/v1"] == pytest.approx(want, rel=1e-6) and 0.0 < want < 1.0
     with pytest.raises(ValueError, match="one distinct label per plant"):
         ClosedLoopScore([plant, variant], [1.0], 1.0)  # both named cstr
+
+
+def test_a_scenario_runs_on_the_plants_it_lists_and_an_empty_list_on_none():
+    """The variants evaluation picks a scenario's plants as the evaluation does (``runs_on``)."""
+    plant = load_plant("cstr")
+    factors = {"A[1,0]": 0.9}
+    draw = VariantDraw(plant, [Variant(1, make_variant(plant, factors), factors)])
+    step = {"kind": "step", "amplitude": 1.0, "duration": 1.0}
+    scen = {
+        "all": {**step, "plants": None},
+        "listed": {**step, "plants": ["cstr"]},
+        "other": {**step, "plants": ["two_tank"]},
+        "none": {**step, "plants": []},
+    }
+    df = evaluate_variants(LQIRuntime(["cstr"]), {"cstr": draw}, scen)
+    assert set(df.scenario) == {"all", "listed"}

@@ -27,7 +27,12 @@ from generalist_control.simulation.crazyflie import fly_many
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.metrics import step_metrics, tracking_metrics
 from generalist_control.simulation.references import state_envelopes
-from generalist_control.simulation.scenarios import envelope_amplitudes, perturbation, references
+from generalist_control.simulation.scenarios import (
+    envelope_amplitudes,
+    perturbation,
+    references,
+    runs_on,
+)
 from generalist_control.simulation.simulate import (
     Controller,
     Run,
@@ -86,10 +91,7 @@ def _plants_per_scenario(
     plants: Sequence[Plant], scenarios: Mapping[str, Mapping[str, Any]]
 ) -> dict[str, list[Plant]]:
     """The plants each scenario runs on (its ``plants``, else all); none: left out."""
-    todo = {
-        n: [p for p in plants if s.get("plants") is None or p.name in s["plants"]]
-        for n, s in scenarios.items()
-    }
+    todo = {n: [p for p in plants if runs_on(s, p.name)] for n, s in scenarios.items()}
     return {n: chosen for n, chosen in todo.items() if chosen}
 
 

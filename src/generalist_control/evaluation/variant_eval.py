@@ -27,7 +27,7 @@ from generalist_control.evaluation.variant_summary import plot_variants, summari
 from generalist_control.evaluation.writer import Record, check_reports_dir, publish_snapshot
 from generalist_control.plants.definition import Plant
 from generalist_control.simulation.lqi import LQIController, design_lqi
-from generalist_control.simulation.scenarios import perturbation, references
+from generalist_control.simulation.scenarios import perturbation, references, runs_on
 from generalist_control.simulation.simulate import (
     BatchController,
     PerPlantController,
@@ -187,11 +187,7 @@ def evaluate_variants(
     nominal = {name: d.nominal for name, d in draws.items()}
     rows: list[tuple] = []
     for name, spec in scenarios.items():
-        chosen = [
-            v
-            for v in variants
-            if spec.get("plants") in (None, []) or v.plant.name in spec["plants"]
-        ]
+        chosen = [v for v in variants if runs_on(spec, v.plant.name)]
         runs = [
             Run(v.plant, *references(name, spec, v.plant), perturbation(name, spec, v.plant))
             for v in chosen

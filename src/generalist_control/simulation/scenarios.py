@@ -27,6 +27,7 @@ __all__ = [
     "envelope_amplitudes",
     "perturbation",
     "references",
+    "runs_on",
     "with_state_draw",
 ]
 
@@ -45,6 +46,14 @@ KINDS = (*PARAMETERS, *FAMILIES)
 
 class ScenarioError(ValueError):
     """An evaluation scenario is misconfigured; the message names the field."""
+
+
+def runs_on(spec: Mapping[str, Any], plant: str) -> bool:
+    """Whether scenario ``spec`` runs on ``plant``: those its ``plants`` lists, else every one.
+
+    ``plants: []`` lists none: the scenario runs on no plant.
+    """
+    return spec.get("plants") is None or plant in spec["plants"]
 
 
 def references(
