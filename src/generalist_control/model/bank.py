@@ -152,8 +152,8 @@ def check_growable(policy: Policy, source: str = "the policy") -> None:
     plant = policy.net.plant
     if not plant.reads_tag:
         raise RecipeError(
-            f"{source} is tag-free (model.plant: InferredPlant): it reads the plant from the "
-            "window and has no row to learn for a new plant. Evaluate it directly: "
+            f"{source} is tag-free (model.plant: {type(plant).__name__}): it reads the plant "
+            "from the window and has no row to learn for a new plant. Evaluate it directly: "
             "adapt.learn=false names the plant and fits its normaliser scales, nothing learned"
         )
     if not plant.learned_rows:
