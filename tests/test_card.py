@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from generalist_control.model.bank import add_plant, fit_model_rows
+from generalist_control.model.bank import add_plant, add_plants, fit_model_rows
 from generalist_control.model.card import (
     CARD_FEATURES,
     CardError,
@@ -139,6 +139,20 @@ def test_bank_rows_and_a_plant_added_leave_every_trained_value_alone():
     x, m = torch.randn(4, 8, 5), torch.ones(4, 8, 5)
     r, tag = torch.randn(4, 8), torch.tensor([10, 14, 23, 10])
     torch.testing.assert_close(grown(x, m, r, tag)[0], policy(x, m, r, tag)[0], rtol=0, atol=0)
+
+
+def test_plants_added_at_once_are_those_added_one_at_a_time():
+    torch.manual_seed(0)
+    policy = Policy(card_config())
+    fit_model_rows(policy, [load_plant(n) for n in ("cstr", "dc_servo")])
+    new = [load_plant("magnetic_levitation"), load_plant("flexible_joint")]
+    together, apart = add_plants(policy, new), add_plant(add_plant(policy, new[0]), new[1])
+    assert together.net.n_tags == policy.net.n_tags + 2
+    for key, value in apart.state_dict().items():
+        assert torch.equal(together.state_dict()[key], value), key
+    for tag, p in zip((30, 31), new, strict=True):
+        card = card_features(p, card_frame(p, DURATION))
+        np.testing.assert_allclose(together.net.plant.cards[tag].numpy(), card, rtol=1e-6)
 
 
 def test_padded_state_entries_reach_the_network_as_zeros():

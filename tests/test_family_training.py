@@ -13,16 +13,20 @@ from omegaconf import OmegaConf
 from generalist_control.common.paths import conf_dir
 from generalist_control.common.sections import as_dict, read_section
 from generalist_control.data.demos import load_demos
+from generalist_control.data.generation import generate_demos
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.generate_families import run as generate_family
+from generalist_control.model.bank import plant_scales
 from generalist_control.model.card import card_features, card_frame
+from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.catalog import load_plant, tag_count
-from generalist_control.reports.held_out import judge_routes, zero_shot
+from generalist_control.reports.held_out import family_draw, judge_routes, zero_shot
 from generalist_control.reports.routes_section import routes_lines
 from generalist_control.training.family_set import FamilySet, join_demos, with_rows
 from generalist_control.training.settings import FamilyTraining
-from helpers import compose_cfg, tiny_train_overrides, train
+from generalist_control.training.unseen_draw import UnseenDraw
+from helpers import compose_cfg, net_config, tiny_train_overrides, train
 
 #: Four drawn plants, 2 s trajectories (the tiny catalogue data's), checked over 10 s.
 TINY_FAMILY = ("families.count=4", "data.duration=2.0", "families.checks.duration=10.0")
@@ -65,11 +69,26 @@ def test_train_over_a_family_and_meet_a_plant_never_seen(
                                 "dagger.every=1", "dagger.rounds=1", "dagger.sampler.rollouts=1",
                                 "train_families.dagger_plants=2",
                                 "train_families.closed_loop_plants=2", "logger.log_model=false",
+                                "train_families.validation.count=3",
                                 "closed_loop.systems=[]")  # fmt: skip
-    _, objects = train(compose_cfg(*over))
+    metrics, objects = train(compose_cfg(*over))
     policy, meta = objects["policy"], objects["datamodule"].meta()
     families = objects["datamodule"].families
     assert policy.net.n_tags == 29 and set(families.names) <= set(meta["tags"])
+    # the validation draw: three plants no training saw, scored zero-shot beside the others
+    drawn = sorted(k for k in metrics if k.startswith("val/closed_loop/default_s2001_"))
+    assert len(drawn) == 3 and not set(meta["tags"]) & {k.split("/")[-1] for k in drawn}
+    assert 0 <= metrics["val/closed_loop/unseen"] <= 1
+    assert np.isclose(metrics["val/closed_loop/unseen"], np.mean([metrics[k] for k in drawn]))
+    scored = [k for k in metrics if k.startswith("val/closed_loop/") and "unseen" not in k]
+    assert len(scored) == 2 + 2 + 3  # the two catalogue plants, closed_loop_plants, the draw
+    assert np.isclose(metrics["val/closed_loop"], np.mean([metrics[k] for k in scored]))
+    _, published = load_policy(objects["policy_path"])
+    validated = {"dir": None, "name": "default", "seed": 2001, "plants": 3}
+    assert published["families"][-1] == validated  # a report refuses to test on it:
+    spec = {"family": "default", "seed": 2001, "count": 3, "checks": None, "state_draw": None}
+    with pytest.raises(ValueError, match=r"trained or validated on \(seeds \[1, 2001\]\)"):
+        family_draw(objects["policy_path"], spec, {"duration": 2.0}, {})
     if experiment == "family_card":  # the bank holds each training plant's card
         p = families.plants[0]
         card = card_features(p, card_frame(p, 10.0))
@@ -82,6 +101,31 @@ def test_train_over_a_family_and_meet_a_plant_never_seen(
     scenarios = {"step": {"kind": "step", "amplitude": 1.0, "duration": 3.0}}
     df, _ = evaluate(PolicyRuntime(grown, grown_meta), [plant], scenarios, progress=False)
     assert set(df.controller) >= {"GC", "LQI"} and set(df.system) == {NEVER_SEEN}
+    if experiment == "family_context":
+        _check_an_unseen_draw(policy, meta, as_dict(cfg.data))
+
+
+def _check_an_unseen_draw(policy, meta, data):
+    """In context: each drawn plant's scales fitted on its own windows alone, its tag after."""
+    node = as_dict(compose_cfg(*TINY_FAMILY, "families.count=3", "families.generator.seed=7",
+                               config="generate_families").families)  # fmt: skip
+    draw = UnseenDraw.draw(node, policy, data, 8, 3)
+    assert all(p.name.startswith("default_s7_") for p in draw.plants)
+    assert [p.tag for p in draw.plants] == [0, 1, 2]  # the draw's places: the scales' rows
+    demos = generate_demos(draw.plants, {**data, "history": 8, "horizon": 3}, False)
+    w = demos.windows(8, 3, True, True)
+    fields = ("state", "mask", "ref", "target")
+    for i in range(3):
+        alone = plant_scales(*(torch.from_numpy(getattr(w, k)[w.tag == i]) for k in fields),
+                             mapped=True)  # fmt: skip
+        for key, value in alone.items():
+            torch.testing.assert_close(draw.scales[key][i : i + 1], value, rtol=1e-4, atol=1e-9)
+    grown, grown_meta = draw.met(policy, meta)
+    assert grown.net.n_tags == policy.net.n_tags + 3
+    assert [grown_meta["tags"][p.name] for p in draw.plants] == [29, 30, 31]
+    tagged = Policy(net_config(hidden=16, experts=2, n_tags=2))  # a learned row per plant
+    with pytest.raises(ValueError, match="cannot meet zero-shot .*learned per tag"):
+        UnseenDraw.draw(node, tagged, data, 8, 3)
 
 
 def test_a_card_policy_takes_the_plant_by_its_yaml_path_in_the_runtime(

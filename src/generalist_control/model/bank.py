@@ -22,6 +22,7 @@ __all__ = [
     "NoModelRowError",
     "RecipeError",
     "add_plant",
+    "add_plants",
     "add_rows",
     "add_scales",
     "check_growable",
@@ -85,7 +86,9 @@ def _fresh(policy: Policy, n_tags: int) -> Policy:
 
 
 def add_rows(policy: Policy, rows: Mapping[str, Tensor]) -> Policy:
-    """A copy of ``policy`` (bit for bit) with one more tag, its per-tag entries ``rows``.
+    """A copy of ``policy`` (bit for bit) with more tags, its per-tag entries ``rows``.
+
+    One tag per leading entry of ``rows`` (each entry holds as many).
 
     Raises
     ------
@@ -93,7 +96,7 @@ def add_rows(policy: Policy, rows: Mapping[str, Tensor]) -> Policy:
         If an entry sized by the number of tags is missing from ``rows``.
     """
     old = policy.state_dict()
-    grown = _fresh(policy, policy.net.n_tags + 1)
+    grown = _fresh(policy, policy.net.n_tags + len(next(iter(rows.values()))))
     state: dict[str, Tensor] = {}
     for key, fresh in grown.state_dict().items():
         if key in rows:
@@ -107,37 +110,51 @@ def add_rows(policy: Policy, rows: Mapping[str, Tensor]) -> Policy:
 
 
 def add_plant(policy: Policy, plant: Plant) -> Policy:
-    """``policy`` grown by ``plant``'s row computed from its model (the card route only).
+    """``policy`` grown by ``plant``'s row computed from its model (:func:`add_plants`)."""
+    return add_plants(policy, [plant])
+
+
+def add_plants(policy: Policy, plants: Sequence[Plant]) -> Policy:
+    """``policy`` grown by the rows of ``plants``, in order, computed from their models.
 
     Raises
     ------
     NoModelRowError
         Naming the plant part, if it computes no row from a model (no card bank).
     """
-    rows = policy.net.plant.plant_rows([plant], policy.width)
+    rows = policy.net.plant.plant_rows(list(plants), policy.width)
     if rows is None:
         raise NoModelRowError(type(policy.net.plant).__name__)
     return add_rows(policy, rows)
 
 
 def plant_scales(
-    state: Tensor, mask: Tensor, ref: Tensor, target: Tensor, mapped: bool = False
+    state: Tensor,
+    mask: Tensor,
+    ref: Tensor,
+    target: Tensor,
+    mapped: bool = False,
+    plant: Tensor | None = None,
 ) -> dict[str, Tensor]:
-    """One plant's normaliser row fitted on its windows, keyed as in a policy's ``state_dict``.
+    """Normaliser rows fitted on windows, keyed as in a policy's ``state_dict``.
 
+    One row, or with ``plant`` (each window's plant, ``0 .. k-1``) one per plant.
     ``mapped``: the policy's normaliser maps states (``Normaliser.mapped``).
     """
-    one = Normaliser(1, state.shape[-1], mapped)
-    one.fit(state, mask, ref, torch.zeros(len(state), dtype=torch.long), target)
-    return {f"normaliser.{k}": v.detach().clone() for k, v in one.named_buffers()}
+    if plant is None:
+        plant = torch.zeros(len(state), dtype=torch.long)
+    rows = Normaliser(int(plant.max()) + 1, state.shape[-1], mapped)
+    rows.fit(state, mask, ref, plant, target)
+    return {f"normaliser.{k}": v.detach().clone() for k, v in rows.named_buffers()}
 
 
 def add_scales(policy: Policy, scales: Mapping[str, Tensor]) -> Policy:
-    """``policy`` grown by one normaliser row, ``scales``; the plant part's buffers get zeros."""
+    """``policy`` grown by normaliser rows ``scales``; the plant part's buffers get zeros."""
     rows = dict(scales)
+    k = len(next(iter(rows.values())))
     for key, value in policy.net.plant.named_buffers(prefix="net.plant"):
         if key not in rows and value.shape[:1] == (policy.net.n_tags,):
-            rows[key] = torch.zeros_like(value[:1])
+            rows[key] = value.new_zeros((k, *value.shape[1:]))
     return add_rows(policy, rows)
 
 

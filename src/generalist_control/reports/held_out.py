@@ -46,6 +46,7 @@ from generalist_control.reports.explore import plant_class
 from generalist_control.simulation.family_draw import draw_family, read_families
 from generalist_control.simulation.scenarios import with_state_draw
 from generalist_control.tracking import mlflow_utils
+from generalist_control.training.unseen_draw import UnseenDraw
 
 __all__ = [
     "OWNED",
@@ -259,20 +260,18 @@ def family_draw(
     Raises
     ------
     ValueError
-        If ``spec.seed`` is the seed of a family the policy was trained on.
+        If ``spec.seed`` is the seed of a family the policy was trained or validated on.
     """
     policy, meta = load_policy(path)
     seeds = {int(f["seed"]) for f in meta.get("families", []) if f["name"] == spec["family"]}
     if int(spec["seed"]) in seeds:
         raise ValueError(
-            f"unseen.family_draw.seed {spec['seed']} drew the policy's training family "
-            f"(seeds {sorted(seeds)}): choose a seed no training used"
+            f"unseen.family_draw.seed {spec['seed']} drew a family the policy was trained or "
+            f"validated on (seeds {sorted(seeds)}): choose a seed no training used"
         )
     family, settings = read_families(_family_node(spec, data))
     draw = draw_family(family, int(spec["count"]), settings.checks)
-    rt = PolicyRuntime(policy, meta)
-    for p in draw.plants:
-        rt.add_plant(p)
+    rt = PolicyRuntime(*UnseenDraw(tuple(draw.plants), None).met(policy, meta))
     df, _ = evaluate(rt, draw.plants, with_state_draw(scenarios, spec["state_draw"]))
     df.insert(0, "policy", "card")
     return df, _draw_summary(df, draw.plants, spec)

@@ -23,6 +23,7 @@ from generalist_control.training.datamodule import WindowTensors
 from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.sampler import RolloutSampler
 from generalist_control.training.settings import DaggerSettings
+from generalist_control.training.unseen_draw import UnseenDraw
 
 __all__ = [
     "ClosedLoopValidation",
@@ -40,24 +41,35 @@ class ClosedLoopValidation(L.Callback):
 
     Open-loop MSE says little about the closed loop (a small feedback error on an unstable
     plant diverges), so DAgger's best checkpoint is chosen on this. Per plant (or label):
-    ``val/closed_loop/<plant>``.
+    ``val/closed_loop/<plant>``. With ``unseen`` (a draw and its score), the draw's plants
+    join the mean, met zero-shot as at deployment; their own mean is ``val/closed_loop/unseen``.
     """
 
-    def __init__(self, score: ClosedLoopScore) -> None:
-        self.score = score
+    def __init__(
+        self, score: ClosedLoopScore, unseen: tuple[UnseenDraw, ClosedLoopScore] | None = None
+    ) -> None:
+        self.score, self.unseen = score, unseen
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Score the current policy in closed loop and log it."""
-        if trainer.sanity_checking or not self.score.runs:
+        if trainer.sanity_checking or not (self.score.runs or self.unseen):
             return
         policy = cast(Policy, pl_module.policy)
         was_training = policy.training
-        runtime = PolicyRuntime(policy, cast(Any, trainer).datamodule.meta())
+        meta = cast(Any, trainer).datamodule.meta()
+        scores: dict[str, float] = {}
         with torch.inference_mode():
-            scores = self.score(RuntimeAdapter(runtime))
+            if self.score.runs:
+                scores = self.score(RuntimeAdapter(PolicyRuntime(policy, meta)))
+            if self.unseen:
+                draw, score = self.unseen
+                unseen = score(RuntimeAdapter(PolicyRuntime(*draw.met(policy, meta))))
+                pl_module.log("val/closed_loop/unseen", float(np.mean(list(unseen.values()))),
+                              logger=False)  # fmt: skip
+                scores.update(unseen)
         policy.train(was_training)
-        score = float(np.mean(list(scores.values())))
-        pl_module.log("val/closed_loop", score, prog_bar=True, logger=False)
+        pl_module.log("val/closed_loop", float(np.mean(list(scores.values()))), prog_bar=True,
+                      logger=False)  # fmt: skip
         for name, v in scores.items():
             pl_module.log(f"val/closed_loop/{name}", v, logger=False)
 

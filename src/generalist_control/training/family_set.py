@@ -109,12 +109,19 @@ class FamilySet:
         return demos, {**manifest, "content_hash": joint, "families": [str(d) for d in self.dirs]}
 
     def record(self) -> list[dict[str, Any]]:
-        """Per family: its folder, name, seed and plant count (the policy's meta)."""
+        """Per family: its folder, name, seed and plant count (the policy's meta).
+
+        Then the validation draw's (``dir`` None), so that no report tests on it.
+        """
         out = []
         for d in self.dirs:
             block = read_manifest(d)["plant_family"]
             out.append({"dir": str(d), "name": block["name"], "seed": int(block["seed"]),
                         "plants": len(block["plants"])})  # fmt: skip
+        if self.spec is not None and (v := self.spec.validation) is not None:
+            generator = v["generator"]
+            out.append({"dir": None, "name": generator["name"], "seed": int(generator["seed"]),
+                        "plants": int(v["count"])})  # fmt: skip
         return out
 
 

@@ -51,6 +51,7 @@ from generalist_control.training.labeller import ExpertLabeller
 from generalist_control.training.lit_module import ImitationModule
 from generalist_control.training.sampler import RolloutSampler
 from generalist_control.training.settings import TrainingSettings
+from generalist_control.training.unseen_draw import UnseenDraw
 
 __all__ = ["METRICS_FILE", "train"]
 
@@ -112,16 +113,25 @@ def _callbacks(
     turn, checked = (spec.dagger_plants, spec.closed_loop_plants) if spec else (0, 0)
     if (dagger := settings.dagger) is not None:  # a family's plants join in turn
         versions = dagger_plants(plants, dm.manifest)
+        pick = hydra.utils.instantiate(spec.dagger_pick) if spec and spec.dagger_pick else None
         sampler = RolloutSampler(
-            versions, dagger.sampler, settings.rollout_data, settings.seed, family, turn
+            versions, dagger.sampler, settings.rollout_data, settings.seed, family, turn, pick
         )
         labeller = ExpertLabeller(
             dagger.labeller, settings.history, settings.horizon, lit.policy.channels
         )
         callbacks.append(DAggerCallback(sampler, labeller, dagger))
     if (val := settings.closed_loop_val) is not None:
-        score = ClosedLoopScore(plants + family[:checked], list(val.amplitudes), val.duration)
-        callbacks.append(ClosedLoopValidation(score))
+        amplitudes = list(val.amplitudes)
+        score = ClosedLoopScore(plants + family[:checked], amplitudes, val.duration)
+        unseen = None
+        if spec is not None and spec.validation is not None:
+            draw = UnseenDraw.draw(
+                spec.validation, lit.policy, settings.rollout_data.recipe, settings.history,
+                settings.horizon,
+            )  # fmt: skip
+            unseen = draw, ClosedLoopScore(draw.plants, amplitudes, val.duration)
+        callbacks.append(ClosedLoopValidation(score, unseen))
     return callbacks, ckpt_cb
 
 

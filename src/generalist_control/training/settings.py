@@ -7,7 +7,7 @@ lives in ``conf/``, none here.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -168,6 +168,12 @@ class FamilyTraining:
     dirs: tuple[str, ...]  #: the families' data folders (``generate_families``' data_dir)
     dagger_plants: int  #: family plants rolled out per DAgger round, in turn
     closed_loop_plants: int  #: the first family plants in the closed-loop validation
+    #: a family group (``conf/families``) at a seed no training uses: its plants join the
+    #: closed-loop validation zero-shot (:mod:`.unseen_draw`); None: none
+    validation: Any = None
+    #: which family plants each DAgger round rolls out (``_target_``: ``training.sampler``'s
+    #: ``InTurn``, ``WorstFirst``); None: in turn
+    dagger_pick: Any = None
 
     def __post_init__(self) -> None:
         if not self.dirs:
@@ -185,6 +191,8 @@ class RolloutData:
     families: dict[str, dict[str, Any]]  #: the enabled ``data.families``
     variant_range: float  #: ``data.variants.range``: fresh variants' half-width
     variant_tries: int  #: ``data.variants.max_tries``
+    #: the whole recipe: demonstrations of plants made in training
+    recipe: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -277,6 +285,7 @@ def rollout_data(data: Mapping[str, Any]) -> RolloutData:
         families=enabled_families(data),
         variant_range=variant_range(variants["range"], "data.variants.range"),
         variant_tries=require_int("data.variants.max_tries", variants["max_tries"]),
+        recipe=dict(data),
     )
 
 
