@@ -21,7 +21,13 @@ from generalist_control.training.labeller import (
     bumpless_integrator,
     expert_plans,
 )
-from generalist_control.training.sampler import MixedController, RolloutSampler, run_rollouts
+from generalist_control.training.sampler import (
+    InTurn,
+    MixedController,
+    RolloutSampler,
+    WorstFirst,
+    run_rollouts,
+)
 from generalist_control.training.settings import (
     DaggerSettings,
     LabellerSettings,
@@ -29,7 +35,7 @@ from generalist_control.training.settings import (
     SamplerSettings,
     VariantSettings,
 )
-from helpers import config_section, net_config
+from helpers import config_section, lqi_law_policy, net_config
 
 
 def _steps(amplitudes, steps):
@@ -456,3 +462,25 @@ def test_sampler_noise_and_actuator_scale_with_each_plant_s_control_scale(monkey
     for p in plants:
         assert captured["actuator"][p.name] == pytest.approx((0.5, 0.2 * (1.0 + p.tag)))
     assert captured["seed"] == 5 + 7901 * 3 and captured["beta"] == 0.3
+
+
+def test_worst_first_rolls_out_the_plants_the_policy_controls_worst():
+    """A law that is LQI on two plants, half LQI's gains on one, none on an unstable one."""
+    names = ["dc_servo", "cstr", "unstable", "mass_spring_damper"]
+
+    def gains(p):
+        g = design_lqi(p)
+        k = {"unstable": 0.0, "cstr": 0.5}.get(p.name, 1.0)
+        return dataclasses.replace(g, Kx=k * g.Kx, Ki=k * g.Ki)
+
+    pol, meta = lqi_law_policy(names, gains)
+    plants = [load_plant(n) for n in names]
+    runtime = PolicyRuntime(pol, meta)
+    assert [p.name for p in WorstFirst(pool=4)(plants, 2, 0, runtime)] == ["unstable", "cstr"]
+    assert [p.name for p in WorstFirst(pool=2)(plants, 1, 1, runtime)] == ["unstable"]  # 2, 3
+    assert [p.name for p in WorstFirst(pool=2)(plants, 1, 0, runtime)] == ["cstr"]  # 0, 1
+    assert InTurn()(plants, 2, 1, None) == plants[2:]  # the default: in turn, nothing scored
+    with pytest.raises(ValueError, match="give the round's runtime"):
+        WorstFirst(pool=2)(plants, 1, 0, None)
+    with pytest.raises(ValueError, match="dagger_pick.pool must be >= 1"):
+        WorstFirst(pool=0)

@@ -14,13 +14,23 @@ import numpy as np
 from generalist_control.deploy.adapter import RuntimeAdapter
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.plants.definition import Plant
+from generalist_control.simulation.comparison import ClosedLoopScore
 from generalist_control.simulation.lqi import LQIController
 from generalist_control.simulation.references import family_references, family_spec
 from generalist_control.simulation.simulate import Run, Trajectory, row_slices, simulate_many
 from generalist_control.simulation.variant_sampling import sample_variants
 from generalist_control.training.settings import RolloutData, SamplerSettings
 
-__all__ = ["Actuator", "MixedController", "RolloutSampler", "Rollouts", "lag_mix", "run_rollouts"]
+__all__ = [
+    "Actuator",
+    "InTurn",
+    "MixedController",
+    "RolloutSampler",
+    "Rollouts",
+    "WorstFirst",
+    "lag_mix",
+    "run_rollouts",
+]
 
 
 def lag_mix(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -167,6 +177,49 @@ def _in_turn(items: Sequence[Plant], k: int, round_index: int) -> list[Plant]:
     return [items[(round_index * k + j) % len(items)] for j in range(k)]
 
 
+class InTurn:
+    """``train_families.dagger_pick``: a family's plants join DAgger ``k`` at a time, in turn."""
+
+    def __call__(
+        self, plants: Sequence[Plant], k: int, round_index: int, runtime: PolicyRuntime | None
+    ) -> list[Plant]:
+        """Round ``round_index``'s ``k`` of ``plants``."""
+        return _in_turn(plants, k, round_index)
+
+
+class WorstFirst:
+    """``train_families.dagger_pick``: of ``pool`` plants in turn, the ``k`` it controls worst.
+
+    Each round scores the pool by the closed-loop validation's measure (steps from rest
+    against LQI, :class:`ClosedLoopScore`) under the policy as it is, and rolls out the worst:
+    the plants it loses get the expert's labels where its own loop takes them
+    (docs/notes/family-policy.md, experiment 14).
+    """
+
+    def __init__(self, pool: int) -> None:
+        if pool < 1:
+            raise ValueError(f"train_families.dagger_pick.pool must be >= 1, got {pool}")
+        self.pool = int(pool)
+
+    def __call__(
+        self, plants: Sequence[Plant], k: int, round_index: int, runtime: PolicyRuntime | None
+    ) -> list[Plant]:
+        """The ``k`` worst-controlled of round ``round_index``'s pool, worst first.
+
+        Raises
+        ------
+        ValueError
+            Without a ``runtime`` to score.
+        """
+        if not plants or k < 1:
+            return []
+        if runtime is None:
+            raise ValueError("WorstFirst scores the policy: give the round's runtime")
+        pool = _in_turn(plants, max(self.pool, k), round_index)
+        scores = ClosedLoopScore(pool)(RuntimeAdapter(runtime))
+        return sorted(pool, key=lambda p: -scores[p.name])[: min(k, len(pool))]
+
+
 #: One plant's rollouts: references (B, steps) and initial states (B, n) or None (rest).
 RolloutSpec = tuple[np.ndarray, np.ndarray | None]
 
@@ -204,7 +257,8 @@ class RolloutSampler:
     """The rollouts of each DAgger round (``dagger.sampler``) of ``plants`` and their variants.
 
     ``data``: the data recipe's rollout facts; ``seed`` seeds round ``i``'s draws (``seed + i``);
-    ``rotating`` plants (a family's) join ``per_round`` at a time, in turn.
+    ``rotating`` plants (a family's) join ``per_round`` at a time, chosen by ``pick``
+    (:class:`InTurn` by default).
     """
 
     def __init__(
@@ -215,9 +269,11 @@ class RolloutSampler:
         seed: int,
         rotating: Sequence[Plant] = (),
         per_round: int = 0,
+        pick: InTurn | WorstFirst | None = None,
     ) -> None:
         self.plants, self.settings, self.data = list(plants), settings, data
         self.rotating, self.per_round = list(rotating), int(per_round)
+        self.pick = pick or InTurn()
         self.limit, self.seed = data.amplitude_limit, int(seed)
         self.families = data.families if settings.families else {}
         #: per plant name, the factors of every fresh variant rolled out so far
@@ -227,8 +283,11 @@ class RolloutSampler:
         """Samples per rollout."""
         return int(round(self.settings.duration / self.plants[0].dt))
 
-    def round_plants(self, round_index: int) -> list[Plant]:
-        """The round's plant versions: the data's (all, or in turn), fresh variants, rotating."""
+    def round_plants(self, round_index: int, runtime: PolicyRuntime | None = None) -> list[Plant]:
+        """The round's plant versions: the data's (all, or in turn), fresh variants, rotating.
+
+        ``runtime``: the policy as it is, for a pick that scores it.
+        """
         groups: dict[str, list[Plant]] = {}  # by name, each its nominal version first
         for p in self.plants:
             groups.setdefault(p.name, []).append(p)
@@ -246,7 +305,7 @@ class RolloutSampler:
                 for v in draw.kept:
                     self.fresh.setdefault(v.plant.name, []).append(v.factors)
                     out.append(v.plant)
-        return out + _in_turn(self.rotating, self.per_round, round_index)
+        return out + self.pick(self.rotating, self.per_round, round_index, runtime)
 
     def specs(self, round_index: int, plants: Sequence[Plant]) -> list[RolloutSpec]:
         """Per plant version, in order: the round's references and initial states."""
@@ -267,7 +326,7 @@ class RolloutSampler:
 
     def run(self, round_index: int, runtime: PolicyRuntime, beta: float) -> Rollouts:
         """Round ``round_index``'s rollouts of ``runtime``'s policy, the expert's share beta."""
-        plants = self.round_plants(round_index)
+        plants = self.round_plants(round_index, runtime)
         specs = self.specs(round_index, plants)
         scale = runtime.policy.normaliser.control_scale.detach().cpu().double().numpy()
         noise = None
