@@ -93,10 +93,9 @@ def test_train_over_a_family_and_meet_a_plant_never_seen(
         p = families.plants[0]
         card = card_features(p, card_frame(p, 10.0))
         np.testing.assert_allclose(policy.net.plant.cards[p.tag].numpy(), card, rtol=1e-6)
-    route = "card" if experiment == "family_card" else "in_context"
     cfg = compose_cfg("data.duration=2.0", "data.families=null", config="unseen")
     plant = load_plant(NEVER_SEEN)
-    grown, grown_meta = zero_shot(route, objects["policy_path"], plant, as_dict(cfg.data))
+    grown, grown_meta = zero_shot(objects["policy_path"], plant, as_dict(cfg.data))
     assert grown_meta["tags"][NEVER_SEEN] == grown.net.n_tags - 1 == 29
     scenarios = {"step": {"kind": "step", "amplitude": 1.0, "duration": 3.0}}
     df, _ = evaluate(PolicyRuntime(grown, grown_meta), [plant], scenarios, progress=False)

@@ -17,14 +17,12 @@ from typing import Any, cast
 import mlflow
 import numpy as np
 import pandas as pd
-import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from generalist_control.adaptation import adapt
 from generalist_control.adaptation.job import learn, prepare
-from generalist_control.adaptation.new_plant import generated_windows
 from generalist_control.adaptation.request import AdaptRequest
 from generalist_control.common.atomic import (
     check_replaceable,
@@ -38,7 +36,6 @@ from generalist_control.evaluation.eval_config import EvaluationSettings
 from generalist_control.evaluation.eval_run import provenance
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.evaluation.summary import summarise
-from generalist_control.model.bank import add_scales, plant_scales
 from generalist_control.model.policy import POLICY_FILE, Policy, load_policy
 from generalist_control.plants.catalog import load_plant
 from generalist_control.plants.definition import Plant
@@ -188,7 +185,7 @@ def _plant(
         "trained_with": load_policy(paths["trained_with"]),
     }
     plant = load_plant(name)
-    policies.update({k: zero_shot(k, path, plant, settings.data) for k, path in routes.items()})
+    policies.update({k: zero_shot(path, plant, settings.data) for k, path in routes.items()})
     frames = [_evaluated(settings.evaluation, k, p, m, plant) for k, (p, m) in policies.items()]
     df = pd.concat(frames, ignore_index=True)
     entry = {
@@ -206,33 +203,16 @@ def _plant(
 ROUTES = {"card": "family_card", "in_context": "family_context"}
 
 
-def _scales(
-    policy: Policy, meta: Mapping[str, Any], plant: Plant, data: Mapping[str, Any]
-) -> dict[str, torch.Tensor]:
-    """The plant's normaliser row, fitted on the windows ``adapt`` generates for it."""
-    history, horizon = int(meta["history"]), int(meta["horizon"])
-    w, _ = generated_windows(plant, data, history, horizon, policy.channels)
-    state, mask, ref, target = (
-        torch.from_numpy(getattr(w, k)) for k in ("state", "mask", "ref", "target")
-    )
-    return plant_scales(state, mask, ref, target, policy.normaliser.mapped)
+def zero_shot(path: Path, plant: Plant, data: Mapping[str, Any]) -> tuple[Policy, dict[str, Any]]:
+    """The policy at ``path`` meeting ``plant`` with nothing learned, and its meta.
 
-
-def zero_shot(
-    route: str, path: Path, plant: Plant, data: Mapping[str, Any]
-) -> tuple[Policy, dict[str, Any]]:
-    """The route's policy meeting ``plant`` with nothing learned, and its meta."""
+    A card policy's row from the plant's model; an in-context policy's scales fitted on the
+    windows ``adapt`` generates for it (:class:`UnseenDraw`).
+    """
     policy, meta = load_policy(path)
-    if route == "card":
-        rt = PolicyRuntime(policy, meta)
-        rt.add_plant(plant)
-        grown = rt.policy
-    else:
-        grown = add_scales(policy, _scales(policy, meta, plant, data))
-    tags = {**meta["tags"], plant.name: grown.net.n_tags - 1}
-    outputs = {**meta.get("outputs", {}), plant.name: [float(c) for c in plant.C[0]]}
-    orders = {**meta["orders"], plant.name: plant.order}
-    return grown, {**meta, "tags": tags, "orders": orders, "outputs": outputs}
+    one = dataclasses.replace(plant, tag=0)  # its place in the draw: its scales' row
+    met = UnseenDraw.of([one], policy, data, int(meta["history"]), int(meta["horizon"]))
+    return met.met(policy, meta)
 
 
 def _family_node(spec: Mapping[str, Any], data: Mapping[str, Any]) -> dict[str, Any]:

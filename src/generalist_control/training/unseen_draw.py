@@ -7,7 +7,7 @@ checkpoint is chosen on those too (docs/notes/family-policy.md, experiment 13).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -47,7 +47,7 @@ class UnseenDraw:
         history: int,
         horizon: int,
     ) -> UnseenDraw:
-        """``family`` (a ``conf/families`` group, plain types) drawn, met by ``policy``'s part.
+        """``family`` (a ``conf/families`` group, plain types) drawn and met (:meth:`of`).
 
         Raises
         ------
@@ -57,8 +57,27 @@ class UnseenDraw:
         """
         generator, settings = read_families(family)
         plants = draw_family(generator, settings.count, settings.checks).plants
+        return cls.of(plants, policy, data, history, horizon)
+
+    @classmethod
+    def of(
+        cls,
+        plants: Sequence[Plant],
+        policy: Policy,
+        data: Mapping[str, Any],
+        history: int,
+        horizon: int,
+    ) -> UnseenDraw:
+        """``plants`` (tags ``0 .. k-1``: their places) as ``policy``'s plant part meets them.
+
+        Raises
+        ------
+        ValueError
+            If the plant part learns a row per plant (a plant never trained on has none).
+        """
+        plants = tuple(plants)
         if policy.net.plant.plant_rows(list(plants[:1]), policy.width) is not None:
-            return cls(tuple(plants), None)
+            return cls(plants, None)
         demos = generate_demos(plants, {**data, "history": history, "horizon": horizon}, False)
         channels = policy.channels
         w = demos.windows(history, horizon, "integral" in channels, "previous_control" in channels)
@@ -69,11 +88,10 @@ class UnseenDraw:
             add_scales(policy, scales)
         except RecipeError as exc:
             raise ValueError(
-                f"train_families.validation scores plants no training saw, which this policy "
-                f"cannot meet zero-shot ({exc}): use model/plant=card or context, or set "
-                "train_families.validation=null"
+                f"this policy cannot meet zero-shot ({exc}) a plant no training saw: train "
+                "it with model/plant=card or context (or set train_families.validation=null)"
             ) from None
-        return cls(tuple(plants), scales)
+        return cls(plants, scales)
 
     def met(self, policy: Policy, meta: Mapping[str, Any]) -> tuple[Policy, dict[str, Any]]:
         """``policy`` grown by the draw's rows, and its meta naming the draw's plants."""
