@@ -122,12 +122,24 @@ def _check_registered(run, policy, tags: dict, log: str, uri: str) -> None:
     assert uri in line
 
 
+#: The short trainings of the resume and determinism tests: no MLflow model, 128 a batch.
+SHORT = ("logger.log_model=false", "loader.batch_size=128")
+
+
+@pytest.fixture(scope="module")
+def first(tiny_data_dir, tmp_path_factory, mlflow_uri) -> tuple[Path, dict, dict]:
+    """One :data:`SHORT` training under ``<tmp>/a``, the one the resume test resumes and the
+    determinism test repeats: its folder, metrics and objects (neither test changes them)."""
+    out = tmp_path_factory.mktemp("first") / "a"
+    metrics, objects = train(_cfg(_overrides(tiny_data_dir, out, mlflow_uri, *SHORT)))
+    return out, metrics, objects
+
+
 @pytest.mark.slow
-def test_resume_continues_from_the_checkpoint(tiny_data_dir, tmp_path, mlflow_uri):
-    common = ["logger.log_model=false", "loader.batch_size=128"]
-    first, objs1 = train(_cfg(_overrides(tiny_data_dir, tmp_path / "a", mlflow_uri, *common)))
+def test_resume_continues_from_the_checkpoint(first, tiny_data_dir, tmp_path, mlflow_uri):
+    a, _, objs1 = first
     trainer1 = objs1["trainer"]
-    last = tmp_path / "a" / "run" / "checkpoints" / "last.ckpt"
+    last = a / "run" / "checkpoints" / "last.ckpt"
     assert last.is_file() and trainer1.current_epoch == 1
     blob = torch.load(last, weights_only=True)  # Lightning checkpoints load without pickle too
     assert blob["epoch"] == 0
@@ -136,7 +148,7 @@ def test_resume_continues_from_the_checkpoint(tiny_data_dir, tmp_path, mlflow_ur
         tiny_data_dir,
         tmp_path / "b",
         mlflow_uri,
-        *common,
+        *SHORT,
         f"ckpt_path={last}",
         "trainer.max_epochs=2",
     )
@@ -159,10 +171,9 @@ def test_missing_data_error_gives_the_command(tmp_path):
 
 
 @pytest.mark.slow
-def test_training_is_deterministic(tiny_data_dir, tmp_path, mlflow_uri):
-    extra = ("logger.log_model=false", "loader.batch_size=128")
-    m1, o1 = train(_cfg(_overrides(tiny_data_dir, tmp_path / "a", mlflow_uri, *extra)))
-    m2, o2 = train(_cfg(_overrides(tiny_data_dir, tmp_path / "b", mlflow_uri, *extra)))
+def test_training_is_deterministic(first, tiny_data_dir, tmp_path, mlflow_uri):
+    _, m1, o1 = first  # the same config, trained earlier in this process
+    m2, o2 = train(_cfg(_overrides(tiny_data_dir, tmp_path / "b", mlflow_uri, *SHORT)))
     assert m2["val/loss"] == pytest.approx(m1["val/loss"], rel=1e-6)
     assert m2["train/loss"] == pytest.approx(m1["train/loss"], rel=1e-6)
     # same weights, same bytes: the pipeline's policy.ckpt leaves dvc.lock as it was
