@@ -53,9 +53,18 @@ def _adapt(policy, run_dir: Path, uri: str, plant: str = "mass_spring_damper", *
     return record, objects
 
 
-def test_only_the_new_row_changes_bit_for_bit(base, tmp_path, mlflow_uri):
+@pytest.fixture(scope="module")
+def adapted(base, tmp_path_factory, mlflow_uri) -> tuple[Path, dict, dict]:
+    """``base`` adapted to mass_spring_damper by the default request, once for the tests that
+    check what that one adaptation wrote: its run folder, its record and its objects."""
+    run_dir = tmp_path_factory.mktemp("adapted") / "run"
+    record, objects = _adapt(base, run_dir, mlflow_uri)
+    return run_dir, record, objects
+
+
+def test_only_the_new_row_changes_bit_for_bit(base, adapted):
     old, old_meta = load_policy(base)
-    record, objects = _adapt(base, tmp_path / "run", mlflow_uri)
+    _, record, objects = adapted
     new, meta = load_policy(objects["policy_path"])
     n = old.net.n_tags
     assert new.net.n_tags == n + 1 and new.config["plant"]["n_tags"] == n + 1
@@ -109,9 +118,9 @@ def test_unfreeze_moves_the_named_parameters_and_no_others(base, tmp_path, mlflo
 
 
 def test_runtime_resets_on_the_new_plant_and_adapting_twice_grows_again(
-    base, tmp_path, mlflow_uri
+    adapted, tmp_path, mlflow_uri
 ):
-    _, first = _adapt(base, tmp_path / "one", mlflow_uri, "mass_spring_damper")
+    _, _, first = adapted  # base adapted to mass_spring_damper
     _, second = _adapt(first["policy_path"], tmp_path / "two", mlflow_uri, "dc_motor_speed")
     one, _ = load_policy(first["policy_path"])
     two, meta = load_policy(second["policy_path"])
@@ -128,8 +137,8 @@ def test_runtime_resets_on_the_new_plant_and_adapting_twice_grows_again(
         assert np.all(np.isfinite(u)), name
 
 
-def test_the_run_is_its_own_in_the_adapt_experiment(base, tmp_path, mlflow_uri):
-    record, objects = _adapt(base, tmp_path / "run", mlflow_uri)
+def test_the_run_is_its_own_in_the_adapt_experiment(adapted, mlflow_uri):
+    run_dir, record, objects = adapted
     assert objects["experiment"] == "generalist-control/adapt"
     mlflow.set_tracking_uri(mlflow_uri)
     run = mlflow.get_run(objects["run_id"])
@@ -140,8 +149,8 @@ def test_the_run_is_its_own_in_the_adapt_experiment(base, tmp_path, mlflow_uri):
     _, meta = load_policy(objects["policy_path"])
     assert "mlflow_run_id" not in meta  # the file's bytes reproduce; its run is found by hash
     assert find_training_run(policy_sha256(objects["policy_path"])) == objects["run_id"]
-    assert (tmp_path / "run" / "adapt.json").is_file()
-    assert (tmp_path / "run" / "plants" / "mass_spring_damper.yaml").is_file()
+    assert (run_dir / "adapt.json").is_file()
+    assert (run_dir / "plants" / "mass_spring_damper.yaml").is_file()
     demos = record["demonstrations"]
     assert demos["source"] == "generated" and demos["windows"] == 8 * 38  # 8 steps, 40 samples
     assert demos["dagger_windows"] > 0
