@@ -190,7 +190,12 @@ def test_the_tag_free_stage_trains_evaluates_and_writes_its_analyses(
     from generalist_control.evaluate import run as evaluate_run
     from helpers import train
 
-    switch = ("experiment=tag_free", "dagger.start_epoch=1", "dagger.rounds=1")
+    switch = (
+        "experiment=tag_free",
+        "dagger.start_epoch=1",
+        "dagger.rounds=1",
+        "logger.log_model=false",
+    )
     overrides = tiny_train_overrides(tiny_data_dir, tmp_path / "tf", mlflow_uri, *switch)
     _, objects = train(compose_cfg(*overrides))
     policy, _ = load_policy(objects["policy_path"])

@@ -118,7 +118,11 @@ TINY_TRAIN = (
     "trainer.enable_model_summary=false", "logger.log_model=false",
 )  # fmt: skip
 #: ... and what the family trainings add (the tiny family: 4 plants).
-TINY_FAMILY = ("train_families.dagger_plants=2", "train_families.closed_loop_plants=2")
+TINY_FAMILY = (
+    "train_families.dagger_plants=2",
+    "train_families.closed_loop_plants=2",
+    "train_families.validation.count=2",
+)
 TINY_UNSEEN = (
     "held_out=[hydraulic_actuator]", "unseen.family_draw.count=3",
     "unseen.family_draw.checks={duration:10.0}",
