@@ -59,7 +59,6 @@ class RunPoint:
     diverged: int = 0  #: ``closed_loop/diverged``: plants whose GC loop diverged
     start_time: int = 0  #: ms since the epoch
     params: Mapping[str, str] = field(default_factory=dict, compare=False, repr=False)
-    parent_id: str | None = None  #: tag ``mlflow.parentRunId``
     val_loss: float | None = None
     best_val_loss: float | None = None
     seed: int | None = None
@@ -107,7 +106,6 @@ def _point(run: Any) -> RunPoint | None:
         diverged=int(metrics.get("closed_loop/diverged", 0) or 0),
         start_time=int(run.info.start_time or 0),
         params=dict(params),
-        parent_id=tags.get("mlflow.parentRunId"),
         val_loss=val,
         best_val_loss=best,
         seed=_as_int(params.get("seed")),
