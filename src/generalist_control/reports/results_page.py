@@ -95,19 +95,17 @@ class ReportFileError(ValueError):
     """A report the page cannot read: the message names the file and the fix."""
 
 
-def _fix(recipe: Recipe, paths: Sequence[str]) -> str:
-    restore = " ".join(paths)
-    return (
-        f"restore the committed version (git checkout -- {restore}) or write it again with "
-        f"`{recipe.command}`"
+def _error(recipe: Recipe, files: Sequence[str], problem: str) -> ReportFileError:
+    """``problem`` with ``files``, and the fix: restore them, or run the recipe's command."""
+    return ReportFileError(
+        f"{problem}; restore the committed version (git checkout -- {' '.join(files)}) or "
+        f"write it again with `{recipe.command}`"
     )
 
 
 def _layout_error(recipe: Recipe, files: Sequence[str], exc: Exception) -> ReportFileError:
-    return ReportFileError(
-        f"{', '.join(files)}: not the layout the page reads ({type(exc).__name__}: {exc}); "
-        f"{_fix(recipe, files)}"
-    )
+    problem = f"not the layout the page reads ({type(exc).__name__}: {exc})"
+    return _error(recipe, files, f"{', '.join(files)}: {problem}")
 
 
 def _read(root: Path, path: str, recipe: Recipe) -> Any:
@@ -120,12 +118,10 @@ def _read(root: Path, path: str, recipe: Recipe) -> Any:
                 return list(csv.DictReader(f))
         data = json.loads(file.read_text())
     except (ValueError, csv.Error) as exc:  # json.JSONDecodeError, UnicodeDecodeError
-        raise ReportFileError(
-            f"{path} is not valid {kind} ({exc}); {_fix(recipe, [path])}"
-        ) from None
+        raise _error(recipe, [path], f"{path} is not valid {kind} ({exc})") from None
     if not isinstance(data, dict):
         got = type(data).__name__
-        raise ReportFileError(f"{path} holds a JSON {got}, not an object; {_fix(recipe, [path])}")
+        raise _error(recipe, [path], f"{path} holds a JSON {got}, not an object")
     return data
 
 
@@ -287,10 +283,8 @@ def _publish_figures(
         try:
             draw_figures(root / tables, folder, names)
         except (ValueError, KeyError, IndexError, TypeError) as exc:
-            raise ReportFileError(
-                f"{tables}: its tables do not draw ({type(exc).__name__}: {exc}); "
-                f"{_fix(recipe, [str(tables)])}"
-            ) from None
+            problem = f"{tables}: its tables do not draw ({type(exc).__name__}: {exc})"
+            raise _error(recipe, [str(tables)], problem) from None
         for old in folder.glob("*.png"):
             if old.stem not in names:
                 old.unlink()
