@@ -100,24 +100,21 @@ def judge(entries: Mapping[str, Any], bar: Mapping[str, Any]) -> dict[str, Any]:
     worst = max([*ise.values(), *rmse.values()], default=float("nan"))
     diverged = sum(int(f["diverged_runs"]) for f in figs.values())
     wall = max((float(e["adaptation_wall_s"]) for e in entries.values()), default=0.0)
+    allowed = int(bar["allowed_over"])
+
+    def at_most(value: float, limit: float) -> dict[str, Any]:
+        return {"value": value, "limit": limit, "pass": value <= limit}
+
     bars = {
         "no_divergence": {"GC_diverged_runs": diverged, "pass": diverged == 0},
-        "adaptation_wall_s": {
-            "value": wall,
-            "limit": bar["wall_s"],
-            "pass": wall <= bar["wall_s"],
-        },
+        "adaptation_wall_s": at_most(wall, bar["wall_s"]),
         "most_within": {
             "plants_over": len(over),
             "over": over,
-            "allowed_over": int(bar["allowed_over"]),
-            "pass": len(over) <= int(bar["allowed_over"]),
+            "allowed_over": allowed,
+            "pass": len(over) <= allowed,
         },
-        "all_within": {
-            "value": worst,
-            "limit": bar["all_ratio"],
-            "pass": worst <= bar["all_ratio"],
-        },
+        "all_within": at_most(worst, bar["all_ratio"]),
     }
     return {"bars": bars, "pass": all(v["pass"] for v in bars.values())}
 
@@ -315,13 +312,6 @@ def judge_routes(
             "pass": all(bars.values()) and not not_run}  # fmt: skip
 
 
-def _write(out_dir: Path, df: pd.DataFrame, summary: Mapping[str, Any]) -> None:
-    with staging_directory(out_dir) as staging:
-        df.to_csv(staging / "metrics.csv", index=False)
-        write_json(staging / "summary.json", summary)
-        publish_directory(staging, out_dir, OWNED, "paths.reports_dir")
-
-
 def _log(logger: Mapping[str, Any], summary: Mapping[str, Any], out_dir: Path) -> None:
     """The stage's own run (experiment ``<prefix>/unseen``)."""
     flat = {}
@@ -370,6 +360,9 @@ def run_unseen(settings: UnseenSettings, requests: Mapping[str, AdaptRequest]) -
             log.info("held-out family draw: median ISE ratio %.4g", draw["ISE_ratio"]["median"])
         summary["routes"] = judge_routes(entries, draw, settings.routes_bar)
         summary["family_draw"] = draw
-    _write(out_dir, pd.concat(frames, ignore_index=True), summary)
+    with staging_directory(out_dir) as staging:
+        pd.concat(frames, ignore_index=True).to_csv(staging / "metrics.csv", index=False)
+        write_json(staging / "summary.json", summary)
+        publish_directory(staging, out_dir, OWNED, "paths.reports_dir")
     _log(settings.logger, summary, out_dir)
     return summary
