@@ -171,12 +171,6 @@ def _values(claim: Claim, by_config: Runs) -> list[tuple[str, float | None]]:
     return out
 
 
-def _absent(claim: Claim, by_config: Runs) -> str | None:
-    """``d=16, M=3, ...``: the configurations the claim reads that have no run."""
-    absent = [c for c in claim.configs if not by_config.get(c)]
-    return ", ".join(f"d={d}, M={m}" for d, m in absent) or None
-
-
 def _judge_values(claim: Claim, by_config: Runs, tol: Tolerance) -> tuple[str, str]:
     values = _values(claim, by_config)
     ours = ", ".join(f"{fmt_value(v)} ({s})" for s, v in values)
@@ -213,8 +207,7 @@ def _judge_gates(claim: Claim, gates: pd.DataFrame | None, tol: Tolerance) -> tu
         dom = _dominant(gates, str(claim.plant))
         if dom is None:
             return NOT_AVAILABLE, "not trained on it"
-        ok = abs(dom[1] - float(claim.paper)) <= tol.share_points
-        return (REPRODUCES if ok else FAILS), f"{dom[0]}: {dom[1]:.0%}"
+        return (REPRODUCES if _within(claim, dom[1], tol) else FAILS), f"{dom[0]}: {dom[1]:.0%}"
     pairs = (("cstr", "damped_oscillator"), ("boeing747", "crazyflie_altitude"))
     doms = [[_dominant(gates, p) for p in pair] for pair in pairs]
     if any(d is None for pair in doms for d in pair):
@@ -231,9 +224,9 @@ def _judge(
     """A claim's verdict and our figures, before comparability is considered."""
     if claim.kind in ("share", "pattern"):
         return _judge_gates(claim, gates, tol)
-    absent = _absent(claim, by_config)
+    absent = [c for c in claim.configs if not by_config.get(c)]
     if absent:
-        return NO_RUN, f"{NO_RUN}: {absent}"
+        return NO_RUN, f"{NO_RUN}: " + ", ".join(f"d={d}, M={m}" for d, m in absent)
     if claim.kind == "order":
         return _judge_order(claim, by_config)
     return _judge_values(claim, by_config, tol)

@@ -77,15 +77,12 @@ def resolve_parents(
     return ids
 
 
-def _identity(key: str, patterns: Sequence[str]) -> bool:
-    return key in SWEPT_KEYS or any(fnmatch.fnmatchcase(key, p) for p in patterns)
-
-
 def differing_params(
     points: Sequence[RunPoint], identity: Sequence[str]
 ) -> dict[str, dict[str, list[RunPoint]]]:
     """``{key: {value: [runs]}}`` of the params (not swept or identity) the runs disagree on."""
-    keys = sorted({k for p in points for k in p.params if not _identity(k, identity)})
+    keys = sorted({k for p in points for k in p.params if k not in SWEPT_KEYS})
+    keys = [k for k in keys if not any(fnmatch.fnmatchcase(k, pat) for pat in identity)]
     out: dict[str, dict[str, list[RunPoint]]] = {}
     for key in keys:
         groups: dict[str, list[RunPoint]] = {}
