@@ -237,7 +237,6 @@ def judge_claims(
     gates: pd.DataFrame | None,
     tolerance: Tolerance,
     recipe: str,
-    claims: Sequence[Claim] = CLAIMS,
 ) -> pd.DataFrame:
     """Every claim beside our figures, with its verdict: ``claim, key, paper, ours, rule, ...``.
 
@@ -246,7 +245,7 @@ def judge_claims(
     figures are comparable only for the paper's).
     """
     rows = []
-    for claim in claims:
+    for claim in CLAIMS:
         verdict, ours = _judge(claim, by_config, gates, tolerance)
         note = claim.note
         if recipe != "paper" and claim.default_reason and verdict not in (NO_RUN, NOT_AVAILABLE):

@@ -6,7 +6,6 @@ import tempfile
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-import mlflow
 import numpy as np
 import pandas as pd
 
@@ -24,9 +23,8 @@ __all__ = ["gate_weights", "policy_of_run"]
 POLICY_ARTIFACT = f"policy/{POLICY_FILE}"
 
 
-def policy_of_run(run_id: str, client: Any | None = None) -> tuple[Policy, dict[str, Any]]:
+def policy_of_run(run_id: str, client: Any) -> tuple[Policy, dict[str, Any]]:
     """Download a run's ``policy/policy.ckpt`` artifact and load it (``weights_only``)."""
-    client = client or mlflow.MlflowClient()
     with tempfile.TemporaryDirectory(prefix="gc-policy-") as tmp:
         path = client.download_artifacts(run_id, POLICY_ARTIFACT, tmp)
         return load_policy(path)

@@ -138,9 +138,7 @@ def _figures(root: Path, recipe: Recipe) -> dict[str, Any]:
         raise _layout_error(recipe, files, exc) from None
 
 
-def read_reports(
-    root: str | Path, recipes: Sequence[Recipe] = RECIPES
-) -> dict[str, dict[str, Any]]:
+def read_reports(root: str | Path) -> dict[str, dict[str, Any]]:
     """Every recipe's files that exist under ``root``, parsed, by recipe key and role.
 
     Raises
@@ -150,7 +148,7 @@ def read_reports(
     """
     root = Path(root)
     out = {}
-    for r in recipes:
+    for r in RECIPES:
         data = {role: _read(root, p, r) for role, p in r.files.items() if (root / p).is_file()}
         out[r.key] = {**data, **(_figures(root, r) if "summary" in data else {})}
     return out
@@ -231,9 +229,7 @@ def _checked(
         raise _layout_error(recipe, list(recipe.files.values()), exc) from None
 
 
-def render_page(
-    reports: Mapping[str, Mapping[str, Any]], recipes: Sequence[Recipe] = RECIPES
-) -> str:
+def render_page(reports: Mapping[str, Mapping[str, Any]]) -> str:
     """The page's markdown from :func:`read_reports`' result (pure: same input, same text).
 
     Raises
@@ -241,12 +237,12 @@ def render_page(
     ReportFileError
         A report of another layout than the page reads (a list where a mapping belongs, ...).
     """
-    rows = [_checked(_headline, r, reports.get(r.key, {})) for r in recipes]
+    rows = [_checked(_headline, r, reports.get(r.key, {})) for r in RECIPES]
     lines = ["# Results", "", NOTE, "", HISTORY, "", "## All recipes", ""]
     lines += [*table(_HEADLINE_HEADER, rows, "the sections below"), ""]
     for note in _HEADLINE_NOTES:
         lines += [note, ""]
-    for recipe in recipes:
+    for recipe in RECIPES:
         data = reports.get(recipe.key, {})
         if "summary" not in data:
             lines += [f"## {recipe.title}", "", f"not run yet: `{recipe.command}`", ""]
@@ -255,9 +251,9 @@ def render_page(
     return "\n".join(lines).rstrip("\n") + "\n"
 
 
-def build_page(root: str | Path = REPO_ROOT, recipes: Sequence[Recipe] = RECIPES) -> str:
+def build_page(root: str | Path = REPO_ROOT) -> str:
     """Read the reports under ``root`` and render the page."""
-    return render_page(read_reports(root, recipes), recipes)
+    return render_page(read_reports(root))
 
 
 def _publish_figures(
