@@ -36,7 +36,9 @@ from generalist_control.reports.report_settings import ReportJob, ReportSettings
 from generalist_control.reports.runs import (
     NO_RUN,
     SWEEP_COMMANDS,
+    ByConfig,
     RunPoint,
+    Sweeps,
     infer_recipe,
     point_label,
     run_label,
@@ -49,8 +51,6 @@ __all__ = ["OWNED", "Inputs", "build_report", "runs_table", "write_report"]
 
 log = logging.getLogger(__name__)
 
-Sweeps = Mapping[str, Mapping[int, RunPoint | None]]
-
 
 @dataclass(frozen=True)
 class Inputs:
@@ -58,7 +58,7 @@ class Inputs:
 
     tolerance: Tolerance
     bar: Mapping[str, Any]
-    by_config: Mapping[tuple[int, int], Sequence[RunPoint]] | None = None  #: None: drawn runs
+    by_config: ByConfig | None = None  #: None: the drawn runs
     evaluations: Mapping[str, evals.Evaluation] = field(default_factory=dict)  #: by run id
     recipe: str | None = None  #: None: read from the runs' params
 

@@ -7,14 +7,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import pandas as pd
 
 from generalist_control.reports.figures import fmt_value
 from generalist_control.reports.report_settings import Tolerance
-from generalist_control.reports.runs import NO_RUN, NOT_AVAILABLE, RunPoint
+from generalist_control.reports.runs import NO_RUN, NOT_AVAILABLE, ByConfig, RunPoint
 
 __all__ = [
     "CLAIMS",
@@ -26,7 +26,6 @@ __all__ = [
 ]
 
 Config = tuple[int, int]
-Runs = Mapping[Config, Sequence[RunPoint]]
 REPRODUCES, FAILS, SEEDS = "reproduces", "does not reproduce", "seed-dependent"
 NOT_COMPARABLE = "not comparable"
 
@@ -155,7 +154,7 @@ def _seed(p: RunPoint) -> str:
     return "run" if p.seed is None else f"s{p.seed}"
 
 
-def _values(claim: Claim, by_config: Runs) -> list[tuple[str, float | None]]:
+def _values(claim: Claim, by_config: ByConfig) -> list[tuple[str, float | None]]:
     """``(seed, value)`` per seed of a figure, or per pair of runs of one seed of a ratio."""
     runs = [list(by_config[c]) for c in claim.configs]
     if claim.kind != "ratio":
@@ -171,7 +170,7 @@ def _values(claim: Claim, by_config: Runs) -> list[tuple[str, float | None]]:
     return out
 
 
-def _judge_values(claim: Claim, by_config: Runs, tol: Tolerance) -> tuple[str, str]:
+def _judge_values(claim: Claim, by_config: ByConfig, tol: Tolerance) -> tuple[str, str]:
     values = _values(claim, by_config)
     ours = ", ".join(f"{fmt_value(v)} ({s})" for s, v in values)
     if any(v is None for _, v in values):
@@ -179,7 +178,7 @@ def _judge_values(claim: Claim, by_config: Runs, tol: Tolerance) -> tuple[str, s
     return _verdict([_within(claim, v, tol) for _, v in values if v is not None]), ours
 
 
-def _judge_order(claim: Claim, by_config: Runs) -> tuple[str, str]:
+def _judge_order(claim: Claim, by_config: ByConfig) -> tuple[str, str]:
     best, *others = ([p.mse.get(str(claim.plant)) for p in by_config[c]] for c in claim.configs)
     rivals = [v for group in others for v in group]
     if any(v is None for v in [*best, *rivals]):
@@ -219,7 +218,7 @@ def _judge_gates(claim: Claim, gates: pd.DataFrame | None, tol: Tolerance) -> tu
 
 
 def _judge(
-    claim: Claim, by_config: Runs, gates: pd.DataFrame | None, tol: Tolerance
+    claim: Claim, by_config: ByConfig, gates: pd.DataFrame | None, tol: Tolerance
 ) -> tuple[str, str]:
     """A claim's verdict and our figures, before comparability is considered."""
     if claim.kind in ("share", "pattern"):
@@ -233,7 +232,7 @@ def _judge(
 
 
 def judge_claims(
-    by_config: Runs,
+    by_config: ByConfig,
     gates: pd.DataFrame | None,
     tolerance: Tolerance,
     recipe: str,

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from generalist_control.common.jsonsafe import finite
-from generalist_control.reports.runs import RunPoint, run_label
+from generalist_control.reports.runs import ByConfig, RunPoint, run_label
 
 __all__ = [
     "Evaluation",
@@ -166,7 +166,7 @@ def separating(worst: pd.DataFrame, bar: Mapping[str, Any]) -> dict[str, str]:
 
 
 def points_frame(
-    by_config: Mapping[tuple[int, int], Sequence[RunPoint]],
+    by_config: ByConfig,
     plants: Sequence[str],
     evaluations: Mapping[str, Evaluation],
 ) -> pd.DataFrame:

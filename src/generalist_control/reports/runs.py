@@ -13,10 +13,12 @@ from generalist_control.evaluation.eval_run import RUN_TYPE_TAG
 from generalist_control.tracking.parents import ROLE_TAG
 
 __all__ = [
+    "ByConfig",
     "NOT_AVAILABLE",
     "NO_RUN",
     "SWEEPS",
     "SWEEP_COMMANDS",
+    "Sweeps",
     "NoAblationRunsError",
     "RunPoint",
     "infer_recipe",
@@ -68,6 +70,12 @@ class RunPoint:
     def label(self) -> str:
         """``d=<hidden>,M=<experts>``, the key format of :data:`paper.ABLATION`."""
         return f"d={self.hidden},M={self.experts}"
+
+
+#: Per sweep (``hidden``, ``experts``), each swept value's run (None: no run of that point).
+Sweeps = Mapping[str, Mapping[int, RunPoint | None]]
+#: Per configuration (d, M), its runs, one per seed.
+ByConfig = Mapping[tuple[int, int], Sequence[RunPoint]]
 
 
 def _as_int(text: str | None) -> int | None:
@@ -189,7 +197,7 @@ def select_sweeps(
     }
 
 
-def unique_points(sweeps: Mapping[str, Mapping[int, RunPoint | None]]) -> list[RunPoint]:
+def unique_points(sweeps: Sweeps) -> list[RunPoint]:
     """The runs of all sweeps, each once (the baseline belongs to both sweeps), by (d, M)."""
     seen: dict[str, RunPoint] = {}
     for by_value in sweeps.values():
@@ -209,9 +217,7 @@ def run_label(p: RunPoint) -> str:
     return f"d{p.hidden}-M{p.experts}" + (f"-s{p.seed}" if p.seed is not None else "")
 
 
-def seed_runs(
-    points: Sequence[RunPoint], sweeps: Mapping[str, Mapping[int, RunPoint | None]]
-) -> dict[tuple[int, int], list[RunPoint]]:
+def seed_runs(points: Sequence[RunPoint], sweeps: Sweeps) -> dict[tuple[int, int], list[RunPoint]]:
     """Per configuration (d, M) of the sweeps, its newest run of each seed, by seed.
 
     A configuration drawn from a run that ``points`` lacks keeps that run.

@@ -14,8 +14,10 @@ from generalist_control.common.secrets import redact
 from generalist_control.reports.report_settings import ReportSettings
 from generalist_control.reports.runs import (
     SWEEP_COMMANDS,
+    ByConfig,
     NoAblationRunsError,
     RunPoint,
+    Sweeps,
     runs_from_mlflow,
     seed_runs,
     select_sweeps,
@@ -145,12 +147,7 @@ def check_comparable(
 
 def select_runs(
     settings: ReportSettings, logger: Mapping[str, Any], client: Any
-) -> tuple[
-    str,
-    dict[str, dict[int, RunPoint | None]],
-    dict[str, dict[str, list[str]]],
-    dict[tuple[int, int], list[RunPoint]],
-]:
+) -> tuple[str, Sweeps, dict[str, dict[str, list[str]]], ByConfig]:
     """The report's experiment, its sweep points, the differences let through, every seed.
 
     Raises
