@@ -17,14 +17,13 @@ import pytest
 from generalist_control.reports.figures import draw_figures, figure_key
 from generalist_control.reports.results_page import (
     MAX_LINES,
-    MAX_ROWS,
     PAGE,
     RECIPES,
     build_page,
     main,
     render_page,
 )
-from generalist_control.reports.results_sections import fmt
+from generalist_control.reports.results_sections import MAX_ROWS, fmt
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = {r.key: r for r in RECIPES}

@@ -15,23 +15,13 @@ from typing import Any
 
 from generalist_control.common.jsonsafe import write_text_atomic
 from generalist_control.reports.figures import draw_figures, figure_key, figure_names, read_tables
-from generalist_control.reports.results_sections import (
-    FIGURES,
-    MAX_ROWS,
-    Recipe,
-    fmt,
-    number,
-    table,
-)
+from generalist_control.reports.results_sections import FIGURES, Recipe, fmt, number, table
 from generalist_control.reports.routes_section import SECTIONS
 
 __all__ = [
-    "FIGURES",
     "MAX_LINES",
-    "MAX_ROWS",
     "PAGE",
     "RECIPES",
-    "Recipe",
     "ReportFileError",
     "build_page",
     "main",
