@@ -68,7 +68,7 @@ class MLflowSweepCallback(Callback):
         self.run_id: str | None = None
         self._parent_name: str | None = None
         self._failed = 0
-        self._tracking_uri: str | None = None
+        self._tracking_uri = ""  #: the parent's store (set with it)
         self._saved_env: dict[str, str | None] = {}
         self._job_env: dict[str, str | None] | None = None
         self._stops = False
@@ -137,8 +137,7 @@ class MLflowSweepCallback(Callback):
         import mlflow
 
         try:
-            if self._tracking_uri:
-                mlflow.set_tracking_uri(self._tracking_uri)
+            mlflow.set_tracking_uri(self._tracking_uri)
             summary = summarise_children(self.run_id, str(config.optimized_metric))
             log.info("MLflow sweep %s: %s", self.run_id, summary)
         finally:
@@ -159,8 +158,7 @@ class MLflowSweepCallback(Callback):
             stop_signals.restore()
         mlflow_utils.swap_env(self._saved_env)
         self._parent_name = None
-        if self._tracking_uri:
-            mlflow.set_tracking_uri(self._tracking_uri)
+        mlflow.set_tracking_uri(self._tracking_uri)
         client = mlflow.MlflowClient()
         if status == "KILLED":  # the jobs' runs whose process the launcher killed
             mlflow_utils.end_stale_runs(client.get_run(run_id).info.experiment_id)

@@ -20,7 +20,7 @@ from generalist_control.common.secrets import redact
 from generalist_control.sweeps.search_settings import HeartbeatSettings
 from generalist_control.tracking import mlflow_utils
 
-__all__ = ["end_trial_run", "fail_lost_trial", "fail_stale_trials", "open_storage"]
+__all__ = ["end_trial_run", "fail_lost_trial", "open_storage"]
 
 log = logging.getLogger(__name__)
 
@@ -109,13 +109,6 @@ def fail_lost_trial(
             warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
             retry = optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry)
         retry(study, trial)
-
-
-def fail_stale_trials(study: optuna.Study) -> None:
-    """Set every trial of ``study`` whose worker stopped beating to ``FAIL``."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-        optuna.storages.fail_stale_trials(study)
 
 
 def end_trial_run(

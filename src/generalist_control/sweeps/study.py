@@ -13,6 +13,7 @@ import logging
 import math
 import os
 import socket
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,12 +27,7 @@ from optuna.trial import FrozenTrial, TrialState
 from generalist_control.common import stop_signals
 from generalist_control.common.secrets import redact
 from generalist_control.sweeps.search_settings import Param, SearchSettings, check_fixed_config
-from generalist_control.sweeps.storage import (
-    end_trial_run,
-    fail_lost_trial,
-    fail_stale_trials,
-    open_storage,
-)
+from generalist_control.sweeps.storage import end_trial_run, fail_lost_trial, open_storage
 from generalist_control.sweeps.trial_callbacks import active_trial
 from generalist_control.tracking import mlflow_utils
 from generalist_control.tracking.mlflow_utils import experiment_name
@@ -244,7 +240,9 @@ def _open_study(search: SearchSettings, logger: Mapping[str, Any]) -> optuna.Stu
             f"study {study.study_name!r} in {redact(search.storage)} exists with "
             f"direction {study.direction.name.lower()}, not {direction}"
         )
-    fail_stale_trials(study)  # dead workers' trials end FAIL before anything else
+    with warnings.catch_warnings():  # dead workers' trials end FAIL before anything else
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        optuna.storages.fail_stale_trials(study)
     sampler = _sampler(search, len(study.get_trials(deepcopy=False)))
     if sampler is not None:
         study.sampler = sampler

@@ -7,10 +7,9 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import cast
 
 import lightning as L
-import mlflow
 import optuna
 from lightning.pytorch.loggers import MLFlowLogger
 from lightning.pytorch.trainer.states import TrainerFn
@@ -70,15 +69,6 @@ def trial_pruning(monitor: str) -> FitPruning:
     return FitPruning(current_trial(), monitor)
 
 
-def _training_run(trainer: L.Trainer) -> tuple[Any, str | None]:
-    """The training's MLflow client and run: the trainer's MLflow logger's, else the active run."""
-    for logger in trainer.loggers:
-        if isinstance(logger, MLFlowLogger) and logger.run_id:
-            return logger.experiment, str(logger.run_id)  # its MlflowClient, its store
-    run = mlflow.active_run()
-    return mlflow.MlflowClient(), (run.info.run_id if run else None)
-
-
 class TrialRunLink(L.Callback):
     """Link the trial (``mlflow_run_id``) and its run (tags ``optuna.study``, ``optuna.trial``).
 
@@ -91,9 +81,8 @@ class TrialRunLink(L.Callback):
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Set the trial's ``mlflow_run_id`` and the run's Optuna tags."""
-        client, run_id = _training_run(trainer)
-        if run_id is None:
-            return
+        mlf = cast(MLFlowLogger, trainer.logger)  # the training's (``training_logger``)
+        client, run_id = mlf.experiment, str(mlf.run_id)
         self.trial.set_user_attr("mlflow_run_id", run_id)
         client.set_tag(run_id, "optuna.study", self.trial.study.study_name)
         client.set_tag(run_id, "optuna.trial", str(self.trial.number))

@@ -173,9 +173,9 @@ def flatten_params(tree: ConfigTree, exclude: tuple[str, ...] = EXCLUDED) -> dic
     return out
 
 
-def dvc_data_version(data_dir: str | Path, lock: str | Path = "dvc.lock") -> str | None:
+def dvc_data_version(data_dir: str | Path) -> str | None:
     """DVC's hash of ``data_dir`` as recorded in ``dvc.lock`` (an ``outs`` entry), if any."""
-    lock = Path(lock)
+    lock = Path("dvc.lock")
     if not lock.is_file():
         return None
     target = Path(data_dir).as_posix().rstrip("/")

@@ -127,16 +127,14 @@ class RunRecorder(L.Callback):
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """After the epoch's validation: its metrics, at step ``current_epoch``."""
-        if trainer.sanity_checking or trainer.logger is None:
-            return
         metrics = {
             k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith(EPOCH_METRICS)
         }
         metrics["lr"] = self._lr
         metrics["time/epoch_s"] = time.perf_counter() - self._t0
-        trainer.logger.log_metrics(metrics, step=trainer.current_epoch)
-        client = cast(MLFlowLogger, trainer.logger).experiment
-        client.set_tag(self.run_id, mlflow_utils.HEARTBEAT_TAG, mlflow_utils.now())
+        mlf = cast(MLFlowLogger, trainer.logger)  # the training's (:func:`training_logger`)
+        mlf.log_metrics(metrics, step=trainer.current_epoch)
+        mlf.experiment.set_tag(self.run_id, mlflow_utils.HEARTBEAT_TAG, mlflow_utils.now())
 
     def state_dict(self) -> dict[str, Any]:
         """Checkpoint state: the run id."""

@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any, cast
 
-import hydra
 import lightning as L
 import numpy as np
 import torch
@@ -28,7 +25,6 @@ from generalist_control.training.unseen_draw import UnseenDraw
 __all__ = [
     "ClosedLoopValidation",
     "DAggerCallback",
-    "config_callbacks",
     "dagger_plants",
     "dagger_round",
 ]
@@ -146,14 +142,3 @@ def dagger_plants(plants: list[Plant], manifest: dict[str, Any]) -> list[Plant]:
         out.append(p)
         out.extend(make_variant(p, v["factors"]) for v in recorded.get(p.name, {}).get("kept", []))
     return out
-
-
-def config_callbacks(nodes: Sequence[Mapping[str, Any]], run_dir: Path) -> list[L.Callback]:
-    """The callbacks ``callbacks`` names; ``dirpath: null`` becomes ``<run_dir>/checkpoints``."""
-    callbacks = []
-    for node in nodes:
-        kwargs = {}
-        if "dirpath" in node and node["dirpath"] is None:
-            kwargs["dirpath"] = str(run_dir / "checkpoints")
-        callbacks.append(hydra.utils.instantiate(node, **kwargs))
-    return callbacks

@@ -123,9 +123,7 @@ class DemoDataModule(L.LightningDataModule):
         self.integral = "integral" in channels
         self.controls = "previous_control" in channels
         self.history, self.horizon = int(history), int(horizon)
-        self.val_fraction = loader.val_fraction
-        self.batch_size, self.val_batch_size = loader.batch_size, loader.val_batch_size
-        self.seed = int(seed)
+        self.loader, self.seed = loader, int(seed)
         self.plants = [str(p) for p in plants] if plants else None
         self.manifest: dict[str, Any] = {}
         self.tags: dict[str, int] = {}
@@ -149,7 +147,9 @@ class DemoDataModule(L.LightningDataModule):
             demos, self.manifest = self.families.joined(demos, self.manifest)
         kept_traj = self._kept(demos.plant)
         windows = demos.windows(self.history, self.horizon, self.integral, self.controls)
-        is_val = split_by_trajectory(demos.plant, self.val_fraction, self.seed)[windows.traj]
+        is_val = split_by_trajectory(demos.plant, self.loader.val_fraction, self.seed)[
+            windows.traj
+        ]
         kept = kept_traj[windows.traj]
         self.train_set = WindowTensors(windows, kept & ~is_val)
         self.val_set = WindowTensors(windows, kept & is_val)
@@ -199,11 +199,11 @@ class DemoDataModule(L.LightningDataModule):
     def train_dataloader(self) -> DataLoader:
         """Shuffled index batches over the training windows."""
         train_set = self.split("train")
-        sampler = BatchIndexSampler(len(train_set), self.batch_size, True, self.seed)
+        sampler = BatchIndexSampler(len(train_set), self.loader.batch_size, True, self.seed)
         return DataLoader(train_set, sampler=sampler, batch_size=None)
 
     def val_dataloader(self) -> DataLoader:
         """Validation windows in order."""
         val_set = self.split("val")
-        sampler = BatchIndexSampler(len(val_set), self.val_batch_size, False)
+        sampler = BatchIndexSampler(len(val_set), self.loader.val_batch_size, False)
         return DataLoader(val_set, sampler=sampler, batch_size=None)

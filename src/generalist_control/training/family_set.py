@@ -38,14 +38,10 @@ def join_demos(first: DemoSet, second: DemoSet, offset: int) -> DemoSet:
         )
     if first.variant is not None or second.variant is not None:
         raise ValueError("train_families does not take variant data (data.variants)")
-    cat = lambda a, b: np.concatenate([a, b])  # noqa: E731
-    return DemoSet(
-        x=cat(first.x, second.x), r=cat(first.r, second.r), u=cat(first.u, second.u),
-        y=cat(first.y, second.y), tag=cat(first.tag, second.tag + offset),
-        order=cat(first.order, second.order), plant=cat(first.plant, second.plant),
-        amplitude=cat(first.amplitude, second.amplitude), dt=first.dt,
-        family=cat(first.family, second.family),
-    )  # fmt: skip
+    fields = ("x", "r", "u", "y", "order", "plant", "amplitude", "family")
+    joined = {k: np.concatenate([getattr(first, k), getattr(second, k)]) for k in fields}
+    tag = np.concatenate([first.tag, second.tag + offset])
+    return DemoSet(**joined, tag=tag, dt=first.dt)
 
 
 @dataclass(frozen=True)

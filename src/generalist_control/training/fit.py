@@ -10,13 +10,14 @@ import logging
 import signal
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import hydra
 import lightning as L
 import mlflow
 import numpy as np
 import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import MLFlowLogger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
@@ -42,7 +43,6 @@ from generalist_control.training import outputs
 from generalist_control.training.callbacks import (
     ClosedLoopValidation,
     DAggerCallback,
-    config_callbacks,
     dagger_plants,
 )
 from generalist_control.training.datamodule import DemoDataModule
@@ -60,42 +60,6 @@ log = logging.getLogger(__name__)
 METRICS_FILE = "metrics.json"
 
 
-def _data(
-    settings: TrainingSettings, channels: tuple[str, ...], families: FamilySet | None
-) -> tuple[DemoDataModule, dict[str, Any]]:
-    """The loaded, split data (the set's plants and the families') and the policy's meta."""
-    dm = DemoDataModule(
-        settings.data_dir,
-        settings.history,
-        settings.horizon,
-        settings.loader,
-        seed=settings.seed,
-        plants=settings.trained_names + (families.names if families else []),
-        channels=channels,
-        families=families,
-    )
-    dm.setup("fit")
-    facts = integral_facts(dm.tags, families.plants if families else ())
-    trained = {"families": families.record()} if families else {}
-    return dm, {**dm.meta(), **facts, **trained}
-
-
-def _module(
-    settings: TrainingSettings, dm: DemoDataModule, meta: dict[str, Any]
-) -> ImitationModule:
-    """The Lightning module, its normaliser fitted on the training windows (then model rows)."""
-    lit = ImitationModule(
-        model=settings.model,
-        optimizer=settings.optimizer,
-        scheduler=settings.scheduler,
-        meta=meta,
-    )
-    lit.policy.normaliser.fit(**dm.split("train").tensors)
-    plants, family = _trained(settings, dm)
-    fit_model_rows(lit.policy, plants + family)
-    return lit
-
-
 def _trained(settings: TrainingSettings, dm: DemoDataModule) -> tuple[list[Plant], list[Plant]]:
     """The plants the data holds: the set's, and the families'."""
     family = dm.families.plants if dm.families else []
@@ -104,10 +68,9 @@ def _trained(settings: TrainingSettings, dm: DemoDataModule) -> tuple[list[Plant
 
 def _callbacks(
     settings: TrainingSettings, lit: ImitationModule, dm: DemoDataModule
-) -> tuple[list[L.Callback], L.pytorch.callbacks.ModelCheckpoint]:
+) -> list[L.Callback]:
     """The config's callbacks, then DAgger's and the closed-loop validation's (when on)."""
-    callbacks = config_callbacks(settings.callbacks, settings.run_dir)
-    ckpt_cb = next(c for c in callbacks if isinstance(c, L.pytorch.callbacks.ModelCheckpoint))
+    callbacks = [hydra.utils.instantiate(node) for node in settings.callbacks]
     plants, family = _trained(settings, dm)
     spec = dm.families.spec if dm.families else None
     turn, checked = (spec.dagger_plants, spec.closed_loop_plants) if spec else (0, 0)
@@ -132,7 +95,7 @@ def _callbacks(
             )  # fmt: skip
             unseen = draw, ClosedLoopScore(draw.plants, amplitudes, val.duration)
         callbacks.append(ClosedLoopValidation(score, unseen))
-    return callbacks, ckpt_cb
+    return callbacks
 
 
 def _trainer(
@@ -152,17 +115,14 @@ def _trainer(
 
 
 def _fit(
-    trainer: L.Trainer,
-    lit: ImitationModule,
-    dm: DemoDataModule,
-    ckpt_path: str | None,
-    ckpt_cb: L.pytorch.callbacks.ModelCheckpoint,
+    trainer: L.Trainer, lit: ImitationModule, dm: DemoDataModule, ckpt_path: str | None
 ) -> tuple[str, dict[str, Any]]:
     """Fit, then validate the best checkpoint; return its path and the metrics."""
     with warnings.catch_warnings():
         # batches are gathered from in-memory tensors: workers would only slow it
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
         trainer.fit(lit, datamodule=dm, ckpt_path=ckpt_path)
+        ckpt_cb = cast(ModelCheckpoint, trainer.checkpoint_callback)  # the config's first
         best = ckpt_cb.best_model_path or ckpt_cb.last_model_path
         train_loss = float(trainer.callback_metrics.get("train/loss", float("nan")))
         trainer.validate(lit, datamodule=dm, ckpt_path=best, verbose=False)
@@ -260,7 +220,10 @@ def _publish(
 def _prepare(
     settings: TrainingSettings,
 ) -> tuple[TrainingSettings, DemoDataModule, dict[str, Any], ImitationModule]:
-    """Threads and seed set, data loaded, module built, resume checked; nothing logged yet."""
+    """Data loaded, module built (normaliser fitted, then model rows), resume checked.
+
+    Threads and seed are set first; nothing is logged yet.
+    """
     scrub_hydra_files()
     torch.set_num_threads(settings.threads)
     L.seed_everything(settings.seed, workers=True)
@@ -269,8 +232,18 @@ def _prepare(
     settings = dataclasses.replace(settings, model=with_rows(settings.model, families))
     with torch.random.fork_rng():  # the model config checked before the data is read
         channels = Policy(settings.model).channels
-    dm, meta = _data(settings, channels, families)
-    lit = _module(settings, dm, meta)
+    plants = settings.trained_names + (families.names if families else [])
+    dm = DemoDataModule(
+        settings.data_dir, settings.history, settings.horizon, settings.loader,
+        seed=settings.seed, plants=plants, channels=channels, families=families,
+    )  # fmt: skip
+    dm.setup("fit")
+    meta = {**dm.meta(), **integral_facts(dm.tags, families.plants if families else ())}
+    if families:
+        meta["families"] = families.record()
+    lit = ImitationModule(settings.model, settings.optimizer, settings.scheduler, meta)
+    lit.policy.normaliser.fit(**dm.split("train").tensors)
+    fit_model_rows(lit.policy, [p for group in _trained(settings, dm) for p in group])
     if settings.ckpt_path:
         _check_resume(settings, settings.ckpt_path, meta, lit)
     return settings, dm, meta, lit
@@ -302,7 +275,7 @@ def train(settings: TrainingSettings) -> tuple[dict[str, Any], dict[str, Any]]:
     n_params = count_parameters(lit.policy)
     outputs.check_models_dir(settings.models_dir)
     resume_id = training_run.run_id_from_checkpoint(ckpt_path) if ckpt_path else None
-    callbacks, ckpt_cb = _callbacks(settings, lit, dm)
+    callbacks = _callbacks(settings, lit, dm)
     mlf = training_run.training_logger(settings.logger, resume_run_id=resume_id)
     trainer = _trainer(settings, callbacks, mlf)
     logger = settings.logger
@@ -312,7 +285,7 @@ def train(settings: TrainingSettings) -> tuple[dict[str, Any], dict[str, Any]]:
         uri = mlflow.get_tracking_uri()
         log.info("MLflow run %s (%s); %d parameters", run_id, redact(uri), n_params)
         try:
-            best, metrics = _fit(trainer, lit, dm, ckpt_path, ckpt_cb)
+            best, metrics = _fit(trainer, lit, dm, ckpt_path)
         except SystemExit as exc:
             status = _stopped(exc, trainer)
             if status is None:

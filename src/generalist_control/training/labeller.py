@@ -98,7 +98,7 @@ class ExpertLabeller:
             z = bumpless_integrator(p, x, tr.u, tr.r)
         plans = expert_plans(p, x, z, tr.r, horizon)
         w = build_windows(
-            pad_states(np.nan_to_num(x)), tr.r, np.nan_to_num(tr.u),
+            pad_states(x), tr.r, np.nan_to_num(tr.u),
             np.full(B, p.tag), np.full(B, p.order), self.history, horizon,
             z if self.integral else None, self.controls,
         )  # fmt: skip

@@ -38,8 +38,7 @@ class ImitationModule(L.LightningModule):
         # in checkpoints only: the run's params are logger.params, not the hparams
         self.save_hyperparameters(logger=False)
         self.policy = Policy(model)
-        self._val_hits = torch.zeros((), dtype=torch.float64)
-        self._val_hits_seen = False
+        self._val_hits: Tensor | None = None  #: an identity head's right guesses
         tags = (meta or {}).get("tags", {})
         self.tag_names = {int(t): str(name) for name, t in tags.items()}
         n_tags = self.policy.net.n_tags
@@ -78,16 +77,15 @@ class ImitationModule(L.LightningModule):
         """Reset the per-tag error sums."""
         self._val_sse = torch.zeros_like(self._val_sse, device=self.device)
         self._val_count = torch.zeros_like(self._val_count, device=self.device)
-        self._val_hits = torch.zeros_like(self._val_hits, device=self.device)
-        self._val_hits_seen = False
+        self._val_hits = None
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         """Accumulate squared errors per system tag."""
         err, out = self.policy.errors(batch)
         err = err.to(torch.float64)
         if out.plant is not None and out.plant.logits is not None:  # an identity head's
-            self._val_hits_seen = True
-            self._val_hits += (out.plant.logits.argmax(1) == batch["tag"]).sum()
+            hits = (out.plant.logits.argmax(1) == batch["tag"]).sum().to(torch.float64)
+            self._val_hits = hits if self._val_hits is None else self._val_hits + hits
         self._val_sse.index_add_(0, batch["tag"], err.sum(1))
         self._val_count.index_add_(0, batch["tag"], torch.full_like(err[:, 0], err.shape[1]))
 
@@ -97,7 +95,7 @@ class ImitationModule(L.LightningModule):
         if total == 0:
             return
         self.log("val/loss", (self._val_sse.sum() / total).float(), prog_bar=True, logger=False)
-        if self._val_hits_seen:  # a plant part that reads the plant; windows = count / horizon
+        if self._val_hits is not None:  # a part that reads the plant; windows = count / horizon
             share = self._val_hits * self.policy.horizon / total
             self.log("val/identity_acc", share.float(), logger=False)
         for tag in torch.nonzero(self._val_count).flatten().tolist():

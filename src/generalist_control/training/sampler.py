@@ -79,15 +79,18 @@ class Actuator:
 
 
 def _per_row(
-    plants: Sequence[Plant], counts: Sequence[int], values: Mapping[str, float], default: float
+    plants: Sequence[Plant], counts: Sequence[int], values: Mapping[str, float]
 ) -> np.ndarray:
-    """Each row's value: its plant's entry in ``values`` (by name), else ``default``."""
+    """Each row's value: its plant's entry in ``values`` (by name), else 0."""
     per = zip(plants, counts, strict=True)
-    return np.concatenate([np.full(c, float(values.get(p.name, default))) for p, c in per])
+    return np.concatenate([np.full(c, float(values.get(p.name, 0.0))) for p, c in per])
 
 
 class MixedController:
-    """Executes ``beta * LQI + (1 - beta) * policy``; records the experts' integrators (:attr:`z`).
+    """Executes ``beta * LQI + (1 - beta) * policy``.
+
+    Each step appends the experts' integrators to :attr:`integrators` and, with an actuator,
+    the command to :attr:`commands` (both (rows,) per sample).
 
     ``noise`` (plant name -> std, control units) adds white noise to the executed control (as
     DART does); ``actuator`` (plant name -> (lag, offset)) puts an :class:`Actuator` between
@@ -118,19 +121,19 @@ class MixedController:
             ctrl = LQIController(plant)
             ctrl.reset(count)
             self._parts.append((ctrl, plant.order, rows))
-        self._sigma = _per_row(plants, counts, self.noise, 0.0)
+        self._sigma = _per_row(plants, counts, self.noise)
         self._rng = np.random.default_rng(self.seed)
         self._act = None
         if self.actuator:
-            lag = _per_row(plants, counts, {k: v[0] for k, v in self.actuator.items()}, 0.0)
-            off = _per_row(plants, counts, {k: v[1] for k, v in self.actuator.items()}, 0.0)
+            lag = _per_row(plants, counts, {k: v[0] for k, v in self.actuator.items()})
+            off = _per_row(plants, counts, {k: v[1] for k, v in self.actuator.items()})
             self._act = Actuator(lag, off, self._rng)
         self._policy = None
         if self.runtime is not None and self.beta < 1.0:
             self._policy = RuntimeAdapter(self.runtime)
             self._policy.reset(plants, counts)
-        self._z: list[np.ndarray] = []
-        self._cmd: list[np.ndarray] = []
+        self.integrators: list[np.ndarray] = []
+        self.commands: list[np.ndarray] = []
 
     def step(self, x: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Mixed control for zero-padded states ``x`` (rows, MAX_ORDER)."""
@@ -138,43 +141,20 @@ class MixedController:
         for ctrl, n, rows in self._parts:
             z[rows] = ctrl.z
             u_e[rows] = ctrl.step(x[rows, :n], r[rows])
-        self._z.append(z)
-        if self._policy is None:
-            return self._actuate(self._noisy(u_e))
-        u_p = self._policy.step(x, r)  # NaN: a run the runtime refused (outside its range)
-        u_p = np.where(np.isnan(u_p), u_e, u_p)  # the expert takes that run over
-        u = self._noisy(self.beta * u_e + (1.0 - self.beta) * u_p)
-        self._policy.record_applied(u)  # the policy's previous-control channel: what ran
-        return self._actuate(u)
-
-    def _actuate(self, u: np.ndarray) -> np.ndarray:
-        """What the plants receive for the command ``u`` (``u`` itself without an actuator)."""
+        self.integrators.append(z)
+        u = u_e
+        if self._policy is not None:
+            u_p = self._policy.step(x, r)  # NaN: a run the runtime refused (outside its range)
+            u_p = np.where(np.isnan(u_p), u_e, u_p)  # the expert takes that run over
+            u = self.beta * u_e + (1.0 - self.beta) * u_p
+        if self._sigma.any():
+            u = u + self._sigma * self._rng.standard_normal(u.shape[0])
+        if self._policy is not None:
+            self._policy.record_applied(u)  # the policy's previous-control channel: what ran
         if self._act is None:
             return u
-        self._cmd.append(u)
+        self.commands.append(u)  # the (noisy) mixed command, before the actuator
         return self._act(u)
-
-    @property
-    def commanded(self) -> np.ndarray:
-        """The (noisy) mixed command of each sample, (rows, N), before the actuator (with one)."""
-        return np.stack(self._cmd, axis=1)
-
-    def _noisy(self, u: np.ndarray) -> np.ndarray:
-        """``u`` plus the rows' control noise (unchanged where there is none)."""
-        if not self._sigma.any():
-            return u
-        return u + self._sigma * self._rng.standard_normal(u.shape[0])
-
-    @property
-    def z(self) -> np.ndarray:
-        """Expert integrator before each sample's control, (rows, N)."""
-        return np.stack(self._z, axis=1)
-
-
-def _in_turn(items: Sequence[Plant], k: int, round_index: int) -> list[Plant]:
-    """Round ``round_index``'s ``k`` of ``items`` (at most all), taken in turn."""
-    k = min(k, len(items))
-    return [items[(round_index * k + j) % len(items)] for j in range(k)]
 
 
 class InTurn:
@@ -183,8 +163,9 @@ class InTurn:
     def __call__(
         self, plants: Sequence[Plant], k: int, round_index: int, runtime: PolicyRuntime | None
     ) -> list[Plant]:
-        """Round ``round_index``'s ``k`` of ``plants``."""
-        return _in_turn(plants, k, round_index)
+        """Round ``round_index``'s ``k`` of ``plants`` (at most all)."""
+        k = min(k, len(plants))
+        return [plants[(round_index * k + j) % len(plants)] for j in range(k)]
 
 
 class WorstFirst:
@@ -215,7 +196,7 @@ class WorstFirst:
             return []
         if runtime is None:
             raise ValueError("WorstFirst scores the policy: give the round's runtime")
-        pool = _in_turn(plants, max(self.pool, k), round_index)
+        pool = InTurn()(plants, max(self.pool, k), round_index, None)
         scores = ClosedLoopScore(pool)(RuntimeAdapter(runtime))
         return sorted(pool, key=lambda p: -scores[p.name])[: min(k, len(pool))]
 
@@ -247,9 +228,9 @@ def run_rollouts(
     ctrl = MixedController(runtime, beta, noise, seed, actuator)
     trajs, slices = simulate_many(runs, ctrl), row_slices([len(r.r) for r in runs])
     if actuator:  # the windows carry what was commanded, as a deployed policy's do
-        cmd = ctrl.commanded
+        cmd = np.stack(ctrl.commands, axis=1)
         trajs = [replace(tr, u=cmd[sl]) for tr, sl in zip(trajs, slices, strict=True)]
-    z = ctrl.z
+    z = np.stack(ctrl.integrators, axis=1)  # the expert's integrator before each sample's control
     return Rollouts(list(plants), trajs, [z[sl] for sl in slices])
 
 
@@ -295,7 +276,7 @@ class RolloutSampler:
         if variants is not None and variants.data is not None:
             out = []
             for nominal, *rest in groups.values():
-                out += [nominal, *_in_turn(rest, variants.data, round_index)]
+                out += [nominal, *InTurn()(rest, variants.data, round_index, None)]
         if variants is not None and variants.fresh:
             for nominal, *_ in groups.values():
                 draw = sample_variants(

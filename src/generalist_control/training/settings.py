@@ -294,10 +294,18 @@ def _optional(cls: type[T], config: Mapping[str, Any], key: str) -> T | None:
     return None if config[key] is None else read_section(cls, config[key], key)
 
 
-def _callbacks(config: Mapping[str, Any]) -> tuple[dict[str, Any], ...]:
-    """The ``callbacks`` nodes that name a class (a null one is switched off)."""
+def _callbacks(config: Mapping[str, Any], run_dir: Path) -> tuple[dict[str, Any], ...]:
+    """The ``callbacks`` nodes that name a class (a null one is switched off).
+
+    ``dirpath: null`` becomes ``<run_dir>/checkpoints``.
+    """
     nodes = (config["callbacks"] or {}).values()
-    return tuple(n for n in nodes if isinstance(n, dict) and "_target_" in n)
+    checkpoints = {"dirpath": str(run_dir / "checkpoints")}
+    return tuple(
+        {**n, **checkpoints} if "dirpath" in n and n["dirpath"] is None else n
+        for n in nodes
+        if isinstance(n, dict) and "_target_" in n
+    )
 
 
 def read_training(config: Mapping[str, Any]) -> TrainingSettings:
@@ -346,7 +354,7 @@ def read_training(config: Mapping[str, Any]) -> TrainingSettings:
         models_dir=_models_dir(config, run_dir),
         ckpt_path=config["ckpt_path"] or None,
         trainer=config["trainer"],
-        callbacks=_callbacks(config),
+        callbacks=_callbacks(config, run_dir),
         logger=config["logger"],
         resolved=redact(dict(config)),
     )
