@@ -30,6 +30,13 @@ PRELOAD = (
     "generalist_control.train",
     "generalist_control.evaluate",
     "generalist_control.training.fit",
+    # imported during the work, 1-1.4 s each: the optimizer's first construction imports
+    # torch._dynamo; opening an SQLite store, MLflow's SQLAlchemy store; evaluate, ONNX
+    "torch._dynamo",
+    "mlflow.store.tracking.sqlalchemy_store",
+    "torch.onnx",
+    "onnxruntime",
+    "pyarrow.dataset",
 )
 
 
