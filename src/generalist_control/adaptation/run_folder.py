@@ -90,21 +90,6 @@ def _log(
     mlflow.log_metrics({k: float(v) for k, v in flat.items()})
 
 
-def _register(
-    job: AdaptJob, policy: Policy, name: str | None, base: str | None, base_run: str
-) -> str | None:
-    """Log the MLflow model and register it; tag the version with its base and plant."""
-    w = job.windows
-    windows = {k: torch.from_numpy(getattr(w, k)[:8]) for k in ("state", "mask", "ref", "tag")}
-    tags = {
-        "base_version": base or "",
-        "base_run_id": base_run,
-        "adapted_plant": job.new.name,
-        "adapted_tag": str(job.new.plant.tag),
-    }
-    return log_model(policy, windows, name, tags)
-
-
 def _write(folder: Path, job: AdaptJob, policy: Policy, meta: dict, record: dict) -> list[Path]:
     """The policy, its record and the plant's file, written into ``folder``."""
     (folder / "plants").mkdir()
@@ -139,7 +124,17 @@ def publish(
                     str(path), path.parent.name if path.suffix == ".yaml" else "policy"
                 )
             _log(job, record, policy, base, base_run)
-            version = _register(job, policy, name, base, base_run) if logger["log_model"] else None
+            version = None
+            if logger["log_model"]:  # the MLflow model, its version tagged with base and plant
+                keys = ("state", "mask", "ref", "tag")
+                windows = {k: torch.from_numpy(getattr(job.windows, k)[:8]) for k in keys}
+                tags = {
+                    "base_version": base or "",
+                    "base_run_id": base_run,
+                    "adapted_plant": job.new.name,
+                    "adapted_tag": str(job.new.plant.tag),
+                }
+                version = log_model(policy, windows, name, tags)
             publish_directory(staging, run_dir, {}, SETTING)
         except KeyboardInterrupt:
             mlflow.end_run("KILLED")

@@ -148,8 +148,6 @@ def variants_config(data: Mapping[str, Any]) -> dict[str, Any] | None:
     seed = require_int("data.variants.seed", block["seed"], minimum=0)
     tries = require_int("data.variants.max_tries", block["max_tries"])
     rng = variant_range(block["range"], "data.variants.range")
-    if count < 1 or tries < 1:
-        raise ValueError("data.variants.count and data.variants.max_tries must be at least 1")
     return {"count": count, "seed": seed, "range": rng, "max_tries": tries}
 
 
@@ -240,8 +238,7 @@ def generate_demos(
     controllers = [LQIController(p, design_lqi(p)) for p in plants]  # validates all first
     vcfg = variants_config(data)
     draws = training_variants(plants, vcfg, grid, steps) if vcfg else None
-    keys = ("x", "r", "u", "y", "fam", "plant", "variant")
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
+    parts = []
     disable = None if progress is None else not progress
     pairs = tqdm(
         list(zip(plants, controllers, strict=True)),
@@ -252,29 +249,24 @@ def generate_demos(
         for family, r, x0 in _plant_runs(plant, grid, families, steps):
             draw = None if draws is None else draws[plant.name]
             x, u, y, slots = _run(plant, ctrl, draw, family, r, x0, done)
-            parts["variant"].append(slots)
             done += len(r)
-            parts["x"].append(pad_states(x[:, :steps]))
-            parts["r"].append(r)
-            parts["u"].append(u)
-            parts["y"].append(y[:, :steps])
-            parts["fam"].append(np.full(len(r), family))
-            parts["plant"].append(np.full(len(r), plant.tag))
-    tags = np.concatenate(parts["plant"]).astype(np.int64)
+            fam, tag = np.full(len(r), family), np.full(len(r), plant.tag)
+            parts.append((pad_states(x[:, :steps]), r, u, y[:, :steps], fam, tag, slots))
+    x, r, u, y, fam, tags, slots = (np.concatenate(c) for c in zip(*parts, strict=True))
+    tags = tags.astype(np.int64)
     by_tag = {p.tag: p for p in plants}
-    r_all = np.concatenate(parts["r"])
     return DemoSet(
-        x=np.concatenate(parts["x"]),
-        r=r_all,
-        u=np.concatenate(parts["u"]),
-        y=np.concatenate(parts["y"]),
+        x=x,
+        r=r,
+        u=u,
+        y=y,
         tag=tags,
         order=np.array([by_tag[t].order for t in tags], dtype=np.int64),
         plant=np.array([by_tag[t].name for t in tags]),
-        amplitude=r_all[:, -1].copy(),
+        amplitude=r[:, -1].copy(),
         dt=dt,
-        family=np.concatenate(parts["fam"]),
-        variant=np.concatenate(parts["variant"]).astype(np.int64) if draws else None,
+        family=fam,
+        variant=slots.astype(np.int64) if draws else None,
     )
 
 

@@ -98,16 +98,17 @@ def register_spec(plant: Plant, block: Mapping[str, Any] | None) -> VariantSpec:
     rng = block.get("range")
     default = None if rng is None else _check_range(rng, "variants.range", plant.name)
     known = nominal_parameters(plant)
-    ranges = {}
+    given = dict(block.get("ranges") or {})
     include = [str(k) for k in block.get("include") or []]
-    for key in [*(block.get("ranges") or {}), *include]:
+    for key in [*given, *include]:
         if key not in known:
             raise PlantConfigError(
                 f"plant '{plant.name}': field 'variants' names '{key}', which is not one of "
                 f"its non-zero parameters: {', '.join(known)}"
             )
-    for key, value in (block.get("ranges") or {}).items():
-        ranges[str(key)] = _check_range(value, f"variants.ranges.{key}", plant.name)
+    ranges = {
+        str(k): _check_range(v, f"variants.ranges.{k}", plant.name) for k, v in given.items()
+    }
     spec = VariantSpec(default, ranges, frozenset(include))
     _SPECS[plant] = spec
     return spec
@@ -137,13 +138,12 @@ def parameter_ranges(plant: Plant, default: float = DEFAULT_RANGE) -> dict[str, 
     """
     spec = _SPECS.get(plant, VariantSpec())
     base = default if spec.range is None else spec.range
+    entries = _entry_names(plant) if plant.is_linear else {}
     out = {}
     for key, value in nominal_parameters(plant).items():
-        r = base
-        if plant.is_linear and key.startswith("A") and value == 1.0:
-            i, j = (int(s) for s in key[2:-1].split(","))
-            r = 0.0 if i != j and key not in spec.include else base
-        r = spec.ranges.get(key, r)
+        m, i, j = entries.get(key, ("", 0, 0))
+        fixed = m == "A" and value == 1.0 and i != j and key not in spec.include
+        r = spec.ranges.get(key, 0.0 if fixed else base)
         if r > 0:
             out[key] = r
     return dict(sorted(out.items()))

@@ -19,7 +19,7 @@ from threadpoolctl import threadpool_limits
 
 from generalist_control.common.sections import read_section
 from generalist_control.plants.definition import Plant, PlantConfigError
-from generalist_control.plants.families import Candidate, PlantFamily
+from generalist_control.plants.families import Candidate, LinearFamily
 from generalist_control.simulation.lqi import LQIGains, design_lqi, sampled_closed_loop
 
 __all__ = [
@@ -84,7 +84,7 @@ class FamilySettings:
     demos: Any
 
 
-def read_families(node: Mapping[str, Any]) -> tuple[PlantFamily, FamilySettings]:
+def read_families(node: Mapping[str, Any]) -> tuple[LinearFamily, FamilySettings]:
     """The family its ``generator`` block builds (``_target_``) and the group's settings.
 
     ``node`` is the group as plain types.
@@ -219,7 +219,7 @@ def _check_chunk(
 class FamilyDraw:
     """The kept plants of a draw, in tag order, and every candidate rejected before the last."""
 
-    family: PlantFamily
+    family: LinearFamily
     kept: tuple[DrawnPlant, ...]
     rejected: tuple[dict[str, Any], ...]
 
@@ -246,9 +246,11 @@ class FamilyDraw:
 
 
 def draw_family(
-    family: PlantFamily, count: int, checks: FamilyChecks, chunk: int = 256
+    family: LinearFamily, count: int, checks: FamilyChecks, chunk: int = 256
 ) -> FamilyDraw:
     """The first ``count`` candidates of ``family`` that pass the checks, and the refused.
+
+    Candidates are checked in chunks, sized by the share kept so far.
 
     Raises
     ------
@@ -256,8 +258,23 @@ def draw_family(
         If fewer than ``count`` pass within ``checks.max_tries * count`` candidates, with
         the counts per reason.
     """
+    kept: list[DrawnPlant] = []
+    rejected: list[dict[str, Any]] = []
+    index, limit = 0, checks.max_tries * count
     with threadpool_limits(1, "blas"):  # 5 x 5 matrices: threads only cost
-        kept, rejected, index = _draw(family, count, checks, chunk)
+        while len(kept) < count and index < limit:
+            rate = len(kept) / index if kept else 1.0
+            size = min(max(chunk, math.ceil(1.1 * (count - len(kept)) / rate)), limit - index)
+            candidates = [family.candidate(i) for i in range(index, index + size)]
+            for verdict in _check_chunk(candidates, checks):
+                if len(kept) == count:
+                    break
+                if isinstance(verdict, DrawnPlant):
+                    plant = dataclasses.replace(verdict.plant, tag=len(kept))
+                    kept.append(dataclasses.replace(verdict, plant=plant))
+                else:
+                    rejected.append(verdict)
+            index += size
     draw = FamilyDraw(family, tuple(kept), tuple(rejected))
     if len(kept) < count:
         raise ValueError(
@@ -266,26 +283,3 @@ def draw_family(
             "families.checks"
         )
     return draw
-
-
-def _draw(
-    family: PlantFamily, count: int, checks: FamilyChecks, chunk: int
-) -> tuple[list[DrawnPlant], list[dict[str, Any]], int]:
-    """Candidates checked in chunks until ``count`` are kept or the tries run out."""
-    kept: list[DrawnPlant] = []
-    rejected: list[dict[str, Any]] = []
-    index, limit = 0, checks.max_tries * count
-    while len(kept) < count and index < limit:
-        rate = len(kept) / index if kept else 1.0  # the share kept so far sizes the next chunk
-        size = min(max(chunk, math.ceil(1.1 * (count - len(kept)) / rate)), limit - index)
-        for verdict in _check_chunk([family.candidate(i) for i in range(index, index + size)],
-                                    checks):  # fmt: skip
-            if len(kept) == count:
-                break
-            if isinstance(verdict, DrawnPlant):
-                plant = dataclasses.replace(verdict.plant, tag=len(kept))
-                kept.append(dataclasses.replace(verdict, plant=plant))
-            else:
-                rejected.append(verdict)
-        index += size
-    return kept, rejected, index

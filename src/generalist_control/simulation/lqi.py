@@ -108,17 +108,6 @@ def sampled_closed_loop(plant: Plant, gains: LQIGains) -> np.ndarray:
     return np.vstack([top, bottom])
 
 
-def _lqr(
-    A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(K, P, poles)`` of the continuous LQR: python-control's ``lqr``, bit for bit."""
-    A, B, Q, R = (np.array(M, ndmin=2, dtype=float) for M in (A, B, Q, R))
-    P = solve_continuous_are(A, B, Q, R)
-    K = np.linalg.solve(R, B.T @ P)
-    poles, _ = np.linalg.eig(A - B @ K)
-    return K, P, poles
-
-
 def design_lqi(plant: Plant) -> LQIGains:
     """Continuous LQI design for ``plant`` (its linearisation for nonlinear plants).
 
@@ -133,8 +122,11 @@ def design_lqi(plant: Plant) -> LQIGains:
         return cached
     Aa, Ba = augment(plant.A, plant.B, plant.C)
     _check_fit(plant, Aa, Ba)
-    K, P, poles = _lqr(Aa, Ba, plant.Q, plant.R)
-    gains = LQIGains(Kx=K[0, :-1].copy(), Ki=float(K[0, -1]), P=np.asarray(P), poles=poles)
+    # python-control's lqr, bit for bit (without its import)
+    P = solve_continuous_are(Aa, Ba, plant.Q, plant.R)
+    K = np.linalg.solve(plant.R, Ba.T @ P)
+    poles, _ = np.linalg.eig(Aa - Ba @ K)
+    gains = LQIGains(Kx=K[0, :-1].copy(), Ki=float(K[0, -1]), P=P, poles=poles)
     if np.any(np.real(poles) >= 0):
         raise PlantConfigError(f"plant '{plant.name}': LQI closed loop is not stable")
     rho = np.abs(np.linalg.eigvals(sampled_closed_loop(plant, gains))).max()

@@ -11,11 +11,9 @@ import numpy as np
 __all__ = ["step_metrics", "tracking_metrics"]
 
 
-def _first_true(mask: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index and time of the first True along the last axis (NaN time where none)."""
-    any_ = mask.any(axis=-1)
-    idx = np.argmax(mask, axis=-1)
-    return idx, np.where(any_, t[idx], np.nan)
+def _first_time(mask: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Time of the first True along the last axis (NaN where none)."""
+    return np.where(mask.any(axis=-1), t[np.argmax(mask, axis=-1)], np.nan)
 
 
 def tracking_metrics(t: np.ndarray, y: np.ndarray, r: np.ndarray) -> dict[str, np.ndarray]:
@@ -51,8 +49,8 @@ def step_metrics(
     rf = r_sig[..., -1]
     sgn = np.sign(rf)[..., None]
     lo, hi = rise_limits
-    _, t_lo = _first_true(sgn * (y - lo * rf[..., None]) >= 0, t)
-    _, t_hi = _first_true(sgn * (y - hi * rf[..., None]) >= 0, t)
+    t_lo = _first_time(sgn * (y - lo * rf[..., None]) >= 0, t)
+    t_hi = _first_time(sgn * (y - hi * rf[..., None]) >= 0, t)
     with np.errstate(divide="ignore", invalid="ignore"):
         peak = (sgn * y).max(axis=-1)
         overshoot = np.maximum(0.0, 100.0 * (peak - np.abs(rf)) / np.abs(rf))

@@ -68,12 +68,16 @@ class RowPerturbations:
             if p.actuator_gain != 1.0:
                 gain.append((idx, p.actuator_gain))
             if p.disturbance:
-                dist.append((idx, p.disturbance, _first(p.disturbance_start, dt, steps)))
-            if p.noise_std is not None:
-                noise.append((rows, p, order, length, _first(p.noise_start, dt, steps)))
+                k0 = _first(p.disturbance_start, dt, steps)
+                dist.append((idx, np.full(idx.size, p.disturbance), k0))
+            if p.noise_std is not None:  # one draw: the numbers of one draw per sample
+                k0 = _first(p.noise_start, dt, steps)
+                z = np.random.default_rng(p.seed).normal(
+                    size=(max(length - k0, 0), idx.size, order)
+                )
+                noise.append((rows, p.noise(z), k0))
         self.rate, self.clip, self.gain = _stack(rate), _stack(clip), _stack(gain)
-        self.dist = [(i, np.full(i.size, v), k0) for i, v, k0 in dist]
-        self.noise = [_noise(*args) for args in noise]
+        self.dist, self.noise = dist, noise
         self.prev = np.zeros(max((r[0].stop for r in runs), default=0))
 
     def measure(self, x: np.ndarray, k: int) -> np.ndarray:
@@ -124,12 +128,3 @@ def _stack(parts: list[tuple[np.ndarray, float]]) -> tuple[np.ndarray, np.ndarra
         return None
     idx = np.concatenate([i for i, _ in parts])
     return idx, np.concatenate([np.full(i.size, v) for i, v in parts])
-
-
-def _noise(
-    rows: slice, pert: Perturbation, order: int, length: int, k0: int
-) -> tuple[slice, np.ndarray, int]:
-    """The run's noise from sample ``k0`` on: one draw, the numbers of one draw per sample."""
-    rng = np.random.default_rng(pert.seed)
-    b = rows.stop - rows.start
-    return rows, pert.noise(rng.normal(size=(max(length - k0, 0), b, order))), k0

@@ -209,50 +209,39 @@ class _Layout:
         return plants, [counts[id(p)] for p in plants]
 
 
-def _initial(layout: _Layout, segments: Sequence[Segment]) -> np.ndarray:
-    """Every row's initial state, zero-padded."""
-    x = np.zeros((layout.size, MAX_ORDER))
-    for (s, i), rows in layout.rows.items():
-        run = segments[s].runs[i]
-        n = run.plant.order
-        if run.x0 is not None:
-            x0 = np.asarray(run.x0, dtype=float)
-            if x0.shape != (rows.stop - rows.start, n):
-                raise ValueError(
-                    f"x0 has shape {x0.shape}; plant '{run.plant.name}' needs "
-                    f"({rows.stop - rows.start}, {n})"
-                )
-            x[rows, :n] = x0
-    return x
-
-
 class _Loop:
     """The state of every row while the loop advances."""
 
     def __init__(self, segments: Sequence[Segment]) -> None:
         self.segments, self.layout = segments, _Layout(segments)
-        runs = [(rows, segments[s].runs[i]) for (s, i), rows in self.layout.rows.items()]
-        if len({run.plant.dt for _, run in runs}) > 1:
+        runs = {key: segments[key[0]].runs[key[1]] for key in self.layout.rows}
+        if len({run.plant.dt for run in runs.values()}) > 1:
             raise ValueError("simulate_stacked needs runs of one sample time")
-        self.dt = runs[0][1].plant.dt
-        self.length = {key: np.atleast_2d(segments[key[0]].runs[key[1]].r).shape[1]
-                       for key in self.layout.rows}  # fmt: skip
+        self.dt = next(iter(runs.values())).plant.dt
+        self.refs = {
+            key: np.atleast_2d(np.asarray(run.r, dtype=float)) for key, run in runs.items()
+        }
+        self.length = {key: r.shape[1] for key, r in self.refs.items()}
         self.steps = max(self.length.values())
         self.ends: dict[int, list[tuple[int, int]]] = {}
         for key in sorted(self.length):
             self.ends.setdefault(self.length[key], []).append(key)
         B = self.layout.size
-        self.r = np.zeros((B, self.steps))
-        for (s, i), rows in self.layout.rows.items():
-            r = np.atleast_2d(np.asarray(segments[s].runs[i].r, dtype=float))
+        self.r, self.x = np.zeros((B, self.steps)), np.zeros((B, MAX_ORDER))
+        perts = []
+        for key, run in runs.items():  # references held at their last value, initial states
+            rows, r, n = self.layout.rows[key], self.refs[key], run.plant.order
             self.r[rows, : r.shape[1]] = r
             self.r[rows, r.shape[1] :] = r[:, -1:]
-        perts = [
-            (rows, run.perturbation, run.plant.order, np.atleast_2d(run.r).shape[1])
-            for rows, run in runs
-        ]
+            perts.append((rows, run.perturbation, n, r.shape[1]))
+            if run.x0 is not None:
+                x0 = np.asarray(run.x0, dtype=float)
+                if x0.shape != (len(r), n):
+                    raise ValueError(
+                        f"x0 has shape {x0.shape}; plant '{run.plant.name}' needs ({len(r)}, {n})"
+                    )
+                self.x[rows, :n] = x0
         self.act = RowPerturbations(perts, self.steps, self.dt)
-        self.x = _initial(self.layout, segments)
         self.xs = np.empty((self.steps + 1, B, MAX_ORDER))
         self.xs[0] = self.x
         self.u = np.empty((self.steps, B))
@@ -306,10 +295,9 @@ class _Loop:
         x = np.ascontiguousarray(self.xs[: n + 1, rows, :order].transpose(1, 0, 2))
         b = x.shape[0]
         y = run.plant.output(x.reshape(-1, order)).reshape(b, n + 1)
-        r = np.atleast_2d(np.asarray(run.r, dtype=float))
         u = np.ascontiguousarray(self.u[:n, rows].T)
         t = np.arange(n + 1) * run.plant.dt
-        return Trajectory(t=t, x=x, u=u, r=r, y=y, diverged=self.final[s, i])
+        return Trajectory(t=t, x=x, u=u, r=self.refs[s, i], y=y, diverged=self.final[s, i])
 
 
 def controller_rows(segments: Sequence[Segment]) -> list[list[slice]]:

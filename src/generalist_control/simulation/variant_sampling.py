@@ -69,14 +69,11 @@ class VariantDraw:
         }
 
 
-def _rhp(plant: Plant) -> tuple[np.ndarray, np.ndarray]:
-    """Its RHP poles and zeros (integrators come out within ~1e-8 of 0)."""
-    return rhp_roots(plant.A, plant.B, plant.C, 1e-6)
-
-
 def check_class(variant: Plant, nominal: Plant) -> None:
     """Refuse (:class:`VariantError`) a variant with other RHP pole or zero counts than nominal."""
-    for kind, got, want in zip(("poles", "zeros"), _rhp(variant), _rhp(nominal), strict=True):
+    # integrators come out within ~1e-8 of 0
+    roots = [rhp_roots(p.A, p.B, p.C, 1e-6) for p in (variant, nominal)]
+    for kind, got, want in zip(("poles", "zeros"), *roots, strict=True):
         if len(got) != len(want):
             where = f"rightmost at {max(got.real):+.4g}" if len(got) else "none"
             raise VariantError(
