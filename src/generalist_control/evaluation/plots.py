@@ -6,7 +6,6 @@ plants, a figure of every controller; a scenario on more plants, one grid.
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -55,57 +54,33 @@ def _label(ctrl: str, tr: Trajectory) -> str:
     return ctrl + (" (diverged)" if tr.diverged[0] else "")
 
 
-class _StepSine:
-    """The step and sine sheet of one plant: one figure, its lines given each plant's data."""
-
-    def __init__(self) -> None:
-        self.fig, self.axes = pyplot().subplots(2, 2, figsize=(10, 5.5), sharex="col")
-        self.lines: dict[str, tuple[Any, dict[str, Any], dict[str, Any]]] = {}
-        for col, scen in enumerate(("step", "sine")):
-            ax_y, ax_u = self.axes[0, col], self.axes[1, col]
-            (ref,) = ax_y.plot([], [], color="0.4", lw=1, label="reference")
-            ys = {c: ax_y.plot([], [], color=_STYLE[c][0], ls=_STYLE[c][1])[0] for c in _PAIR}
-            us = {c: ax_u.plot([], [], color=_STYLE[c][0], ls=_STYLE[c][1])[0] for c in _PAIR}
-            self.lines[scen] = (ref, ys, us)
-            ax_y.set_ylabel("y")
-            ax_u.set_ylabel("u")
-            ax_u.set_xlabel("t (s)")
-        for ax in self.axes.flat:
-            _light(ax)
-        # fixed margins: tight_layout doubles the drawing time
-        self.fig.subplots_adjust(
-            left=0.08, right=0.98, bottom=0.1, top=0.94, wspace=0.18, hspace=0.1
-        )
-
-    def draw(self, trajs: Trajs, system: str, path: Path) -> None:
-        """Draw ``system``'s step and sine responses (GC and LQI) into ``path``."""
-        for col, scen in enumerate(("step", "sine")):
-            ax_y, ax_u = self.axes[0, col], self.axes[1, col]
-            ref, ys, us = self.lines[scen]
-            runs = trajs.get(scen, {})
-            by_ctrl = {c: runs[c][system] for c in _PAIR if system in runs.get(c, {})}
-            for line in (ref, *ys.values(), *us.values()):
-                line.set_visible(False)
-            if by_ctrl:
-                first = next(iter(by_ctrl.values()))
-                n = first.u.shape[1]
-                ref.set_data(first.t[:n], first.r[0])
-                ref.set_visible(True)
-                for c, tr in by_ctrl.items():
-                    ys[c].set_data(tr.t[:n], tr.y[0, :n])
-                    us[c].set_data(tr.t[:n], tr.u[0])
-                    ys[c].set_visible(True)
-                    us[c].set_visible(True)
-                handles = [ref, *(ys[c] for c in by_ctrl)]
-                labels = ["reference", *(_label(c, tr) for c, tr in by_ctrl.items())]
-                ax_y.legend(handles, labels, fontsize=7)
-            elif ax_y.get_legend() is not None:
-                ax_y.get_legend().remove()
-            ax_y.set_title(f"{system}: {scen}" if by_ctrl else "")
-            for ax in (ax_y, ax_u):
-                ax.relim(visible_only=True)
-                ax.autoscale_view()
-        self.fig.savefig(path, dpi=80)
+def _step_sine(trajs: Trajs, system: str, path: Path) -> None:
+    """``system``'s step and sine responses (GC and LQI), output and control, into ``path``."""
+    plt = pyplot()
+    fig, axes = plt.subplots(2, 2, figsize=(10, 5.5), sharex="col")
+    for col, scen in enumerate(("step", "sine")):
+        ax_y, ax_u = axes[0, col], axes[1, col]
+        runs = trajs.get(scen, {})
+        by_ctrl = {c: runs[c][system] for c in _PAIR if system in runs.get(c, {})}
+        if by_ctrl:
+            first = next(iter(by_ctrl.values()))
+            n = first.u.shape[1]
+            ax_y.plot(first.t[:n], first.r[0], color="0.4", lw=1, label="reference")
+            for c, tr in by_ctrl.items():
+                color, ls = _STYLE[c]
+                ax_y.plot(tr.t[:n], tr.y[0, :n], color=color, ls=ls, label=_label(c, tr))
+                ax_u.plot(tr.t[:n], tr.u[0], color=color, ls=ls)
+            ax_y.legend(fontsize=7)
+            ax_y.set_title(f"{system}: {scen}")
+        ax_y.set_ylabel("y")
+        ax_u.set_ylabel("u")
+        ax_u.set_xlabel("t (s)")
+    for ax in axes.flat:
+        _light(ax)
+    # fixed margins: tight_layout doubles the drawing time
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.1, top=0.94, wspace=0.18, hspace=0.1)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
 
 
 def _run_figure(
@@ -180,12 +155,6 @@ def _grid(runs: Runs, scen: str, out: Path) -> Path:
     return path
 
 
-@functools.cache
-def _sheet() -> _StepSine:
-    """The step and sine sheet of this process, built on first use."""
-    return _StepSine()
-
-
 def plot_all(trajs: Trajs, out: Path, share: tuple[int, int] = (0, 1)) -> list[Path]:
     """Write the evaluation's figures (the module docstring) into ``out``; their paths.
 
@@ -197,7 +166,7 @@ def plot_all(trajs: Trajs, out: Path, share: tuple[int, int] = (0, 1)) -> list[P
     written = []
     for s in sorted(trajs.get("step", {}).get("GC", {}))[i::n]:
         written.append(out / f"{s}_step_sine.png")
-        _sheet().draw(trajs, s, written[-1])
+        _step_sine(trajs, s, written[-1])
     figures: list[tuple[str, str | None]] = []  # (scenario, plant), or one grid: (scenario, None)
     for scen, runs in trajs.items():
         if scen not in _BASIC:
