@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -28,6 +28,7 @@ __all__ = [
     "FORMS",
     "Candidate",
     "LinearFamily",
+    "PlantFamily",
     "TransferModel",
     "plant_from_record",
     "realise",
@@ -172,6 +173,25 @@ class Candidate:
             p = self.plant
             out.update(name=p.name, A=p.A.tolist(), B=p.B.tolist(), C=p.C.tolist())
         return out
+
+
+class PlantFamily(Protocol):
+    """What a family generator offers (:class:`LinearFamily`; a MIMO one later)."""
+
+    @property
+    def name(self) -> str:
+        """The family's name (the plants' names start with it)."""
+
+    @property
+    def seed(self) -> int:
+        """The seed of every candidate."""
+
+    @property
+    def dt(self) -> float:
+        """The plants' sample time."""
+
+    def candidate(self, index: int) -> Candidate:
+        """Candidate ``index`` of the family's seed: a function of ``(seed, index)`` alone."""
 
 
 def _weights(name: str, value: Mapping[Any, Any], known: Sequence[str]) -> dict[str, float]:

@@ -19,7 +19,7 @@ from threadpoolctl import threadpool_limits
 
 from generalist_control.common.sections import read_section
 from generalist_control.plants.definition import Plant, PlantConfigError
-from generalist_control.plants.families import Candidate, LinearFamily
+from generalist_control.plants.families import Candidate, PlantFamily
 from generalist_control.simulation.lqi import LQIGains, design_lqi, sampled_closed_loop
 
 __all__ = [
@@ -84,7 +84,7 @@ class FamilySettings:
     demos: Any
 
 
-def read_families(node: Mapping[str, Any]) -> tuple[LinearFamily, FamilySettings]:
+def read_families(node: Mapping[str, Any]) -> tuple[PlantFamily, FamilySettings]:
     """The family its ``generator`` block builds (``_target_``) and the group's settings.
 
     ``node`` is the group as plain types.
@@ -219,7 +219,7 @@ def _check_chunk(
 class FamilyDraw:
     """The kept plants of a draw, in tag order, and every candidate rejected before the last."""
 
-    family: LinearFamily
+    family: PlantFamily
     kept: tuple[DrawnPlant, ...]
     rejected: tuple[dict[str, Any], ...]
 
@@ -246,7 +246,7 @@ class FamilyDraw:
 
 
 def draw_family(
-    family: LinearFamily, count: int, checks: FamilyChecks, chunk: int = 256
+    family: PlantFamily, count: int, checks: FamilyChecks, chunk: int = 256
 ) -> FamilyDraw:
     """The first ``count`` candidates of ``family`` that pass the checks, and the refused.
 
