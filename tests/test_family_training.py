@@ -199,6 +199,12 @@ def test_bad_family_settings_and_data_are_refused(tiny_data_dir, family_dir, tmp
             {"dirs": ["x"], "dagger_plants": -1, "closed_loop_plants": 1},
             "train_families",
         )
+    # null is "none", as the config's comments say (and as the in-context refusal advises)
+    explicit = {"dirs": ["x"], "dagger_plants": 1, "closed_loop_plants": 1}
+    read = read_section(
+        FamilyTraining, {**explicit, "validation": None, "dagger_pick": None}, "train_families"
+    )
+    assert read.validation is None and read.dagger_pick is None
     with pytest.raises(ValueError, match="not a plant family's"):
         FamilySet.load([tiny_data_dir], 25)  # the catalogue's data: no plant_family block
     catalogue, _ = load_demos(tiny_data_dir)

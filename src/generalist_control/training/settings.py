@@ -170,10 +170,10 @@ class FamilyTraining:
     closed_loop_plants: int  #: the first family plants in the closed-loop validation
     #: a family group (``conf/families``) at a seed no training uses: its plants join the
     #: closed-loop validation zero-shot (:mod:`.unseen_draw`); None: none
-    validation: Any = None
+    validation: Any | None = None
     #: which family plants each DAgger round rolls out (``_target_``: ``training.sampler``'s
     #: ``InTurn``, ``WorstFirst``); None: in turn
-    dagger_pick: Any = None
+    dagger_pick: Any | None = None
 
     def __post_init__(self) -> None:
         if not self.dirs:
