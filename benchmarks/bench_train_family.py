@@ -42,7 +42,7 @@ def _held_out() -> list[str]:
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--experiment", default="family_card", help="family_card or family_context")
+    p.add_argument("--experiment", default="family_card", help="the family recipe to time")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads of the training")
     p.add_argument("--families", default="data/families/default", help="the family's data")
     p.add_argument("--out", type=Path, default=RESULTS)

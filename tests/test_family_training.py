@@ -3,21 +3,17 @@
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import numpy as np
 import pytest
-import torch
 from omegaconf import OmegaConf
 
 from generalist_control.common.paths import conf_dir
 from generalist_control.common.sections import as_dict, read_section
 from generalist_control.data.demos import load_demos
-from generalist_control.data.generation import generate_demos
 from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.evaluation.runner import evaluate
 from generalist_control.generate_families import run as generate_family
-from generalist_control.model.bank import plant_scales
 from generalist_control.model.card import card_features, card_frame
 from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.catalog import load_plant, tag_count
@@ -58,12 +54,11 @@ def test_the_family_joins_the_catalogue_with_tags_after_it(tiny_data_dir, family
                                   "plants": 4}]  # fmt: skip
 
 
-@pytest.mark.parametrize("experiment", ["family_card", "family_context"])
 def test_train_over_a_family_and_meet_a_plant_never_seen(
-    experiment, tiny_data_dir, family_dir, tmp_path, mlflow_uri
+    tiny_data_dir, family_dir, tmp_path, mlflow_uri
 ):
     """Tiny: one short epoch on two catalogue plants and four drawn ones; then zero-shot."""
-    over = tiny_train_overrides(tiny_data_dir, tmp_path, mlflow_uri, f"experiment={experiment}",
+    over = tiny_train_overrides(tiny_data_dir, tmp_path, mlflow_uri, "experiment=family_card",
                                 f"train_families.dirs=[{family_dir}]", "trainer.max_epochs=2",
                                 "+trainer.limit_train_batches=5", "dagger.start_epoch=1",
                                 "dagger.every=1", "dagger.rounds=1", "dagger.sampler.rollouts=1",
@@ -89,42 +84,34 @@ def test_train_over_a_family_and_meet_a_plant_never_seen(
     spec = {"family": "default", "seed": 2001, "count": 3, "checks": None, "state_draw": None}
     with pytest.raises(ValueError, match=r"trained or validated on \(seeds \[1, 2001\]\)"):
         family_draw(objects["policy_path"], spec, {"duration": 2.0}, {})
-    if experiment == "family_card":  # the bank holds each training plant's card
-        p = families.plants[0]
-        card = card_features(p, card_frame(p, 10.0))
-        np.testing.assert_allclose(policy.net.plant.cards[p.tag].numpy(), card, rtol=1e-6)
-    cfg = compose_cfg("data.duration=2.0", "data.families=null", config="unseen")
+    p = families.plants[0]  # the bank holds each training plant's card
+    card = card_features(p, card_frame(p, 10.0))
+    np.testing.assert_allclose(policy.net.plant.cards[p.tag].numpy(), card, rtol=1e-6)
     plant = load_plant(NEVER_SEEN)
-    grown, grown_meta = zero_shot(objects["policy_path"], plant, as_dict(cfg.data))
+    grown, grown_meta = zero_shot(objects["policy_path"], plant)
     assert grown_meta["tags"][NEVER_SEEN] == grown.net.n_tags - 1 == 29
     scenarios = {"step": {"kind": "step", "amplitude": 1.0, "duration": 3.0}}
     df, _ = evaluate(PolicyRuntime(grown, grown_meta), [plant], scenarios, progress=False)
     assert set(df.controller) >= {"GC", "LQI"} and set(df.system) == {NEVER_SEEN}
-    if experiment == "family_context":
-        _check_an_unseen_draw(policy, meta, as_dict(cfg.data))
+    _check_an_unseen_draw(policy, meta)
 
 
-def _check_an_unseen_draw(policy, meta, data):
-    """In context: each drawn plant's scales fitted on its own windows alone, its tag after."""
+def _check_an_unseen_draw(policy, meta):
+    """Each drawn plant's card row from its model, its tag after the policy's."""
     node = as_dict(compose_cfg(*TINY_FAMILY, "families.count=3", "families.generator.seed=7",
                                config="generate_families").families)  # fmt: skip
-    draw = UnseenDraw.draw(node, policy, data, 8, 3)
+    draw = UnseenDraw.draw(node, policy)
     assert all(p.name.startswith("default_s7_") for p in draw.plants)
-    assert [p.tag for p in draw.plants] == [0, 1, 2]  # the draw's places: the scales' rows
-    demos = generate_demos(draw.plants, {**data, "history": 8, "horizon": 3}, False)
-    w = demos.windows(8, 3, True, True)
-    fields = ("state", "mask", "ref", "target")
-    for i in range(3):
-        alone = plant_scales(*(torch.from_numpy(getattr(w, k)[w.tag == i]) for k in fields),
-                             mapped=True)  # fmt: skip
-        for key, value in alone.items():
-            torch.testing.assert_close(draw.scales[key][i : i + 1], value, rtol=1e-4, atol=1e-9)
+    assert [p.tag for p in draw.plants] == [0, 1, 2]  # the draw's places
     grown, grown_meta = draw.met(policy, meta)
     assert grown.net.n_tags == policy.net.n_tags + 3
     assert [grown_meta["tags"][p.name] for p in draw.plants] == [29, 30, 31]
+    for i, p in enumerate(draw.plants):
+        card = card_features(p, card_frame(p, 10.0))
+        np.testing.assert_allclose(grown.net.plant.cards[29 + i].numpy(), card, rtol=1e-6)
     tagged = Policy(net_config(hidden=16, experts=2, n_tags=2))  # a learned row per plant
-    with pytest.raises(ValueError, match="cannot meet zero-shot .*learned per tag"):
-        UnseenDraw.draw(node, tagged, data, 8, 3)
+    with pytest.raises(ValueError, match=r"\(model.plant: TagEmbedding\) cannot meet zero-shot"):
+        UnseenDraw.draw(node, tagged)
 
 
 def test_a_card_policy_takes_the_plant_by_its_yaml_path_in_the_runtime(
@@ -147,7 +134,7 @@ def _figures(ise, rmse=1.0, diverged=0):
 
 def test_the_routes_bars_and_their_section():
     entries = {
-        n: {"policies": {"card": _figures(v), "in_context": _figures(w)}}
+        n: {"policies": {"card": _figures(v), "zero_shot": _figures(w)}}
         for n, v, w in (("a", 1.05, 1.2), ("b", 1.2, 1.3), ("c", 1.0, 1.1))
     }
     worst = [{"plant": "p7", "ISE_ratio": 2.0, "plant_is": "drawn: order 4"}]
@@ -160,19 +147,21 @@ def test_the_routes_bars_and_their_section():
     assert not bars["draw_p95"] and not verdict["pass"]  # p95 1.3 > 1.25
     assert verdict["card_over"] == ["b"] and verdict["context_over"] == ["b"]
     over = judge_routes(
-        {**entries, "d": {"policies": {"card": _figures(None), "in_context": _figures(1.0)}}},
+        {**entries, "d": {"policies": {"card": _figures(None), "zero_shot": _figures(1.0)}}},
         None,
         ROUTES_BAR,
     )
     assert not over["bars"]["card_all_within"]  # a missing ratio (every run diverged) fails
-    card_only = {n: {"policies": {"card": e["policies"]["card"]}} for n, e in entries.items()}
-    alone = judge_routes(card_only, None, ROUTES_BAR)  # unseen.routes=[card]
-    assert alone["not_run"] == ["in_context"] and not alone["pass"]
-    assert set(alone["bars"]) == {"card_no_divergence", "card_most_within", "card_all_within"}
-    assert all(alone["bars"].values()) and verdict["not_run"] == []
-    lines = routes_lines({"held_out": card_only, "routes": alone}, "x")
-    assert "`in_context` **not run** (no bars)" in lines[-2]
-    assert "| `b` | 1.2 / 1 / 0 | n/a / n/a / n/a |" in lines
+    # in context is the tag-free policy (zero_shot), always evaluated; the card route may not be
+    context_only = {n: {"policies": {"zero_shot": e["policies"]["zero_shot"]}}
+                    for n, e in entries.items()}  # fmt: skip
+    alone = judge_routes(context_only, None, ROUTES_BAR)  # unseen.routes=[]
+    assert alone["not_run"] == ["card"] and not alone["pass"]
+    assert alone["bars"] == {"context_no_divergence": True, "context_most_within": True}
+    assert verdict["not_run"] == []
+    lines = routes_lines({"held_out": context_only, "routes": alone}, "x")
+    assert "`card` **not run** (no bars)" in lines[-2]
+    assert "| `b` | n/a / n/a / n/a | 1.3 / 1 / 0 |" in lines
     page = "\n".join(routes_lines({"held_out": entries, "routes": verdict, "family_draw": draw},
                                   "reports/unseen/summary.json"))  # fmt: skip
     assert "| `b` | 1.2 / 1 / 0 | 1.3 / 1 / 0 |" in page
@@ -199,7 +188,7 @@ def test_bad_family_settings_and_data_are_refused(tiny_data_dir, family_dir, tmp
             {"dirs": ["x"], "dagger_plants": -1, "closed_loop_plants": 1},
             "train_families",
         )
-    # null is "none", as the config's comments say (and as the in-context refusal advises)
+    # null is "none", as the config's comments say (and as the zero-shot refusal advises)
     explicit = {"dirs": ["x"], "dagger_plants": 1, "closed_loop_plants": 1}
     read = read_section(
         FamilyTraining, {**explicit, "validation": None, "dagger_pick": None}, "train_families"
@@ -214,44 +203,3 @@ def test_bad_family_settings_and_data_are_refused(tiny_data_dir, family_dir, tmp
     model = {"_target_": "generalist_control.model.card.CardPlant", "n_tags": 25}
     assert with_rows(model, None) is model
     assert with_rows({"plant": model}, FamilySet.load([family_dir], 25))["plant"]["n_tags"] == 29
-
-
-def test_the_in_context_part_has_no_per_plant_parameter():
-    from generalist_control.model.context import ContextPlant
-    from generalist_control.model.identifier import TransitionModels, TransitionSet
-
-    part = ContextPlant(16, functools.partial(TransitionSet), n_tags=30, card_weight=0.1)
-    assert all(p.shape[0] != 30 for p in part.parameters())
-    with pytest.raises(ValueError, match="identifier.models must be null"):
-        ContextPlant(16, functools.partial(TransitionSet, models=TransitionModels), n_tags=3)
-
-
-def test_the_in_context_normaliser_whitens_each_plant_over_its_windows(monkeypatch):
-    from generalist_control.model import normalise
-
-    torch.manual_seed(0)
-    W, n_tags = 4000, 3
-    mixing = torch.tensor([[1.0, 0, 0], [0.999, 0.01, 0], [0.3, -2.0, 50.0], [0, 0, 0]])
-    x = torch.randn(W, 8, 3) @ mixing.T  # two states nearly equal: a stiff realisation (W, 8, 4)
-    order = torch.tensor([2, 3, 1])
-    tag = torch.randint(0, 2, (W,))  # tag 2 has no windows
-    mask = (torch.arange(4) < order[tag][:, None]).float()[:, None, :].expand(W, 8, 4)
-    state = torch.cat([x * mask, torch.randn(W, 8, 1)], -1)
-    mask = torch.cat([mask, torch.ones(W, 8, 1)], -1)
-    args = (state, mask, torch.randn(W, 8), tag, torch.randn(W, 3))
-    fitted = normalise.Normaliser(n_tags, 5, mapped=True)
-    fitted.fit(*args)
-    for t in (0, 1):
-        sel = tag == t
-        z = fitted.normalise_inputs(state[sel], mask[sel], args[2][sel], tag[sel])[0]
-        z = z[..., :4].reshape(-1, 4).double()
-        n = int(order[t])
-        torch.testing.assert_close((z.T @ z / len(z))[:n, :n], torch.eye(n, dtype=torch.float64),
-                                   atol=1e-4, rtol=0)  # fmt: skip
-        assert torch.all(z[:, n:] == 0)
-    torch.testing.assert_close(fitted.state_map[2], torch.eye(4))
-    monkeypatch.setattr(normalise, "_ONEHOT_LIMIT", 0)  # sums scattered per tag: the same
-    scattered = normalise.Normaliser(n_tags, 5, mapped=True)
-    scattered.fit(*args)
-    for key, value in fitted.state_dict().items():
-        torch.testing.assert_close(scattered.state_dict()[key], value, rtol=1e-12, atol=1e-12)

@@ -94,13 +94,13 @@ def _commands() -> list[list[str]]:
 
 
 def test_the_stage_commands_write_where_the_protocol_reads():
-    train_default, train_free, train_card, train_context, evaluate = _commands()
+    train_default, train_free, train_card, evaluate = _commands()
     models = CONFIG["unseen"]["models"]
     assert "--config-name" in train_default and "unseen" in train_default
     assert CONFIG["paths"]["published_dir"] == f"{models}/default"
     assert f"paths.published_dir={models}/tag_free" in train_free
     assert "experiment=tag_free" in train_free
-    for folder, cmd in zip(ROUTES.values(), (train_card, train_context), strict=True):
+    for folder, cmd in zip(ROUTES.values(), (train_card,), strict=True):
         assert f"experiment={folder}" in cmd and "unseen" in cmd
         assert f"paths.published_dir={models}/{folder}" in cmd
     assert evaluate == ["python", "-m", "generalist_control.unseen"]
@@ -176,7 +176,8 @@ def test_the_stage_runs_on_tiny_data(tiny_data_dir, tmp_path, mlflow_uri):
     summary = json.loads((tmp_path / "reports/unseen/summary.json").read_text())
     entry = summary["held_out"]["hydraulic_actuator"]
     assert summary["family_draw"]["plants"] == 3 and summary["family_draw"]["seed"] == 1001
-    assert set(summary["routes"]["bars"]) >= {"card_no_divergence", "draw_median"}
+    assert set(summary["routes"]["bars"]) >= {"card_no_divergence", "draw_median",
+                                              "context_no_divergence"}  # fmt: skip
     assert entry["adaptation_wall_s"] > 0 and entry["demonstrations"]["windows"] == 8 * 38
     assert entry["class"]["order"] == 3
     for label in (*POLICIES, *ROUTES):
@@ -220,7 +221,9 @@ def test_the_stage_reads_its_config_once_into_settings():
     settings = read_unseen(cfg)
     assert settings.bar == {**BAR, "ISE_ratio": 2.0}  # every limit from conf/unseen.yaml
     assert settings.routes_bar == CONFIG["unseen"]["routes_bar"] and BAR["ISE_ratio"] == 1.1
-    assert settings.family_draw is None and settings.routes == ("card", "in_context")
+    assert settings.family_draw is None and settings.routes == ("card",)
+    with pytest.raises(ValueError, match=r"names \['in_context'\]: .* in context is the tag-free"):
+        read_unseen(compose_cfg("unseen.routes=[card,in_context]", config="unseen"))
     with pytest.raises(ValueError, match=r"unseen.routes names \['card_x'\]: the routes are"):
         read_unseen(compose_cfg("unseen.routes=[card_x]", config="unseen"))
     assert settings.models == Path("models/unseen") and settings.evaluation.scenarios
@@ -243,7 +246,7 @@ def test_the_routes_named_are_the_policies_required(tmp_path):
         held_out._paths(settings)
     (tmp_path / "family_card").mkdir()
     (tmp_path / "family_card" / "policy.ckpt").touch()
-    assert set(held_out._paths(settings)[1]) == {"card"}  # in_context: not asked for
+    assert set(held_out._paths(settings)[1]) == {"card"}
 
 
 def test_a_family_draw_of_a_family_file_with_a_defaults_list_composes_it():

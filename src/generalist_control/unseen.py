@@ -50,7 +50,8 @@ def _routes(names: list[str] | None) -> tuple[str, ...]:
     unknown = sorted(set(chosen) - set(ROUTES))
     if unknown:
         raise ValueError(
-            f"unseen.routes names {unknown}: the routes are {list(ROUTES)} ([]: none)"
+            f"unseen.routes names {unknown}: the routes are {list(ROUTES)} ([]: none; in "
+            "context is the tag-free policy's zero_shot, always evaluated)"
         )
     return chosen
 

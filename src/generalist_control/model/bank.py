@@ -24,7 +24,6 @@ __all__ = [
     "add_plant",
     "add_plants",
     "add_rows",
-    "add_scales",
     "check_growable",
     "fit_model_rows",
     "grow_policy",
@@ -133,29 +132,17 @@ def plant_scales(
     mask: Tensor,
     ref: Tensor,
     target: Tensor,
-    mapped: bool = False,
     plant: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """Normaliser rows fitted on windows, keyed as in a policy's ``state_dict``.
 
     One row, or with ``plant`` (each window's plant, ``0 .. k-1``) one per plant.
-    ``mapped``: the policy's normaliser maps states (``Normaliser.mapped``).
     """
     if plant is None:
         plant = torch.zeros(len(state), dtype=torch.long)
-    rows = Normaliser(int(plant.max()) + 1, state.shape[-1], mapped)
+    rows = Normaliser(int(plant.max()) + 1, state.shape[-1])
     rows.fit(state, mask, ref, plant, target)
     return {f"normaliser.{k}": v.detach().clone() for k, v in rows.named_buffers()}
-
-
-def add_scales(policy: Policy, scales: Mapping[str, Tensor]) -> Policy:
-    """``policy`` grown by normaliser rows ``scales``; the plant part's buffers get zeros."""
-    rows = dict(scales)
-    k = len(next(iter(rows.values())))
-    for key, value in policy.net.plant.named_buffers(prefix="net.plant"):
-        if key not in rows and value.shape[:1] == (policy.net.n_tags,):
-            rows[key] = value.new_zeros((k, *value.shape[1:]))
-    return add_rows(policy, rows)
 
 
 def check_growable(policy: Policy, source: str = "the policy") -> None:

@@ -2,7 +2,8 @@
 
 Plants' signals differ by orders of magnitude, so each is divided by its RMS over its own
 tag's windows (no offsets: the data are deviations). Unseen tags get the scales over all
-windows. With ``mapped``, each tag's plant state is also taken into a frame (``state_map``).
+windows. With ``mapped``, each tag's plant state is also taken into a frame (``state_map``:
+the identity until a plant part's rows set it, as the card's frame does).
 """
 
 from __future__ import annotations
@@ -35,20 +36,6 @@ def _per_tag(tag: Tensor, n_tags: int) -> Callable[[Tensor], Tensor]:
         onehot = nn.functional.one_hot(tag, n_tags).to(torch.float64)  # (W, n_tags)
         return lambda v: (onehot.T @ v.reshape(len(v), -1)).reshape(n_tags, *v.shape[1:])
     return lambda v: v.new_zeros((n_tags, *v.shape[1:])).index_add_(0, tag, v)
-
-
-def _whitening(cov: Tensor, valid: Tensor, tag: Tensor, seen: Tensor) -> Tensor:
-    """Per tag ``cov^(-1/2)`` over its plant's real state entries (``valid``), zero beyond.
-
-    Eigenvalues below ``1e-12`` of the largest are raised to it; unseen tags get ``I``.
-    """
-    real = valid.new_zeros(cov.shape[0], MAX_ORDER).index_copy_(0, tag, valid)
-    keep = real[:, :, None] * real[:, None, :]
-    eye = torch.eye(MAX_ORDER, dtype=cov.dtype)
-    vals, vecs = torch.linalg.eigh(cov * keep + eye * (1 - real)[:, None, :])
-    vals = torch.maximum(vals, 1e-12 * vals.amax(dim=1, keepdim=True).clamp(min=_TINY))
-    root = vecs @ torch.diag_embed(vals.rsqrt()) @ vecs.transpose(1, 2)
-    return torch.where(seen[:, None, None], root * keep, eye.expand_as(root))
 
 
 class Normaliser(nn.Module):
@@ -110,13 +97,6 @@ class Normaliser(nn.Module):
         self.ref_scale.copy_(_rms(sr, cr))
         self.control_scale.copy_(_rms(su, cu))
         self.seen.copy_(seen)
-        if self.mapped:  # each plant's state whitened by its covariance over the windows
-            x = (state.to(d) * m)[..., :MAX_ORDER]
-            cov = (
-                per_tag(torch.einsum("wti,wtj->wij", x, x))
-                / (n * state.shape[1]).clamp(min=1)[:, None, None]
-            )
-            self.state_map.copy_(_whitening(cov, m[:, 0, :MAX_ORDER], tag, seen))
 
     def normalise_inputs(
         self, state: Tensor, mask: Tensor, ref: Tensor, tag: Tensor

@@ -1,8 +1,8 @@
 """The held-out protocol (``beyond/dvc.yaml:unseen``): plants the policy has never seen.
 
-Per held-out plant the :data:`POLICIES` (and ``unseen.routes``, issue 50's zero-shot
-:data:`ROUTES`; the card route's with a held-out family draw) run every scenario against its
-LQI; then the bars (:func:`judge`, :func:`judge_routes`). docs/pipeline.md has the files.
+Per held-out plant the :data:`POLICIES` (and ``unseen.routes``: the model card route, with a
+held-out family draw) run every scenario against its LQI; then the bars (:func:`judge`,
+:func:`judge_routes`; in context is the tag-free ``zero_shot``). docs/pipeline.md has the files.
 """
 
 from __future__ import annotations
@@ -182,7 +182,7 @@ def _plant(
         "trained_with": load_policy(paths["trained_with"]),
     }
     plant = load_plant(name)
-    policies.update({k: zero_shot(path, plant, settings.data) for k, path in routes.items()})
+    policies.update({k: zero_shot(path, plant) for k, path in routes.items()})
     frames = [_evaluated(settings.evaluation, k, p, m, plant) for k, (p, m) in policies.items()]
     df = pd.concat(frames, ignore_index=True)
     entry = {
@@ -196,20 +196,15 @@ def _plant(
     return df, entry
 
 
-#: The zero-shot routes, each its training's folder under ``unseen.models``.
-ROUTES = {"card": "family_card", "in_context": "family_context"}
+#: The zero-shot routes trained apart, each its training's folder under ``unseen.models``;
+#: the in-context route is the tag-free policy, ``zero_shot`` (always evaluated).
+ROUTES = {"card": "family_card"}
 
 
-def zero_shot(path: Path, plant: Plant, data: Mapping[str, Any]) -> tuple[Policy, dict[str, Any]]:
-    """The policy at ``path`` meeting ``plant`` with nothing learned, and its meta.
-
-    A card policy's row from the plant's model; an in-context policy's scales fitted on the
-    windows ``adapt`` generates for it (:class:`UnseenDraw`).
-    """
+def zero_shot(path: Path, plant: Plant) -> tuple[Policy, dict[str, Any]]:
+    """The card policy at ``path`` meeting ``plant``: its row from the plant's model."""
     policy, meta = load_policy(path)
-    one = dataclasses.replace(plant, tag=0)  # its place in the draw: its scales' row
-    met = UnseenDraw.of([one], policy, data, int(meta["history"]), int(meta["horizon"]))
-    return met.met(policy, meta)
+    return UnseenDraw.of([dataclasses.replace(plant, tag=0)], policy).met(policy, meta)
 
 
 def _family_node(spec: Mapping[str, Any], data: Mapping[str, Any]) -> dict[str, Any]:
@@ -248,7 +243,7 @@ def family_draw(
         )
     family, settings = read_families(_family_node(spec, data))
     draw = draw_family(family, int(spec["count"]), settings.checks)
-    rt = PolicyRuntime(*UnseenDraw(tuple(draw.plants), None).met(policy, meta))
+    rt = PolicyRuntime(*UnseenDraw(tuple(draw.plants)).met(policy, meta))
     df, _ = evaluate(rt, draw.plants, with_state_draw(scenarios, spec["state_draw"]))
     df.insert(0, "policy", "card")
     return df, _draw_summary(df, draw.plants, spec)
@@ -289,9 +284,12 @@ def ratio(value: Any) -> float:
 def judge_routes(
     entries: Mapping[str, Any], draw: Mapping[str, Any] | None, bar: Mapping[str, Any]
 ) -> dict[str, Any]:
-    """Issue 50's bars (``unseen.routes_bar``); a route not evaluated is in ``not_run`` (fails)."""
+    """Issue 50's bars (``unseen.routes_bar``); the card route not evaluated: ``not_run`` (fails).
+
+    In context: the tag-free policy (``zero_shot``), which reads the plant from its window.
+    """
     card, ctx = ({n: e["policies"][k] for n, e in entries.items() if k in e["policies"]}
-                 for k in ROUTES)  # fmt: skip
+                 for k in ("card", "zero_shot"))  # fmt: skip
     worst = {n: max(ratio(f["ISE_ratio"]), ratio(f["RMSE_ratio_worst"])) for n, f in card.items()}
     over = sorted(n for n, v in worst.items() if v > bar["near"])
     ctx_over = sorted(n for n, f in ctx.items() if ratio(f["ISE_ratio"]) > bar["context"])
@@ -307,7 +305,7 @@ def judge_routes(
         bars["draw_no_divergence"] = draw["diverged_runs"] == 0
         bars["draw_median"] = draw["ISE_ratio"]["median"] <= bar["median"]
         bars["draw_p95"] = draw["ISE_ratio"]["p95"] <= bar["p95"]
-    not_run = [k for k, figures in zip(ROUTES, (card, ctx), strict=True) if not figures]
+    not_run = [] if card else ["card"]
     return {"bars": bars, "card_over": over, "context_over": ctx_over, "not_run": not_run,
             "pass": all(bars.values()) and not not_run}  # fmt: skip
 
@@ -351,15 +349,14 @@ def run_unseen(settings: UnseenSettings, requests: Mapping[str, AdaptRequest]) -
         "policies": {k: str(v) for k, v in {**paths, **routes}.items()},
         "provenance": provenance(),
     }
-    if routes:
-        draw = None
-        if settings.family_draw is not None and "card" in routes:
-            spec, scenarios = settings.family_draw, settings.evaluation.scenarios
-            df, draw = family_draw(routes["card"], spec, settings.data, scenarios)
-            frames.append(df)
-            log.info("held-out family draw: median ISE ratio %.4g", draw["ISE_ratio"]["median"])
-        summary["routes"] = judge_routes(entries, draw, settings.routes_bar)
-        summary["family_draw"] = draw
+    draw = None
+    if settings.family_draw is not None and "card" in routes:
+        spec, scenarios = settings.family_draw, settings.evaluation.scenarios
+        df, draw = family_draw(routes["card"], spec, settings.data, scenarios)
+        frames.append(df)
+        log.info("held-out family draw: median ISE ratio %.4g", draw["ISE_ratio"]["median"])
+    summary["routes"] = judge_routes(entries, draw, settings.routes_bar)
+    summary["family_draw"] = draw
     with staging_directory(out_dir) as staging:
         pd.concat(frames, ignore_index=True).to_csv(staging / "metrics.csv", index=False)
         write_json(staging / "summary.json", summary)

@@ -43,14 +43,15 @@ def routes_lines(summary: Mapping[str, Any], source: str) -> list[str]:
         return []
     held = summary.get("held_out") or {}
     rows = [
-        [f"`{name}`", *(policy_cell(e["policies"].get(k)) for k in ("card", "in_context"))]
+        [f"`{name}`", *(policy_cell(e["policies"].get(k)) for k in ("card", "zero_shot"))]
         for name, e in held.items()
         if isinstance(e, Mapping)
     ]
     lines = [
-        "Zero-shot, trained over a plant family and the 20 other catalogue plants (issue 50): "
-        "the model card route given each plant's model, the in-context route reading it from "
-        "its window (its signals' scales from its demonstrations):",
+        "Zero-shot (issue 50): the model card route, trained over a plant family and the 20 "
+        "other catalogue plants, given each plant's model; the in-context route, the tag-free "
+        "policy trained over those 20 plants, reading it from its window (its signals' scales "
+        "from its demonstrations):",
         "",
         *table(_HEADER, rows, source),
         "",

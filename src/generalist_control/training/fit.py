@@ -89,10 +89,7 @@ def _callbacks(
         score = ClosedLoopScore(plants + family[:checked], amplitudes, val.duration)
         unseen = None
         if spec is not None and spec.validation is not None:
-            draw = UnseenDraw.draw(
-                spec.validation, lit.policy, settings.rollout_data.recipe, settings.history,
-                settings.horizon,
-            )  # fmt: skip
+            draw = UnseenDraw.draw(spec.validation, lit.policy)
             unseen = draw, ClosedLoopScore(draw.plants, amplitudes, val.duration)
         callbacks.append(ClosedLoopValidation(score, unseen))
     return callbacks
