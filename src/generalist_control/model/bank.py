@@ -127,21 +127,10 @@ def add_plants(policy: Policy, plants: Sequence[Plant]) -> Policy:
     return add_rows(policy, rows)
 
 
-def plant_scales(
-    state: Tensor,
-    mask: Tensor,
-    ref: Tensor,
-    target: Tensor,
-    plant: Tensor | None = None,
-) -> dict[str, Tensor]:
-    """Normaliser rows fitted on windows, keyed as in a policy's ``state_dict``.
-
-    One row, or with ``plant`` (each window's plant, ``0 .. k-1``) one per plant.
-    """
-    if plant is None:
-        plant = torch.zeros(len(state), dtype=torch.long)
-    rows = Normaliser(int(plant.max()) + 1, state.shape[-1])
-    rows.fit(state, mask, ref, plant, target)
+def plant_scales(state: Tensor, mask: Tensor, ref: Tensor, target: Tensor) -> dict[str, Tensor]:
+    """One plant's normaliser row fitted on its windows, keyed as in a policy's ``state_dict``."""
+    rows = Normaliser(1, state.shape[-1])
+    rows.fit(state, mask, ref, torch.zeros(len(state), dtype=torch.long), target)
     return {f"normaliser.{k}": v.detach().clone() for k, v in rows.named_buffers()}
 
 
