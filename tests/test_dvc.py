@@ -235,3 +235,17 @@ def test_plots_show_draws_the_declared_plots(repo):
     assert "Unit-step responses" in html and '"LQI"' in html, "responses.csv is not drawn"
     ignored = subprocess.run(["git", "check-ignore", "-q", "dvc_plots/index.html"], cwd=ROOT)
     assert ignored.returncode == 0, "dvc_plots/ is not git-ignored"
+
+
+def test_the_data_writer_is_the_pinned_pyarrow(tmp_path):
+    """The parquet footer names its writer: another pyarrow writes other bytes (dvc.lock)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    pins = re.findall(r'^\s*"pyarrow==([^"]+)"', (ROOT / "pyproject.toml").read_text(), re.M)
+    assert pins == [pa.__version__], (
+        f"pyarrow {pa.__version__} is installed, pyproject.toml pins {pins}: the data's bytes "
+        "would not match dvc.lock; rerun the set-up (make setup)"
+    )
+    pq.write_table(pa.table({"x": [1.0]}), tmp_path / "t.parquet")
+    assert pq.ParquetFile(tmp_path / "t.parquet").metadata.created_by.endswith(pins[0])
