@@ -17,7 +17,7 @@ from generalist_control.generate_families import run as generate_family
 from generalist_control.model.card import card_features, card_frame
 from generalist_control.model.policy import Policy, load_policy
 from generalist_control.plants.catalog import load_plant, tag_count
-from generalist_control.reports.held_out import family_draw, judge_routes, zero_shot
+from generalist_control.reports.held_out import card_met, family_draw, judge_routes
 from generalist_control.reports.routes_section import routes_lines
 from generalist_control.training.family_set import FamilySet, join_demos, with_rows
 from generalist_control.training.settings import FamilyTraining
@@ -88,7 +88,7 @@ def test_train_over_a_family_and_meet_a_plant_never_seen(
     card = card_features(p, card_frame(p, 10.0))
     np.testing.assert_allclose(policy.net.plant.cards[p.tag].numpy(), card, rtol=1e-6)
     plant = load_plant(NEVER_SEEN)
-    grown, grown_meta = zero_shot(objects["policy_path"], plant)
+    grown, grown_meta = card_met(objects["policy_path"], plant)
     assert grown_meta["tags"][NEVER_SEEN] == grown.net.n_tags - 1 == 29
     scenarios = {"step": {"kind": "step", "amplitude": 1.0, "duration": 3.0}}
     df, _ = evaluate(PolicyRuntime(grown, grown_meta), [plant], scenarios, progress=False)

@@ -50,12 +50,12 @@ __all__ = [
     "POLICIES",
     "ROUTES",
     "UnseenSettings",
+    "card_met",
     "family_draw",
     "judge",
     "judge_routes",
     "ratio",
     "run_unseen",
-    "zero_shot",
 ]
 
 log = logging.getLogger(__name__)
@@ -182,7 +182,7 @@ def _plant(
         "trained_with": load_policy(paths["trained_with"]),
     }
     plant = load_plant(name)
-    policies.update({k: zero_shot(path, plant) for k, path in routes.items()})
+    policies.update({k: card_met(path, plant) for k, path in routes.items()})
     frames = [_evaluated(settings.evaluation, k, p, m, plant) for k, (p, m) in policies.items()]
     df = pd.concat(frames, ignore_index=True)
     entry = {
@@ -201,8 +201,11 @@ def _plant(
 ROUTES = {"card": "family_card"}
 
 
-def zero_shot(path: Path, plant: Plant) -> tuple[Policy, dict[str, Any]]:
-    """The card policy at ``path`` meeting ``plant``: its row from the plant's model."""
+def card_met(path: Path, plant: Plant) -> tuple[Policy, dict[str, Any]]:
+    """The card policy at ``path`` meeting ``plant``: its row from the plant's model.
+
+    (Not the ``zero_shot`` policy: that is the tag-free one, the in-context route.)
+    """
     policy, meta = load_policy(path)
     return UnseenDraw.of([dataclasses.replace(plant, tag=0)], policy).met(policy, meta)
 
