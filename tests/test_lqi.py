@@ -167,6 +167,10 @@ def test_missing_field_and_bad_function_path():
     with pytest.raises(PlantConfigError, match="plant 'bad': missing field 'tag'"):
         plant_from_config("bad", cfg)
     cfg = linear_cfg([[0, 1], [-1, -1]], [[0], [1]], [[1, 0]])
+    del cfg["states"]  # a catalogue plant names its signals; the message says how
+    with pytest.raises(PlantConfigError, match=r"missing field 'states' \(one \{name, unit\} per"):
+        plant_from_config("bad", cfg)
+    cfg = linear_cfg([[0, 1], [-1, -1]], [[0], [1]], [[1, 0]])
     cfg["dynamics"] = {"f": "no.such.module.f", "x_op": [0, 0]}
     with pytest.raises(PlantConfigError, match="dynamics.f"):
         plant_from_config("bad", cfg)

@@ -12,6 +12,7 @@ from generalist_control.deploy.runtime import PolicyRuntime
 from generalist_control.model.bank import fit_model_rows
 from generalist_control.model.policy import Policy
 from generalist_control.plants.catalog import load_plant
+from generalist_control.plants.config import plant_from_file
 from generalist_control.plants.definition import PlantConfigError
 from helpers import net_config
 from test_card import card_config
@@ -69,6 +70,28 @@ def test_yaml_path_model_dict_and_plant_give_the_same_controls(card_policy):
     np.testing.assert_array_equal(by_dict, by_file)
     np.testing.assert_array_equal(by_plant, by_file)
     np.testing.assert_allclose(by_name, by_file, rtol=1e-5, atol=1e-6)
+
+
+def test_a_plant_yaml_of_its_model_alone_is_named_as_a_model_dict(card_policy, tmp_path):
+    model = _model_dict(NEW)
+    path = tmp_path / f"{NEW}.yaml"  # no states, input, output, description: the model alone
+    path.write_text(
+        yaml.safe_dump(
+            {
+                "dt": model["dt"],
+                "A": model["A"],
+                "B": model["B"],
+                "C": model["C"],
+                "lqi": {"Q": model["Q"], "R": model["R"]},
+            }
+        )
+    )
+    by_file = _controls(PolicyRuntime(card_policy, _meta(TRAINED)), str(path))
+    by_dict = _controls(PolicyRuntime(card_policy, _meta(TRAINED)), model)
+    np.testing.assert_array_equal(by_file, by_dict)
+    plant = plant_from_file(path)
+    assert [s.name for s in plant.states] == ["x1", "x2", "x3"]
+    assert (plant.input_signal.name, plant.output_signal.name) == ("u", "y")
 
 
 def test_a_catalogue_name_still_works_and_a_batch_mixes_names_and_models(card_policy):

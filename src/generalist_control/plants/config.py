@@ -121,7 +121,8 @@ def _weight(value: Any, n: int, key: str, plant: str) -> np.ndarray:
 def _signals(spec: Mapping[str, Any], key: str, plant: str) -> tuple[Signal, ...]:
     items = spec.get(key)
     if items is None:
-        raise PlantConfigError(f"plant '{plant}': missing field '{key}'")
+        what = "one {name, unit} per state" if key == "states" else "{name, unit}"
+        raise PlantConfigError(f"plant '{plant}': missing field '{key}' ({what})")
     if isinstance(items, Mapping):
         items = [items]
     try:
@@ -302,15 +303,19 @@ def plant_from_model(model: Mapping[str, Any], name: str | None = None) -> Plant
             f"{where}: field 'A' must be a square matrix (a list of rows)"
         ) from None
     spec = {
-        **_DEFAULTS,
-        "dt": model["dt"],
+        **_DEFAULTS, **_signal_names(n), "dt": model["dt"],
+        **{k: model[k] for k in ("A", "B", "C")}, "lqi": {"Q": model["Q"], "R": model["R"]},
+    }  # fmt: skip
+    return plant_from_config(label, spec)
+
+
+def _signal_names(n: int) -> dict[str, Any]:
+    """Signal names for a plant given without them: states ``x1 ..``, input ``u``, output ``y``."""
+    return {
         "states": [{"name": f"x{i + 1}", "unit": "-"} for i in range(n)],
         "input": {"name": "u", "unit": "-"},
         "output": {"name": "y", "unit": "-"},
-        **{k: model[k] for k in ("A", "B", "C")},
-        "lqi": {"Q": model["Q"], "R": model["R"]},
     }
-    return plant_from_config(label, spec)
 
 
 def read_plant_file(path: Path) -> Any:
@@ -344,6 +349,8 @@ def plant_from_file(path: str | Path) -> Plant:
     if not isinstance(spec, dict) or not ({"A", "dynamics"} & set(spec)):
         raise PlantConfigError(
             f"{path} is not a plant file: a plant YAML is a mapping with the model (A, B, C "
-            "or dynamics), dt, states, input, output and lqi (conf/plants/README.md)"
+            "or dynamics), dt and lqi; states, input, output name its signals (conf/plants/"
+            "README.md)"
         )
-    return plant_from_config(path.stem, {**_DEFAULTS, **spec})
+    names = _signal_names(len(spec["A"])) if isinstance(spec.get("A"), list) else {}
+    return plant_from_config(path.stem, {**_DEFAULTS, **names, **spec})
