@@ -12,6 +12,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from helpers import tiny_train_overrides
+
 ROOT = Path(__file__).resolve().parents[1]
 DVC = [sys.executable, "-m", "dvc"]
 
@@ -217,6 +219,63 @@ def test_data_stage_bytes_do_not_depend_on_the_cpu(tmp_path):
         _generate(stage_cmd, m, tmp_path / f"p{i}" / "demos") for i, m in enumerate(MACHINES)
     }
     assert len(pinned) == 1
+
+
+#: What a different CPU changes in training: ATen's vectorised kernels, MKL's code branch and
+#: oneDNN's instruction set (the LSTM), each set here as another machine would pick it.
+TORCH_MACHINES = (
+    {},
+    {"ATEN_CPU_CAPABILITY": "default", "MKL_CBWR": "COMPATIBLE", "ONEDNN_MAX_CPU_ISA": "SSE41"},
+)
+
+
+def _stage_env(stage: str) -> str:
+    """The ``env ...`` part of ``stage``'s command in dvc.yaml (what it pins)."""
+    cmd = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"][stage]["cmd"]
+    prefix, found, _ = cmd.partition(" python -m generalist_control.")
+    assert found and prefix.startswith("env "), cmd
+    return prefix
+
+
+def _train_weights(prefix: str, machines, data_dir: Path, out: Path) -> list[dict]:
+    """The policy's weights of a tiny training run as ``prefix python -m ...train`` per machine."""
+    import torch
+
+    runs = []
+    for i, machine in enumerate(machines):  # side by side, one thread each
+        work = out / str(i)
+        work.mkdir(parents=True)
+        env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "GC_CONF_DIR": str(ROOT / "conf"),
+               **machine}  # fmt: skip
+        args = tiny_train_overrides(
+            data_dir, work, f"sqlite:///{work / 'mlflow.db'}", "logger.log_model=false"
+        )
+        cmd = f"{prefix} {sys.executable} -m generalist_control.train {shlex.join(args)}"
+        log = (work / "log.txt").open("w")
+        runs.append((work, subprocess.Popen(["bash", "-c", cmd], cwd=work, env=env, stdout=log,
+                                            stderr=subprocess.STDOUT)))  # fmt: skip
+    weights = []
+    for work, proc in runs:
+        assert proc.wait(timeout=300) == 0, (work / "log.txt").read_text()[-3000:]
+        ckpt = torch.load(work / "run/models/policy.ckpt", map_location="cpu", weights_only=False)
+        weights.append(ckpt["state_dict"])
+    return weights
+
+
+def _same(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(a[k].equal(b[k]) for k in a)
+
+
+@pytest.mark.slow  # four tiny trainings in their own processes, two at a time, ~40 s
+def test_train_stage_weights_do_not_depend_on_the_cpu(tiny_data_dir, tmp_path):
+    train_pin = _stage_env("train")
+    assert _stage_env("evaluate") == train_pin, "evaluate must pin what train pins"
+    assert train_pin.startswith(_stage_env("generate")), "train must pin the data stage's numerics"
+    # unpinned, the emulated machines train different weights: the emulation reproduces it
+    plain = _train_weights("env", TORCH_MACHINES, tiny_data_dir, tmp_path / "plain")
+    assert not _same(*plain)
+    pinned = _train_weights(train_pin, TORCH_MACHINES, tiny_data_dir, tmp_path / "pinned")
+    assert _same(*pinned)
 
 
 def test_plots_show_draws_the_declared_plots(repo):

@@ -276,6 +276,7 @@ def test_only_the_dvc_stage_publishes_to_models(tiny_data_dir, tmp_path, mlflow_
     # the DVC stage's own command, its published_dir moved into tmp_path
     stage = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]["train"]
     words = shlex.split(stage["cmd"])
+    words = words[words.index("python") :]  # after its `env` pins (tests/test_dvc.py's)
     assert words[:3] == ["python", "-m", "generalist_control.train"]
     assert "publish=true" in words and "paths.published_dir=models" in words
     assert "models/policy.ckpt" in stage["outs"]
