@@ -194,6 +194,11 @@ TINY_GENERATE = [
 ]
 
 
+def _stage_cmd(stage: str) -> str:
+    """``stage``'s command in dvc.yaml."""
+    return yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"][stage]["cmd"]
+
+
 def _generate(cmd: str, machine: dict[str, str], out: Path) -> tuple[str, str]:
     """Run ``cmd`` (a shell command) on the tiny config under ``machine``'s settings."""
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), **machine}
@@ -208,7 +213,7 @@ def _generate(cmd: str, machine: dict[str, str], out: Path) -> tuple[str, str]:
 
 @pytest.mark.slow  # six small generations, ~90 s
 def test_data_stage_bytes_do_not_depend_on_the_cpu(tmp_path):
-    stage_cmd = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]["generate"]["cmd"]
+    stage_cmd = _stage_cmd("generate")
     assert stage_cmd.endswith("python -m generalist_control.generate")
     plain = "python -m generalist_control.generate"
     # unpinned, the emulated machines disagree: the emulation reproduces the issue
@@ -231,7 +236,7 @@ TORCH_MACHINES = (
 
 def _stage_env(stage: str) -> str:
     """The ``env ...`` part of ``stage``'s command in dvc.yaml (what it pins)."""
-    cmd = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"][stage]["cmd"]
+    cmd = _stage_cmd(stage)
     prefix, found, _ = cmd.partition(" python -m generalist_control.")
     assert found and prefix.startswith("env "), cmd
     return prefix
@@ -254,9 +259,10 @@ def _train_weights(runs: list[tuple[str, dict]], data_dir: Path, out: Path) -> l
         args = tiny_train_overrides(data_dir, work, uri, "debug=fast", "closed_loop_val=null",
                                     "monitor=val/loss")  # fmt: skip
         cmd = f"{prefix} {sys.executable} -m generalist_control.train {shlex.join(args)}"
-        log = (work / "log.txt").open("w")
-        procs.append((work, subprocess.Popen(["bash", "-c", cmd], cwd=work, env=env, stdout=log,
-                                             stderr=subprocess.STDOUT)))  # fmt: skip
+        with (work / "log.txt").open("w") as log:  # the child keeps its own descriptor
+            proc = subprocess.Popen(["bash", "-c", cmd], cwd=work, env=env, stdout=log,
+                                    stderr=subprocess.STDOUT)  # fmt: skip
+        procs.append((work, proc))
     weights = []
     for work, proc in procs:
         assert proc.wait(timeout=300) == 0, (work / "log.txt").read_text()[-3000:]
